@@ -1,0 +1,366 @@
+#!/usr/bin/env python
+"""Ring test of shearfit against GalSim-simulated galaxies: multiplicative and additive bias.
+
+Every galaxy of the paper's population (priors.sample_population) is simulated
+by GalSim on several dithered exposures with elliptical Moffat PSFs, at
+``--n-rotations`` orientations (a ring), once with shear +g and once with -g.
+The two runs share galaxy, PSFs, dithers *and noise*, so in
+
+    m_i = (<e_i>_+ - <e_i>_-) / (2 g_i) - 1,     c_i = (<e_i>_+ + <e_i>_-) / 2
+
+(``<>`` the weighted mean over all objects of a sign) most of the shape noise
+and of the pixel noise cancel. Errors come from a bootstrap over galaxies (a
+galaxy carries its whole +g/-g ring pair). With a wide SNR range, m is also
+printed in SNR bins: that is the noise bias the calibration has to remove.
+
+Examples
+--------
+Smoke test (seconds)::
+
+    python benchmarks/ring_test.py --n-galaxies 8
+
+Simulation only, while the engine is unavailable::
+
+    python benchmarks/ring_test.py --n-galaxies 8 --dry-run
+
+Noise bias across SNR::
+
+    python benchmarks/ring_test.py --n-galaxies 2000 --snr-min 10 --snr-max 100 --out ring.fits
+"""
+
+from __future__ import annotations
+
+import os
+
+# One BLAS / FFT thread per worker: the pool provides the parallelism, and the throughput is
+# quoted per process. Must be set before numpy is imported.
+for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
+
+import argparse  # noqa: E402
+import sys  # noqa: E402
+import time  # noqa: E402
+from multiprocessing import Pool  # noqa: E402
+
+import numpy as np  # noqa: E402
+
+import shearfit  # noqa: E402
+from shearfit.simulate import ring_set  # noqa: E402
+
+# m(SNR) is printed when snr_max / snr_min exceeds this: a narrower range has no noise-bias trend to see.
+WIDE_SNR_RATIO = 2.5
+RESULT_FIELDS = ("e1", "e2", "e_var", "weight", "snr", "scalelength", "bulge_fraction", "model_flux")
+
+
+# ----------------------------------------------------------------------------- workers
+
+def _work(task):
+    """Simulate one galaxy's +g and -g rings and (unless dry) measure every object.
+
+    Runs in a pool worker; everything it needs arrives in ``task`` so that it
+    is independent of the start method.
+    """
+    index, seed, opts = task
+    g = np.array(opts["shear"], dtype=float)
+    measure = None if opts["dry_run"] else _get_measure_object()
+    cfg = opts["config"]
+    records = []
+    t_sim = t_meas = 0.0
+    for sign in (+1, -1):
+        # The same seed for both signs: nothing ring_set draws depends on the shear, so the
+        # galaxy, PSFs, dithers and noise are identical and cancel in the +g / -g difference.
+        rng = np.random.default_rng(seed)
+        t0 = time.perf_counter()
+        rings = ring_set(1, tuple(sign * g), rng, cfg=cfg, **opts["ring_kwargs"])
+        t_sim += time.perf_counter() - t0
+        for obs, truth in rings:
+            rec = {
+                "galaxy": index, "sign": sign, "rotation": truth["rotation"],
+                "g1": truth["g1"], "g2": truth["g2"], "e1_int": truth["e1_int"], "e2_int": truth["e2_int"],
+                "true_scalelength": truth["scalelength"], "true_bulge_fraction": truth["bulge_fraction"],
+                "is_bulge": truth["is_bulge"], "mag": truth["mag"], "flux": truth["flux"],
+                "snr_target": truth["snr"], "snr_true": truth["snr_true"], "sigma": truth["sigma"],
+                "psf_fwhm_mean": float(np.mean(truth["psf_fwhm"])), "psf_beta_mean": float(np.mean(truth["psf_beta"])),
+                "psf_e1_mean": float(np.mean(truth["psf_e1"])), "psf_e2_mean": float(np.mean(truth["psf_e2"])),
+                "n_redraws": truth["n_redraws"],
+                "peak_over_sigma": float(max(o.image.max() for o in obs) / truth["sigma"]),
+                "fitclass": -99, "time": np.nan, "error": "",
+            }
+            for name in RESULT_FIELDS:
+                rec[name] = np.nan
+            if measure is not None:
+                t0 = time.perf_counter()
+                try:
+                    res = measure(obs, mag=truth["mag"], config=cfg)
+                except Exception as exc:  # a benchmark reports failures, it does not stop on them
+                    rec["fitclass"] = -2
+                    rec["error"] = f"{type(exc).__name__}: {exc}"[:200]
+                else:
+                    rec["fitclass"] = int(res.fitclass)
+                    for name in RESULT_FIELDS:
+                        rec[name] = float(getattr(res, name, np.nan))
+                rec["time"] = time.perf_counter() - t0
+                t_meas += rec["time"]
+            records.append(rec)
+    return records, t_sim, t_meas
+
+
+def _get_measure_object():
+    measure = getattr(shearfit, "measure_object", None)
+    if measure is None:
+        raise RuntimeError("shearfit.measure_object is not available in this version; run with --dry-run "
+                           "to test the simulation alone")
+    return measure
+
+
+# ----------------------------------------------------------------------------- statistics
+
+def _galaxy_sums(tab, n_gal, weighted):
+    """Per-galaxy sums of w, w e1, w e2 for each sign: arrays of shape (n_gal, 2)."""
+    good = (tab["fitclass"] == 0) & np.isfinite(tab["e1"]) & np.isfinite(tab["e2"])
+    w = np.where(good, tab["weight"] if weighted else 1.0, 0.0)
+    w = np.where(np.isfinite(w), w, 0.0)
+    e1 = np.where(good, tab["e1"], 0.0)
+    e2 = np.where(good, tab["e2"], 0.0)
+    col = (tab["sign"] < 0).astype(int)
+    sums = np.zeros((3, n_gal, 2))
+    for k, v in enumerate((w, w * e1, w * e2)):
+        np.add.at(sums[k], (tab["galaxy"], col), v)
+    return sums
+
+
+def _m_c(sums, counts, g):
+    """m and c of both components for galaxy multiplicities ``counts`` (..., n_gal).
+
+    Returns an array (..., 4): m1, m2, c1, c2.
+    """
+    S = np.einsum("...g,kgs->...ks", counts, sums)  # (..., 3, 2)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mean_e = S[..., 1:, :] / S[..., :1, :]  # (..., 2 components, 2 signs)
+        plus, minus = mean_e[..., 0], mean_e[..., 1]
+        m = (plus - minus) / (2.0 * np.where(g != 0, g, np.nan)) - 1.0
+        c = 0.5 * (plus + minus)
+    return np.concatenate([m, c], axis=-1)
+
+
+def bias_with_errors(sums, g, n_boot, rng):
+    """m1, m2, c1, c2 and their bootstrap errors (resampling whole galaxies)."""
+    n_gal = sums.shape[1]
+    est = _m_c(sums, np.ones(n_gal), g)
+    if n_gal < 2 or n_boot < 2:
+        return est, np.full(4, np.nan)
+    idx = rng.integers(0, n_gal, size=(n_boot, n_gal))
+    counts = np.zeros((n_boot, n_gal))
+    np.add.at(counts, (np.arange(n_boot)[:, None], idx), 1.0)
+    boot = _m_c(sums, counts, g)
+    with np.errstate(invalid="ignore"):
+        err = np.nanstd(boot, axis=0, ddof=1) if np.isfinite(boot).any() else np.full(4, np.nan)
+    return est, err
+
+
+# ----------------------------------------------------------------------------- reports
+
+def _fmt(v, e, scale=1.0):
+    return f"{v * scale:+9.5f} +/- {e * scale:8.5f}" if np.isfinite(v) else "      nan"
+
+
+def report_bias(tab, args, n_gal):
+    g = np.array(args.shear, dtype=float)
+    rng = np.random.default_rng([args.seed, 12345])
+    weighted = not args.unweighted
+    sums = _galaxy_sums(tab, n_gal, weighted)
+    est, err = bias_with_errors(sums, g, args.n_bootstrap, rng)
+    fail = tab["fitclass"] != 0
+    print(f"\nshear bias ({'weighted' if weighted else 'unweighted'} means, {args.n_bootstrap} bootstrap "
+          f"resamplings of {n_gal} galaxies):")
+    print(f"  m1 = {_fmt(est[0], err[0])}    c1 = {_fmt(est[2], err[2])}")
+    print(f"  m2 = {_fmt(est[1], err[1])}    c2 = {_fmt(est[3], err[3])}")
+    print(f"  fitclass != 0: {fail.mean():.3%} of {len(tab)} objects"
+          + "".join(f"; {int((tab['fitclass'] == k).sum())} x fitclass {k}" for k in np.unique(tab["fitclass"])
+                    if k != 0))
+    errs = [e for e in tab["error"] if e]
+    if errs:
+        print(f"  {len(errs)} objects raised; first: {errs[0]}")
+    good = ~fail
+    if good.any():
+        print(f"  mean SNR measured {np.nanmean(tab['snr'][good]):.1f} (target {np.mean(tab['snr_target']):.1f}); "
+              f"sum of weights {np.nansum(tab['weight'][good]):.4g}; mean weight {np.nanmean(tab['weight'][good]):.4g}")
+        if weighted and not np.nansum(tab["weight"][good]) > 0:
+            print("  all weights are zero: rerun with --unweighted to see the unweighted bias")
+    # m against SNR: the noise-bias signature the calibration removes (sec. 8.4).
+    if args.snr_max / args.snr_min > WIDE_SNR_RATIO and args.snr_bins > 1:
+        per_gal_snr = np.zeros(n_gal)
+        per_gal_snr[tab["galaxy"]] = tab["snr_target"]
+        edges = np.geomspace(args.snr_min, args.snr_max, args.snr_bins + 1)
+        print("\n  m against target SNR (bootstrap errors):")
+        print("      SNR range     n_gal   <SNR meas>            m1                     m2")
+        for lo, hi in zip(edges[:-1], edges[1:]):
+            sel = (per_gal_snr >= lo) & (per_gal_snr < hi if hi < edges[-1] else per_gal_snr <= hi)
+            if sel.sum() < 2:
+                continue
+            e_b, err_b = bias_with_errors(sums[:, sel], g, args.n_bootstrap, rng)
+            rows = np.isin(tab["galaxy"], np.flatnonzero(sel)) & good
+            snr_b = np.nanmean(tab["snr"][rows]) if rows.any() else np.nan
+            print(f"    {lo:6.1f} - {hi:6.1f}  {int(sel.sum()):6d}   {snr_b:9.1f}   {_fmt(e_b[0], err_b[0])}   "
+                  f"{_fmt(e_b[1], err_b[1])}")
+
+
+def report_dry(tab):
+    first = tab["sign"] > 0
+    t = tab[first]
+    print("\nsimulated stamps (+g set; the -g set shares galaxies and noise):")
+    print(f"  objects {len(t)}, galaxies {len(np.unique(t['galaxy']))}")
+    for name in ("snr_target", "snr_true", "mag", "true_scalelength", "true_bulge_fraction", "sigma",
+                 "peak_over_sigma", "psf_fwhm_mean", "psf_beta_mean", "n_redraws"):
+        v = np.asarray(t[name], dtype=float)
+        q = np.percentile(v, [0, 50, 100])
+        print(f"  {name:20s} mean {v.mean():9.4f}   min {q[0]:9.4f}   median {q[1]:9.4f}   max {q[2]:9.4f}")
+    emod = np.hypot(t["e1_int"], t["e2_int"])
+    print(f"  {'|e_int|':20s} mean {emod.mean():9.4f}   rms per component {np.sqrt(np.mean(emod**2) / 2):.4f}")
+    print(f"  bulge-dominated fraction {np.mean(t['is_bulge']):.3f}")
+    ratio = t["snr_true"] / t["snr_target"]
+    print(f"  SNR of each orientation / target: {ratio.min():.4f} .. {ratio.max():.4f}")
+
+
+# ----------------------------------------------------------------------------- main
+
+def parse_args(argv=None):
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+                                formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    p.add_argument("--n-galaxies", type=int, default=100, help="galaxies (each gives 2 x n-rotations objects)")
+    p.add_argument("--n-rotations", type=int, default=4, help="orientations per ring")
+    p.add_argument("--snr-min", type=float, default=100.0)
+    p.add_argument("--snr-max", type=float, default=200.0)
+    p.add_argument("--mag-min", type=float, default=21.0)
+    p.add_argument("--mag-max", type=float, default=24.5)
+    p.add_argument("--n-exposures", type=int, default=7)
+    p.add_argument("--shear", type=float, nargs=2, default=[0.03, -0.02], metavar=("G1", "G2"))
+    p.add_argument("--seed", type=int, default=1)
+    p.add_argument("--processes", type=int, default=os.cpu_count() or 1)
+    p.add_argument("--psf-oversampling", type=int, default=1)
+    p.add_argument("--stamp-size", type=int, default=48)
+    p.add_argument("--rotate-exposures", action="store_true", help="random pixel-grid rotation per exposure")
+    p.add_argument("--n-bootstrap", type=int, default=200)
+    p.add_argument("--snr-bins", type=int, default=4, help="SNR bins for m(SNR) when snr-max/snr-min > 2.5")
+    p.add_argument("--unweighted", action="store_true", help="unit weights for fitclass 0 instead of lensfit's")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                   help="engine setting (FitConfig field), repeatable; also used for the population")
+    p.add_argument("--out", help="per-object results, .fits or .csv")
+    p.add_argument("--dry-run", action="store_true", help="simulate only and summarise the stamps")
+    p.add_argument("--quiet", action="store_true")
+    args = p.parse_args(argv)
+    if args.n_galaxies < 1 or args.n_rotations < 1 or args.n_exposures < 1 or args.processes < 1:
+        p.error("--n-galaxies, --n-rotations, --n-exposures and --processes must be positive")
+    if not 0 < args.snr_min <= args.snr_max:
+        p.error("need 0 < --snr-min <= --snr-max")
+    return args
+
+
+def _config(settings):
+    import yaml
+
+    mapping = {}
+    for item in settings:
+        key, sep, value = item.partition("=")
+        if not sep:
+            raise SystemExit(f"ring_test.py: error: --set needs KEY=VALUE, got {item!r}")
+        mapping[key.strip()] = yaml.safe_load(value)
+    return shearfit.fit_config_from_mapping(mapping)
+
+
+def _write_table(tab, path):
+    from astropy.table import Table
+
+    t = Table({k: tab[k] for k in tab.dtype.names})
+    tmp = f"{path}.tmp{os.getpid()}"
+    fmt = "csv" if path.lower().endswith(".csv") else "fits"
+    try:
+        t.write(tmp, format=fmt if fmt == "fits" else "ascii.csv", overwrite=True)
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.remove(tmp)
+
+
+def _to_array(records):
+    names = list(records[0])
+    cols = {}
+    for n in names:
+        vals = [r[n] for r in records]
+        cols[n] = np.array(vals, dtype="U200") if n == "error" else np.array(vals)
+    arr = np.zeros(len(records), dtype=[(n, cols[n].dtype) for n in names])
+    for n in names:
+        arr[n] = cols[n]
+    return arr
+
+
+def main(argv=None):
+    args = parse_args(argv)
+    try:
+        cfg = _config(args.set)
+    except (ValueError, KeyError) as exc:
+        print(f"ring_test.py: error: {exc}", file=sys.stderr)
+        return 2
+    if not args.dry_run:
+        try:
+            _get_measure_object()
+        except RuntimeError as exc:
+            print(f"ring_test.py: error: {exc}", file=sys.stderr)
+            return 2
+    opts = {
+        "shear": tuple(args.shear), "dry_run": args.dry_run, "config": cfg,
+        "ring_kwargs": dict(n_rotations=args.n_rotations, n_exposures=args.n_exposures,
+                            snr_range=(args.snr_min, args.snr_max), mag_range=(args.mag_min, args.mag_max),
+                            stamp_size=args.stamp_size, psf_oversampling=args.psf_oversampling,
+                            rotate_exposures=args.rotate_exposures),
+    }
+    seeds = np.random.SeedSequence(args.seed).spawn(args.n_galaxies)
+    tasks = [(i, seeds[i], opts) for i in range(args.n_galaxies)]
+    n_proc = min(args.processes, args.n_galaxies)
+    print(f"ring test: {args.n_galaxies} galaxies x {args.n_rotations} orientations x 2 shears "
+          f"(g = {args.shear[0]:+.4f}, {args.shear[1]:+.4f}), {args.n_exposures} exposures, "
+          f"SNR {args.snr_min:g}-{args.snr_max:g}, {n_proc} process(es){', dry run' if args.dry_run else ''}")
+
+    records, t_sim, t_meas = [], 0.0, 0.0
+    t_wall = time.perf_counter()
+    show = not args.quiet and sys.stderr.isatty()
+
+    def collect(results):
+        nonlocal t_sim, t_meas
+        for k, (recs, ts, tm) in enumerate(results, 1):
+            records.extend(recs)
+            t_sim += ts
+            t_meas += tm
+            if show:
+                print(f"\r  {k}/{len(tasks)} galaxies", end="", file=sys.stderr, flush=True)
+        if show:
+            print(file=sys.stderr)
+
+    if n_proc == 1:
+        collect(map(_work, tasks))
+    else:
+        with Pool(n_proc) as pool:
+            collect(pool.imap_unordered(_work, tasks, chunksize=1))
+    t_wall = time.perf_counter() - t_wall
+
+    records.sort(key=lambda r: (r["galaxy"], -r["sign"], r["rotation"]))
+    tab = _to_array(records)
+    n_obj = len(tab)
+    n_orient = n_obj  # one orientation of one galaxy at one shear = one simulated object
+    print(f"\ntiming: wall {t_wall:.1f} s; simulation {t_sim / n_orient * 1e3:.1f} ms per "
+          f"{args.n_exposures}-exposure object (one process)", end="")
+    if args.dry_run:
+        print()
+        report_dry(tab)
+    else:
+        rate = n_obj / t_meas if t_meas > 0 else np.nan
+        print(f"; measurement {t_meas / n_obj * 1e3:.1f} ms per object = {rate:.2f} galaxies / s / process")
+        report_bias(tab, args, args.n_galaxies)
+    if args.out:
+        _write_table(tab, args.out)
+        print(f"\nper-object results written to {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

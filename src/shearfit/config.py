@@ -1,0 +1,167 @@
+"""Settings of the shape-measurement engine, with the paper's values as defaults.
+
+Every number that the lensfit paper (Miller et al. 2013, "the paper" below)
+fixes is a default here, with the section or equation it comes from. The
+object is immutable and is written into every output for provenance.
+
+A YAML config (INTERFACE.md) may set any of these at its top level; an
+unknown key is an error that names it.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field, fields
+from typing import Any, Mapping
+
+from .errors import ShearfitKeyError, ShearfitValueError
+
+__all__ = ["FitConfig", "fit_config_from_mapping"]
+
+
+def _opt(default, help, ref="", choices=None):
+    return field(default=default, metadata={"help": help, "ref": ref, "choices": choices})
+
+
+@dataclass(frozen=True)
+class FitConfig:
+    """Settings of the per-object likelihood engine.
+
+    Each field's ``metadata`` holds its help text and paper reference; use
+    :func:`describe` to list them.
+    """
+
+    # --- ellipticity priors (appendix B.2) -----------------------------------
+    disk_e_max: float = _opt(0.804, "maximum disk ellipticity of the disk prior", "eq. (edisk), App. B")
+    disk_e0: float = _opt(0.0256, "circularity parameter e0 of the disk prior", "eq. (edisk)")
+    disk_e_a: float = _opt(0.2539, "dispersion a of the disk prior", "eq. (edisk)")
+    bulge_e_b: float = _opt(2.368, "b of the bulge ellipticity prior p(e) ~ e exp(-b e - c e^2)", "eq. (ebulge)")
+    bulge_e_c: float = _opt(6.691, "c of the bulge ellipticity prior", "eq. (ebulge)")
+
+    # --- bulge fraction and populations (sec. 3.2, App. B.3) ------------------
+    bulge_population_fraction: float = _opt(0.1, "f_B, fraction of bulge-dominated (pure de Vaucouleurs) galaxies", "sec. 3.2")
+    bulge_fraction_mean: float = _opt(0.0, "B0 of the truncated-Gaussian B/T prior of disk galaxies", "eq. (bulgeprior)")
+    bulge_fraction_sigma: float = _opt(0.1, "sigma_B of the B/T prior", "eq. (bulgeprior)")
+
+    # --- size prior (App. B.1) ------------------------------------------------
+    size_lnrd_intercept: float = _opt(-1.145, "ln(r_d/arcsec) at the pivot magnitude", "App. B.1")
+    size_lnrd_slope: float = _opt(-0.269, "d ln(r_d) / d mag", "App. B.1")
+    size_pivot_mag: float = _opt(23.0, "pivot magnitude of the size relation", "App. B.1")
+    size_alpha: float = _opt(4.0 / 3.0, "alpha of p(r) ~ r exp(-(r/a)^alpha)", "App. B.1")
+    size_rd_over_a: float = _opt(
+        0.833,
+        "r_d/a as the paper writes it (a = r_d/0.833). The true median of p(r) is 1.134 a; "
+        "set size_prior_scale='median' to make r_d the prior's exact median instead",
+        "App. B.1",
+    )
+    size_prior_scale: str = _opt("paper", "'paper': a = r_d/size_rd_over_a; 'median': a such that median(r) = r_d",
+                                 "App. B.1", ("paper", "median"))
+
+    # --- flux prior (sec. 3.2) --------------------------------------------------
+    flux_prior_slope: float = _opt(2.0, "alpha of the flux prior P(S) ~ S^-alpha", "sec. 3.2")
+
+    # --- galaxy models (sec. 3.1, App. A) ---------------------------------------
+    truncation: float = _opt(4.5, "truncation radius in scalelengths (disk) / half-light radii (bulge), major axis", "sec. 3.1")
+    bulge_size_ratio: float = _opt(1.0, "bulge half-light radius / disk scalelength", "sec. 3.1")
+
+    # --- position marginalisation (sec. 3.2) ------------------------------------
+    delta_chi2_crit: float = _opt(6.0, "Delta chi^2 that defines r_max of the position integral", "sec. 3.2")
+    max_centroid_shift: float = _opt(4.0, "largest accepted position offset of the fitted centre, pixels", "sec. 3.6")
+
+    # --- flux and size marginalisation (sec. 3.2) -------------------------------
+    n_flux: int = _opt(11, "flux values per (e, r) for the spline integral", "sec. 3.2")
+    flux_halfwidth: float = _opt(5.0, "half-width of the flux samples in units of the flux error", "sec. 3.2")
+    n_size: int = _opt(7, "scalelengths r > 0 sampled for the size spline (r = 0 is added)", "sec. 3.2")
+
+    # --- Fourier-space modelling (App. A) -----------------------------------------
+    psf_mode_tolerance: float = _opt(
+        1e-6, "Fourier modes where the PSF transform (times the brightest model) is below this fraction of its "
+        "peak are dropped", "DESIGN: speed")
+    alias_correction: str = _opt(
+        "moffat",
+        "high frequencies of a native-sampled PSF: 'moffat' models them with an elliptical Moffat fitted to the PSF "
+        "(the paper's App. A correction, generalised to elliptical); 'none' assumes a band-limited PSF",
+        "App. A", ("moffat", "none"))
+    alias_oversampling: int = _opt(3, "sub-sampling of the galaxy model before the alias fold", "App. A")
+
+    # --- ellipticity sampling (sec. 3.3) ------------------------------------------
+    sampling: str = _opt("adaptive", "'adaptive': the paper's grid refinement; 'two-pass': find the maximum first",
+                         "sec. 3.3", ("adaptive", "two-pass"))
+    e_grid_start: float = _opt(0.16, "starting ellipticity grid spacing", "sec. 3.3")
+    e_grid_min: float = _opt(0.02, "finest ellipticity grid spacing", "sec. 3.3")
+    n_above: int = _opt(30, "samples wanted above the threshold", "sec. 3.3")
+    above_fraction: float = _opt(0.05, "threshold, as a fraction of the maximum posterior", "sec. 3.3")
+    model_e_limit: float = _opt(0.98, "largest |e| a model may have", "sec. 3.3")
+
+    # --- estimator and weight (sec. 3.4, 3.5) --------------------------------------
+    posterior_cut: float = _opt(0.01, "samples whose posterior is below this fraction of its maximum are rejected",
+                                "sec. 3.4")
+    weight_e_max: float = _opt(0.804, "e_max of the weight", "eq. (weight)")
+    sigma_pop: float = _opt(0.255, "1D rms ellipticity of the population, sigma_pop", "eq. (weight)")
+
+    # --- star / galaxy (sec. 3.2) -----------------------------------------------------
+    star_pvalue: float = _opt(
+        0.01,
+        "an object is a star if the F-test probability that the galaxy model's improvement over a point source "
+        "arises by chance exceeds this", "sec. 3.2")
+
+    def __post_init__(self):
+        for f in fields(self):
+            choices = f.metadata.get("choices")
+            value = getattr(self, f.name)
+            if choices is not None and value not in choices:
+                raise ShearfitValueError(f"setting {f.name}={value!r} is not one of {', '.join(map(repr, choices))}")
+        positive = ["disk_e_max", "disk_e_a", "bulge_fraction_sigma", "size_alpha", "size_rd_over_a",
+                    "truncation", "bulge_size_ratio", "delta_chi2_crit", "flux_halfwidth", "e_grid_start",
+                    "e_grid_min", "weight_e_max", "sigma_pop"]
+        for name in positive:
+            if not getattr(self, name) > 0:
+                raise ShearfitValueError(f"setting {name}={getattr(self, name)!r} must be positive")
+        if not 0 <= self.bulge_population_fraction <= 1:
+            raise ShearfitValueError("setting bulge_population_fraction must lie in [0, 1]")
+        if self.n_flux < 5 or self.n_size < 3:
+            raise ShearfitValueError("settings n_flux >= 5 and n_size >= 3 are needed for the spline integrals")
+        if not 0 < self.model_e_limit < 1:
+            raise ShearfitValueError("setting model_e_limit must lie in (0, 1)")
+
+    def replace(self, **changes) -> "FitConfig":
+        return fit_config_from_mapping({**self.to_dict(), **changes})
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+
+def _coerce(name: str, ftype, value):
+    target = {"float": float, "int": int, "str": str, "bool": bool}.get(str(ftype).replace("'", ""), None)
+    if target is None:
+        return value
+    if target is bool:
+        if isinstance(value, bool):
+            return value
+        raise ShearfitValueError(f"setting {name}={value!r} must be true or false")
+    if target is float and isinstance(value, (int, float)) and not isinstance(value, bool):
+        return float(value)
+    if target is int and isinstance(value, int) and not isinstance(value, bool):
+        return value
+    if target is str and isinstance(value, str):
+        return value
+    raise ShearfitValueError(f"setting {name}={value!r} must be of type {target.__name__}")
+
+
+def fit_config_from_mapping(mapping: Mapping[str, Any] | None) -> FitConfig:
+    """Build a :class:`FitConfig` from a mapping, rejecting unknown keys and wrong types."""
+    mapping = dict(mapping or {})
+    known = {f.name: f for f in fields(FitConfig)}
+    unknown = sorted(set(mapping) - set(known))
+    if unknown:
+        raise ShearfitKeyError(f"unknown setting {unknown[0]!r} (valid: {', '.join(sorted(known))})")
+    kwargs = {k: _coerce(k, known[k].type, v) for k, v in mapping.items()}
+    return FitConfig(**kwargs)
+
+
+def describe() -> str:
+    """One line per setting: name, default, reference, help."""
+    lines = []
+    for f in fields(FitConfig):
+        lines.append(f"{f.name} = {f.default!r}  [{f.metadata.get('ref', '')}]  {f.metadata.get('help', '')}")
+    return "\n".join(lines)

@@ -1,0 +1,137 @@
+"""One exposure of one object (:class:`Observation`) and a fit's result.
+
+Conventions (INTERFACE.md): arrays are indexed ``image[y, x]``; pixel centres
+sit at integer indices; the stamp centre is pixel ``(ny // 2, nx // 2)``. The
+Jacobian maps pixel offsets to the catalogue's tangent-plane frame (u, v) in
+arcsec, +u west, +v north::
+
+    [du, dv]^T = J [dx, dy]^T,   J = [[du/dx, du/dy], [dv/dx, dv/dy]]
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Optional
+
+import numpy as np
+
+from .errors import ShearfitValueError
+
+__all__ = ["Observation", "FitResult"]
+
+
+def _readonly(a, name, ndim=2):
+    arr = np.array(a, dtype=np.float64, copy=True)
+    if arr.ndim != ndim:
+        raise ShearfitValueError(f"Observation {name} must be a {ndim}D array, got shape {arr.shape}")
+    arr.setflags(write=False)
+    return arr
+
+
+class Observation:
+    """A postage stamp of one object on one exposure, with what is needed to model it.
+
+    Parameters
+    ----------
+    image : 2D array
+        Background-subtracted counts.
+    weight : 2D array, optional
+        Inverse variance per pixel, 0 where unusable. Without it the noise is
+        estimated from the stamp (median absolute deviation).
+    psf : 2D array
+        PSF including the pixel response, summing to one, centred on pixel
+        ``(ny // 2, nx // 2)`` of its own array.
+    psf_oversampling : int
+        PSF array pixels per image pixel.
+    jacobian : 2x2 array
+        Local ``d(u, v)/d(x, y)`` in arcsec per pixel at the object.
+    offset : (dx, dy)
+        The object's nominal position minus the stamp centre, in pixels.
+    flux_scale : float
+        Counts in this exposure per unit of the common flux.
+    """
+
+    def __init__(self, image, psf, jacobian, weight=None, psf_oversampling=1, offset=(0.0, 0.0),
+                 flux_scale=1.0):
+        self.image = _readonly(image, "image")
+        if weight is None:
+            sigma = _mad_sigma(self.image)
+            weight = np.full(self.image.shape, 1.0 / sigma**2)
+        self.weight = _readonly(weight, "weight")
+        if self.weight.shape != self.image.shape:
+            raise ShearfitValueError(
+                f"Observation weight shape {self.weight.shape} differs from image shape {self.image.shape}")
+        if not np.all(np.isfinite(self.weight)) or np.any(self.weight < 0):
+            raise ShearfitValueError("Observation weight must be finite and non-negative")
+        self.psf = _readonly(psf, "psf")
+        k = int(psf_oversampling)
+        if k < 1 or k != psf_oversampling:
+            raise ShearfitValueError(f"Observation psf_oversampling must be a positive integer, got {psf_oversampling!r}")
+        self.psf_oversampling = k
+        psum = float(self.psf.sum())
+        if not np.isfinite(psum) or abs(psum - 1.0) > 1e-3:
+            raise ShearfitValueError(f"Observation psf must sum to 1 (sums to {psum:.6g})")
+        J = np.array(jacobian, dtype=np.float64)
+        if J.shape != (2, 2) or not np.all(np.isfinite(J)) or abs(np.linalg.det(J)) <= 0:
+            raise ShearfitValueError("Observation jacobian must be a finite, invertible 2x2 array")
+        J.setflags(write=False)
+        self.jacobian = J
+        off = np.array(offset, dtype=np.float64)
+        if off.shape != (2,) or not np.all(np.isfinite(off)):
+            raise ShearfitValueError("Observation offset must be a pair of finite numbers (dx, dy)")
+        off.setflags(write=False)
+        self.offset = off
+        self.flux_scale = float(flux_scale)
+        if not self.flux_scale > 0:
+            raise ShearfitValueError("Observation flux_scale must be positive")
+
+    @property
+    def shape(self):
+        return self.image.shape
+
+    @property
+    def pixel_scale(self) -> float:
+        """sqrt(|det J|): the local linear pixel size in arcsec."""
+        return float(np.sqrt(abs(np.linalg.det(self.jacobian))))
+
+    def __repr__(self):
+        return (f"Observation(shape={self.shape}, psf_shape={self.psf.shape}, "
+                f"psf_oversampling={self.psf_oversampling}, offset={tuple(self.offset)}, "
+                f"flux_scale={self.flux_scale})")
+
+
+def _mad_sigma(image):
+    x = image[np.isfinite(image)]
+    med = np.median(x)
+    s = 1.4826 * np.median(np.abs(x - med))
+    if not s > 0:
+        raise ShearfitValueError("cannot estimate the noise of a stamp without weights: it has no scatter")
+    return s
+
+
+@dataclass
+class FitResult:
+    """What :func:`shearfit.measure_object` returns for one object.
+
+    ``e1, e2`` are the likelihood-mean ellipticity (sec. 3.4), ``e_var`` the 1D
+    variance of the likelihood surface, ``weight`` eq. (weight), ``snr`` the
+    profile-weighted signal-to-noise ratio over all exposures, ``scalelength``
+    (arcsec, disk semi-major axis), ``bulge_fraction`` and ``model_flux``
+    posterior means; ``fitclass`` one of the codes in :mod:`shearfit.errors`.
+    """
+
+    e1: float = np.nan
+    e2: float = np.nan
+    e_var: float = np.nan
+    weight: float = 0.0
+    snr: float = np.nan
+    scalelength: float = np.nan
+    bulge_fraction: float = np.nan
+    model_flux: float = np.nan
+    fitclass: int = -2
+    n_exposures_used: int = 0
+    star_pvalue: float = np.nan
+    centroid_shift: float = np.nan
+    n_samples: int = 0
+    message: str = ""
+    samples: Optional[np.ndarray] = field(default=None, repr=False)

@@ -1,0 +1,22 @@
+"""Simulations with GalSim as the independent reference renderer.
+
+:mod:`.stamps` makes postage stamps of the paper's galaxy population on
+several dithered exposures, wrapped as :class:`shearfit.Observation` objects,
+and ring sets for shear-bias tests.
+"""
+
+from .stamps import (  # noqa: F401
+    ZERO_POINT,
+    draw_psf_image,
+    draw_stamp,
+    galaxy_profile,
+    jacobian_wcs,
+    mag_to_flux,
+    make_observations,
+    moffat_psf,
+    noise_for_snr,
+    ring_set,
+)
+
+__all__ = ["ZERO_POINT", "draw_psf_image", "draw_stamp", "galaxy_profile", "jacobian_wcs", "mag_to_flux",
+           "make_observations", "moffat_psf", "noise_for_snr", "ring_set"]
