@@ -46,6 +46,8 @@ import numpy as np  # noqa: E402
 
 import shearfit  # noqa: E402
 from shearfit.simulate import ring_set  # noqa: E402
+from shearfit.simulate.shear_bias import (format_with_error, galaxy_column, ring_sums, shear_bias,  # noqa: E402
+                                          shear_bias_by_snr)
 
 # m(SNR) is printed when snr_max / snr_min exceeds this: a narrower range has no noise-bias trend to see.
 WIDE_SNR_RATIO = 2.5
@@ -113,68 +115,19 @@ def _get_measure_object():
     return measure
 
 
-# ----------------------------------------------------------------------------- statistics
-
-def _galaxy_sums(tab, n_gal, weighted):
-    """Per-galaxy sums of w, w e1, w e2 for each sign: arrays of shape (n_gal, 2)."""
-    good = (tab["fitclass"] == 0) & np.isfinite(tab["e1"]) & np.isfinite(tab["e2"])
-    w = np.where(good, tab["weight"] if weighted else 1.0, 0.0)
-    w = np.where(np.isfinite(w), w, 0.0)
-    e1 = np.where(good, tab["e1"], 0.0)
-    e2 = np.where(good, tab["e2"], 0.0)
-    col = (tab["sign"] < 0).astype(int)
-    sums = np.zeros((3, n_gal, 2))
-    for k, v in enumerate((w, w * e1, w * e2)):
-        np.add.at(sums[k], (tab["galaxy"], col), v)
-    return sums
-
-
-def _m_c(sums, counts, g):
-    """m and c of both components for galaxy multiplicities ``counts`` (..., n_gal).
-
-    Returns an array (..., 4): m1, m2, c1, c2.
-    """
-    S = np.einsum("...g,kgs->...ks", counts, sums)  # (..., 3, 2)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        mean_e = S[..., 1:, :] / S[..., :1, :]  # (..., 2 components, 2 signs)
-        plus, minus = mean_e[..., 0], mean_e[..., 1]
-        m = (plus - minus) / (2.0 * np.where(g != 0, g, np.nan)) - 1.0
-        c = 0.5 * (plus + minus)
-    return np.concatenate([m, c], axis=-1)
-
-
-def bias_with_errors(sums, g, n_boot, rng):
-    """m1, m2, c1, c2 and their bootstrap errors (resampling whole galaxies)."""
-    n_gal = sums.shape[1]
-    est = _m_c(sums, np.ones(n_gal), g)
-    if n_gal < 2 or n_boot < 2:
-        return est, np.full(4, np.nan)
-    idx = rng.integers(0, n_gal, size=(n_boot, n_gal))
-    counts = np.zeros((n_boot, n_gal))
-    np.add.at(counts, (np.arange(n_boot)[:, None], idx), 1.0)
-    boot = _m_c(sums, counts, g)
-    with np.errstate(invalid="ignore"):
-        err = np.nanstd(boot, axis=0, ddof=1) if np.isfinite(boot).any() else np.full(4, np.nan)
-    return est, err
-
-
 # ----------------------------------------------------------------------------- reports
-
-def _fmt(v, e, scale=1.0):
-    return f"{v * scale:+9.5f} +/- {e * scale:8.5f}" if np.isfinite(v) else "      nan"
-
 
 def report_bias(tab, args, n_gal):
     g = np.array(args.shear, dtype=float)
     rng = np.random.default_rng([args.seed, 12345])
     weighted = not args.unweighted
-    sums = _galaxy_sums(tab, n_gal, weighted)
-    est, err = bias_with_errors(sums, g, args.n_bootstrap, rng)
+    sums = ring_sums(tab, n_gal, weighted)
+    est, err = shear_bias(sums, g, args.n_bootstrap, rng)
     fail = tab["fitclass"] != 0
     print(f"\nshear bias ({'weighted' if weighted else 'unweighted'} means, {args.n_bootstrap} bootstrap "
           f"resamplings of {n_gal} galaxies):")
-    print(f"  m1 = {_fmt(est[0], err[0])}    c1 = {_fmt(est[2], err[2])}")
-    print(f"  m2 = {_fmt(est[1], err[1])}    c2 = {_fmt(est[3], err[3])}")
+    print(f"  m1 = {format_with_error(est[0], err[0])}    c1 = {format_with_error(est[2], err[2])}")
+    print(f"  m2 = {format_with_error(est[1], err[1])}    c2 = {format_with_error(est[3], err[3])}")
     print(f"  fitclass != 0: {fail.mean():.3%} of {len(tab)} objects"
           + "".join(f"; {int((tab['fitclass'] == k).sum())} x fitclass {k}" for k in np.unique(tab["fitclass"])
                     if k != 0))
@@ -189,20 +142,18 @@ def report_bias(tab, args, n_gal):
             print("  all weights are zero: rerun with --unweighted to see the unweighted bias")
     # m against SNR: the noise-bias signature the calibration removes (sec. 8.4).
     if args.snr_max / args.snr_min > WIDE_SNR_RATIO and args.snr_bins > 1:
-        per_gal_snr = np.zeros(n_gal)
-        per_gal_snr[tab["galaxy"]] = tab["snr_target"]
         edges = np.geomspace(args.snr_min, args.snr_max, args.snr_bins + 1)
+        bins = shear_bias_by_snr(sums, galaxy_column(tab, "snr_target", n_gal), edges, g, args.n_bootstrap, rng)
         print("\n  m against target SNR (bootstrap errors):")
         print("      SNR range     n_gal   <SNR meas>            m1                     m2")
-        for lo, hi in zip(edges[:-1], edges[1:]):
-            sel = (per_gal_snr >= lo) & (per_gal_snr < hi if hi < edges[-1] else per_gal_snr <= hi)
-            if sel.sum() < 2:
+        for b in bins:
+            if b["n_galaxies"] < 2:
                 continue
-            e_b, err_b = bias_with_errors(sums[:, sel], g, args.n_bootstrap, rng)
-            rows = np.isin(tab["galaxy"], np.flatnonzero(sel)) & good
+            e_b, err_b = b["estimate"], b["errors"]
+            rows = np.isin(tab["galaxy"], b["galaxies"]) & good
             snr_b = np.nanmean(tab["snr"][rows]) if rows.any() else np.nan
-            print(f"    {lo:6.1f} - {hi:6.1f}  {int(sel.sum()):6d}   {snr_b:9.1f}   {_fmt(e_b[0], err_b[0])}   "
-                  f"{_fmt(e_b[1], err_b[1])}")
+            print(f"    {b['lo']:6.1f} - {b['hi']:6.1f}  {b['n_galaxies']:6d}   {snr_b:9.1f}   "
+                  f"{format_with_error(e_b[0], err_b[0])}   {format_with_error(e_b[1], err_b[1])}")
 
 
 def report_dry(tab):

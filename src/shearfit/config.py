@@ -77,6 +77,9 @@ class FitConfig:
     psf_mode_tolerance: float = _opt(
         1e-6, "Fourier modes where the PSF transform (times the brightest model) is below this fraction of its "
         "peak are dropped", "DESIGN: speed")
+    mode_chi2_tolerance: float = _opt(
+        0.01, "Fourier modes are dropped, weakest first, while the chi^2 they could contribute for the brightest "
+        "model the data allow (a point source at 3x the fitted flux plus 5 sigma) stays below this in total", "DESIGN: speed")
     alias_correction: str = _opt(
         "moffat",
         "high frequencies of a native-sampled PSF: 'moffat' models them with an elliptical Moffat fitted to the PSF "

@@ -23,6 +23,7 @@ integral), the flux numerically with the S^-alpha prior (cubic spline).
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 
 import numpy as np
@@ -31,6 +32,13 @@ from scipy.interpolate import CubicSpline
 
 from .config import FitConfig
 from .model import ExposureModes, shape_matrix
+
+try:  # the compiled inner loop; the numpy path below computes the same sums
+    from . import _kernels
+except ImportError:  # pragma: no cover - depends on the build
+    _kernels = None
+
+USE_KERNEL = _kernels is not None and os.environ.get("SHEARFIT_NO_KERNEL", "") == ""
 
 __all__ = ["JointModes", "join_exposures", "model_sums", "ModelSums", "flux_position_marginal",
            "log_erf_diff", "log_ei_minus", "find_position"]
@@ -49,6 +57,8 @@ class JointModes:
     multi: np.ndarray      # indices of modes that share a sampled mode with others
     fold: object           # sparse (n_multi_sampled x n_multi) matrix of T_j sqrt(w_c/(N sigma^2))
     basis: np.ndarray      # (3, n) [kx^2, 2 kx ky, ky^2]
+    group: np.ndarray      # global index of the sampled mode each mode folds onto
+    tscaled: np.ndarray    # T_j sqrt(w_c / (N sigma^2))
     yy: float
     npix: int
     n_exposures: int
@@ -58,9 +68,76 @@ class JointModes:
     def n_modes(self):
         return self.kx.size
 
+    def packed(self):
+        """All modes, grouped by the sampled mode they fold onto, interleaved for the kernel (cached)."""
+        cache = getattr(self, "_packed", None)
+        if cache is None:
+            counts = np.bincount(self.group)
+            single = counts[self.group] == 1
+            # singletons first (they carry q = |T|^2), then the groups that fold, contiguous
+            order = np.concatenate([np.nonzero(single)[0],
+                                    np.nonzero(~single)[0][np.argsort(self.group[~single], kind="stable")]])
+            g = self.group[order]
+            last = np.ones(g.size)
+            last[:-1] = (g[1:] != g[:-1])
+            lin = _linear_vectors(self)
+            ts = self.tscaled[order]
+            n_single = int(single.sum())
+            re = ts.real.copy()
+            re[:n_single] = np.abs(ts[:n_single]) ** 2
+            cache = (np.ascontiguousarray(np.concatenate(
+                [self.basis[:, order], lin[:, order], re[None], ts.imag[None], last[None]]).T), n_single)
+            self._packed = cache
+        return cache
 
-def join_exposures(exposures: list[ExposureModes]) -> JointModes:
+
+def _noise_aware_cut(exposures, chi2_tolerance):
+    """Per exposure, the modes to keep so that the dropped ones matter less than ``chi2_tolerance``.
+
+    A mode j can change any model's chi^2 by at most S^2 w |T_j|^2/(N sigma^2)
+    (|R| <= 1), S bounded from above by the point-source fit's flux: the
+    weakest modes are dropped while their summed bound stays below the
+    tolerance (all exposures together).
+    """
+    h = 0.0
+    ff = 0.0
+    bounds = []
+    for ex in exposures:
+        ny, nx = ex.shape
+        norm = 1.0 / (ny * nx * ex.sigma2)
+        w = ex.cweight[ex.coarse]
+        p = w * np.abs(ex.transfer) ** 2 * norm
+        h += float(np.sum((np.conj(ex.data_ft[ex.coarse]) * ex.transfer * w).real) * norm)
+        ff += float(np.sum(p))
+        bounds.append(p)
+    if not ff > 0:
+        return [np.ones(b.size, bool) for b in bounds]
+    s_bound = 3.0 * abs(h) / ff + 5.0 / np.sqrt(ff)
+    allb = np.concatenate(bounds) * s_bound ** 2
+    order = np.argsort(allb)
+    csum = np.cumsum(allb[order])
+    drop = np.zeros(allb.size, bool)
+    drop[order[csum <= chi2_tolerance]] = True
+    keep, start = [], 0
+    for b in bounds:
+        keep.append(~drop[start:start + b.size])
+        start += b.size
+    return keep
+
+
+def _select(ex: ExposureModes, keep) -> ExposureModes:
+    return ExposureModes(shape=ex.shape, kx=ex.kx[keep], ky=ex.ky[keep], transfer=ex.transfer[keep],
+                         coarse=ex.coarse[keep], cweight=ex.cweight, data_ft=ex.data_ft, sigma2=ex.sigma2,
+                         yy=ex.yy, npix=ex.npix, pixel_scale=ex.pixel_scale)
+
+
+def join_exposures(exposures: list[ExposureModes], chi2_tolerance: float = 0.0) -> JointModes:
+    """Concatenate the exposures' modes (after the noise-aware cut, if a tolerance is given)."""
+    if chi2_tolerance > 0:
+        exposures = [_select(ex, k) for ex, k in zip(exposures, _noise_aware_cut(exposures, chi2_tolerance))]
     kx, ky, z, q, T_multi, w_multi, c_multi, idx_multi = [], [], [], [], [], [], [], []
+    group, tscaled = [], []
+    goffset = 0
     offset = 0
     coffset = 0
     yy = 0.0
@@ -70,6 +147,9 @@ def join_exposures(exposures: list[ExposureModes]) -> JointModes:
         norm = 1.0 / (ny * nx * ex.sigma2)
         w = ex.cweight[ex.coarse]
         z.append(np.conj(ex.data_ft[ex.coarse]) * ex.transfer * w * norm)
+        group.append(ex.coarse + goffset)
+        goffset += ex.cweight.size
+        tscaled.append(ex.transfer * np.sqrt(w * norm))
         counts = np.bincount(ex.coarse, minlength=ex.cweight.size)
         single = counts[ex.coarse] == 1
         q.append(np.where(single, w * np.abs(ex.transfer) ** 2 * norm, 0.0))
@@ -97,7 +177,8 @@ def join_exposures(exposures: list[ExposureModes]) -> JointModes:
         fold = None
     basis = np.stack([kx * kx, 2 * kx * ky, ky * ky])
     return JointModes(kx=kx, ky=ky, z=np.concatenate(z), q=np.concatenate(q), multi=multi, fold=fold,
-                      basis=basis, yy=yy, npix=npix, n_exposures=len(exposures),
+                      basis=basis, group=np.concatenate(group), tscaled=np.concatenate(tscaled),
+                      yy=yy, npix=npix, n_exposures=len(exposures),
                       pixel_scale=float(np.mean([e.pixel_scale for e in exposures])))
 
 
@@ -109,7 +190,7 @@ def shift_joint(jm: JointModes, du, dv) -> JointModes:
         fold = jm.fold @ sparse.diags(phase[jm.multi])
         fold = sparse.csr_matrix(fold)
     return JointModes(kx=jm.kx, ky=jm.ky, z=jm.z * phase, q=jm.q, multi=jm.multi, fold=fold,
-                      basis=jm.basis, yy=jm.yy, npix=jm.npix, n_exposures=jm.n_exposures,
+                      basis=jm.basis, group=jm.group, tscaled=jm.tscaled * phase, yy=jm.yy, npix=jm.npix, n_exposures=jm.n_exposures,
                       pixel_scale=jm.pixel_scale)
 
 
@@ -135,17 +216,35 @@ def _linear_vectors(jm: JointModes):
     return np.stack([zr, kx * zi, ky * zi, -kx * kx * zr, -kx * ky * zr, -ky * ky * zr])
 
 
-def model_sums(jm: JointModes, e1, e2, r, disk, bulge, bulge_size_ratio=1.0, lin=None) -> ModelSums:
-    """Pixel sums for models (e1, e2, r) (1D arrays of equal length)."""
+def _model_sums_kernel(jm, coef, fast, ratio):
+    out = np.empty((coef.shape[0], 15))
+    packed, n_single = jm.packed()
+    _kernels.model_sums(np.ascontiguousarray(coef), packed, fast.packed32, fast.C, 1.0 / fast.du,
+                        float(ratio) ** 2, n_single, out)
+    return ModelSums(hf=out[:, 0], hg=out[:, 6], grad_f=out[:, 1:3], grad_g=out[:, 7:9],
+                     hess_f=out[:, 3:6], hess_g=out[:, 9:12], ff=out[:, 12], gg=out[:, 13], fg=out[:, 14])
+
+
+def model_sums(jm: JointModes, e1, e2, r, fast, bulge_size_ratio=1.0, lin=None, use_kernel=True) -> ModelSums:
+    """Pixel sums for models (e1, e2, r) (1D arrays of equal length).
+
+    ``fast`` is a :class:`shearfit.profiles.FastRadial` holding the disk (0)
+    and bulge (1) transforms.
+    """
     e1 = np.atleast_1d(np.asarray(e1, float))
     e2 = np.atleast_1d(np.asarray(e2, float))
     r = np.broadcast_to(np.atleast_1d(np.asarray(r, float)), e1.shape)
     c11, c12, c22 = shape_matrix(e1, e2)
     r2 = r * r
     coef = np.stack([c11 * r2, c12 * r2, c22 * r2], axis=1)
+    if USE_KERNEL and use_kernel:
+        return _model_sums_kernel(jm, coef, fast, bulge_size_ratio)
     rho2 = coef @ jm.basis
-    Rf = disk.ft_rho2(rho2)
-    Rg = bulge.ft_rho2(rho2 * (bulge_size_ratio ** 2))
+    i, frac = fast.index(rho2)
+    Rf = fast.lookup(0, i, frac)
+    if bulge_size_ratio != 1.0:
+        i, frac = fast.index(rho2 * (bulge_size_ratio ** 2))
+    Rg = fast.lookup(1, i, frac)
     if lin is None:
         lin = _linear_vectors(jm)
     Lf = Rf @ lin.T
@@ -358,24 +457,47 @@ def flux_position_marginal(sums: ModelSums, cfg: FitConfig) -> Marginal:
                     snr_disk=out["disk"][4], snr_bulge=out["bulge"][4])
 
 
-def find_position(jm: JointModes, disk, r_ref, max_shift_arcsec, n_grid=9, n_newton=6):
+def coarse_peak(exposures, jacobians, disk, r_ref, half_width, step):
+    """Sky offset of the peak of the summed cross-correlation, to about a pixel.
+
+    Each exposure's cross-correlation with a round model is one inverse FFT
+    on its own pixel grid; the exposures are added on a common grid of sky
+    offsets (spacing ``step`` arcsec, within +-``half_width``) by nearest
+    pixel, which is all a starting point for ``find_position`` needs.
+    """
+    grid = np.arange(-half_width, half_width + 0.5 * step, step)
+    GU, GV = np.meshgrid(grid, grid, indexing="ij")
+    total = np.zeros(GU.shape)
+    for ex, J in zip(exposures, jacobians):
+        ny, nx = ex.shape
+        R = disk.ft_rho2(r_ref * r_ref * (ex.kx ** 2 + ex.ky ** 2))
+        C = np.zeros(ny * (nx // 2 + 1), dtype=complex)
+        np.add.at(C, ex.coarse, ex.transfer * R)
+        C = np.conj(ex.data_ft) * C
+        # h(s) = sum_k conj(Y) M exp(-i k.s): the inverse DFT of conj(conj(Y) M), conjugated back
+        h = np.fft.irfft2(np.conj(C.reshape(ny, nx // 2 + 1)), s=(ny, nx)) / ex.sigma2
+        Jinv = np.linalg.inv(J)
+        sx = np.rint(Jinv[0, 0] * GU + Jinv[0, 1] * GV).astype(int) % nx
+        sy = np.rint(Jinv[1, 0] * GU + Jinv[1, 1] * GV).astype(int) % ny
+        total += h[sy, sx]
+    i = np.unravel_index(int(np.argmax(total)), total.shape)
+    return float(GU[i]), float(GV[i])
+
+
+def find_position(jm: JointModes, disk, r_ref, max_shift_arcsec, start=(0.0, 0.0), n_newton=8, cell=None):
     """Sky offset (du, dv) of the cross-correlation peak of a round reference model.
 
     For centrally symmetric galaxy models the noise-free cross-correlation
     with the data peaks at the galaxy's centre whatever the model's shape or
     size (h is then symmetric about it), so one search per object serves all
     models; each model's residual offset is handled to second order later.
-    A coarse grid search within ``max_shift_arcsec`` is followed by Newton steps.
+    Newton steps from ``start`` (see ``coarse_peak``), each at most ``cell``.
     Returns (du, dv, ok).
     """
     R = disk.ft_rho2(r_ref * r_ref * (jm.kx ** 2 + jm.ky ** 2))
     zr = jm.z * R
-    grid = np.linspace(-max_shift_arcsec, max_shift_arcsec, n_grid)
-    GU, GV = np.meshgrid(grid, grid, indexing="ij")
-    ph = np.exp(-1j * (np.outer(GU.ravel(), jm.kx) + np.outer(GV.ravel(), jm.ky)))
-    hval = (ph * zr).real.sum(axis=1)
-    i = int(np.argmax(hval))
-    x = np.array([GU.ravel()[i], GV.ravel()[i]])
+    x = np.array(start, dtype=float)
+    cell = jm.pixel_scale if cell is None else cell
     for _ in range(n_newton):
         p = zr * np.exp(-1j * (jm.kx * x[0] + jm.ky * x[1]))
         g = np.array([np.sum(jm.kx * p.imag), np.sum(jm.ky * p.imag)])
@@ -387,13 +509,12 @@ def find_position(jm: JointModes, disk, r_ref, max_shift_arcsec, n_grid=9, n_new
             return x[0], x[1], False
         if not np.all(np.isfinite(step)):
             return x[0], x[1], False
-        # never step further than a grid cell: Newton is only trusted near the peak
-        cell = grid[1] - grid[0]
+        # never step further than a pixel: Newton is only trusted near the peak
         nrm = np.hypot(*step)
         if nrm > cell:
             step *= cell / nrm
         x = x + step
-        if nrm < 1e-6 * max(cell, 1e-12):
+        if nrm < 1e-6 * cell:
             break
-    ok = bool(np.hypot(*x) <= max_shift_arcsec * 1.5)
+    ok = bool(np.hypot(*x) <= max_shift_arcsec)
     return float(x[0]), float(x[1]), ok

@@ -11,10 +11,10 @@ from . import priors
 from .config import FitConfig, fit_config_from_mapping
 from .errors import (FITCLASS_CENTROID, FITCLASS_FEW_EXPOSURES, FITCLASS_FIT_FAILED, FITCLASS_GALAXY,
                      FITCLASS_STAR, ShearfitValueError)
-from .likelihood import find_position, flux_position_marginal, join_exposures, model_sums, shift_joint
+from .likelihood import coarse_peak, find_position, flux_position_marginal, join_exposures, model_sums, shift_joint
 from .model import prepare_exposure
 from .observation import FitResult, Observation
-from .profiles import de_vaucouleurs, exponential_disk
+from .profiles import exponential_disk, fast_pair
 from .sampling import EllipticityLikelihood, adaptive_samples, estimate, two_pass_samples
 
 __all__ = ["measure_object", "measure_objects", "as_config"]
@@ -34,22 +34,30 @@ def as_config(config) -> FitConfig:
     raise ShearfitValueError(f"config must be a FitConfig or a mapping, got {type(config).__name__}")
 
 
-def _size_range(jm, cfg, mag, disk, bulge):
-    """First look at the round model's size posterior: where it is not negligible."""
+def _size_range(jm, cfg, mag, fast):
+    """Where the round model's size posterior lies: mean and spread of ln r.
+
+    Both are moments of the posterior on a fine grid, so they move
+    continuously with the data: an estimator whose scalelength nodes jumped
+    with a small change of the data would not respond smoothly to shear.
+    """
     a = float(priors.size_prior_scale(mag, cfg))
     pix = jm.pixel_scale
-    r = np.geomspace(0.05 * min(a, pix), 8.0 * max(a, pix), 16)
+    r = np.geomspace(0.02 * min(a, pix), 10.0 * max(a, pix), 40)
     z = np.zeros_like(r)
-    mg = flux_position_marginal(model_sums(jm, z, z, r, disk, bulge, cfg.bulge_size_ratio), cfg)
+    mg = flux_position_marginal(model_sums(jm, z, z, r, fast, cfg.bulge_size_ratio), cfg)
     fB = cfg.bulge_population_fraction
     logl = np.logaddexp(np.log(1 - fB) + mg.logl_disk, np.log(fB) + mg.logl_bulge)
-    lp = logl + np.log(np.maximum(priors.size_prior_pdf(r, mag, cfg), 1e-300))
+    # posterior density in ln r: likelihood x prior x r
+    lp = logl + np.log(np.maximum(priors.size_prior_pdf(r, mag, cfg), 1e-300)) + np.log(r)
     if not np.any(np.isfinite(lp)):
         return None
-    sel = np.nonzero(lp > np.nanmax(lp) - 8.0)[0]
-    lo = r[max(sel[0] - 1, 0)]
-    hi = r[min(sel[-1] + 1, r.size - 1)]
-    return lo, hi
+    w = np.exp(lp - np.nanmax(lp))
+    w = np.where(np.isfinite(w), w, 0.0)
+    x = np.log(r)
+    mu = float(np.sum(w * x) / np.sum(w))
+    sd = float(np.sqrt(np.sum(w * (x - mu) ** 2) / np.sum(w)))
+    return mu, sd
 
 
 def measure_object(observations: Sequence[Observation], mag: float, config=None,
@@ -91,38 +99,34 @@ def measure_object(observations: Sequence[Observation], mag: float, config=None,
 
 def _measure(obs, mag, cfg, return_samples):
     disk = exponential_disk(cfg.truncation)
-    bulge = de_vaucouleurs(cfg.truncation)
+    fast = fast_pair(cfg.truncation)
     exposures = [prepare_exposure(o, cfg) for o in obs]
-    jm = join_exposures(exposures)
+    jm = join_exposures(exposures, cfg.mode_chi2_tolerance)
     pix = jm.pixel_scale
     a = float(priors.size_prior_scale(mag, cfg))
     max_shift = cfg.max_centroid_shift * pix
-    du, dv, ok = find_position(jm, disk, min(a, 2 * pix), max_shift)
+    r_ref = min(a, 2 * pix)
+    start = coarse_peak(exposures, [o.jacobian for o in obs], disk, r_ref, 2 * max_shift, pix)
+    du, dv, ok = find_position(jm, disk, r_ref, max_shift, start=start)
     shift = float(np.hypot(du, dv))
     if not ok or shift > max_shift:
         return FitResult(fitclass=FITCLASS_CENTROID, n_exposures_used=len(obs), centroid_shift=shift / pix,
                          message="cross-correlation peak too far from the input position")
     jm = shift_joint(jm, du, dv)
-    rng = _size_range(jm, cfg, mag, disk, bulge)
+    rng = _size_range(jm, cfg, mag, fast)
     if rng is None:
         return FitResult(fitclass=FITCLASS_FIT_FAILED, n_exposures_used=len(obs), centroid_shift=shift / pix,
                          message="no model correlates with the data")
-    lo, hi = rng
-    centre = np.sqrt(lo * hi)
-    t_lo, t_hi = lo / centre, hi / centre
-    if t_lo < 0.25 * t_hi:
-        t = np.linspace(0.0, t_hi, cfg.n_size + 1)
-    else:
-        t = np.linspace(t_lo, t_hi, cfg.n_size)
-    like = EllipticityLikelihood(jm, cfg, mag, disk, bulge, t, centre)
+    mu, sd = rng
+    # nodes uniform in ln r over +-3.5 posterior widths (at least +-35 %, the size-ellipticity
+    # degeneracy moves the best size with e), centred per ellipticity by EllipticityLikelihood
+    half = 3.5 * min(max(sd, 0.1), 1.5)
+    x = np.linspace(-half, half, cfg.n_size)
+    like = EllipticityLikelihood(jm, cfg, mag, fast, x, float(np.exp(mu)))
     samples = adaptive_samples(like, cfg) if cfg.sampling == "adaptive" else two_pass_samples(like, cfg)
     est = estimate(samples, cfg)
     # star/galaxy: F-ratio of the best galaxy (r > 0) against the best point source (sec. 3.2)
-    if like.has_zero:
-        z = like.zero
-    else:
-        zs = model_sums(jm, [0.0], [0.0], [0.0], disk, bulge, cfg.bulge_size_ratio)
-        z = flux_position_marginal(zs, cfg)
+    z = flux_position_marginal(model_sums(jm, [0.0], [0.0], [0.0], fast, cfg.bulge_size_ratio), cfg)
     chi2_star = jm.yy + float(min(z.chi2_disk[0], z.chi2_bulge[0]))
     chi2_gal = jm.yy + like.best_chi2_gal
     dof = max(jm.npix - _NPAR_GALAXY, 1)

@@ -200,15 +200,20 @@ def _fine_modes_moffat(psf, ny, nx, s):
     kxc = 2 * np.pi * np.fft.rfftfreq(nx)
     rs, beta = fit_moffat(Ps, kyc, kxc)
 
+    # the Moffat's transform is radial: tabulate it once on |k| and interpolate
+    kmax = np.hypot(np.pi * (2 * 2 + 1), np.pi * (2 * 2 + 1)) + 1.0
+    ktab = np.linspace(0.0, kmax, 4001)
+    mtab = _moffat_ft(ktab, rs, beta)
+
     def gpix(ky, kx):
-        return (_moffat_ft(np.hypot(ky, kx), rs, beta)
+        return (np.interp(np.hypot(ky, kx), ktab, mtab, right=0.0)
                 * np.sinc(ky / (2 * np.pi)) * np.sinc(kx / (2 * np.pi)))
 
     KY, KX = np.meshgrid(kyc, kxc, indexing="ij")
-    # aliased sum of the analytic PSF on the sampled grid
+    # aliased sum of the analytic PSF on the sampled grid (beyond +-2 it is below 1e-8)
     A = np.zeros_like(KY)
-    for ay in range(-3, 4):
-        for ax in range(-3, 4):
+    for ay in range(-2, 3):
+        for ax in range(-2, 3):
             A += gpix(KY + 2 * np.pi * ay, KX + 2 * np.pi * ax)
     ratio = np.where(np.abs(A) > 1e-12, Ps / np.where(np.abs(A) > 1e-12, A, 1.0), 0.0)
     half = s // 2
@@ -290,7 +295,9 @@ def render_object(obs: Observation, e1, e2, scalelength, bulge_fraction, flux, c
     """
     from .profiles import de_vaucouleurs, exponential_disk
 
-    cfg = config if config is not None else FitConfig()
+    from .measure import as_config
+
+    cfg = as_config(config)
     ny, nx = obs.shape
     pix = obs.pixel_scale
     extent = cfg.truncation * scalelength * max(1.0, cfg.bulge_size_ratio) / pix

@@ -635,3 +635,69 @@ for _public, _cached in ((exponential_disk, _exponential_disk), (de_vaucouleurs,
     _public.cache_info = _cached.cache_info
     _public.cache_clear = _cached.cache_clear
 del _public, _cached
+
+
+class FastRadial:
+    """A profile's transform on a grid uniform in ``u = sqrt(c^2 + rho^2) - c``, for the inner loop.
+
+    ``u`` is quadratic in rho near 0, where the transform is smooth in
+    rho^2, and linear at large rho, where the truncation edge makes it
+    oscillate with a fixed period in rho: one uniform grid serves both, so a
+    lookup is an index computation and two gathers instead of a binary
+    search (about 7 times faster than ``np.interp`` on these tables). Linear
+    interpolation on it is accurate to about 3e-6 of the total flux (the
+    exact tables are good to 4e-7; tests check both).
+    """
+
+    C = 0.5
+
+    #: beyond rho = U_MAX the transforms are taken as 0: the PSF is negligible at the wavenumbers
+    #: (|K| > U_MAX / r) where a galaxy of any fitted size would reach it.
+    U_MAX = 256.0
+
+    def __init__(self, profiles, du=0.004, u_max=None):
+        self.du = float(du)
+        u_max = self.U_MAX if u_max is None else u_max
+        rho_max = min(min(p.rho_max for p in profiles), u_max)
+        n = int(np.ceil(rho_max / self.du)) + 2
+        u = np.arange(n) * self.du
+        rho2 = (u + self.C) ** 2 - self.C ** 2
+        self.n = n
+        self.tables = []
+        for p in profiles:
+            # float64 values: the likelihood sums thousands of modes, float32 would not do
+            t = p.ft_rho2(rho2)
+            t[-1] = 0.0
+            s = np.append(np.diff(t), 0.0)
+            self.tables.append((t, s))
+        # for the compiled kernel: value and slope of every profile side by side, in float32, so that
+        # one cache line serves one lookup (float32 rounding, 6e-8, is far below the 3e-6 interpolation error)
+        self.packed32 = np.ascontiguousarray(
+            np.stack([a for t_s in self.tables for a in t_s], axis=1).astype(np.float32))
+
+    def index(self, rho2):
+        """Grid index and fraction for rho^2 (any shape)."""
+        u = np.sqrt(rho2 + self.C * self.C, dtype=np.float32)
+        u -= np.float32(self.C)
+        u *= np.float32(1.0 / self.du)
+        np.minimum(u, np.float32(self.n - 1), out=u)
+        i = u.astype(np.int32)
+        u -= i
+        return i, u
+
+    def lookup(self, which, i, frac):
+        t, s = self.tables[which]
+        out = np.take(s, i)
+        out *= frac
+        out += np.take(t, i)
+        return out
+
+    def __call__(self, which, rho2):
+        i, f = self.index(rho2)
+        return self.lookup(which, i, f)
+
+
+@functools.lru_cache(maxsize=8)
+def fast_pair(truncation=DEFAULT_TRUNCATION):
+    """The disk and bulge transforms of the paper's models on one fast grid."""
+    return FastRadial([exponential_disk(truncation), de_vaucouleurs(truncation)])

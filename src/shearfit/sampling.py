@@ -60,23 +60,16 @@ class EPoint:
 class EllipticityLikelihood:
     """log L(e1, e2) of one object, marginalised over everything else."""
 
-    def __init__(self, jm, cfg: FitConfig, mag, disk, bulge, size_grid_t, r_center, chunk=64):
+    def __init__(self, jm, cfg: FitConfig, mag, fast, size_grid_x, r_center, chunk=64):
         self.jm = jm
         self.cfg = cfg
         self.mag = mag
-        self.disk = disk
-        self.bulge = bulge
-        self.t = np.asarray(size_grid_t, float)   # r = r_center(e) * t
+        self.fast = fast
+        self.x = np.asarray(size_grid_x, float)   # r = r_center(e) * exp(x)
         self.r_center = float(r_center)
         self.lin = _linear_vectors(jm)
         self.chunk = chunk
         self.n_models = 0
-        self.has_zero = self.t[0] == 0.0
-        if self.has_zero:
-            # r = 0 is the point source: one model, shared by every ellipticity
-            s0 = model_sums(jm, [0.0], [0.0], [0.0], disk, bulge, cfg.bulge_size_ratio, lin=self.lin)
-            self.zero = flux_position_marginal(s0, cfg)
-            self.n_models += 1
         self.chi2_star = None
         self.best_chi2_gal = np.inf
         self.best_snr = 0.0
@@ -96,43 +89,32 @@ class EllipticityLikelihood:
     def _chunk(self, e1, e2) -> EPoint:
         cfg = self.cfg
         ne = e1.size
-        tpos = self.t[1:] if self.has_zero else self.t
-        nr = tpos.size
+        nr = self.x.size
         rc = self.centre(e1, e2)
-        R = rc[:, None] * tpos[None, :]
+        R = rc[:, None] * np.exp(self.x)[None, :]
         E1 = np.repeat(e1, nr)
         E2 = np.repeat(e2, nr)
-        sums = model_sums(self.jm, E1, E2, R.ravel(), self.disk, self.bulge, cfg.bulge_size_ratio, lin=self.lin)
+        sums = model_sums(self.jm, E1, E2, R.ravel(), self.fast, cfg.bulge_size_ratio, lin=self.lin)
         self.n_models += E1.size
         mg = flux_position_marginal(sums, cfg)
-        ld = mg.logl_disk.reshape(ne, nr)
-        lb = mg.logl_bulge.reshape(ne, nr)
-        fd = mg.mean_flux_disk.reshape(ne, nr)
-        fb = mg.mean_flux_bulge.reshape(ne, nr)
-        bd = mg.mean_b_disk.reshape(ne, nr)
         # best single-component fit among galaxies (r > 0), for the star/galaxy test
         chi2 = np.minimum(mg.chi2_disk, mg.chi2_bulge)
         i = int(np.argmin(chi2))
         if chi2[i] < self.best_chi2_gal:
             self.best_chi2_gal = float(chi2[i])
             self.best_snr = float(max(mg.snr_disk[i], mg.snr_bulge[i]))
-        if self.has_zero:
-            z = self.zero
-            ld = np.concatenate([np.full((ne, 1), z.logl_disk[0]), ld], axis=1)
-            lb = np.concatenate([np.full((ne, 1), z.logl_bulge[0]), lb], axis=1)
-            fd = np.concatenate([np.full((ne, 1), z.mean_flux_disk[0]), fd], axis=1)
-            fb = np.concatenate([np.full((ne, 1), z.mean_flux_bulge[0]), fb], axis=1)
-            bd = np.concatenate([np.full((ne, 1), z.mean_b_disk[0]), bd], axis=1)
-        rnodes = rc[:, None] * self.t[None, :]
-        return self._size_marginal(rnodes, ld, lb, fd, fb, bd)
+        shape = (ne, nr)
+        return self._size_marginal(R, mg.logl_disk.reshape(shape), mg.logl_bulge.reshape(shape),
+                                   mg.mean_flux_disk.reshape(shape), mg.mean_flux_bulge.reshape(shape),
+                                   mg.mean_b_disk.reshape(shape))
 
     def _size_marginal(self, rnodes, ld, lb, fd, fb, bd, n_fine=49):
-        """Spline log L over the scalelength nodes and integrate against the size prior."""
+        """Spline log L over ln r and integrate against the size prior (dr = r d ln r)."""
         cfg = self.cfg
-        t = self.t
-        tf = np.linspace(t[0], t[-1], n_fine)
-        rf = (rnodes[:, -1:] / t[-1]) * tf[None, :]
-        logprior = np.log(np.maximum(priors.size_prior_pdf(rf, self.mag, cfg), 1e-300))
+        x = self.x
+        xf = np.linspace(x[0], x[-1], n_fine)
+        rf = (rnodes[:, :1] / np.exp(x[0])) * np.exp(xf)[None, :]
+        logprior = np.log(np.maximum(priors.size_prior_pdf(rf, self.mag, cfg), 1e-300)) + np.log(rf)
         res = {}
         for name, logl in (("disk", ld), ("bulge", lb)):
             finite = np.isfinite(logl)
@@ -140,11 +122,10 @@ class EllipticityLikelihood:
             good = np.isfinite(rowmax[:, 0])
             floor = np.where(good[:, None], rowmax - 40.0, 0.0)
             lv = np.where(finite, np.maximum(logl, floor), floor)
-            vf = CubicSpline(t, lv, axis=1)(tf) + logprior
+            vf = CubicSpline(x, lv, axis=1)(xf) + logprior
             m = np.max(vf, axis=1, keepdims=True)
             w = np.exp(vf - m)
-            # dr = r_center(e) dt
-            integ = np.trapezoid(w, tf, axis=1) * (rnodes[:, -1] / t[-1])
+            integ = np.trapezoid(w, xf, axis=1)
             res[name] = (np.where(good, m[:, 0] + np.log(integ), -np.inf), w)
         ldm, wd = res["disk"]
         lbm, wb = res["bulge"]
@@ -153,7 +134,7 @@ class EllipticityLikelihood:
         wsum_b = np.maximum(wb.sum(axis=1), 1e-300)
         mean_r_d = np.sum(wd * rf, axis=1) / wsum_d
         mean_r_b = np.sum(wb * rf, axis=1) / wsum_b
-        interp = lambda vals: np.array([np.interp(tf, t, row) for row in vals])  # noqa: E731
+        interp = lambda vals: np.array([np.interp(xf, x, row) for row in vals])  # noqa: E731
         mean_f_d = np.sum(wd * interp(fd), axis=1) / wsum_d
         mean_f_b = np.sum(wb * interp(fb), axis=1) / wsum_b
         mean_b_d = np.sum(wd * interp(bd), axis=1) / wsum_d
@@ -258,7 +239,12 @@ class _Store:
 
 
 def adaptive_samples(like: EllipticityLikelihood, cfg: FitConfig) -> Samples:
-    """The paper's adaptive grid (sec. 3.3)."""
+    """The paper's adaptive grid (sec. 3.3).
+
+    Start on a 0.16 grid; while fewer than 30 samples lie above 5 % of the
+    maximum posterior and the step is above 0.02, halve the step over the
+    bounding box (plus one old step) of the samples above the posterior cut.
+    """
     st = _Store(like, cfg)
     step = int(round(cfg.e_grid_start / cfg.e_grid_min))
     n = int(cfg.model_e_limit / cfg.e_grid_min) + step
@@ -267,6 +253,10 @@ def adaptive_samples(like: EllipticityLikelihood, cfg: FitConfig) -> Samples:
         sel = st.above(cfg.above_fraction)
         if sel.sum() >= cfg.n_above or step <= 1:
             break
+        # refine over every sample the estimator will use (posterior above the cut), not only
+        # those above the counting threshold: otherwise high-likelihood, low-prior samples near
+        # the cut keep coarse cells and the estimate jumps when the box edge moves
+        sel = st.above(min(cfg.posterior_cut, cfg.above_fraction))
         e1 = np.array(st.e1)[sel]
         e2 = np.array(st.e2)[sel]
         i = np.rint(e1 / cfg.e_grid_min).astype(int)
@@ -280,40 +270,51 @@ def adaptive_samples(like: EllipticityLikelihood, cfg: FitConfig) -> Samples:
 def two_pass_samples(like: EllipticityLikelihood, cfg: FitConfig) -> Samples:
     """Two passes (sec. 3.3's later improvement): find the maximum, then map around it.
 
-    Pass 1 refines only a 5x5 neighbourhood of the current maximum down to the
-    finest step. Pass 2 estimates the posterior's width from the samples so
-    far, picks a step of about a third of it (within the grid's limits) and
-    maps a box of +-4 widths, enlarging it while its edge is above the cut.
+    Pass 1 samples a grid twice as coarse as the adaptive one's and refines
+    only the 5x5 neighbourhood of the current maximum, halving the step down
+    to the finest. Pass 2 measures the posterior's width at the maximum from
+    the likelihood-weighted spread of the samples, then maps a box of
+    +-(3 widths + a step) at about half a width per step (at most 13 steps
+    across), enlarging the box while any sample on its edge is above the
+    posterior cut.
     """
     st = _Store(like, cfg)
     unit = cfg.e_grid_min
-    step = int(round(cfg.e_grid_start / unit))
+    finest = 1
+    coarsest = int(round(cfg.e_grid_start / unit))
+    step = 2 * coarsest
     n = int(cfg.model_e_limit / unit) + step
     st.add(st.lattice_box(step, -n, n, -n, n))
-    while step > 1:
+    while step > finest:
+        step = max(step // 2, finest)
         k = int(np.argmax(st.logpost))
         i0, j0 = int(round(st.e1[k] / unit)), int(round(st.e2[k] / unit))
-        new = max(step // 2, 1)
-        st.add(st.lattice_box(new, i0 - 2 * new, i0 + 2 * new, j0 - 2 * new, j0 + 2 * new))
-        step = new
-    lp = np.array(st.logpost)
-    w = np.exp(lp - lp.max())
-    sel = w > 0.05
+        st.add(st.lattice_box(step, i0 - 2 * step, i0 + 2 * step, j0 - 2 * step, j0 + 2 * step))
+    # drop pass-1 boxes: pass 2's grid defines the cells
+    st.boxes = []
     e1 = np.array(st.e1)
     e2 = np.array(st.e2)
+    lp = np.array(st.logpost)
     k = int(np.argmax(lp))
-    sig = np.sqrt(max(np.average((e1[sel] - e1[k]) ** 2 + (e2[sel] - e2[k]) ** 2, weights=w[sel]) / 2, unit ** 2))
-    step = int(np.clip(round(sig / 3 / unit), 1, round(cfg.e_grid_start / unit)))
-    half = int(np.ceil(4 * sig / unit))
+    w = np.exp(lp - lp[k])
+    sel = w > cfg.posterior_cut
+    sig = np.sqrt(max(np.average((e1[sel] - e1[k]) ** 2 + (e2[sel] - e2[k]) ** 2, weights=w[sel]) / 2,
+                      (unit / 2) ** 2))
+    limit = int(cfg.model_e_limit / unit) + 1
+    half = int(np.ceil((3 * sig) / unit)) + 1
     i0, j0 = int(round(e1[k] / unit)), int(round(e2[k] / unit))
-    for _ in range(4):
-        st.add(st.lattice_box(step, i0 - half, i0 + half, j0 - half, j0 + half))
+    while True:
+        step = int(np.clip(max(round(sig / 2 / unit), int(np.ceil(2 * half / 12))), finest, coarsest))
+        half = int(np.ceil(half / step)) * step
+        box = (i0 - half, i0 + half, j0 - half, j0 + half)
+        st.add(st.lattice_box(step, *box))
         lp = np.array(st.logpost)
         ii = np.rint(np.array(st.e1) / unit).astype(int)
         jj = np.rint(np.array(st.e2) / unit).astype(int)
-        edge = (np.abs(ii - i0) >= half - step) | (np.abs(jj - j0) >= half - step)
-        inside = (np.abs(ii - i0) <= half) & (np.abs(jj - j0) <= half)
-        if not np.any(edge & inside & (lp > lp.max() + np.log(cfg.posterior_cut))):
+        on_edge = (((np.abs(ii - i0) == half) & (np.abs(jj - j0) <= half)) |
+                   ((np.abs(jj - j0) == half) & (np.abs(ii - i0) <= half)))
+        hot = on_edge & (lp > lp.max() + np.log(cfg.posterior_cut))
+        if not np.any(hot) or half >= 2 * limit:
             break
         half = int(half * 1.5) + step
     return st.result()

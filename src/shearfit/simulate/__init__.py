@@ -2,7 +2,8 @@
 
 :mod:`.stamps` makes postage stamps of the paper's galaxy population on
 several dithered exposures, wrapped as :class:`shearfit.Observation` objects,
-and ring sets for shear-bias tests.
+and ring sets for shear-bias tests; :mod:`.shear_bias` turns measured ring
+sets into the multiplicative and additive shear bias with bootstrap errors.
 """
 
 from .stamps import (  # noqa: F401
@@ -17,6 +18,8 @@ from .stamps import (  # noqa: F401
     noise_for_snr,
     ring_set,
 )
+from .shear_bias import mean_shear, ring_sums, shear_bias, shear_bias_by_snr  # noqa: F401
 
 __all__ = ["ZERO_POINT", "draw_psf_image", "draw_stamp", "galaxy_profile", "jacobian_wcs", "mag_to_flux",
-           "make_observations", "moffat_psf", "noise_for_snr", "ring_set"]
+           "make_observations", "moffat_psf", "noise_for_snr", "ring_set", "ring_sums", "shear_bias", "mean_shear",
+           "shear_bias_by_snr"]

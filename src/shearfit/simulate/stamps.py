@@ -251,7 +251,7 @@ def noise_for_snr(noise_free_stamps, snr) -> float:
 
 
 def make_observations(profile, psfs, jacobians, offsets, noise_sigmas, rng, stamp_size=48, psf_oversampling=1,
-                      flux_scales=None, gsparams=None, noise_free=None, psf_images=None) -> list:
+                      flux_scales=None, gsparams=None, noise_free=None, psf_images=None, add_noise=True) -> list:
     """Simulate one object on several exposures and wrap each as an :class:`~shearfit.Observation`.
 
     Parameters
@@ -297,7 +297,9 @@ def make_observations(profile, psfs, jacobians, offsets, noise_sigmas, rng, stam
     for i in range(n):
         m = noise_free[i]
         if sig[i] > 0:
-            image = m + rng.normal(0.0, sig[i], size=m.shape)
+            # add_noise=False keeps the noise-free image but the weights of sigma: the likelihood then
+            # has the width of that SNR and is centred on the truth (the expected likelihood of App. C)
+            image = m + rng.normal(0.0, sig[i], size=m.shape) if add_noise else m.copy()
             ivar = 1.0 / sig[i] ** 2
         else:
             image = m.copy()
@@ -322,7 +324,7 @@ def mag_to_flux(mag, zero_point=ZERO_POINT):
 def ring_set(n_galaxies, shear, rng, n_rotations=4, n_exposures=7, snr_range=(100, 200), mag_range=(21, 24.5),
              psf_fwhm_range=(0.5, 0.8), psf_beta_range=(2.5, 4.5), psf_e_max=0.1, pixel_scale=0.187,
              stamp_size=48, psf_oversampling=1, max_dither=0.5, cfg=None, noise_seed=None,
-             rotate_exposures=False, gsparams=None, population=None):
+             rotate_exposures=False, gsparams=None, population=None, add_noise=True):
     """Ring sets of GalSim-simulated galaxies, all with one applied shear.
 
     Every galaxy is drawn from the paper's population at a magnitude uniform in
@@ -421,7 +423,7 @@ def ring_set(n_galaxies, shear, rng, n_rotations=4, n_exposures=7, snr_range=(10
             noise_rng = rng if seed_prefix is None else np.random.default_rng(seed_prefix + [i, j])
             obs = make_observations(None, psfs, Js, gal["offsets"], sigma, noise_rng, stamp_size=stamp_size,
                                     psf_oversampling=psf_oversampling, gsparams=gsparams, noise_free=m,
-                                    psf_images=psf_images)
+                                    psf_images=psf_images, add_noise=add_noise)
             truth = {
                 "galaxy": i, "rotation": j, "e1_int": float(ej.real), "e2_int": float(ej.imag), "g1": g1, "g2": g2,
                 "scalelength": gal["scalelength"], "bulge_fraction": gal["bulge_fraction"],

@@ -1,0 +1,161 @@
+"""measure_object on GalSim-rendered stamps: recovery, frames, classification, API behaviour.
+
+Images are noise-free with the weights of a finite SNR: the likelihood then
+has that SNR's width but is centred on the truth (the expected likelihood of
+App. C), so recovery is tested without noise realisations; tolerances are a
+fraction of the likelihood's width or the 0.02 grid's discretisation.
+"""
+
+import numpy as np
+import pytest
+
+import shearfit
+from shearfit.errors import (FITCLASS_CENTROID, FITCLASS_FEW_EXPOSURES, FITCLASS_GALAXY, FITCLASS_STAR,
+                             ShearfitKeyError, ShearfitValueError)
+from shearfit.simulate.stamps import draw_psf_image, draw_stamp, galaxy_profile, moffat_psf, noise_for_snr
+
+PIX = 0.187
+
+
+def _observations(r, e, B=0.1, snr=300.0, n_exp=3, jacobians=None, flux=1000.0, g=(0.0, 0.0), flux_scales=None,
+                  offsets=None, seed=0, noise=False, is_bulge=False):
+    rng = np.random.default_rng(seed)
+    jacobians = jacobians or [PIX * np.eye(2)] * n_exp
+    flux_scales = flux_scales or [1.0] * n_exp
+    offsets = offsets if offsets is not None else rng.uniform(-0.5, 0.5, (n_exp, 2))
+    psfs = [moffat_psf(0.6 + 0.05 * i, 3.0, 0.04 * (-1) ** i, 0.03) for i in range(n_exp)]
+    gal = galaxy_profile(r, B, e[0], e[1], flux=flux, g1=g[0], g2=g[1], is_bulge=is_bulge)
+    ims = [draw_stamp(gal * fs, p, J, o) for p, J, o, fs in zip(psfs, jacobians, offsets, flux_scales)]
+    sig = noise_for_snr(ims, snr)
+    obs = []
+    for im, p, J, o, fs in zip(ims, psfs, jacobians, offsets, flux_scales):
+        data = im + (rng.normal(0, sig, im.shape) if noise else 0.0)
+        obs.append(shearfit.Observation(image=data, weight=np.full(im.shape, 1 / sig ** 2),
+                                        psf=draw_psf_image(p, J, size=48), jacobian=J, offset=tuple(o),
+                                        flux_scale=fs))
+    return obs
+
+
+@pytest.mark.parametrize("r,e", [(0.3, (0.3, -0.2)), (0.6, (-0.5, 0.1)), (0.15, (0.1, 0.4))])
+def test_noise_free_recovery(r, e):
+    res = shearfit.measure_object(_observations(r, e), mag=22.0)
+    assert res.fitclass == FITCLASS_GALAXY
+    sig = np.sqrt(res.e_var)
+    # the mean of a likelihood centred on the truth: within a fraction of its width
+    assert abs(res.e1 - e[0]) < max(0.3 * sig, 0.004)
+    assert abs(res.e2 - e[1]) < max(0.3 * sig, 0.004)
+    assert res.scalelength == pytest.approx(r, rel=0.1)
+    assert res.model_flux == pytest.approx(1000.0, rel=0.05)
+    assert res.snr == pytest.approx(300.0, rel=0.05)
+    assert 0 < res.weight <= 1 / 0.255 ** 2
+
+
+def test_pure_bulge_recovery_and_bulge_fraction():
+    res = shearfit.measure_object(_observations(0.4, (0.2, 0.2), is_bulge=True, snr=500), mag=21.0)
+    assert abs(res.e1 - 0.2) < 0.01 and abs(res.e2 - 0.2) < 0.01
+    assert res.bulge_fraction > 0.8
+    disk = shearfit.measure_object(_observations(0.4, (0.2, 0.2), B=0.0, snr=500), mag=21.0)
+    assert disk.bulge_fraction < 0.15
+
+
+def test_sky_frame_independent_of_pixel_grid():
+    """Rotated, flipped and distorted pixel grids: e comes out in the (u, v) frame."""
+    e = (0.35, -0.15)
+    ref = shearfit.measure_object(_observations(0.35, e), mag=22.0)
+    Js = []
+    for k, th in enumerate(np.radians([25.0, 110.0, 250.0])):
+        rot = np.array([[np.cos(th), -np.sin(th)], [np.sin(th), np.cos(th)]])
+        flip = np.diag([-1.0, 1.0]) if k == 1 else np.eye(2)
+        Js.append(PIX * np.array([[1.02, 0.01], [0.01, 0.99]]) @ rot @ flip)
+    res = shearfit.measure_object(_observations(0.35, e, jacobians=Js), mag=22.0)
+    assert abs(res.e1 - ref.e1) < 0.005 and abs(res.e2 - ref.e2) < 0.005
+    assert abs(res.e1 - e[0]) < 0.01 and abs(res.e2 - e[1]) < 0.01
+
+
+def test_photometric_scaling_between_exposures():
+    res = shearfit.measure_object(_observations(0.3, (0.2, 0.1), flux_scales=[1.0, 0.5, 2.0]), mag=22.0)
+    assert res.model_flux == pytest.approx(1000.0, rel=0.05)
+    assert abs(res.e1 - 0.2) < 0.01
+
+
+def test_star_and_galaxy_classification():
+    star = shearfit.measure_object(_observations(0.001, (0.0, 0.0), B=0.0, snr=200), mag=20.0)
+    assert star.fitclass == FITCLASS_STAR and star.weight == 0.0
+    gal = shearfit.measure_object(_observations(0.4, (0.1, 0.0), snr=200), mag=22.0)
+    assert gal.fitclass == FITCLASS_GALAXY and gal.star_pvalue < 1e-6
+
+
+def test_offset_object_is_found_and_far_object_flagged():
+    # the true centre 1.4 pixels from the nominal position: found and measured
+    obs = _observations(0.3, (0.2, 0.0), offsets=[(1.4, -0.9)] * 3)
+    for o in obs:
+        o.offset = np.array([0.0, 0.0])   # the catalogue position is wrong by 1.7 pixels
+    res = shearfit.measure_object(obs, mag=22.0)
+    assert res.fitclass == FITCLASS_GALAXY
+    assert res.centroid_shift == pytest.approx(np.hypot(1.4, 0.9), abs=0.05)
+    assert abs(res.e1 - 0.2) < 0.01
+    far = _observations(0.3, (0.2, 0.0), offsets=[(9.0, 0.0)] * 3)
+    for o in far:
+        o.offset = np.array([0.0, 0.0])
+    assert shearfit.measure_object(far, mag=22.0).fitclass == FITCLASS_CENTROID
+
+
+def test_no_usable_exposure():
+    obs = _observations(0.3, (0.0, 0.0), n_exp=1)
+    dead = shearfit.Observation(image=obs[0].image, weight=np.zeros_like(obs[0].image), psf=obs[0].psf,
+                                jacobian=obs[0].jacobian)
+    assert shearfit.measure_object([dead], mag=22.0).fitclass == FITCLASS_FEW_EXPOSURES
+
+
+def test_kernel_matches_numpy():
+    from shearfit import likelihood
+    from shearfit.likelihood import join_exposures, model_sums
+    from shearfit.model import prepare_exposure
+    from shearfit.profiles import fast_pair
+
+    if likelihood._kernels is None:
+        pytest.skip("compiled kernel not built")
+    cfg = shearfit.FitConfig(alias_correction="moffat", mode_chi2_tolerance=0.0)
+    obs = _observations(0.3, (0.2, 0.1), noise=True, snr=30)
+    jm = join_exposures([prepare_exposure(o, cfg) for o in obs])
+    assert jm.multi.size > 0   # the alias fold is exercised
+    rng = np.random.default_rng(1)
+    e1, e2 = rng.uniform(-0.7, 0.7, (2, 200))
+    r = rng.uniform(0.0, 2.0, 200)
+    for ratio in (1.0, 0.6):
+        a = model_sums(jm, e1, e2, r, fast_pair(), ratio, use_kernel=False)
+        b = model_sums(jm, e1, e2, r, fast_pair(), ratio, use_kernel=True)
+        for f in ("hf", "hg", "grad_f", "grad_g", "hess_f", "hess_g", "ff", "gg", "fg"):
+            x, y = getattr(a, f), getattr(b, f)
+            # the numpy path indexes the table in float32: 1e-6 relative
+            assert np.max(np.abs(x - y)) <= 1e-6 * np.max(np.abs(x)), f
+
+
+def test_samples_and_batch():
+    obs = _observations(0.3, (0.1, 0.1), noise=True, snr=40)
+    res = shearfit.measure_object(obs, mag=22.5, return_samples=True)
+    s = res.samples
+    assert set(s.dtype.names) >= {"e1", "e2", "logl", "logpost", "area"}
+    assert np.all(np.hypot(s["e1"], s["e2"]) < 1)
+    out = shearfit.measure_objects([obs, obs], [22.5, 22.5])
+    assert [o.e1 for o in out] == [res.e1, res.e1]   # deterministic
+
+
+def test_bad_input_errors():
+    im = np.zeros((48, 48))
+    psf = np.zeros((25, 25))
+    psf[12, 12] = 1.0
+    with pytest.raises(ShearfitValueError, match="psf must sum to 1"):
+        shearfit.Observation(image=im, psf=psf * 2, jacobian=PIX * np.eye(2), weight=np.ones_like(im))
+    with pytest.raises(ShearfitValueError, match="weight shape"):
+        shearfit.Observation(image=im, psf=psf, jacobian=PIX * np.eye(2), weight=np.ones((10, 10)))
+    with pytest.raises(ShearfitValueError, match="jacobian"):
+        shearfit.Observation(image=im, psf=psf, jacobian=np.zeros((2, 2)), weight=np.ones_like(im))
+    with pytest.raises(ShearfitValueError, match="non-negative"):
+        shearfit.Observation(image=im, psf=psf, jacobian=PIX * np.eye(2), weight=-np.ones_like(im))
+    with pytest.raises(ShearfitKeyError, match="unknown setting 'nope'"):
+        shearfit.measure_object([], mag=22.0, config={"nope": 1})
+    with pytest.raises(ShearfitValueError, match="must be of type"):
+        shearfit.fit_config_from_mapping({"n_flux": "eleven"})
+    with pytest.raises(ShearfitValueError, match="sampling"):
+        shearfit.FitConfig(sampling="mcmc")
