@@ -141,7 +141,7 @@ def test_bias_by_snr_bins():
 
 def test_format_with_error():
     assert format_with_error(0.0123, 0.0045) == " +0.01230 +/-  0.00450"
-    assert format_with_error(-1.5, 0.25, scale=10, digits=1) == "-15.0 +/- 2.5"
+    assert format_with_error(-1.5, 0.25, scale=10, digits=1) == "-15.0 +/-  2.5"
     assert format_with_error(float("nan"), 0.1).strip() == "nan"
     assert format_with_error(0.1, float("nan")).endswith("nan")
 

@@ -35,15 +35,16 @@ def as_config(config) -> FitConfig:
 
 
 def _size_range(jm, cfg, mag, fast):
-    """Where the round model's size posterior lies: mean and spread of ln r.
+    """Where the round model's size posterior lies in ln r: its median and its 0.1 % and 99.9 % points.
 
-    Both are moments of the posterior on a fine grid, so they move
-    continuously with the data: an estimator whose scalelength nodes jumped
-    with a small change of the data would not respond smoothly to shear.
+    Quantiles of the posterior on a fine grid move continuously with the data
+    (nodes that jumped with a small change of the data would make the
+    estimator respond unevenly to shear) and follow a skewed posterior's tail
+    towards r = 0, which small galaxies have.
     """
     a = float(priors.size_prior_scale(mag, cfg))
     pix = jm.pixel_scale
-    r = np.geomspace(0.02 * min(a, pix), 10.0 * max(a, pix), 40)
+    r = np.geomspace(0.01 * min(a, pix), 12.0 * max(a, pix), 64)
     z = np.zeros_like(r)
     mg = flux_position_marginal(model_sums(jm, z, z, r, fast, cfg.bulge_size_ratio), cfg)
     fB = cfg.bulge_population_fraction
@@ -55,9 +56,11 @@ def _size_range(jm, cfg, mag, fast):
     w = np.exp(lp - np.nanmax(lp))
     w = np.where(np.isfinite(w), w, 0.0)
     x = np.log(r)
-    mu = float(np.sum(w * x) / np.sum(w))
-    sd = float(np.sqrt(np.sum(w * (x - mu) ** 2) / np.sum(w)))
-    return mu, sd
+    # cumulative distribution, linear between grid points, inverted at the quantiles
+    c = np.concatenate([[0.0], np.cumsum(0.5 * (w[1:] + w[:-1]) * np.diff(x))])
+    c /= c[-1]
+    lo, med, hi = np.interp([1e-3, 0.5, 1 - 1e-3], c, x)
+    return float(med), float(lo), float(hi)
 
 
 def measure_object(observations: Sequence[Observation], mag: float, config=None,
@@ -117,12 +120,15 @@ def _measure(obs, mag, cfg, return_samples):
     if rng is None:
         return FitResult(fitclass=FITCLASS_FIT_FAILED, n_exposures_used=len(obs), centroid_shift=shift / pix,
                          message="no model correlates with the data")
-    mu, sd = rng
-    # nodes uniform in ln r over +-3.5 posterior widths (at least +-35 %, the size-ellipticity
-    # degeneracy moves the best size with e), centred per ellipticity by EllipticityLikelihood
-    half = 3.5 * min(max(sd, 0.1), 1.5)
-    x = np.linspace(-half, half, cfg.n_size)
-    like = EllipticityLikelihood(jm, cfg, mag, fast, x, float(np.exp(mu)))
+    med, lo, hi = rng
+    # spline nodes uniform in ln r from the round model's 0.1 % to its 99.9 % point (plus a margin),
+    # carried to each ellipticity by the predicted growth of the best size with e; where that range
+    # is narrower than the +-15 % uncertainty of the prediction, passes of 5 nodes over +-0.6 and then
+    # +-0.15 first locate the peak at each ellipticity
+    margin = 0.1
+    x = np.linspace(lo - med - margin, hi - med + margin, cfg.n_size)
+    locate = (0.6, 0.15) if (hi - lo) < 1.2 else None
+    like = EllipticityLikelihood(jm, cfg, mag, fast, x, float(np.exp(med)), locate_widths=locate)
     samples = adaptive_samples(like, cfg) if cfg.sampling == "adaptive" else two_pass_samples(like, cfg)
     est = estimate(samples, cfg)
     # star/galaxy: F-ratio of the best galaxy (r > 0) against the best point source (sec. 3.2)
@@ -145,7 +151,7 @@ def _measure(obs, mag, cfg, return_samples):
         result.weight = 0.0
         result.message = "likelihood surface empty"
     result.shape_weight = est.weight
-    result.n_models = like.n_models
+    result.n_models = int(like.n_models)
     if return_samples:
         rec = np.zeros(samples.e1.size, dtype=[("e1", "f8"), ("e2", "f8"), ("area", "f8"), ("logl", "f8"),
                                                ("logpost", "f8")])

@@ -200,34 +200,31 @@ def _fine_modes_moffat(psf, ny, nx, s):
     kxc = 2 * np.pi * np.fft.rfftfreq(nx)
     rs, beta = fit_moffat(Ps, kyc, kxc)
 
-    # the Moffat's transform is radial: tabulate it once on |k| and interpolate
-    kmax = np.hypot(np.pi * (2 * 2 + 1), np.pi * (2 * 2 + 1)) + 1.0
+    # the Moffat's transform is radial: tabulate it once on |k| and interpolate; the pixel response is
+    # separable. All aliases (n_y, n_x) in [-2, 2]^2 at once; beyond +-2 the Moffat is below 1e-8.
+    na = 2
+    offs = 2 * np.pi * np.arange(-na, na + 1)
+    kmax = np.hypot(np.pi + offs[-1], np.pi + offs[-1]) + 1.0
     ktab = np.linspace(0.0, kmax, 4001)
     mtab = _moffat_ft(ktab, rs, beta)
-
-    def gpix(ky, kx):
-        return (np.interp(np.hypot(ky, kx), ktab, mtab, right=0.0)
-                * np.sinc(ky / (2 * np.pi)) * np.sinc(kx / (2 * np.pi)))
-
-    KY, KX = np.meshgrid(kyc, kxc, indexing="ij")
-    # aliased sum of the analytic PSF on the sampled grid (beyond +-2 it is below 1e-8)
-    A = np.zeros_like(KY)
-    for ay in range(-2, 3):
-        for ax in range(-2, 3):
-            A += gpix(KY + 2 * np.pi * ay, KX + 2 * np.pi * ax)
+    KYa = kyc[None, :] + offs[:, None]                     # (5, ny)
+    KXa = kxc[None, :] + offs[:, None]                     # (5, nxh)
+    sy = np.sinc(KYa / (2 * np.pi))
+    sx = np.sinc(KXa / (2 * np.pi))
+    kk = np.hypot(KYa[:, None, :, None], KXa[None, :, None, :])          # (5, 5, ny, nxh)
+    G = np.interp(kk, ktab, mtab, right=0.0) * sy[:, None, :, None] * sx[None, :, None, :]
+    A = G.sum(axis=(0, 1))
     ratio = np.where(np.abs(A) > 1e-12, Ps / np.where(np.abs(A) > 1e-12, A, 1.0), 0.0)
     half = s // 2
-    kys, kxs, Ts, cs = [], [], [], []
-    coarse_index = (np.arange(ny)[:, None] * (nx // 2 + 1) + np.arange(nx // 2 + 1)[None, :])
-    for ay in range(-half, half + 1):
-        for ax in range(-half, half + 1):
-            ky = KY + 2 * np.pi * ay
-            kx = KX + 2 * np.pi * ax
-            kys.append(ky.ravel())
-            kxs.append(kx.ravel())
-            Ts.append((gpix(ky, kx) * ratio).ravel())
-            cs.append(coarse_index.ravel())
-    return np.concatenate(kys), np.concatenate(kxs), np.concatenate(Ts), np.concatenate(cs)
+    sel = slice(na - half, na + half + 1)
+    Gs = G[sel, sel] * ratio[None, None]
+    ny_, nxh = ratio.shape
+    KYf = np.broadcast_to(KYa[sel][:, None, :, None], Gs.shape)
+    KXf = np.broadcast_to(KXa[sel][None, :, None, :], Gs.shape)
+    coarse_index = (np.arange(ny_)[:, None] * nxh + np.arange(nxh)[None, :])
+    cs = np.broadcast_to(coarse_index, Gs.shape)
+    return KYf.ravel(), KXf.ravel(), Gs.ravel(), cs.ravel()
+
 
 
 def noise_variance(weight):

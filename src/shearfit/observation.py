@@ -118,6 +118,12 @@ class FitResult:
     profile-weighted signal-to-noise ratio over all exposures, ``scalelength``
     (arcsec, disk semi-major axis), ``bulge_fraction`` and ``model_flux``
     posterior means; ``fitclass`` one of the codes in :mod:`shearfit.errors`.
+    ``weight`` is zero for stars; ``shape_weight`` is eq. (weight) whatever
+    the classification. ``star_pvalue`` is the F-test probability that the
+    galaxy model's improvement over a point source is chance, and
+    ``centroid_shift`` the fitted centre's distance from the input position
+    in pixels; ``n_samples`` and ``n_models`` count ellipticity samples and
+    (e, r) models evaluated.
     """
 
     e1: float = np.nan
@@ -133,5 +139,7 @@ class FitResult:
     star_pvalue: float = np.nan
     centroid_shift: float = np.nan
     n_samples: int = 0
+    n_models: int = 0
+    shape_weight: float = 0.0
     message: str = ""
     samples: Optional[np.ndarray] = field(default=None, repr=False)

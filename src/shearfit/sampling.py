@@ -60,24 +60,62 @@ class EPoint:
 class EllipticityLikelihood:
     """log L(e1, e2) of one object, marginalised over everything else."""
 
-    def __init__(self, jm, cfg: FitConfig, mag, fast, size_grid_x, r_center, chunk=64):
+    def __init__(self, jm, cfg: FitConfig, mag, fast, size_grid_x, r_center, chunk=64, locate_widths=None):
         self.jm = jm
         self.cfg = cfg
         self.mag = mag
         self.fast = fast
-        self.x = np.asarray(size_grid_x, float)   # r = r_center(e) * exp(x)
+        self.x = np.asarray(size_grid_x, float)   # r = r_peak(e) * exp(x)
         self.r_center = float(r_center)
+        # half-widths (ln r) of the passes that locate, per ellipticity, the peak in ln r (None: not needed)
+        self.locate_widths = locate_widths
         self.lin = _linear_vectors(jm)
         self.chunk = chunk
-        self.n_models = 0
+        # r = 0, the point source: one model shared by every ellipticity; the size integral runs
+        # from it to the first node (sec. 3.2: "the set of r values included a point source")
+        s0 = model_sums(jm, [0.0], [0.0], [0.0], fast, cfg.bulge_size_ratio, lin=self.lin)
+        self.zero = flux_position_marginal(s0, cfg)
+        self.n_models = 1
         self.chi2_star = None
         self.best_chi2_gal = np.inf
         self.best_snr = 0.0
 
     def centre(self, e1, e2):
+        """Predicted best scalelength at ellipticity e from the round model's.
+
+        The semi-major axis of the best-fitting model grows with e. Keeping the
+        area (1/sqrt(q)) overshoots by up to 55 % at |e| = 0.74, keeping the
+        second-moment trace undershoots by 15 %; q^(-1/3) is within +-15 %
+        of the best size over the cases measured (noise-free GalSim galaxies,
+        r = 0.12-1 arcsec, |e| = 0.47-0.74). ``locate_widths`` make up the rest.
+        """
         e = np.hypot(e1, e2)
         q = (1 - e) / (1 + e)
-        return self.r_center / np.sqrt(q)
+        return self.r_center * q ** (-1.0 / 3.0)
+
+    def _locate(self, e1, e2, rc, half_width):
+        """Peak of the size posterior at each e: 5 nodes and a parabola through the best three."""
+        cfg = self.cfg
+        xs = np.linspace(-half_width, half_width, 5)
+        R = rc[:, None] * np.exp(xs)[None, :]
+        n = xs.size
+        sums = model_sums(self.jm, np.repeat(e1, n), np.repeat(e2, n), R.ravel(), self.fast,
+                          cfg.bulge_size_ratio, lin=self.lin)
+        self.n_models += R.size
+        mg = flux_position_marginal(sums, cfg)
+        fB = cfg.bulge_population_fraction
+        y = np.logaddexp(np.log(1 - fB) + mg.logl_disk, np.log(fB) + mg.logl_bulge).reshape(R.shape)
+        y = y + np.log(np.maximum(priors.size_prior_pdf(R, self.mag, cfg), 1e-300)) + np.log(R)
+        y = np.where(np.isfinite(y), y, -1e300)
+        k = np.clip(np.argmax(y, axis=1), 1, n - 2)
+        rows = np.arange(y.shape[0])
+        ym, y0, yp = y[rows, k - 1], y[rows, k], y[rows, k + 1]
+        h = xs[1] - xs[0]
+        den = ym - 2 * y0 + yp
+        with np.errstate(invalid="ignore", divide="ignore"):
+            d = np.where(den < 0, 0.5 * h * (ym - yp) / den, 0.0)
+        d = np.clip(np.nan_to_num(d), -h, h)
+        return rc * np.exp(xs[k] + d)
 
     def __call__(self, e1, e2) -> EPoint:
         e1 = np.atleast_1d(np.asarray(e1, float))
@@ -91,6 +129,9 @@ class EllipticityLikelihood:
         ne = e1.size
         nr = self.x.size
         rc = self.centre(e1, e2)
+        if self.locate_widths is not None:
+            for width in self.locate_widths:
+                rc = self._locate(e1, e2, rc, width)
         R = rc[:, None] * np.exp(self.x)[None, :]
         E1 = np.repeat(e1, nr)
         E2 = np.repeat(e2, nr)
@@ -123,9 +164,21 @@ class EllipticityLikelihood:
             floor = np.where(good[:, None], rowmax - 40.0, 0.0)
             lv = np.where(finite, np.maximum(logl, floor), floor)
             vf = CubicSpline(x, lv, axis=1)(xf) + logprior
-            m = np.max(vf, axis=1, keepdims=True)
+            # from r = 0 to the first node: log L linear in r^2 between the point source and the node
+            l0 = float((self.zero.logl_disk if name == "disk" else self.zero.logl_bulge)[0])
+            l0 = l0 if np.isfinite(l0) else -np.inf
+            u = np.linspace(0.0, 1.0, 9)                          # r = r_min sqrt(u)
+            r0 = np.maximum(rf[:, :1] * np.sqrt(u)[None, :], 1e-12)
+            with np.errstate(invalid="ignore"):
+                lseg = np.where(np.isfinite(l0), (1 - u)[None, :] * max(l0, -1e300) + u[None, :] * lv[:, :1],
+                                lv[:, :1] - 1e3 * (1 - u)[None, :])
+            # p(r) dr = [p(r)/r] (r_min^2 / 2) du: smooth down to r = 0, where p(r) ~ r
+            lseg = lseg + np.log(np.maximum(priors.size_prior_pdf(r0, self.mag, cfg) / r0, 1e-300))
+            m = np.maximum(np.max(vf, axis=1, keepdims=True), np.max(lseg, axis=1, keepdims=True))
             w = np.exp(vf - m)
             integ = np.trapezoid(w, xf, axis=1)
+            seg_int = np.trapezoid(np.exp(lseg - m), u, axis=1) * 0.5 * rf[:, 0] ** 2
+            integ = integ + seg_int
             res[name] = (np.where(good, m[:, 0] + np.log(integ), -np.inf), w)
         ldm, wd = res["disk"]
         lbm, wb = res["bulge"]
@@ -134,7 +187,9 @@ class EllipticityLikelihood:
         wsum_b = np.maximum(wb.sum(axis=1), 1e-300)
         mean_r_d = np.sum(wd * rf, axis=1) / wsum_d
         mean_r_b = np.sum(wb * rf, axis=1) / wsum_b
-        interp = lambda vals: np.array([np.interp(xf, x, row) for row in vals])  # noqa: E731
+        # linear interpolation from the nodes to the fine grid, as one matrix product
+        W = np.array([np.interp(xf, x, col) for col in np.eye(x.size)]).T     # (n_fine, n_nodes)
+        interp = lambda vals: vals @ W.T  # noqa: E731
         mean_f_d = np.sum(wd * interp(fd), axis=1) / wsum_d
         mean_f_b = np.sum(wb * interp(fb), axis=1) / wsum_b
         mean_b_d = np.sum(wd * interp(bd), axis=1) / wsum_d

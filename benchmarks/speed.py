@@ -1,0 +1,123 @@
+#!/usr/bin/env python
+"""Throughput of the single-object engine: galaxies per second per core, and where the time goes.
+
+Simulates a CFHTLenS-like set of galaxies with GalSim (the paper's population,
+magnitudes 21-24.7, SNR 10-60, elliptical Moffat PSFs, 48-pixel stamps) and
+times ``shearfit.measure_object`` on one core (BLAS limited to one thread),
+for 7 exposures and, with --scaling, for 1-14 exposures and several stamp
+sizes. Prints a profile grouped by stage and the process's peak memory.
+
+    python benchmarks/speed.py                 # 7 exposures, profile
+    python benchmarks/speed.py --scaling       # growth with exposures and stamp size
+"""
+
+from __future__ import annotations
+
+import os
+
+for _v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_v, "1")
+
+import argparse  # noqa: E402
+import cProfile  # noqa: E402
+import pstats  # noqa: E402
+import resource  # noqa: E402
+import time  # noqa: E402
+
+import numpy as np  # noqa: E402
+
+import shearfit  # noqa: E402
+from shearfit import likelihood  # noqa: E402
+from shearfit.simulate.stamps import ring_set  # noqa: E402
+
+STAGES = {
+    "model sums (compiled kernel or numpy)": ("likelihood.py", "model_sums"),
+    "flux/position marginalisation": ("likelihood.py", "flux_position_marginal"),
+    "size marginalisation (splines)": ("sampling.py", "_size_marginal"),
+    "exposure preparation (FFTs, PSF, alias)": ("model.py", "prepare_exposure"),
+    "peak search": ("likelihood.py", "find_position"),
+    "coarse peak": ("likelihood.py", "coarse_peak"),
+    "join exposures + mode cut": ("likelihood.py", "join_exposures"),
+}
+
+
+def simulate(n, n_exp, stamp, seed):
+    rng = np.random.default_rng(seed)
+    return ring_set(n, (0.0, 0.0), rng, n_rotations=1, n_exposures=n_exp, snr_range=(10, 60),
+                    mag_range=(21.0, 24.7), stamp_size=stamp)
+
+
+def timed(objs, cfg):
+    t0 = time.perf_counter()
+    res = [shearfit.measure_object(o, mag=t["mag"], config=cfg) for o, t in objs]
+    dt = time.perf_counter() - t0
+    return dt, res
+
+
+def stage_report(stats):
+    st = stats.stats
+    total = sum(v[2] for v in st.values())   # total internal time
+    print(f"\n  where the time goes (cumulative per stage, % of {total:.2f} s profiled):")
+    for name, (fname, func) in STAGES.items():
+        cum = sum(v[3] for k, v in st.items() if k[0].endswith(fname) and k[2] == func)
+        if cum > 0:
+            print(f"    {name:42s} {cum:7.3f} s  {100 * cum / total:5.1f} %")
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--n-galaxies", type=int, default=40)
+    ap.add_argument("--seed", type=int, default=3)
+    ap.add_argument("--scaling", action="store_true", help="also time 1-14 exposures and 32-64 pixel stamps")
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="engine setting")
+    args = ap.parse_args(argv)
+    cfg = {}
+    for kv in args.set:
+        k, v = kv.split("=", 1)
+        try:
+            v = int(v)
+        except ValueError:
+            try:
+                v = float(v)
+            except ValueError:
+                pass
+        cfg[k] = v
+    cfg = shearfit.fit_config_from_mapping(cfg)
+    print(f"shearfit {shearfit.__version__}; compiled kernel: {'yes' if likelihood.USE_KERNEL else 'NO (numpy)'}; "
+          f"sampling={cfg.sampling}, alias_correction={cfg.alias_correction}")
+    objs = simulate(args.n_galaxies, 7, 48, args.seed)
+    timed(objs[:2], cfg)   # build the profile tables once, outside the timing
+    prof = cProfile.Profile()
+    prof.enable()
+    dt, res = timed(objs, cfg)
+    prof.disable()
+    n_models = np.mean([getattr(r, "n_models", np.nan) for r in res])
+    n_samp = np.mean([r.n_samples for r in res])
+    # the profiler slows Python-level code; time again without it
+    dt, res = timed(objs, cfg)
+    print(f"\n7 exposures, 48-pixel stamps, {len(objs)} galaxies (SNR 10-60, mag 21-24.7):")
+    print(f"  {len(objs) / dt:.2f} galaxies / s / core   ({1e3 * dt / len(objs):.1f} ms per galaxy; "
+          f"{n_samp:.0f} ellipticity samples and {n_models:.0f} (e, r) models per galaxy on average)")
+    stage_report(pstats.Stats(prof))
+    print("\n  top functions by internal time:")
+    pstats.Stats(prof).sort_stats("tottime").print_stats(8)
+    if args.scaling:
+        print("growth with the number of exposures (48-pixel stamps):")
+        base = None
+        for n_exp in (1, 2, 4, 7, 14):
+            o = simulate(max(args.n_galaxies // 2, 6), n_exp, 48, args.seed + n_exp)
+            d, _ = timed(o, cfg)
+            per = d / len(o)
+            base = base or per
+            print(f"  {n_exp:3d} exposures: {1 / per:7.2f} galaxies/s/core  ({1e3 * per:7.1f} ms, x{per / base:.2f})")
+        print("growth with the stamp size (7 exposures):")
+        for stamp in (32, 48, 64):
+            o = simulate(max(args.n_galaxies // 2, 6), 7, stamp, args.seed + stamp)
+            d, _ = timed(o, cfg)
+            print(f"  {stamp:3d} pixels: {len(o) / d:7.2f} galaxies/s/core ({1e3 * d / len(o):7.1f} ms)")
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+    print(f"\npeak memory (max RSS of this process): {peak:.0f} MB")
+
+
+if __name__ == "__main__":
+    main()
