@@ -159,3 +159,10 @@ def test_bad_input_errors():
         shearfit.fit_config_from_mapping({"n_flux": "eleven"})
     with pytest.raises(ShearfitValueError, match="sampling"):
         shearfit.FitConfig(sampling="mcmc")
+
+
+def test_too_large_for_the_stamp_is_flagged():
+    # 4.5 x 1.2" / 0.187" = 29 pixels > half of a 48-pixel stamp
+    from shearfit.errors import FITCLASS_TOO_LARGE
+    res = shearfit.measure_object(_observations(1.2, (0.1, 0.0), snr=200), mag=20.0)
+    assert res.fitclass == FITCLASS_TOO_LARGE and res.weight == 0.0

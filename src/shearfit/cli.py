@@ -27,8 +27,8 @@ def _add_common(p):
 def _cmd_demo(args):
     from .demo import run_demo
 
-    run_demo(out_dir=args.out, n_galaxies=args.n_galaxies, processes=args.processes, seed=args.seed,
-             quiet=args.quiet)
+    kwargs = {} if args.n_galaxies is None else {"n_galaxies": args.n_galaxies}
+    run_demo(out_dir=args.out, processes=args.processes, seed=args.seed, quiet=args.quiet, **kwargs)
     return 0
 
 

@@ -10,7 +10,7 @@ from scipy import stats
 from . import priors
 from .config import FitConfig, fit_config_from_mapping
 from .errors import (FITCLASS_CENTROID, FITCLASS_FEW_EXPOSURES, FITCLASS_FIT_FAILED, FITCLASS_GALAXY,
-                     FITCLASS_STAR, ShearfitValueError)
+                     FITCLASS_STAR, FITCLASS_TOO_LARGE, ShearfitValueError)
 from .likelihood import coarse_peak, find_position, flux_position_marginal, join_exposures, model_sums, shift_joint
 from .model import prepare_exposure
 from .observation import FitResult, Observation
@@ -150,6 +150,14 @@ def _measure(obs, mag, cfg, return_samples):
         result.fitclass = FITCLASS_FIT_FAILED
         result.weight = 0.0
         result.message = "likelihood surface empty"
+    else:
+        # the truncated model must fit in the stamp, or its Fourier image wraps around (sec. 3.6)
+        half_stamp = min(min(o.shape) for o in obs) / 2.0
+        extent = cfg.truncation * max(1.0, cfg.bulge_size_ratio) * est.scalelength / pix
+        if extent > half_stamp:
+            result.fitclass = FITCLASS_TOO_LARGE
+            result.weight = 0.0
+            result.message = f"truncated model ({extent:.1f} pixels) larger than half the stamp ({half_stamp:.0f})"
     result.shape_weight = est.weight
     result.n_models = int(like.n_models)
     if return_samples:

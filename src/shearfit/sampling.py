@@ -275,11 +275,17 @@ class _Store:
         e2 = np.array(self.e2)
         i = np.rint(e1 / self.unit).astype(int)
         j = np.rint(e2 / self.unit).astype(int)
-        step = np.full(e1.size, np.inf)
+        # the finest box whose region contains a sample tiles the plane there: the sample stands for
+        # one of its cells if it lies on that box's lattice, and for nothing otherwise (a two-pass
+        # first-pass point, or a coarser-lattice point inside a finer box)
+        step = np.full(e1.size, np.iinfo(np.int64).max)
         for (s, imin, imax, jmin, jmax) in self.boxes:
             inside = (i >= imin) & (i <= imax) & (j >= jmin) & (j <= jmax)
             step = np.where(inside, np.minimum(step, s), step)
-        area = (step * self.unit) ** 2
+        covered = step < np.iinfo(np.int64).max
+        st = np.where(covered, step, 1)
+        on = covered & (i % st == 0) & (j % st == 0)
+        area = np.where(on, (st * self.unit) ** 2, 0.0)
         pts = self.points
         point = EPoint(*[np.concatenate([getattr(p, f) for p in pts]) for f in
                          ("logl_disk", "logl_bulge", "mean_r", "mean_b", "mean_flux")])
@@ -345,8 +351,9 @@ def two_pass_samples(like: EllipticityLikelihood, cfg: FitConfig) -> Samples:
         k = int(np.argmax(st.logpost))
         i0, j0 = int(round(st.e1[k] / unit)), int(round(st.e2[k] / unit))
         st.add(st.lattice_box(step, i0 - 2 * step, i0 + 2 * step, j0 - 2 * step, j0 + 2 * step))
-    # drop pass-1 boxes: pass 2's grid defines the cells
-    st.boxes = []
+    # pass 2's grid defines the cells near the maximum, pass 1's coarse grid the rest; pass 1's
+    # refinements only guided the search
+    st.boxes = st.boxes[:1]
     e1 = np.array(st.e1)
     e2 = np.array(st.e2)
     lp = np.array(st.logpost)
@@ -389,7 +396,7 @@ class Estimate:
 
 def estimate(s: Samples, cfg: FitConfig) -> Estimate:
     """Likelihood mean over samples above the posterior cut (sec. 3.4), variance, weight (3.5)."""
-    ok = np.isfinite(s.logpost) & np.isfinite(s.logl)
+    ok = np.isfinite(s.logpost) & np.isfinite(s.logl) & (s.area > 0)
     if not np.any(ok):
         return Estimate(np.nan, np.nan, np.nan, 0.0, np.nan, np.nan, np.nan, 0)
     keep = ok & (s.logpost > np.max(s.logpost[ok]) + np.log(cfg.posterior_cut))
