@@ -38,6 +38,29 @@ static inline double lookup(const float *tab, int which, double u, double nmax)
     return (double)row[0] + f * (double)row[1];
 }
 
+typedef struct { double lf[6], lg[6]; } Acc;
+
+/* disk and bulge transforms of one mode for the model with quadratic-form coefficients a0..a2 */
+static inline void eval_mode(const double *p, double a0, double a1, double a2, double c, double c2,
+                             double inv_du, double ratio2, int same, const float *T, double nmax,
+                             double *rf, double *rg)
+{
+    double rho2 = a0 * p[0] + a1 * p[1] + a2 * p[2];
+    rho2 = rho2 < 0 ? 0 : rho2;
+    double u = (sqrt(c2 + rho2) - c) * inv_du;
+    *rf = lookup(T, 0, u, nmax);
+    *rg = same ? lookup(T, 1, u, nmax) : lookup(T, 1, (sqrt(c2 + rho2 * ratio2) - c) * inv_du, nmax);
+}
+
+/* the six linear sums (cross-correlation, its gradient and Hessian) of both components */
+static inline void accumulate(Acc *acc, const double *p, double rf, double rg)
+{
+    for (int t = 0; t < 6; t++) {
+        acc->lf[t] += rf * p[3 + t];
+        acc->lg[t] += rg * p[3 + t];
+    }
+}
+
 static PyObject *model_sums(PyObject *self, PyObject *args)
 {
     Py_buffer coef, modes, tab, out;
@@ -64,39 +87,23 @@ static PyObject *model_sums(PyObject *self, PyObject *args)
     Py_BEGIN_ALLOW_THREADS
     for (Py_ssize_t m = 0; m < n_models; m++) {
         const double a0 = C[3 * m], a1 = C[3 * m + 1], a2 = C[3 * m + 2];
-        double lf0 = 0, lf1 = 0, lf2 = 0, lf3 = 0, lf4 = 0, lf5 = 0;
-        double lg0 = 0, lg1 = 0, lg2 = 0, lg3 = 0, lg4 = 0, lg5 = 0;
+        Acc acc = {0};
         double ff = 0, gg = 0, fg = 0;
         double mfr = 0, mfi = 0, mgr = 0, mgi = 0;
         const double *p = M;
         Py_ssize_t j = 0;
+        double rf, rg;
         for (; j < n_single; j++, p += NSTRIDE) {
-            double rho2 = a0 * p[0] + a1 * p[1] + a2 * p[2];
-            rho2 = rho2 < 0 ? 0 : rho2;
-            double u = (sqrt(c2 + rho2) - c) * inv_du;
-            double rf = lookup(T, 0, u, nmax);
-            double rg = same ? lookup(T, 1, u, nmax)
-                             : lookup(T, 1, (sqrt(c2 + rho2 * ratio2) - c) * inv_du, nmax);
-            lf0 += rf * p[3]; lf1 += rf * p[4]; lf2 += rf * p[5];
-            lf3 += rf * p[6]; lf4 += rf * p[7]; lf5 += rf * p[8];
-            lg0 += rg * p[3]; lg1 += rg * p[4]; lg2 += rg * p[5];
-            lg3 += rg * p[6]; lg4 += rg * p[7]; lg5 += rg * p[8];
+            eval_mode(p, a0, a1, a2, c, c2, inv_du, ratio2, same, T, nmax, &rf, &rg);
+            accumulate(&acc, p, rf, rg);
             double qf = p[9] * rf;
             ff += qf * rf;
             fg += qf * rg;
             gg += p[9] * rg * rg;
         }
         for (; j < n_modes; j++, p += NSTRIDE) {
-            double rho2 = a0 * p[0] + a1 * p[1] + a2 * p[2];
-            rho2 = rho2 < 0 ? 0 : rho2;
-            double u = (sqrt(c2 + rho2) - c) * inv_du;
-            double rf = lookup(T, 0, u, nmax);
-            double rg = same ? lookup(T, 1, u, nmax)
-                             : lookup(T, 1, (sqrt(c2 + rho2 * ratio2) - c) * inv_du, nmax);
-            lf0 += rf * p[3]; lf1 += rf * p[4]; lf2 += rf * p[5];
-            lf3 += rf * p[6]; lf4 += rf * p[7]; lf5 += rf * p[8];
-            lg0 += rg * p[3]; lg1 += rg * p[4]; lg2 += rg * p[5];
-            lg3 += rg * p[6]; lg4 += rg * p[7]; lg5 += rg * p[8];
+            eval_mode(p, a0, a1, a2, c, c2, inv_du, ratio2, same, T, nmax, &rf, &rg);
+            accumulate(&acc, p, rf, rg);
             mfr += p[9] * rf; mfi += p[10] * rf;
             mgr += p[9] * rg; mgi += p[10] * rg;
             if (p[11] != 0.0) {
@@ -107,8 +114,7 @@ static PyObject *model_sums(PyObject *self, PyObject *args)
             }
         }
         double *o = O + NOUT * m;
-        o[0] = lf0; o[1] = lf1; o[2] = lf2; o[3] = lf3; o[4] = lf4; o[5] = lf5;
-        o[6] = lg0; o[7] = lg1; o[8] = lg2; o[9] = lg3; o[10] = lg4; o[11] = lg5;
+        for (int t = 0; t < 6; t++) { o[t] = acc.lf[t]; o[6 + t] = acc.lg[t]; }
         o[12] = ff; o[13] = gg; o[14] = fg;
     }
     Py_END_ALLOW_THREADS
