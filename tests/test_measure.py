@@ -83,6 +83,9 @@ def test_star_and_galaxy_classification():
     assert star.fitclass == FITCLASS_STAR and star.weight == 0.0
     gal = shearfit.measure_object(_observations(0.4, (0.1, 0.0), snr=200), mag=22.0)
     assert gal.fitclass == FITCLASS_GALAXY and gal.star_pvalue < 1e-6
+    # fainter than star_faint_limit nothing is called a star (the paper's magnitude-dependent limit)
+    faint = shearfit.measure_object(_observations(0.001, (0.0, 0.0), B=0.0, snr=200), mag=24.0)
+    assert faint.fitclass == FITCLASS_GALAXY and faint.star_pvalue > 0.01
 
 
 def test_offset_object_is_found_and_far_object_flagged():

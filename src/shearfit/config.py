@@ -107,6 +107,11 @@ class FitConfig:
         0.01,
         "an object is a star if the F-test probability that the galaxy model's improvement over a point source "
         "arises by chance exceeds this", "sec. 3.2")
+    star_faint_limit: float = _opt(
+        23.0,
+        "objects fainter than this magnitude are never classified as stars: the paper's limit is "
+        "magnitude-dependent and it expects very few stars at i > 23, where a faint small galaxy and a point "
+        "source cannot be told apart by the F-test", "sec. 3.2 and its footnote")
 
     def __post_init__(self):
         for f in fields(self):

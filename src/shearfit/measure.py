@@ -48,7 +48,7 @@ def _size_range(jm, cfg, mag, fast):
     z = np.zeros_like(r)
     mg = flux_position_marginal(model_sums(jm, z, z, r, fast, cfg.bulge_size_ratio), cfg)
     fB = cfg.bulge_population_fraction
-    logl = np.logaddexp(np.log(1 - fB) + mg.logl_disk, np.log(fB) + mg.logl_bulge)
+    logl = np.logaddexp(np.log(max(1 - fB, 1e-300)) + mg.logl_disk, np.log(max(fB, 1e-300)) + mg.logl_bulge)
     # posterior density in ln r: likelihood x prior x r
     lp = logl + np.log(np.maximum(priors.size_prior_pdf(r, mag, cfg), 1e-300)) + np.log(r)
     if not np.any(np.isfinite(lp)):
@@ -138,7 +138,7 @@ def _measure(obs, mag, cfg, return_samples):
     dof = max(jm.npix - _NPAR_GALAXY, 1)
     fstat = max(chi2_star - chi2_gal, 0.0) / (_NPAR_GALAXY - _NPAR_STAR) / max(chi2_gal / dof, 1e-12)
     pvalue = float(stats.f.sf(fstat, _NPAR_GALAXY - _NPAR_STAR, dof))
-    is_star = pvalue > cfg.star_pvalue
+    is_star = pvalue > cfg.star_pvalue and mag <= cfg.star_faint_limit
     result = FitResult(
         e1=est.e1, e2=est.e2, e_var=est.e_var,
         weight=0.0 if is_star else est.weight,

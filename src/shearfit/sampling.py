@@ -104,7 +104,8 @@ class EllipticityLikelihood:
         self.n_models += R.size
         mg = flux_position_marginal(sums, cfg)
         fB = cfg.bulge_population_fraction
-        y = np.logaddexp(np.log(1 - fB) + mg.logl_disk, np.log(fB) + mg.logl_bulge).reshape(R.shape)
+        y = np.logaddexp(np.log(max(1 - fB, 1e-300)) + mg.logl_disk,
+                         np.log(max(fB, 1e-300)) + mg.logl_bulge).reshape(R.shape)
         y = y + np.log(np.maximum(priors.size_prior_pdf(R, self.mag, cfg), 1e-300)) + np.log(R)
         y = np.where(np.isfinite(y), y, -1e300)
         k = np.clip(np.argmax(y, axis=1), 1, n - 2)
