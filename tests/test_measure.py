@@ -142,6 +142,8 @@ def test_samples_and_batch():
     assert np.all(np.hypot(s["e1"], s["e2"]) < 1)
     out = shearfit.measure_objects([obs, obs], [22.5, 22.5])
     assert [o.e1 for o in out] == [res.e1, res.e1]   # deterministic
+    par = shearfit.measure_objects([obs, obs], 22.5, processes=2)
+    assert [o.e1 for o in par] == [res.e1, res.e1]   # and independent of the number of processes
 
 
 def test_bad_input_errors():

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from typing import Iterable, Mapping, Sequence
 
 import numpy as np
@@ -169,13 +170,40 @@ def _measure(obs, mag, cfg, return_samples):
     return result
 
 
-def measure_objects(objects: Iterable[Sequence[Observation]], mags, config=None, progress=False):
-    """Batched form of :func:`measure_object`: one result per object, in order."""
+def _measure_one(args):
+    obs, mag, cfg = args
+    return measure_object(obs, mag, cfg)
+
+
+def measure_objects(objects: Iterable[Sequence[Observation]], mags, config=None, progress=False, processes=1):
+    """Batched form of :func:`measure_object`: one result per object, in input order.
+
+    Parameters
+    ----------
+    objects : iterable of sequences of :class:`Observation`
+    mags : float or array
+        One magnitude per object (or one for all).
+    config : FitConfig or mapping, optional
+    progress : bool
+        Show a progress bar.
+    processes : int
+        Worker processes; results do not depend on it.
+    """
     cfg = as_config(config)
     objects = list(objects)
     mags = np.broadcast_to(np.asarray(mags, float), (len(objects),))
-    it = zip(objects, mags)
+    tasks = [(o, float(m), cfg) for o, m in zip(objects, mags)]
+    if processes and processes > 1:
+        import multiprocessing
+
+        with multiprocessing.get_context("fork" if hasattr(os, "fork") else "spawn").Pool(processes) as pool:
+            it = pool.imap(_measure_one, tasks, chunksize=max(1, len(tasks) // (8 * processes)))
+            if progress:
+                from tqdm import tqdm
+                it = tqdm(it, total=len(tasks), desc="measuring")
+            return list(it)
+    it = tasks
     if progress:
         from tqdm import tqdm
-        it = tqdm(it, total=len(objects), desc="measuring")
-    return [measure_object(o, m, cfg) for o, m in it]
+        it = tqdm(it, total=len(tasks), desc="measuring")
+    return [_measure_one(t) for t in it]
