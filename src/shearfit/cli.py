@@ -32,6 +32,20 @@ def _cmd_demo(args):
     return 0
 
 
+def _cmd_measure(args):
+    from .field.fieldconfig import load_field_config
+    from .field.pipeline import measure_field
+
+    cfg = load_field_config(args.config, overrides=args.overrides)
+    table = measure_field(cfg, out_path=args.out, progress=not args.quiet and sys.stderr.isatty(),
+                          processes=args.processes)
+    if not args.quiet:
+        fc = table["fitclass"]
+        print(f"measured {len(table)} objects: {int((fc == 0).sum())} galaxies, {int((fc == 1).sum())} stars, "
+              f"{int((fc < 0).sum())} not measured; catalogue: {args.out or cfg.output}")
+    return 0
+
+
 def build_parser():
     parser = argparse.ArgumentParser(
         prog="shearfit",
@@ -49,6 +63,15 @@ def build_parser():
     p.add_argument("--seed", type=int, default=1, help="random seed")
     _add_common(p)
     p.set_defaults(func=_cmd_demo)
+
+    p = sub.add_parser("measure", help="measure the shear of every catalogue object on a field's exposures",
+                       description="PSF models (given), stamps, joint fits over exposures, shear catalogue.")
+    p.add_argument("config", help="the field's YAML config (INTERFACE.md)")
+    p.add_argument("overrides", nargs="*", metavar="key=value", help="settings that override the config's")
+    p.add_argument("--out", default=None, help="output catalogue (default: the config's output:)")
+    p.add_argument("-j", "--processes", type=int, default=1, help="worker processes")
+    _add_common(p)
+    p.set_defaults(func=_cmd_measure)
     return parser
 
 

@@ -1,0 +1,111 @@
+"""End to end: a small GalSim-simulated field through ``shearfit measure``.
+
+Two exposures of one CCD each, the second dithered and with its pixel grid
+rotated by 30 degrees; GalSim draws every galaxy through its own celestial
+WCS (so the sky frame on the simulation side is GalSim's, not shearfit's
+Jacobian code); the PSF is given as a FITS image per exposure; the
+galaxies are a ring of 4 orientations with one shear, at high SNR.
+"""
+
+import numpy as np
+import pytest
+import yaml
+from astropy.io import fits
+from astropy.table import Table
+
+galsim = pytest.importorskip("galsim")
+
+from shearfit.cli import main  # noqa: E402
+from shearfit.simulate.stamps import galaxy_profile, moffat_psf  # noqa: E402
+
+PIX = 0.187
+RA0, DEC0 = 150.0, 2.0
+G = (0.04, -0.03)
+
+
+def _header(n, crpix_shift, angle_deg):
+    th = np.radians(angle_deg)
+    # north up, east left (CD1_1 < 0), then rotated
+    cd = PIX / 3600.0 * np.array([[-np.cos(th), np.sin(th)], [np.sin(th), np.cos(th)]])
+    h = fits.Header()
+    h["CTYPE1"], h["CTYPE2"] = "RA---TAN", "DEC--TAN"
+    h["CRVAL1"], h["CRVAL2"] = RA0, DEC0
+    h["CRPIX1"], h["CRPIX2"] = n / 2 + crpix_shift[0], n / 2 + crpix_shift[1]
+    h["CD1_1"], h["CD1_2"], h["CD2_1"], h["CD2_2"] = cd[0, 0], cd[0, 1], cd[1, 0], cd[1, 1]
+    h["MAGZP"], h["GAIN"], h["SATURATE"] = 30.0, 1.0, 1e6
+    return h
+
+
+@pytest.fixture(scope="module")
+def field(tmp_path_factory):
+    d = tmp_path_factory.mktemp("field")
+    n = 200
+    rng = np.random.default_rng(4)
+    gals = []
+    # 2 rings of 4 orientations, on a grid well inside the CCD
+    for k, (r, e) in enumerate([(0.35, 0.3), (0.5, 0.45)]):
+        for j in range(4):
+            ej = e * np.exp(1j * np.pi * j / 2)
+            ra = RA0 + (-(k - 0.5) * 40 * PIX / 3600) / np.cos(np.radians(DEC0))
+            dec = DEC0 + (j - 1.5) * 40 * PIX / 3600
+            gals.append(dict(id=10 * k + j, ra=ra, dec=dec, r=r, e1=ej.real, e2=ej.imag, mag=22.0))
+    specs = []
+    for x, (shift, ang, fwhm) in enumerate([((0.0, 0.0), 0.0, 0.65), ((3.3, -2.6), 30.0, 0.7)]):
+        h = _header(n, shift, ang)
+        wcs = galsim.GSFitsWCS(header=h)
+        img = galsim.ImageD(n, n, wcs=wcs)
+        psf = moffat_psf(fwhm, 3.0, 0.05, -0.03)
+        for g in gals:
+            pos = wcs.toImage(galsim.CelestialCoord(g["ra"] * galsim.degrees, g["dec"] * galsim.degrees))
+            prof = galsim.Convolve(galaxy_profile(g["r"], 0.1, g["e1"], g["e2"], flux=2e4, g1=G[0], g2=G[1]), psf)
+            stamp = prof.drawImage(wcs=wcs.local(pos), nx=64, ny=64, center=pos)
+            b = stamp.bounds & img.bounds
+            img[b] += stamp[b]
+        sigma = 0.5
+        data = img.array + rng.normal(0, sigma, img.array.shape)
+        fits.PrimaryHDU(data, header=h).writeto(d / f"exp{x}.fits")
+        fits.PrimaryHDU(np.full(data.shape, 1 / sigma ** 2), header=h).writeto(d / f"exp{x}.weight.fits")
+        # the PSF in this exposure's pixel frame: draw it through the local WCS at the centre
+        pim = psf.drawImage(wcs=wcs.local(galsim.PositionD(n / 2, n / 2)), nx=48, ny=48,
+                            use_true_center=False).array
+        fits.PrimaryHDU(pim / pim.sum()).writeto(d / f"exp{x}.psf.fits")
+        specs.append({"image": f"exp{x}.fits", "weight": f"exp{x}.weight.fits", "psf": f"exp{x}.psf.fits"})
+    cat = Table(rows=[(g["id"], g["ra"], g["dec"], g["mag"]) for g in gals], names=("ID", "RA", "DEC", "MAG"))
+    cat.add_row((99, RA0 + 1.0, DEC0, 22.0))   # off every exposure
+    cat.write(d / "objects.fits")
+    (d / "field.yaml").write_text(yaml.safe_dump({"exposures": specs, "catalog": "objects.fits"}))
+    return d, gals
+
+
+def test_measure_field_end_to_end(field, capsys):
+    d, gals = field
+    out = d / "shear.fits"
+    assert main(["measure", str(d / "field.yaml"), "--out", str(out), "--quiet"]) == 0
+    t = Table.read(out)
+    for col in ("id", "ra", "dec", "mag", "e1", "e2", "weight", "e_var", "fitclass", "snr", "scalelength",
+                "bulge_fraction", "model_flux", "n_exposures_used", "psf_e1", "psf_e2", "m"):
+        assert col in t.colnames
+    assert list(t["id"]) == [g["id"] for g in gals] + [99]          # input order
+    assert t["fitclass"][-1] == -6                                   # off every exposure
+    good = t[:-1]
+    assert np.all(good["fitclass"] == 0) and np.all(good["n_exposures_used"] == 2)
+    # the sheared intrinsic shapes, in the (u, v) frame
+    for row, g in zip(good, gals):
+        s = galsim.Shear(g1=G[0], g2=G[1]) + galsim.Shear(g1=g["e1"], g2=g["e2"])
+        assert abs(row["e1"] - s.g1) < 0.03 and abs(row["e2"] - s.g2) < 0.03
+    # ring averages recover the shear (2 rings, high SNR)
+    assert np.mean(good["e1"]) == pytest.approx(G[0], abs=0.01)
+    assert np.mean(good["e2"]) == pytest.approx(G[1], abs=0.01)
+    # the PSF ellipticity column: the Moffat's (0.05, -0.03) in the sky frame
+    assert np.all(np.abs(good["psf_e1"] - 0.05) < 0.01) and np.all(np.abs(good["psf_e2"] + 0.03) < 0.01)
+    hdr = fits.getheader(out, 1)
+    assert "SFCONFIG" in hdr and "SFVERS" in hdr
+
+
+def test_measure_bad_config_is_one_line(field, capsys):
+    d, _ = field
+    bad = d / "bad.yaml"
+    bad.write_text("exposures: [{image: exp0.fits}]\ncatalog: objects.fits\nstamp_sizee: 48\n")
+    assert main(["measure", str(bad), "--out", str(d / "x.fits")]) == 1
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and "stamp_sizee" in err and not (d / "x.fits").exists()
