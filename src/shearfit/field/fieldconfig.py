@@ -59,7 +59,7 @@ class PipelineConfig:
     isophote_nsigma: float = _opt(
         2.0, "isophote level, in units of the smoothed pixel noise, that defines an object's extent for "
         "neighbour masking, blend detection and the centroid test", "sec. 3.6 (two-sigma isophote)")
-    centroid_max_shift: float = _opt(
+    isophote_centroid_max_shift: float = _opt(
         4.0, "largest distance, pixels, of the intensity-weighted centroid inside the isophote from the "
         "catalogue position (fitclass -5 beyond); the fitted centre has its own limit, max_centroid_shift",
         "sec. 3.6")
@@ -79,7 +79,7 @@ class PipelineConfig:
     def __post_init__(self):
         if self.stamp_size < 8:
             raise ShearfitValueError(f"setting stamp_size={self.stamp_size!r} must be at least 8 pixels")
-        for name in ("isophote_nsigma", "centroid_max_shift"):
+        for name in ("isophote_nsigma", "isophote_centroid_max_shift"):
             if not getattr(self, name) > 0:
                 raise ShearfitValueError(f"setting {name}={getattr(self, name)!r} must be positive")
         if self.min_exposures < 1:
