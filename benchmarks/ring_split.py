@@ -1,0 +1,46 @@
+#!/usr/bin/env python
+"""m and c of a ring-test table (benchmarks/ring_test.py --out) split by true scalelength and by sigma_e.
+
+    python benchmarks/ring_split.py ring.fits
+"""
+
+import sys
+
+import numpy as np
+from astropy.table import Table
+
+from shearfit.simulate.shear_bias import ring_sums, shear_bias
+
+
+def main(path):
+    t = Table.read(path)
+    plus = t[t["sign"] > 0]
+    g = np.array([plus["g1"][0], plus["g2"][0]])   # the shear of the +g set
+    n = int(t["galaxy"].max()) + 1
+    rgal = np.zeros(n)
+    rgal[t["galaxy"]] = t["true_scalelength"]
+    sdg = np.array([np.sqrt(np.nanmean(t["e_var"][t["galaxy"] == k])) for k in range(n)])
+    rng = np.random.default_rng(0)
+
+    def sub(sel, label):
+        idx = np.flatnonzero(sel)
+        if idx.size < 2:
+            return
+        remap = -np.ones(n, int)
+        remap[idx] = np.arange(idx.size)
+        tt = t[np.isin(t["galaxy"], idx)]
+        tab = {c: np.array(tt[c]) for c in ("sign", "e1", "e2", "weight", "fitclass")}
+        tab["galaxy"] = remap[np.array(tt["galaxy"])]
+        est, err = shear_bias(ring_sums(tab, idx.size), g, 500, rng)
+        print(f"{label:26s} rings={idx.size:4d}  m1={est[0]:+.4f}+-{err[0]:.4f}  m2={est[1]:+.4f}+-{err[1]:.4f}  "
+              f"c1={est[2]:+.5f}+-{err[2]:.5f}  c2={est[3]:+.5f}+-{err[3]:.5f}")
+
+    sub(np.ones(n, bool), "all")
+    for lo, hi in [(0, 0.15), (0.15, 0.3), (0.3, 10)]:
+        sub((rgal >= lo) & (rgal < hi), f"r in [{lo}, {hi}) arcsec")
+    for lo, hi in [(0, 0.02), (0.02, 0.05), (0.05, 1)]:
+        sub((sdg >= lo) & (sdg < hi), f"sigma_e in [{lo}, {hi})")
+
+
+if __name__ == "__main__":
+    main(sys.argv[1])
