@@ -100,6 +100,12 @@ def test_measure_field_end_to_end(field, capsys):
     assert np.all(np.abs(good["psf_e1"] - 0.05) < 0.01) and np.all(np.abs(good["psf_e2"] + 0.03) < 0.01)
     hdr = fits.getheader(out, 1)
     assert "SFCONFIG" in hdr and "SFVERS" in hdr
+    # the same catalogue with two worker processes, bit for bit
+    out2 = d / "shear_j2.fits"
+    assert main(["measure", str(d / "field.yaml"), "--out", str(out2), "--quiet", "-j", "2"]) == 0
+    t2 = Table.read(out2)
+    for col in ("e1", "e2", "weight", "fitclass", "snr"):
+        assert np.array_equal(np.asarray(t[col]), np.asarray(t2[col]), equal_nan=True)
 
 
 def test_measure_bad_config_is_one_line(field, capsys):

@@ -140,14 +140,22 @@ def measure_field(cfg: FieldConfig, out_path=None, progress=False, processes=1) 
     tasks = [[] for _ in range(len(cat))]
     for obj, k, x, y in zip(hits.object, hits.ccd, hits.x, hits.y):
         tasks[obj].append((flat[k][0], flat[k][1], float(x), float(y)))
-    pc = cfg.pipeline
     mags = np.asarray(cat["mag"], float)
-    it = range(len(cat))
-    if progress:
-        from tqdm import tqdm
-        it = tqdm(it, desc="measuring", unit="obj")
-    for i in it:
-        row = _measure_one(tasks[i], exposures, mags[i], cfg, pc)
+    global _STATE
+    _STATE = (tasks, exposures, mags, cfg)
+    try:
+        if processes and processes > 1 and hasattr(os, "fork"):
+            import multiprocessing
+
+            # workers inherit the opened exposures through fork; each returns rows in input order
+            with multiprocessing.get_context("fork").Pool(processes) as pool:
+                it = pool.imap(_measure_index, range(len(cat)), chunksize=max(1, len(cat) // (16 * processes)))
+                rows = list(_progress(it, len(cat), progress))
+        else:
+            rows = list(_progress(map(_measure_index, range(len(cat))), len(cat), progress))
+    finally:
+        _STATE = None
+    for i, row in enumerate(rows):
         for key, val in row.items():
             table[key][i] = val
     cards = provenance_cards(cfg.to_dict(), __version__)
@@ -155,6 +163,21 @@ def measure_field(cfg: FieldConfig, out_path=None, progress=False, processes=1) 
                            ("CALBETA", PAPER_BETA, "calibration beta (paper default)")]
     write_catalog_atomic(table, out_path, cards)
     return table
+
+
+_STATE = None
+
+
+def _progress(it, total, show):
+    if not show:
+        return it
+    from tqdm import tqdm
+    return tqdm(it, total=total, desc="measuring", unit="obj")
+
+
+def _measure_index(i):
+    tasks, exposures, mags, cfg = _STATE
+    return _measure_one(tasks[i], exposures, mags[i], cfg, cfg.pipeline)
 
 
 def _measure_one(hits, exposures, mag, cfg, pc) -> dict:

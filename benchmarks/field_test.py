@@ -1,0 +1,201 @@
+#!/usr/bin/env python
+"""Shear bias of the whole field pipeline: GalSim fields measured by ``shearfit measure``.
+
+Writes two fields (shear +g and -g, same galaxies, PSFs, dithers and noise),
+each of ``--n-exposures`` dithered exposures of ``--n-ccd`` CCDs with a TAN
+(or rotated/flipped, or SIP-distorted) WCS, draws every galaxy with GalSim
+through that WCS (its local affine map applied to the galaxy before the PSF,
+which is defined in the pixel frame like a PSF model measured from stars),
+gives the PSF as a FITS image per CCD, runs ``shearfit measure`` on each, and
+prints m and c (rings of 4 orientations, bootstrap over rings) and the
+pipeline's throughput.
+
+    python benchmarks/field_test.py --n-galaxies 40                   # plain TAN
+    python benchmarks/field_test.py --n-galaxies 40 --wcs rotated     # each exposure rotated, odd ones flipped
+    python benchmarks/field_test.py --n-galaxies 40 --wcs distorted   # + a few per cent SIP distortion
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import tempfile
+import time
+
+import galsim
+import numpy as np
+import yaml
+from astropy.io import fits
+from astropy.table import Table
+
+from shearfit import priors
+from shearfit.cli import main as shearfit_main
+from shearfit.simulate.shear_bias import ring_sums, shear_bias
+from shearfit.simulate.stamps import galaxy_profile
+
+PIX = 0.187
+RA0, DEC0 = 35.0, -4.0
+NPIX = 512
+SPACING = 44   # pixels between galaxies
+
+
+def ccd_header(ccd, exposure, mode, rng_exp):
+    """TAN header of CCD ``ccd`` in exposure ``exposure``: dithered, optionally rotated/flipped/SIP."""
+    dx, dy = 7.3 * exposure, -4.1 * exposure           # a linear dither pattern, pixels
+    angle = 0.0
+    flip = 1.0
+    if mode in ("rotated", "distorted"):
+        angle = np.radians(23.0 + 41.0 * exposure)
+        flip = -1.0 if exposure % 2 else 1.0
+    c, s = np.cos(angle), np.sin(angle)
+    # north up, east left, then rotated about the reference pixel, odd exposures flipped in x
+    cd = PIX / 3600.0 * np.array([[-c, s], [s, c]]) @ np.diag([flip, 1.0])
+    h = fits.Header()
+    h["CTYPE1"], h["CTYPE2"] = ("RA---TAN-SIP", "DEC--TAN-SIP") if mode == "distorted" else ("RA---TAN", "DEC--TAN")
+    # the CCDs sit side by side on the sky; the reference point is the field centre
+    off = (ccd - 0.5) * (NPIX + 20)
+    h["CRVAL1"], h["CRVAL2"] = RA0, DEC0
+    cx = NPIX / 2 - (np.linalg.inv(cd) @ np.array([-off * PIX / 3600.0, 0.0]))[0]
+    cy = NPIX / 2 - (np.linalg.inv(cd) @ np.array([-off * PIX / 3600.0, 0.0]))[1]
+    h["CRPIX1"], h["CRPIX2"] = cx + dx, cy + dy
+    h["CD1_1"], h["CD1_2"], h["CD2_1"], h["CD2_2"] = cd[0, 0], cd[0, 1], cd[1, 0], cd[1, 1]
+    if mode == "distorted":
+        # quadratic SIP terms: a few per cent of scale change across the CCD
+        h["A_ORDER"], h["B_ORDER"] = 2, 2
+        h["A_2_0"], h["A_0_2"], h["A_1_1"] = 3e-5 * rng_exp[0], 2e-5 * rng_exp[1], 2e-5
+        h["B_2_0"], h["B_0_2"], h["B_1_1"] = 2e-5 * rng_exp[2], 3e-5 * rng_exp[3], -2e-5
+    h["MAGZP"], h["GAIN"], h["SATURATE"] = 30.0, 1.0, 1e9
+    return h
+
+
+def make_field(d, sign, args, gals, psfs, sigma):
+    g = sign * np.array(args.shear)
+    specs = []
+    rng_noise = np.random.default_rng(args.seed + 1000)   # the same noise for +g and -g
+    for k in range(args.n_exposures):
+        rng_exp = np.random.default_rng([args.seed, k]).uniform(0.5, 1.5, 4)
+        hdus, whdus, phdus = [fits.PrimaryHDU()], [fits.PrimaryHDU()], []
+        for c in range(args.n_ccd):
+            h = ccd_header(c, k, args.wcs, rng_exp)
+            wcs = galsim.GSFitsWCS(header=h)
+            img = galsim.ImageD(NPIX, NPIX, wcs=wcs)
+            for gal in gals:
+                coord = galsim.CelestialCoord(gal["ra"] * galsim.degrees, gal["dec"] * galsim.degrees)
+                pos = wcs.toImage(coord)
+                if not (8 < pos.x < NPIX - 8 and 8 < pos.y < NPIX - 8):
+                    continue
+                local = wcs.local(pos)
+                prof = galaxy_profile(gal["r"], gal["B"], gal["e1"], gal["e2"], flux=gal["flux"], g1=g[0], g2=g[1],
+                                      is_bulge=gal["is_bulge"])
+                conv = galsim.Convolve(local.toImage(prof), psfs[k])
+                stamp = conv.drawImage(nx=64, ny=64, scale=1.0, center=pos, method="auto")
+                b = stamp.bounds & img.bounds
+                img[b] += stamp[b]
+            noise = rng_noise.normal(0.0, sigma, (NPIX, NPIX))
+            data = img.array + (0.0 if args.noise_free else noise)
+            hdus.append(fits.ImageHDU(data, header=h))
+            whdus.append(fits.ImageHDU(np.full((NPIX, NPIX), 1 / sigma ** 2, dtype=np.float32), header=h))
+            pim = psfs[k].drawImage(nx=48, ny=48, scale=1.0, method="auto", use_true_center=False).array
+            phdus.append(fits.ImageHDU(pim / pim.sum()))
+        fits.HDUList(hdus).writeto(os.path.join(d, f"exp{k}.fits"), overwrite=True)
+        fits.HDUList(whdus).writeto(os.path.join(d, f"exp{k}.weight.fits"), overwrite=True)
+        fits.HDUList([fits.PrimaryHDU()] + phdus).writeto(os.path.join(d, f"exp{k}.psf.fits"), overwrite=True)
+        specs.append({"image": f"exp{k}.fits", "weight": f"exp{k}.weight.fits", "psf": f"exp{k}.psf.fits"})
+    cat = Table({"id": np.arange(len(gals)), "ra": [x["ra"] for x in gals], "dec": [x["dec"] for x in gals],
+                 "mag": [x["mag"] for x in gals]})
+    cat.write(os.path.join(d, "objects.fits"), overwrite=True)
+    with open(os.path.join(d, "field.yaml"), "w") as f:
+        yaml.safe_dump({"exposures": specs, "catalog": "objects.fits"}, f)
+    return os.path.join(d, "field.yaml")
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--n-galaxies", type=int, default=40, help="rings of 4 orientations")
+    ap.add_argument("--n-exposures", type=int, default=7)
+    ap.add_argument("--n-ccd", type=int, default=2)
+    ap.add_argument("--wcs", choices=["plain", "rotated", "distorted"], default="plain")
+    ap.add_argument("--snr-min", type=float, default=100.0)
+    ap.add_argument("--snr-max", type=float, default=200.0)
+    ap.add_argument("--min-size", type=float, default=0.0, help="smallest scalelength drawn, arcsec")
+    ap.add_argument("--noise-free", action="store_true", help="noise-free images, weights of the SNR range")
+    ap.add_argument("--shear", type=float, nargs=2, default=[0.03, -0.02])
+    ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--processes", type=int, default=os.cpu_count())
+    ap.add_argument("--keep", default=None, help="keep the fields in this directory")
+    args = ap.parse_args(argv)
+    rng = np.random.default_rng(args.seed)
+    sigma = 1.0
+    psfs = [galsim.Moffat(beta=rng.uniform(2.5, 4.5), fwhm=rng.uniform(0.5, 0.8) / PIX).shear(
+        g1=rng.uniform(-0.07, 0.07), g2=rng.uniform(-0.07, 0.07)) for _ in range(args.n_exposures)]
+    # galaxies on a grid over the CCDs (the dithers move them by < 30 pixels)
+    nx_side = (NPIX - 2 * SPACING) // SPACING
+    slots = [(c, i, j) for c in range(args.n_ccd) for i in range(nx_side) for j in range(nx_side)]
+    if 4 * args.n_galaxies > len(slots):
+        raise SystemExit(f"at most {len(slots) // 4} rings fit on {args.n_ccd} CCDs")
+    order = rng.permutation(len(slots))
+    gals = []
+    pop_mags = rng.uniform(21.0, 24.0, 4 * args.n_galaxies)
+    k = 0
+    while len(gals) < 4 * args.n_galaxies:
+        p = priors.sample_population(np.array([pop_mags[k % pop_mags.size]]), rng)[0]
+        k += 1
+        if p["scalelength"] < args.min_size or 4.5 * p["scalelength"] / PIX > 20:
+            continue
+        snr = rng.uniform(args.snr_min, args.snr_max)
+        e = complex(p["e1"], p["e2"])
+        for j in range(4):
+            c, ix, iy = slots[order[len(gals)]]
+            du = ((c - 0.5) * (NPIX + 20) + (ix - nx_side / 2 + 0.5) * SPACING) * PIX / 3600.0
+            dv = (iy - nx_side / 2 + 0.5) * SPACING * PIX / 3600.0
+            ej = e * np.exp(1j * np.pi * j / 2)
+            gals.append(dict(ring=len(gals) // 4, ra=RA0 - du / np.cos(np.radians(DEC0)), dec=DEC0 + dv,
+                             r=float(p["scalelength"]), B=float(p["bulge_fraction"]), is_bulge=bool(p["is_bulge"]),
+                             e1=ej.real, e2=ej.imag, mag=float(p["mag"]), snr=snr))
+    # flux for the target SNR (profile-weighted, all exposures) at pixel noise sigma
+    for gal in gals:
+        prof = galaxy_profile(gal["r"], gal["B"], gal["e1"], gal["e2"], flux=1.0, is_bulge=gal["is_bulge"])
+        power = sum(float(np.sum(galsim.Convolve(prof.dilate(1 / PIX), p).drawImage(nx=64, ny=64, scale=1.0)
+                                 .array ** 2)) for p in psfs)
+        gal["flux"] = gal["snr"] * sigma / np.sqrt(power)
+    tables = {}
+    t_meas = 0.0
+    with tempfile.TemporaryDirectory() as tmp:
+        base = args.keep or tmp
+        for sign in (+1, -1):
+            d = os.path.join(base, "plus" if sign > 0 else "minus")
+            os.makedirs(d, exist_ok=True)
+            t0 = time.perf_counter()
+            cfgpath = make_field(d, sign, args, gals, psfs, sigma)
+            t_sim = time.perf_counter() - t0
+            out = os.path.join(d, "shear.fits")
+            t0 = time.perf_counter()
+            rc = shearfit_main(["measure", cfgpath, "--out", out, "--quiet", "-j", str(args.processes)])
+            t_meas += time.perf_counter() - t0
+            if rc != 0:
+                raise SystemExit(f"shearfit measure failed ({rc})")
+            tables[sign] = Table.read(out)
+            print(f"field {'+g' if sign > 0 else '-g'}: simulated in {t_sim:.0f} s, measured in "
+                  f"{time.perf_counter() - t0:.0f} s")
+    n = len(gals)
+    rows = {k: [] for k in ("galaxy", "sign", "e1", "e2", "weight", "fitclass")}
+    for sign, t in tables.items():
+        for gal, row in zip(gals, t):
+            for key, val in (("galaxy", gal["ring"]), ("sign", sign), ("e1", row["e1"]), ("e2", row["e2"]),
+                             ("weight", row["weight"]), ("fitclass", row["fitclass"])):
+                rows[key].append(val)
+    tab = {k: np.array(v) for k, v in rows.items()}
+    est, err = shear_bias(ring_sums(tab, args.n_galaxies), np.array(args.shear), 500, np.random.default_rng(0))
+    fc = tab["fitclass"]
+    print(f"\n{args.n_galaxies} rings x 4 x 2 shears, {args.n_exposures} exposures x {args.n_ccd} CCDs, "
+          f"WCS {args.wcs}, SNR {args.snr_min:.0f}-{args.snr_max:.0f}{' (noise-free)' if args.noise_free else ''}, "
+          f"scalelength >= {args.min_size}\"")
+    print(f"  m1 = {est[0]:+.5f} +/- {err[0]:.5f}    c1 = {est[2]:+.6f} +/- {err[2]:.6f}")
+    print(f"  m2 = {est[1]:+.5f} +/- {err[1]:.5f}    c2 = {est[3]:+.6f} +/- {err[3]:.6f}")
+    print(f"  fitclass: " + ", ".join(f"{int((fc == v).sum())} x {v}" for v in np.unique(fc)))
+    print(f"  pipeline throughput: {2 * n / t_meas / args.processes:.2f} objects / s / process "
+          f"({args.processes} processes, {2 * n} objects, {t_meas:.0f} s including reading and writing)")
+
+
+if __name__ == "__main__":
+    main()
