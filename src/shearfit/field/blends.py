@@ -49,16 +49,19 @@ Choices not fixed by the paper
   A region therefore also needs a peak whose prominence (its height above
   the highest col joining it to higher ground) is at least ``min_contrast``
   smoothed-noise sigmas; otherwise it is amalgamated like a small region.
-  The default 3 flagged none of 1000 such isolated galaxies (2: 0.7 %,
-  1: 7.6 %) while keeping pairs the smoothed image resolves. Prominence is
-  measured exactly, not at the quantised levels, so the result does not
-  depend on where the levels fall.
+  Measured on 1000 such isolated galaxies (0.7" Moffat PSF, 7 exposures),
+  the false-blend rate is 7.6 % at 1, 2.3 % at 1.5, 0.7 % at the default 2
+  and none at 3, while equal compact pairs 6 pixels apart are flagged in
+  70 % of cases at 2 and 30 % at 3. Prominence is measured exactly, not at
+  the quantised levels, so it does not depend on where the levels fall.
 * **Levels.** ``n_levels`` (32) thresholds spaced linearly in smoothed S/N
-  from the peak down to the isophote, both included (``level_spacing='log'``
-  spaces them geometrically, as SExtractor does; with the prominence rule the
-  two gave the same rates). Where new pixels touch two regions at one level,
-  they are handed out by growing the regions one pixel at a time, each pixel
-  going to its brightest labelled neighbour.
+  from the peak down to the isophote, both included. ``level_spacing='log'``
+  spaces them geometrically, as SExtractor does; both flagged the same 3 of
+  400 isolated galaxies, but linear steps, finer near the peak, split more
+  close pairs (69 against 55 of 100 equal compact pairs 6 pixels apart).
+  Where new pixels touch two regions at one level they are handed out by
+  growing the regions one pixel at a time, each pixel going to its brightest
+  labelled neighbour.
 * **Neighbour masks** are the neighbours' isophotes dilated by
   ``neighbour_grow`` (2) pixels (a 5x5 square), never reaching into the
   target's own isophote. The isophote of the smoothed image sits where the
@@ -262,22 +265,26 @@ def _validate(stamps, weights, offsets):
     return s, w, off
 
 
-def _grow(lab, value, target):
-    """Give each ``target`` pixel the label of its brightest labelled 8-neighbour, repeatedly.
+def _grow(lab, value, todo):
+    """Give pixels ``todo`` (flat indices) the label of their brightest labelled 8-neighbour, repeatedly.
 
     Pixels reached in one pass are labelled together, so a chain of new
     pixels is claimed outward from the regions at equal speed, and where two
     regions compete for a pixel it goes up the steepest slope. ``lab`` is
     changed in place. Its one-pixel border must be unlabelled and hold no
-    target (the caller pads), so every target's neighbours are inside the
-    array and can be gathered by flat index: the work scales with the few
-    new pixels of a level, not with the box.
+    pixel of ``todo`` (the caller pads), so every pixel's neighbours are
+    inside the array and can be gathered by flat index: the work scales with
+    the few new pixels of a level, not with the box.
+
+    Returns
+    -------
+    1D int array
+        The pixels of ``todo`` no labelled pixel can reach through ``todo``.
     """
     w = lab.shape[1]
     steps = np.array([dy * w + dx for dy, dx in _SHIFTS])
     flat_lab = lab.ravel()  # a view: writing it writes lab
     flat_val = value.ravel()
-    todo = np.flatnonzero(target)
     while todo.size:
         nb = todo[None, :] + steps[:, None]
         nl = flat_lab[nb]
@@ -285,11 +292,11 @@ def _grow(lab, value, target):
         k = np.argmax(nv, axis=0)
         got = nl[k, np.arange(todo.size)]
         reach = got > 0
-        if not reach.any():  # cannot happen when every target component holds a label
+        if not reach.any():
             break
         flat_lab[todo[reach]] = got[reach]
         todo = todo[~reach]
-    return lab
+    return todo
 
 
 def _significant_maxima(v, region, nsigma, min_contrast):
@@ -353,7 +360,8 @@ def _deblend(snr, region, nsigma, n_levels, min_pixels, min_contrast, spacing):
     -------
     (labels, n_regions)
     """
-    # a one-pixel empty border lets _grow look at neighbours through shifted views
+    # a one-pixel empty border: every region pixel's 8 neighbours exist, so _grow
+    # can gather them by flat index without wrapping round a row
     region = np.pad(region, 1)
     v = np.where(region, np.pad(snr, 1), -np.inf)
     strong = _significant_maxima(v, region, nsigma, min_contrast)
@@ -369,36 +377,30 @@ def _deblend(snr, region, nsigma, n_levels, min_pixels, min_contrast, spacing):
         levels = np.geomspace(top, min(nsigma, top), n_levels)
     else:
         levels = np.linspace(top, min(nsigma, top), n_levels)
+    # Region pixels from the brightest down: the pixels a level adds are the
+    # next slice of this list, so no level needs a pass over the whole box.
+    flat_v = v.ravel()
+    order = np.flatnonzero(region.ravel())
+    order = order[np.argsort(-flat_v[order], kind="stable")]
+    ends = np.searchsorted(-flat_v[order], -levels, side="right")
+    ends[-1] = order.size  # the last level is the whole isophote, whatever rounding did
     lab = np.zeros(region.shape, dtype=np.int32)
     n_reg = 0
-    for i, t in enumerate(levels):
-        # the last level is the whole isophote, whatever rounding did
-        above = region if i == n_levels - 1 else region & (v >= t)
-        new = above & (lab == 0)
-        if not new.any():
+    start = 0
+    for end in ends:
+        if end <= start:
             continue
-        comp, nc = ndimage.label(above, structure=_EIGHT)
-        held = lab > 0
-        # which regions each component already holds: a (component, region) table
-        present = np.bincount(comp[held] * (n_reg + 1) + lab[held], minlength=(nc + 1) * (n_reg + 1))
-        present = present.reshape(nc + 1, n_reg + 1) > 0
-        n_in = present.sum(axis=1)[comp]
-        only = np.argmax(present, axis=1)[comp]  # the region, where there is just one
-        # a component with no region yet: a new (secondary) maximum
-        fresh = new & (n_in == 0)
-        if fresh.any():
-            ids = np.unique(comp[fresh])
-            remap = np.zeros(nc + 1, dtype=np.int32)
-            remap[ids] = np.arange(n_reg + 1, n_reg + 1 + ids.size)
-            lab[fresh] = remap[comp[fresh]]
-            n_reg += ids.size
-        # one region in the component: its new pixels are that region's
-        single = new & (n_in == 1)
-        lab[single] = only[single]
-        # several regions meet: share the new pixels out by growth
-        multi = new & (n_in > 1)
-        if multi.any():
-            _grow(lab, v, multi)
+        # New pixels joined (through new pixels) to a region grow it -- where
+        # several regions meet, each takes the pixels nearer to it. Those no
+        # region reaches are components of their own: new, secondary, maxima.
+        left = _grow(lab, v, order[start:end])
+        start = end
+        if left.size:
+            seed = np.zeros(region.shape, dtype=bool)
+            seed.flat[left] = True
+            comp, nc = ndimage.label(seed, structure=_EIGHT)
+            lab[seed] = comp[seed] + n_reg
+            n_reg += nc
 
     # Amalgamate the regions that do not count -- peak not a significant
     # maximum, or fewer than min_pixels pixels -- smallest first, into the

@@ -13,10 +13,12 @@ Per object (sec. 3.6, 4, 6 of the paper):
 5. the photometric scale from MAGZP, one flux for all exposures;
 6. the joint fit (:func:`shearfit.measure_object`), and one catalogue row.
 
-Masked pixels (weight 0) near the object drop that exposure; elsewhere in the
-stamp they are treated as background (zero-valued data), as the paper does.
-The paper's isophote-based neighbour masking and blend/complexity flags are
-not part of this module yet.
+Sec. 3.6 (:mod:`.blends`): on the co-added stamp smoothed by the PSF, neighbours
+whose 2-sigma isophotes do not touch the object's are masked (set to
+background); several significant maxima inside the isophote flag the object
+blended or complex (-3); an isophote centroid more than 4 pixels from the input
+position flags it (-5); an exposure with a bad pixel inside the isophote is
+dropped, bad pixels elsewhere are background.
 """
 
 from __future__ import annotations
@@ -37,6 +39,7 @@ from .fieldconfig import FieldConfig
 from .io import empty_output_table, provenance_cards, read_catalog, read_exposure, write_catalog_atomic
 from .psfinput import PSFExModel, read_psf_fits
 from .stamps import cut_stamp, locate_all
+from .blends import analyse_stamps
 from .wcs import local_jacobian
 
 log = logging.getLogger(__name__)
@@ -114,11 +117,49 @@ def _load_psf(spec, n_ccd, index):
     return _ExposurePSF(images=[read_psf_fits(spec.psf, i) for i in idx])
 
 
-def _masked_near(wstamp, offset, radius):
-    n = wstamp.shape
-    yy, xx = np.indices(n)
-    d2 = (xx - n[1] // 2 - offset[0]) ** 2 + (yy - n[0] // 2 - offset[1]) ** 2
-    return bool(np.any((wstamp <= 0) & (d2 <= radius * radius)))
+def _psf_fwhm_pixels(psf, k):
+    import galsim
+
+    try:
+        mom = galsim.hsm.FindAdaptiveMom(galsim.Image(np.ascontiguousarray(psf, dtype=np.float64), scale=1.0))
+        return 2.3548 * mom.moments_sigma / k
+    except Exception:   # noqa: BLE001 - fall back to a typical ground-based PSF
+        return 3.5
+
+
+def _isophote_analysis(cuts, pc) -> int:
+    """Sec. 3.6 on the co-added, smoothed stamp: neighbour masks, dropped exposures, blend/centroid flags.
+
+    The co-add averages stamps already cut at the nearest pixel (no interpolation). It is only
+    meaningful for exposures whose pixel grids are aligned, so it uses those whose Jacobian matches
+    the first exposure's to 2 %; neighbour masks are applied to those exposures only, and the other
+    exposures keep their stamps but are still dropped if a bad pixel lies near the object.
+    """
+    J0 = cuts[0]["J"]
+    scale = np.sqrt(abs(np.linalg.det(J0)))
+    aligned = [np.max(np.abs(c["J"] - J0)) < 0.02 * scale for c in cuts]
+    group = [c for c, a in zip(cuts, aligned) if a]
+    fwhm = float(np.mean([_psf_fwhm_pixels(c["psf"], c["k"]) for c in group]))
+    res = analyse_stamps([c["image"] for c in group], [c["weight"] for c in group], [c["offset"] for c in group],
+                         fwhm, nsigma=pc.isophote_nsigma, min_region_pixels=pc.deblend_min_pixels,
+                         centroid_max_shift=pc.isophote_centroid_max_shift, neighbour_mask=pc.neighbour_mask)
+    for c in cuts:
+        c["keep"] = True
+    for c, mask, keep in zip(group, res.masks, res.keep_exposure):
+        if pc.neighbour_mask and mask is not None and np.any(mask):
+            c["weight"] = np.where(mask, 0.0, c["weight"])
+        if pc.drop_masked_exposures and not keep:
+            c["keep"] = False
+    if pc.drop_masked_exposures:
+        # exposures outside the aligned group: a bad pixel within one PSF FWHM of the object drops them
+        for c, a in zip(cuts, aligned):
+            if not a:
+                n = c["weight"].shape
+                yy, xx = np.indices(n)
+                d2 = (xx - n[1] // 2 - c["offset"][0]) ** 2 + (yy - n[0] // 2 - c["offset"][1]) ** 2
+                if np.any((c["weight"] <= 0) & (d2 <= fwhm * fwhm)):
+                    c["keep"] = False
+    return int(res.flag)
 
 
 def measure_field(cfg: FieldConfig, out_path=None, progress=False, processes=1) -> Table:
@@ -191,24 +232,31 @@ def _measure_one(hits, exposures, mag, cfg, pc) -> dict:
         margin = min(x, y, nx - 1 - x, ny - 1 - y)
         if e not in best or margin > best[e][0]:
             best[e] = (margin, c, x, y)
-    obs, psf_e = [], []
+    cuts = []
     for e, (margin, c, x, y) in sorted(best.items()):
         ccd = exposures[e][0][c]
         st = cut_stamp(ccd.image, ccd.pixel_weight, x, y, pc.stamp_size)
         if st is None:
             continue
-        stamp, wst, offset = st.image, st.weight, st.offset
-        if pc.drop_masked_exposures and _masked_near(wst, offset, 3.0):
-            continue
-        J = local_jacobian(ccd.wcs, x, y)
         psf, k = exposures[e][1].at(c, x, y)
-        try:
-            obs.append(Observation(image=stamp, weight=wst, psf=psf, psf_oversampling=k, jacobian=J,
-                                   offset=tuple(offset), flux_scale=ccd.flux_scale))
-        except ShearfitValueError as exc:
-            log.warning("exposure %d CCD %s skipped for an object: %s", e, ccd.label, exc)
+        cuts.append(dict(e=e, ccd=ccd, image=np.array(st.image, float), weight=np.array(st.weight, float),
+                         offset=st.offset, J=local_jacobian(ccd.wcs, x, y), psf=psf, k=k))
+    if not cuts:
+        return {"fitclass": FITCLASS_FEW_EXPOSURES, "n_exposures_used": 0}
+    flag = _isophote_analysis(cuts, pc)
+    if flag != 0:
+        return {"fitclass": flag, "n_exposures_used": 0}
+    obs, psf_e = [], []
+    for cut in cuts:
+        if not cut["keep"]:
             continue
-        psf_e.append(psf_ellipticity(psf, J, k))
+        try:
+            obs.append(Observation(image=cut["image"], weight=cut["weight"], psf=cut["psf"], psf_oversampling=cut["k"],
+                                   jacobian=cut["J"], offset=tuple(cut["offset"]), flux_scale=cut["ccd"].flux_scale))
+        except ShearfitValueError as exc:
+            log.warning("exposure %d CCD %s skipped for an object: %s", cut["e"], cut["ccd"].label, exc)
+            continue
+        psf_e.append(psf_ellipticity(cut["psf"], cut["J"], cut["k"]))
     if len(obs) < max(pc.min_exposures, 1):
         return {"fitclass": FITCLASS_FEW_EXPOSURES, "n_exposures_used": len(obs)}
     res = measure_object(obs, mag, cfg.fit)
