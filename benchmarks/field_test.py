@@ -192,7 +192,7 @@ def main(argv=None):
           f"scalelength >= {args.min_size}\"")
     print(f"  m1 = {est[0]:+.5f} +/- {err[0]:.5f}    c1 = {est[2]:+.6f} +/- {err[2]:.6f}")
     print(f"  m2 = {est[1]:+.5f} +/- {err[1]:.5f}    c2 = {est[3]:+.6f} +/- {err[3]:.6f}")
-    print(f"  fitclass: " + ", ".join(f"{int((fc == v).sum())} x {v}" for v in np.unique(fc)))
+    print("  fitclass: " + ", ".join(f"{int((fc == v).sum())} x {v}" for v in np.unique(fc)))
     print(f"  pipeline throughput: {2 * n / t_meas / args.processes:.2f} objects / s / process "
           f"({args.processes} processes, {2 * n} objects, {t_meas:.0f} s including reading and writing)")
 

@@ -142,7 +142,7 @@ def write_two_ccd_exposure(tmp_path, shape=(80, 60), overlap=5):
 
 def test_locate_finds_the_right_ccds(tmp_path):
     ccds = write_two_ccd_exposure(tmp_path)
-    w0, w1 = ccds[0].wcs, ccds[1].wcs
+    w0 = ccds[0].wcs
     # Objects placed by pixel position on CCD 0 (x = column): the second CCD starts 55 columns to the
     # right (east is left: its RA is smaller), so x0 = 57 is at x1 = 2 on CCD 1.
     pix0 = np.array([[10.3, 20.7], [57.0, 40.0], [-3.0, 40.0], [30.0, -10.0], [100.0, 40.0]])

@@ -135,7 +135,7 @@ def join_exposures(exposures: list[ExposureModes], chi2_tolerance: float = 0.0) 
     """Concatenate the exposures' modes (after the noise-aware cut, if a tolerance is given)."""
     if chi2_tolerance > 0:
         exposures = [_select(ex, k) for ex, k in zip(exposures, _noise_aware_cut(exposures, chi2_tolerance))]
-    kx, ky, z, q, T_multi, w_multi, c_multi, idx_multi = [], [], [], [], [], [], [], []
+    kx, ky, z, q, T_multi, c_multi, idx_multi = [], [], [], [], [], [], []
     group, tscaled = [], []
     goffset = 0
     offset = 0
