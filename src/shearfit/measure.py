@@ -88,9 +88,10 @@ def measure_object(observations: Sequence[Observation], mag: float, config=None,
         ``fitclass`` and a ``message``, never an exception.
     """
     cfg = as_config(config)
-    obs = [o for o in observations if isinstance(o, Observation) and np.any(o.weight > 0)]
-    if len(obs) != len(list(observations)) and any(not isinstance(o, Observation) for o in observations):
+    observations = list(observations)
+    if any(not isinstance(o, Observation) for o in observations):
         raise ShearfitValueError("measure_object takes a sequence of shearfit.Observation")
+    obs = [o for o in observations if np.any(o.weight > 0)]
     if not obs:
         return FitResult(fitclass=FITCLASS_FEW_EXPOSURES, message="no usable exposure")
     try:
@@ -133,7 +134,7 @@ def _measure(obs, mag, cfg, return_samples):
     samples = adaptive_samples(like, cfg) if cfg.sampling == "adaptive" else two_pass_samples(like, cfg)
     est = estimate(samples, cfg)
     # star/galaxy: F-ratio of the best galaxy (r > 0) against the best point source (sec. 3.2)
-    z = flux_position_marginal(model_sums(jm, [0.0], [0.0], [0.0], fast, cfg.bulge_size_ratio), cfg)
+    z = like.zero   # the point source, already evaluated for the size integral
     chi2_star = jm.yy + float(min(z.chi2_disk[0], z.chi2_bulge[0]))
     chi2_gal = jm.yy + like.best_chi2_gal
     dof = max(jm.npix - _NPAR_GALAXY, 1)

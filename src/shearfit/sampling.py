@@ -60,6 +60,8 @@ class EPoint:
 class EllipticityLikelihood:
     """log L(e1, e2) of one object, marginalised over everything else."""
 
+    N_FINE = 49   # points of the fine ln r grid the spline is integrated on
+
     def __init__(self, jm, cfg: FitConfig, mag, fast, size_grid_x, r_center, chunk=64, locate_widths=None):
         self.jm = jm
         self.cfg = cfg
@@ -150,11 +152,20 @@ class EllipticityLikelihood:
                                    mg.mean_flux_disk.reshape(shape), mg.mean_flux_bulge.reshape(shape),
                                    mg.mean_b_disk.reshape(shape))
 
-    def _size_marginal(self, rnodes, ld, lb, fd, fb, bd, n_fine=49):
+    def _fine_grid(self):
+        """The fine ln r grid of the size integral and the node->grid interpolation matrix (built once)."""
+        cache = getattr(self, "_fine", None)
+        if cache is None or cache[0] is not self.x:
+            xf = np.linspace(self.x[0], self.x[-1], self.N_FINE)
+            w = np.array([np.interp(xf, self.x, col) for col in np.eye(self.x.size)])   # (n_nodes, n_fine)
+            cache = self._fine = (self.x, xf, w)
+        return cache[1], cache[2]
+
+    def _size_marginal(self, rnodes, ld, lb, fd, fb, bd):
         """Spline log L over ln r and integrate against the size prior (dr = r d ln r)."""
         cfg = self.cfg
         x = self.x
-        xf = np.linspace(x[0], x[-1], n_fine)
+        xf, interp_w = self._fine_grid()
         rf = (rnodes[:, :1] / np.exp(x[0])) * np.exp(xf)[None, :]
         logprior = np.log(np.maximum(priors.size_prior_pdf(rf, self.mag, cfg), 1e-300)) + np.log(rf)
         res = {}
@@ -189,8 +200,7 @@ class EllipticityLikelihood:
         mean_r_d = np.sum(wd * rf, axis=1) / wsum_d
         mean_r_b = np.sum(wb * rf, axis=1) / wsum_b
         # linear interpolation from the nodes to the fine grid, as one matrix product
-        W = np.array([np.interp(xf, x, col) for col in np.eye(x.size)]).T     # (n_fine, n_nodes)
-        interp = lambda vals: vals @ W.T  # noqa: E731
+        interp = lambda vals: vals @ interp_w  # noqa: E731
         mean_f_d = np.sum(wd * interp(fd), axis=1) / wsum_d
         mean_f_b = np.sum(wb * interp(fb), axis=1) / wsum_b
         mean_b_d = np.sum(wd * interp(bd), axis=1) / wsum_d

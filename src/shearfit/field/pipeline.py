@@ -60,22 +60,33 @@ def calibration_m(snr, scalelength, alpha=PAPER_ALPHA, beta=PAPER_BETA):
     return np.where((snr > 1) & np.isfinite(r), m, np.nan)
 
 
-def psf_ellipticity(psf, jacobian, oversampling=1):
-    """Ellipticity (a-b)/(a+b) of a PSF image in the (u, v) frame, from its adaptive moments.
-
-    The moment matrix found in pixels is carried to the sky by the Jacobian
-    (M_sky = J M J^T), then turned into the reduced-shear ellipticity.
-    """
+def psf_moments(psf):
+    """Adaptive moments of a PSF image: (sigma in array pixels, reduced shear (g1, g2)), or None if HSM fails."""
     import galsim
 
     try:
         mom = galsim.hsm.FindAdaptiveMom(galsim.Image(np.ascontiguousarray(psf, dtype=np.float64), scale=1.0))
-    except Exception:   # noqa: BLE001 - HSM fails on pathological images; the column is then NaN
+    except Exception:   # noqa: BLE001 - HSM fails on pathological images
+        return None
+    return mom.moments_sigma, (mom.observed_shape.g1, mom.observed_shape.g2)
+
+
+def psf_ellipticity(psf, jacobian, oversampling=1, moments=None):
+    """Ellipticity (a-b)/(a+b) of a PSF image in the (u, v) frame, from its adaptive moments.
+
+    The moment matrix found in pixels is carried to the sky by the Jacobian
+    (M_sky = J M J^T), then turned into the reduced-shear ellipticity.
+    ``moments`` (from :func:`psf_moments`) avoids measuring them again.
+    """
+    import galsim
+
+    moments = psf_moments(psf) if moments is None else moments
+    if moments is None:
         return np.nan, np.nan
-    s = mom.moments_sigma / oversampling
-    g = mom.observed_shape
+    s = moments[0] / oversampling
+    g1, g2 = moments[1]
     # moment matrix of an elliptical Gaussian of size s and reduced shear g (det = s^4)
-    S = galsim.Shear(g1=g.g1, g2=g.g2).getMatrix()
+    S = galsim.Shear(g1=g1, g2=g2).getMatrix()
     M = (s * s) * S @ S.T
     Ms = jacobian @ M @ jacobian.T
     a, b, c = Ms[0, 0], Ms[1, 1], Ms[0, 1]
@@ -117,14 +128,9 @@ def _load_psf(spec, n_ccd, index):
     return _ExposurePSF(images=[read_psf_fits(spec.psf, i) for i in idx])
 
 
-def _psf_fwhm_pixels(psf, k):
-    import galsim
-
-    try:
-        mom = galsim.hsm.FindAdaptiveMom(galsim.Image(np.ascontiguousarray(psf, dtype=np.float64), scale=1.0))
-        return 2.3548 * mom.moments_sigma / k
-    except Exception:   # noqa: BLE001 - fall back to a typical ground-based PSF
-        return 3.5
+def _psf_fwhm_pixels(moments, k):
+    # Gaussian-equivalent FWHM from the adaptive sigma; a typical ground-based PSF if HSM failed
+    return 2.3548 * moments[0] / k if moments is not None else 3.5
 
 
 def _isophote_analysis(cuts, pc) -> int:
@@ -139,7 +145,7 @@ def _isophote_analysis(cuts, pc) -> int:
     scale = np.sqrt(abs(np.linalg.det(J0)))
     aligned = [np.max(np.abs(c["J"] - J0)) < 0.02 * scale for c in cuts]
     group = [c for c, a in zip(cuts, aligned) if a]
-    fwhm = float(np.mean([_psf_fwhm_pixels(c["psf"], c["k"]) for c in group]))
+    fwhm = float(np.mean([_psf_fwhm_pixels(c["moments"], c["k"]) for c in group]))
     res = analyse_stamps([c["image"] for c in group], [c["weight"] for c in group], [c["offset"] for c in group],
                          fwhm, nsigma=pc.isophote_nsigma, min_region_pixels=pc.deblend_min_pixels,
                          centroid_max_shift=pc.isophote_centroid_max_shift, neighbour_mask=pc.neighbour_mask)
@@ -240,7 +246,7 @@ def _measure_one(hits, exposures, mag, cfg, pc) -> dict:
             continue
         psf, k = exposures[e][1].at(c, x, y)
         cuts.append(dict(e=e, ccd=ccd, image=np.array(st.image, float), weight=np.array(st.weight, float),
-                         offset=st.offset, J=local_jacobian(ccd.wcs, x, y), psf=psf, k=k))
+                         offset=st.offset, J=local_jacobian(ccd.wcs, x, y), psf=psf, k=k, moments=psf_moments(psf)))
     if not cuts:
         return {"fitclass": FITCLASS_FEW_EXPOSURES, "n_exposures_used": 0}
     flag = _isophote_analysis(cuts, pc)
@@ -256,7 +262,7 @@ def _measure_one(hits, exposures, mag, cfg, pc) -> dict:
         except ShearfitValueError as exc:
             log.warning("exposure %d CCD %s skipped for an object: %s", cut["e"], cut["ccd"].label, exc)
             continue
-        psf_e.append(psf_ellipticity(cut["psf"], cut["J"], cut["k"]))
+        psf_e.append(psf_ellipticity(cut["psf"], cut["J"], cut["k"], moments=cut["moments"]))
     if len(obs) < max(pc.min_exposures, 1):
         return {"fitclass": FITCLASS_FEW_EXPOSURES, "n_exposures_used": len(obs)}
     res = measure_object(obs, mag, cfg.fit)
