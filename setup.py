@@ -24,6 +24,6 @@ class OptionalBuildExt(build_ext):
 
 
 setup(
-    ext_modules=[Extension("shearfit._kernels", ["src/shearfit/_kernels.c"], extra_compile_args=["-O3"])],
+    ext_modules=[Extension("shearfit._kernels", ["src/shearfit/_kernels.c"], extra_compile_args=["-O3", "-fno-math-errno"])],
     cmdclass={"build_ext": OptionalBuildExt},
 )

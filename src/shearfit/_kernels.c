@@ -28,37 +28,101 @@
 #define NSTRIDE 12
 #define NOUT 15
 
-/* table rows are [value_f, slope_f, value_g, slope_g] in float32 */
-static inline double lookup(const float *tab, int which, double u, double nmax)
-{
-    if (u >= nmax) return 0.0;
-    long i = (long)u;
-    double f = u - (double)i;
-    const float *row = tab + 4 * i + 2 * which;
-    return (double)row[0] + f * (double)row[1];
-}
+/* table rows are [value_f, slope_f, value_g, slope_g] in float32; the last row is zero */
+/* Models are processed NB at a time: each mode's data is loaded once for the block, and the
+ * per-model arithmetic (independent across the block) vectorises. On x86-64 Linux with GCC the
+ * block loop is compiled for several instruction sets and the best one the CPU has is chosen at
+ * run time (target_clones), so the build stays portable. */
+#define NB 4
+#if defined(__GNUC__) && !defined(__clang__) && defined(__x86_64__) && defined(__linux__)
+#define MULTIVERSION __attribute__((target_clones("arch=x86-64-v4", "arch=x86-64-v3", "default")))
+#else
+#define MULTIVERSION
+#endif
 
-typedef struct { double lf[6], lg[6]; } Acc;
+typedef double vnb __attribute__((vector_size(NB * sizeof(double))));
 
-/* disk and bulge transforms of one mode for the model with quadratic-form coefficients a0..a2 */
-static inline void eval_mode(const double *p, double a0, double a1, double a2, double c, double c2,
-                             double inv_du, double ratio2, int same, const float *T, double nmax,
-                             double *rf, double *rg)
+/* transforms of the NB models at one mode: u clamped to the last table row, which is zero */
+static inline __attribute__((always_inline)) void eval_block(
+    const double *p, const vnb *a, double c, double c2, double inv_du, double ratio2, int same,
+    const float *T, double nmax, vnb *rf, vnb *rg)
 {
-    double rho2 = a0 * p[0] + a1 * p[1] + a2 * p[2];
-    rho2 = rho2 < 0 ? 0 : rho2;
-    double u = (sqrt(c2 + rho2) - c) * inv_du;
-    *rf = lookup(T, 0, u, nmax);
-    *rg = same ? lookup(T, 1, u, nmax) : lookup(T, 1, (sqrt(c2 + rho2 * ratio2) - c) * inv_du, nmax);
-}
-
-/* the six linear sums (cross-correlation, its gradient and Hessian) of both components */
-static inline void accumulate(Acc *acc, const double *p, double rf, double rg)
-{
-    for (int t = 0; t < 6; t++) {
-        acc->lf[t] += rf * p[3 + t];
-        acc->lg[t] += rg * p[3 + t];
+    /* rho2 >= 0 up to rounding, far below c2 */
+    vnb rho2 = a[0] * p[0] + a[1] * p[1] + a[2] * p[2];
+    vnb s, sg, u, ug;
+    for (int k = 0; k < NB; k++) s[k] = sqrt(c2 + rho2[k]);
+    u = (s - c) * inv_du;
+    if (same) {
+        ug = u;
+    } else {
+        for (int k = 0; k < NB; k++) sg[k] = sqrt(c2 + rho2[k] * ratio2);
+        ug = (sg - c) * inv_du;
     }
+    vnb vf, sf, vg, slg, fi, fig;
+    for (int k = 0; k < NB; k++) {
+        double uk = u[k] < nmax ? u[k] : nmax, ugk = ug[k] < nmax ? ug[k] : nmax;
+        long i = (long)uk, ig = (long)ugk;
+        const float *row = T + 4 * i, *rowg = T + 4 * ig;
+        vf[k] = row[0]; sf[k] = row[1]; vg[k] = rowg[2]; slg[k] = rowg[3];
+        fi[k] = uk - (double)i; fig[k] = ugk - (double)ig;
+    }
+    *rf = vf + fi * sf;
+    *rg = vg + fig * slg;
+}
+
+static inline __attribute__((always_inline)) void block_body(
+    const double *a0p, const double *a1p, const double *a2p, const double *M, Py_ssize_t n_single,
+    Py_ssize_t n_modes, const float *T, double nmax, double c, double inv_du, double ratio2, int same,
+    double *o)
+{
+    vnb a[3];
+    for (int k = 0; k < NB; k++) { a[0][k] = a0p[k]; a[1][k] = a1p[k]; a[2][k] = a2p[k]; }
+    const vnb zero = {0};
+    vnb lf[6], lg[6];
+    for (int t = 0; t < 6; t++) lf[t] = lg[t] = zero;
+    vnb ff = zero, gg = zero, fg = zero, mfr = zero, mfi = zero, mgr = zero, mgi = zero;
+    const double c2 = c * c;
+    const double *p = M;
+    Py_ssize_t j = 0;
+    for (; j < n_single; j++, p += NSTRIDE) {
+        vnb rf, rg;
+        eval_block(p, a, c, c2, inv_du, ratio2, same, T, nmax, &rf, &rg);
+        for (int t = 0; t < 6; t++) { lf[t] += rf * p[3 + t]; lg[t] += rg * p[3 + t]; }
+        vnb qf = rf * p[9];
+        ff += qf * rf;
+        fg += qf * rg;
+        gg += rg * rg * p[9];
+    }
+    for (; j < n_modes; j++, p += NSTRIDE) {
+        vnb rf, rg;
+        eval_block(p, a, c, c2, inv_du, ratio2, same, T, nmax, &rf, &rg);
+        for (int t = 0; t < 6; t++) { lf[t] += rf * p[3 + t]; lg[t] += rg * p[3 + t]; }
+        mfr += rf * p[9]; mfi += rf * p[10];
+        mgr += rg * p[9]; mgi += rg * p[10];
+        if (p[11] != 0.0) {
+            ff += mfr * mfr + mfi * mfi;
+            gg += mgr * mgr + mgi * mgi;
+            fg += mfr * mgr + mfi * mgi;
+            mfr = mfi = mgr = mgi = zero;
+        }
+    }
+    for (int k = 0; k < NB; k++) {
+        double *ok = o + NOUT * k;
+        for (int t = 0; t < 6; t++) { ok[t] = lf[t][k]; ok[6 + t] = lg[t][k]; }
+        ok[12] = ff[k]; ok[13] = gg[k]; ok[14] = fg[k];
+    }
+}
+
+MULTIVERSION
+static void block_sums(const double *a0, const double *a1, const double *a2, const double *M,
+                       Py_ssize_t n_single, Py_ssize_t n_modes, const float *T, double nmax, double c,
+                       double inv_du, double ratio2, int same, double *o)
+{
+    /* two copies of the loop, so that the common case (bulge and disk on one table row) has no branch */
+    if (same)
+        block_body(a0, a1, a2, M, n_single, n_modes, T, nmax, c, inv_du, ratio2, 1, o);
+    else
+        block_body(a0, a1, a2, M, n_single, n_modes, T, nmax, c, inv_du, ratio2, 0, o);
 }
 
 static PyObject *model_sums(PyObject *self, PyObject *args)
@@ -81,41 +145,19 @@ static PyObject *model_sums(PyObject *self, PyObject *args)
     const float *T = (const float *)tab.buf;
     double *O = (double *)out.buf;
     const double nmax = (double)(n_tab - 1);
-    const double c2 = c * c;
     const int same = (ratio2 == 1.0);
 
     Py_BEGIN_ALLOW_THREADS
-    for (Py_ssize_t m = 0; m < n_models; m++) {
-        const double a0 = C[3 * m], a1 = C[3 * m + 1], a2 = C[3 * m + 2];
-        Acc acc = {0};
-        double ff = 0, gg = 0, fg = 0;
-        double mfr = 0, mfi = 0, mgr = 0, mgi = 0;
-        const double *p = M;
-        Py_ssize_t j = 0;
-        double rf, rg;
-        for (; j < n_single; j++, p += NSTRIDE) {
-            eval_mode(p, a0, a1, a2, c, c2, inv_du, ratio2, same, T, nmax, &rf, &rg);
-            accumulate(&acc, p, rf, rg);
-            double qf = p[9] * rf;
-            ff += qf * rf;
-            fg += qf * rg;
-            gg += p[9] * rg * rg;
+    for (Py_ssize_t m0 = 0; m0 < n_models; m0 += NB) {
+        double a0[NB], a1[NB], a2[NB], ob[NB * NOUT];
+        for (int k = 0; k < NB; k++) {
+            /* a short last block repeats its last model; the copies are not written out */
+            Py_ssize_t m = m0 + k < n_models ? m0 + k : n_models - 1;
+            a0[k] = C[3 * m]; a1[k] = C[3 * m + 1]; a2[k] = C[3 * m + 2];
         }
-        for (; j < n_modes; j++, p += NSTRIDE) {
-            eval_mode(p, a0, a1, a2, c, c2, inv_du, ratio2, same, T, nmax, &rf, &rg);
-            accumulate(&acc, p, rf, rg);
-            mfr += p[9] * rf; mfi += p[10] * rf;
-            mgr += p[9] * rg; mgi += p[10] * rg;
-            if (p[11] != 0.0) {
-                ff += mfr * mfr + mfi * mfi;
-                gg += mgr * mgr + mgi * mgi;
-                fg += mfr * mgr + mfi * mgi;
-                mfr = mfi = mgr = mgi = 0.0;
-            }
-        }
-        double *o = O + NOUT * m;
-        for (int t = 0; t < 6; t++) { o[t] = acc.lf[t]; o[6 + t] = acc.lg[t]; }
-        o[12] = ff; o[13] = gg; o[14] = fg;
+        block_sums(a0, a1, a2, M, n_single, n_modes, T, nmax, c, inv_du, ratio2, same, ob);
+        for (int k = 0; k < NB && m0 + k < n_models; k++)
+            for (int t = 0; t < NOUT; t++) O[NOUT * (m0 + k) + t] = ob[NOUT * k + t];
     }
     Py_END_ALLOW_THREADS
 

@@ -72,6 +72,9 @@ class FitConfig:
     n_flux: int = _opt(11, "flux values per (e, r) for the spline integral", "sec. 3.2")
     flux_halfwidth: float = _opt(5.0, "half-width of the flux samples in units of the flux error", "sec. 3.2")
     n_size: int = _opt(7, "scalelengths r > 0 sampled for the size spline (r = 0 is added)", "sec. 3.2")
+    size_reuse_distance: float = _opt(
+        0.12, "a sample this close in e to one whose size peak was located reuses it (0: locate every sample)",
+        "implementation")
 
     # --- Fourier-space modelling (App. A) -----------------------------------------
     psf_mode_tolerance: float = _opt(

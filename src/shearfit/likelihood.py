@@ -396,6 +396,18 @@ def _spline_logint(u, logv, n_fine=61):
     return out, uf, w
 
 
+_INTERP_CACHE = {}
+
+
+def _interp_matrix(x, xf):
+    """Matrix W with (values at x) @ W = linear interpolation at xf (cached per grid pair)."""
+    key = (x.size, float(x[0]), float(x[-1]), xf.size, float(xf[0]), float(xf[-1]))
+    w = _INTERP_CACHE.get(key)
+    if w is None:
+        w = _INTERP_CACHE[key] = np.array([np.interp(xf, x, col) for col in np.eye(x.size)])
+    return w
+
+
 def flux_position_marginal(sums: ModelSums, cfg: FitConfig) -> Marginal:
     """Marginalise each model over B (disk population), position and flux."""
     nflux = cfg.n_flux
@@ -440,7 +452,7 @@ def flux_position_marginal(sums: ModelSums, cfg: FitConfig) -> Marginal:
         wsum = np.sum(w, axis=1)
         wsum = np.where(wsum > 0, wsum, 1.0)
         mean_s = np.sum(w * Sf, axis=1) / wsum
-        bf = np.array([np.interp(uf, u, row) for row in meanb]) if pop == "disk" else np.ones_like(Sf)
+        bf = meanb @ _interp_matrix(u, uf) if pop == "disk" else np.ones_like(Sf)
         mean_b = np.sum(w * bf, axis=1) / wsum
         logint = logint + np.log(hi - lo)
         # best-fit chi^2 of the single-component model at its best flux and position

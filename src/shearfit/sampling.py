@@ -71,6 +71,9 @@ class EllipticityLikelihood:
         self.r_center = float(r_center)
         # half-widths (ln r) of the passes that locate, per ellipticity, the peak in ln r (None: not needed)
         self.locate_widths = locate_widths
+        # located size peaks so far, as ln(peak / centre(e)), for neighbours to reuse
+        self._loc_e = np.zeros((0, 2))
+        self._loc_x = np.zeros(0)
         self.lin = _linear_vectors(jm)
         self.chunk = chunk
         # r = 0, the point source: one model shared by every ellipticity; the size integral runs
@@ -94,6 +97,31 @@ class EllipticityLikelihood:
         e = np.hypot(e1, e2)
         q = (1 - e) / (1 + e)
         return self.r_center * q ** (-1.0 / 3.0)
+
+    def _located_centres(self, e1, e2, rc):
+        """Size peaks at each e, located by the passes of ``locate_widths``.
+
+        A sample within ``FitConfig.size_reuse_distance`` of one already
+        located starts from that neighbour's offset from the predicted centre
+        (the peak moves smoothly with e) and needs only the last, narrowest
+        pass; the others run every pass.
+        """
+        x = np.zeros(e1.size)
+        near = np.zeros(e1.size, bool)
+        if self._loc_x.size and self.cfg.size_reuse_distance > 0:
+            d2 = (e1[:, None] - self._loc_e[None, :, 0]) ** 2 + (e2[:, None] - self._loc_e[None, :, 1]) ** 2
+            nn = np.argmin(d2, axis=1)
+            near = d2[np.arange(e1.size), nn] <= self.cfg.size_reuse_distance ** 2
+            x[near] = self._loc_x[nn[near]]
+        r = rc * np.exp(x)
+        widths = list(self.locate_widths)
+        for k, width in enumerate(widths):
+            sel = np.ones(e1.size, bool) if k == len(widths) - 1 else ~near
+            if np.any(sel):
+                r[sel] = self._locate(e1[sel], e2[sel], r[sel], width)
+        self._loc_e = np.concatenate([self._loc_e, np.stack([e1, e2], axis=1)])
+        self._loc_x = np.concatenate([self._loc_x, np.log(r / rc)])
+        return r
 
     def _locate(self, e1, e2, rc, half_width):
         """Peak of the size posterior at each e: 5 nodes and a parabola through the best three."""
@@ -133,8 +161,7 @@ class EllipticityLikelihood:
         nr = self.x.size
         rc = self.centre(e1, e2)
         if self.locate_widths is not None:
-            for width in self.locate_widths:
-                rc = self._locate(e1, e2, rc, width)
+            rc = self._located_centres(e1, e2, rc)
         R = rc[:, None] * np.exp(self.x)[None, :]
         E1 = np.repeat(e1, nr)
         E2 = np.repeat(e2, nr)
