@@ -13,6 +13,13 @@ pipeline's throughput.
     python benchmarks/field_test.py --n-galaxies 40                   # plain TAN
     python benchmarks/field_test.py --n-galaxies 40 --wcs rotated     # each exposure rotated, odd ones flipped
     python benchmarks/field_test.py --n-galaxies 40 --wcs distorted   # + a few per cent SIP distortion
+    python benchmarks/field_test.py --n-galaxies 40 --psf both        # PSF fitted from stars vs the true one
+
+With ``--psf fitted`` or ``both`` every CCD also holds stars (a star
+catalogue is given), each CCD of each exposure has its own PSF (a jump
+between CCDs), and ``shearfit measure`` fits the pixel PSF models itself;
+``both`` measures each field with the true PSF too and prints the
+difference in m and c (same galaxies and noise, so most of the error cancels).
 """
 
 from __future__ import annotations
@@ -68,7 +75,20 @@ def ccd_header(ccd, exposure, mode, rng_exp):
     return h
 
 
-def make_field(d, sign, args, gals, psfs, sigma):
+def star_positions(args, rng):
+    """Stars in the middle of the galaxy grid's cells, so that their stamps avoid the galaxies."""
+    nx_side = (NPIX - 2 * SPACING) // SPACING
+    out = []
+    for c in range(args.n_ccd):
+        for i in range(nx_side - 1):
+            for j in range(nx_side - 1):
+                du = ((c - 0.5) * (NPIX + 20) + (i - nx_side / 2 + 1.0) * SPACING + rng.uniform(-2, 2)) * PIX / 3600.0
+                dv = ((j - nx_side / 2 + 1.0) * SPACING + rng.uniform(-2, 2)) * PIX / 3600.0
+                out.append((RA0 - du / np.cos(np.radians(DEC0)), DEC0 + dv, 10 ** rng.uniform(np.log10(50), 3)))
+    return np.array(out)
+
+
+def make_field(d, sign, args, gals, psfs, sigma, stars=None, with_psf=True):
     g = sign * np.array(args.shear)
     specs = []
     rng_noise = np.random.default_rng(args.seed + 1000)   # the same noise for +g and -g
@@ -87,25 +107,43 @@ def make_field(d, sign, args, gals, psfs, sigma):
                 local = wcs.local(pos)
                 prof = galaxy_profile(gal["r"], gal["B"], gal["e1"], gal["e2"], flux=gal["flux"], g1=g[0], g2=g[1],
                                       is_bulge=gal["is_bulge"])
-                conv = galsim.Convolve(local.toImage(prof), psfs[k])
+                conv = galsim.Convolve(local.toImage(prof), psfs[k][c])
                 stamp = conv.drawImage(nx=64, ny=64, scale=1.0, center=pos, method="auto")
                 b = stamp.bounds & img.bounds
                 img[b] += stamp[b]
+            if stars is not None:
+                pow_psf = float(np.sum(psfs[k][c].drawImage(nx=32, ny=32, scale=1.0).array ** 2))
+                for ra, dec, snr in stars:
+                    pos = wcs.toImage(galsim.CelestialCoord(ra * galsim.degrees, dec * galsim.degrees))
+                    if not (8 < pos.x < NPIX - 8 and 8 < pos.y < NPIX - 8):
+                        continue
+                    st = psfs[k][c].withFlux(snr * sigma / np.sqrt(pow_psf)).drawImage(
+                        nx=40, ny=40, scale=1.0, center=pos, method="auto")
+                    b = st.bounds & img.bounds
+                    img[b] += st[b]
             noise = rng_noise.normal(0.0, sigma, (NPIX, NPIX))
             data = img.array + (0.0 if args.noise_free else noise)
             hdus.append(fits.ImageHDU(data, header=h))
             whdus.append(fits.ImageHDU(np.full((NPIX, NPIX), 1 / sigma ** 2, dtype=np.float32), header=h))
-            pim = psfs[k].drawImage(nx=48, ny=48, scale=1.0, method="auto", use_true_center=False).array
+            pim = psfs[k][c].drawImage(nx=48, ny=48, scale=1.0, method="auto", use_true_center=False).array
             phdus.append(fits.ImageHDU(pim / pim.sum()))
         fits.HDUList(hdus).writeto(os.path.join(d, f"exp{k}.fits"), overwrite=True)
         fits.HDUList(whdus).writeto(os.path.join(d, f"exp{k}.weight.fits"), overwrite=True)
         fits.HDUList([fits.PrimaryHDU()] + phdus).writeto(os.path.join(d, f"exp{k}.psf.fits"), overwrite=True)
-        specs.append({"image": f"exp{k}.fits", "weight": f"exp{k}.weight.fits", "psf": f"exp{k}.psf.fits"})
+        specs.append({"image": f"exp{k}.fits", "weight": f"exp{k}.weight.fits"})
+        if with_psf:
+            specs[-1]["psf"] = f"exp{k}.psf.fits"
     cat = Table({"id": np.arange(len(gals)), "ra": [x["ra"] for x in gals], "dec": [x["dec"] for x in gals],
                  "mag": [x["mag"] for x in gals]})
     cat.write(os.path.join(d, "objects.fits"), overwrite=True)
+    conf = {"exposures": specs, "catalog": "objects.fits"}
+    if stars is not None:
+        Table({"id": np.arange(len(stars)), "ra": stars[:, 0], "dec": stars[:, 1],
+               "mag": 30 - 2.5 * np.log10(stars[:, 2])}).write(os.path.join(d, "stars.fits"), overwrite=True)
+        conf["stars"] = "stars.fits"
+        conf.update(args.psf_settings)
     with open(os.path.join(d, "field.yaml"), "w") as f:
-        yaml.safe_dump({"exposures": specs, "catalog": "objects.fits"}, f)
+        yaml.safe_dump(conf, f)
     return os.path.join(d, "field.yaml")
 
 
@@ -123,11 +161,23 @@ def main(argv=None):
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--processes", type=int, default=os.cpu_count())
     ap.add_argument("--keep", default=None, help="keep the fields in this directory")
+    ap.add_argument("--psf", choices=["given", "fitted", "both"], default="given",
+                    help="measure with the true PSF (given), one fitted from stars, or both")
+    ap.add_argument("--psf-fwhm", type=float, nargs=2, default=[0.5, 0.8], help="range of PSF FWHM, arcsec")
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                    help="setting for the fitted-PSF runs (e.g. psf_oversampling=3)")
     args = ap.parse_args(argv)
+    args.psf_settings = {kv.split("=", 1)[0]: yaml.safe_load(kv.split("=", 1)[1]) for kv in args.set}
     rng = np.random.default_rng(args.seed)
     sigma = 1.0
-    psfs = [galsim.Moffat(beta=rng.uniform(2.5, 4.5), fwhm=rng.uniform(0.5, 0.8) / PIX).shear(
-        g1=rng.uniform(-0.07, 0.07), g2=rng.uniform(-0.07, 0.07)) for _ in range(args.n_exposures)]
+    base = [(rng.uniform(2.5, 4.5), rng.uniform(*args.psf_fwhm) / PIX, rng.uniform(-0.07, 0.07),
+             rng.uniform(-0.07, 0.07)) for _ in range(args.n_exposures)]
+    # with stars, each CCD has its own PSF (a jump at the CCD boundary); otherwise one per exposure
+    jump = 0.0 if args.psf == "given" else 1.0
+    psfs = [[galsim.Moffat(beta=b, fwhm=f * (1 + 0.04 * jump * c)).shear(g1=g1 + 0.015 * jump * c,
+                                                                         g2=g2 - 0.01 * jump * c)
+             for c in range(args.n_ccd)] for b, f, g1, g2 in base]
+    stars = star_positions(args, np.random.default_rng(args.seed + 7)) if args.psf != "given" else None
     # galaxies on a grid over the CCDs (the dithers move them by < 30 pixels)
     nx_side = (NPIX - 2 * SPACING) // SPACING
     slots = [(c, i, j) for c in range(args.n_ccd) for i in range(nx_side) for j in range(nx_side)]
@@ -155,46 +205,74 @@ def main(argv=None):
     # flux for the target SNR (profile-weighted, all exposures) at pixel noise sigma
     for gal in gals:
         prof = galaxy_profile(gal["r"], gal["B"], gal["e1"], gal["e2"], flux=1.0, is_bulge=gal["is_bulge"])
-        power = sum(float(np.sum(galsim.Convolve(prof.dilate(1 / PIX), p).drawImage(nx=64, ny=64, scale=1.0)
+        power = sum(float(np.sum(galsim.Convolve(prof.dilate(1 / PIX), p[0]).drawImage(nx=64, ny=64, scale=1.0)
                                  .array ** 2)) for p in psfs)
         gal["flux"] = gal["snr"] * sigma / np.sqrt(power)
+    variants = {"given": [("given", True)], "fitted": [("fitted", False)],
+                "both": [("given", True), ("fitted", False)]}[args.psf]
     tables = {}
     t_meas = 0.0
     with tempfile.TemporaryDirectory() as tmp:
-        base = args.keep or tmp
+        base_dir = args.keep or tmp
         for sign in (+1, -1):
-            d = os.path.join(base, "plus" if sign > 0 else "minus")
-            os.makedirs(d, exist_ok=True)
-            t0 = time.perf_counter()
-            cfgpath = make_field(d, sign, args, gals, psfs, sigma)
-            t_sim = time.perf_counter() - t0
-            out = os.path.join(d, "shear.fits")
-            t0 = time.perf_counter()
-            rc = shearfit_main(["measure", cfgpath, "--out", out, "--quiet", "-j", str(args.processes)])
-            t_meas += time.perf_counter() - t0
-            if rc != 0:
-                raise SystemExit(f"shearfit measure failed ({rc})")
-            tables[sign] = Table.read(out)
-            print(f"field {'+g' if sign > 0 else '-g'}: simulated in {t_sim:.0f} s, measured in "
-                  f"{time.perf_counter() - t0:.0f} s")
-    n = len(gals)
+            for name, with_psf in variants:
+                d = os.path.join(base_dir, ("plus" if sign > 0 else "minus") + ("" if len(variants) == 1 else "_" + name))
+                os.makedirs(d, exist_ok=True)
+                t0 = time.perf_counter()
+                cfgpath = make_field(d, sign, args, gals, psfs, sigma, stars=stars, with_psf=with_psf)
+                t_sim = time.perf_counter() - t0
+                out = os.path.join(d, "shear.fits")
+                t0 = time.perf_counter()
+                rc = shearfit_main(["measure", cfgpath, "--out", out, "--quiet", "-j", str(args.processes)])
+                t_meas += time.perf_counter() - t0
+                if rc != 0:
+                    raise SystemExit(f"shearfit measure failed ({rc})")
+                tables[(name, sign)] = Table.read(out)
+                print(f"field {'+g' if sign > 0 else '-g'} ({name} PSF): simulated in {t_sim:.0f} s, measured in "
+                      f"{time.perf_counter() - t0:.0f} s")
+    results = {}
+    for name, _ in variants:
+        results[name] = report({s: tables[(name, s)] for s in (+1, -1)}, gals, args, name)
+    if len(variants) == 2:
+        # the difference, resampling the same rings for both
+        diff = []
+        rng_b = np.random.default_rng(0)
+        tabs = {name: _rows({s: tables[(name, s)] for s in (+1, -1)}, gals) for name, _ in variants}
+        g = np.array(args.shear)
+        sums = {n: ring_sums(t, args.n_galaxies) for n, t in tabs.items()}
+        est = {n: shear_bias(sm, g, 2, rng_b)[0] for n, sm in sums.items()}
+        for _ in range(300):
+            pick = rng_b.integers(0, args.n_galaxies, args.n_galaxies)
+            vals = [shear_bias(sums[n][:, pick], g, 2, rng_b)[0] for n in ("given", "fitted")]
+            diff.append(vals[1] - vals[0])
+        err = np.std(diff, axis=0)
+        d0 = est["fitted"] - est["given"]
+        print(f"\nfitted minus true PSF: dm1 = {d0[0]:+.5f} +/- {err[0]:.5f}, dm2 = {d0[1]:+.5f} +/- {err[1]:.5f}, "
+              f"dc1 = {d0[2]:+.6f} +/- {err[2]:.6f}, dc2 = {d0[3]:+.6f} +/- {err[3]:.6f}")
+    return results
+
+
+def _rows(tables, gals):
     rows = {k: [] for k in ("galaxy", "sign", "e1", "e2", "weight", "fitclass")}
     for sign, t in tables.items():
         for gal, row in zip(gals, t):
             for key, val in (("galaxy", gal["ring"]), ("sign", sign), ("e1", row["e1"]), ("e2", row["e2"]),
                              ("weight", row["weight"]), ("fitclass", row["fitclass"])):
                 rows[key].append(val)
-    tab = {k: np.array(v) for k, v in rows.items()}
+    return {k: np.array(v) for k, v in rows.items()}
+
+
+def report(tables, gals, args, name):
+    tab = _rows(tables, gals)
     est, err = shear_bias(ring_sums(tab, args.n_galaxies), np.array(args.shear), 500, np.random.default_rng(0))
     fc = tab["fitclass"]
-    print(f"\n{args.n_galaxies} rings x 4 x 2 shears, {args.n_exposures} exposures x {args.n_ccd} CCDs, "
+    print(f"\n[{name} PSF] {args.n_galaxies} rings x 4 x 2 shears, {args.n_exposures} exposures x {args.n_ccd} CCDs, "
           f"WCS {args.wcs}, SNR {args.snr_min:.0f}-{args.snr_max:.0f}{' (noise-free)' if args.noise_free else ''}, "
           f"scalelength >= {args.min_size}\"")
     print(f"  m1 = {est[0]:+.5f} +/- {err[0]:.5f}    c1 = {est[2]:+.6f} +/- {err[2]:.6f}")
     print(f"  m2 = {est[1]:+.5f} +/- {err[1]:.5f}    c2 = {est[3]:+.6f} +/- {err[3]:.6f}")
     print("  fitclass: " + ", ".join(f"{int((fc == v).sum())} x {v}" for v in np.unique(fc)))
-    print(f"  pipeline throughput: {2 * n / t_meas / args.processes:.2f} objects / s / process "
-          f"({args.processes} processes, {2 * n} objects, {t_meas:.0f} s including reading and writing)")
+    return est, err
 
 
 if __name__ == "__main__":

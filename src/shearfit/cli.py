@@ -11,6 +11,8 @@ import argparse
 import logging
 import sys
 
+import numpy as np
+
 from . import __version__
 from .errors import ShearfitError
 
@@ -46,6 +48,45 @@ def _cmd_measure(args):
     return 0
 
 
+def _cmd_psf(args):
+    import os
+
+    from astropy.table import Table
+
+    from .field.fieldconfig import load_field_config
+    from .field.io import read_catalog, read_exposure
+    from .field.pipeline import fit_exposure_psf
+    from .psf.build import write_psf_model
+    from .psf.diagnostics import psf_diagnostics, write_diagnostics
+
+    cfg = load_field_config(args.config, overrides=args.overrides)
+    out = args.out or os.path.join(os.path.dirname(os.path.abspath(args.config)), "psf")
+    os.makedirs(out, exist_ok=True)
+    cat = read_catalog(cfg.catalog)
+    summary = []
+    for k, spec in enumerate(cfg.exposures):
+        ccds = read_exposure(spec.image, spec.weight)
+        stem = os.path.splitext(os.path.basename(spec.image))[0]
+        res = fit_exposure_psf(cfg, cat, ccds, f"exposure {k} ({spec.image})")
+        prefix = os.path.join(out, stem)
+        write_psf_model(res.model, f"{prefix}.psfmodel.fits")
+        diag = psf_diagnostics(res, ccds, n_bootstrap=0 if args.no_bootstrap else cfg.pipeline.psf_bootstrap)
+        paths = write_diagnostics(diag, res, prefix)
+        g = diag["grid"]
+        summary.append(dict(exposure=k, image=spec.image, model=f"{prefix}.psfmodel.fits", n_stars=len(res.stars),
+                            ccds_used=int(res.model.ccd_used.sum()), n_ccd=len(ccds),
+                            mean_e1=float(np.nanmean(g["e1"])), mean_e2=float(np.nanmean(g["e2"])),
+                            rms_offset=float(np.sqrt(np.mean(res.info["offset"] ** 2)))))
+        if not args.quiet:
+            print(f"exposure {k}: {len(res.stars)} stars on {int(res.model.ccd_used.sum())}/{len(ccds)} CCDs; "
+                  f"model {prefix}.psfmodel.fits; diagnostics {', '.join(paths)}")
+            for note in res.notes:
+                print(f"  {note}")
+    Table(rows=[tuple(s.values()) for s in summary], names=list(summary[0].keys())).write(
+        os.path.join(out, "psf_summary.fits"), overwrite=True)
+    return 0
+
+
 def build_parser():
     parser = argparse.ArgumentParser(
         prog="shearfit",
@@ -72,6 +113,17 @@ def build_parser():
     p.add_argument("-j", "--processes", type=int, default=1, help="worker processes")
     _add_common(p)
     p.set_defaults(func=_cmd_measure)
+
+    p = sub.add_parser("psf", help="fit the pixel PSF model of every exposure from its stars, with diagnostics",
+                       description="Star selection, centring, the pixel PSF model (polynomial over the field, "
+                                   "constant and linear terms per CCD), astrometric registration; writes "
+                                   "EXPOSURE.psfmodel.fits (usable as psf: in the config) and diagnostics.")
+    p.add_argument("config", help="the field's YAML config (INTERFACE.md)")
+    p.add_argument("overrides", nargs="*", metavar="key=value", help="settings that override the config's")
+    p.add_argument("--out", default=None, help="output directory (default: psf/ beside the config)")
+    p.add_argument("--no-bootstrap", action="store_true", help="skip the bootstrap rms (faster)")
+    _add_common(p)
+    p.set_defaults(func=_cmd_psf)
     return parser
 
 

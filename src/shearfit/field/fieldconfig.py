@@ -76,7 +76,34 @@ class PipelineConfig:
         True, "leave out an exposure whose masked pixels (weight 0) fall inside the target's isophote; "
         "masked pixels outside it only get zero weight", "sec. 3.6")
 
+    psf_size: int = _opt(25, "side of the fitted PSF model and of the star stamps, native pixels (odd)", "sec. 5")
+    psf_oversampling: int = _opt(
+        1, "PSF model samples per pixel: 1 is the paper's native model (sinc-centred stars); 3 reconstructs "
+        "the PSF above Nyquist from stars at many sub-pixel phases", "sec. 5, App. A (the next step named there)")
+    psf_order: int = _opt(3, "polynomial order of each PSF pixel over the field of view", "sec. 5")
+    psf_alias_order: int = _opt(0, "polynomial order over the field of the above-Nyquist PSF components "
+                                   "(psf_oversampling > 1)", "implementation")
+    psf_min_stars: int = _opt(40, "CCDs with fewer usable stars are left out of an exposure's PSF model "
+                                  "(and of the measurement)", "sec. 5")
+    psf_min_snr: float = _opt(20.0, "smallest integrated SNR (8-pixel aperture) of a PSF star", "sec. 5")
+    psf_saturation_fraction: float = _opt(0.5, "a star whose central pixel exceeds this fraction of SATURATE "
+                                               "is not used", "sec. 5")
+    psf_isolation_radius: float = _opt(8.0, "no other catalogue object may lie this close to a PSF star, "
+                                            "pixels", "sec. 5")
+    psf_iterations: int = _opt(3, "rounds of star centring (cross-correlation with the model) and refitting",
+                               "sec. 5")
+    psf_clip: float = _opt(0.0, "drop stars whose reduced chi^2 exceeds the median by this many robust "
+                                "sigmas before the last fit (0: keep all)", "implementation")
+    registration_order: int = _opt(1, "polynomial order per CCD of the astrometric registration offsets "
+                                      "measured on the PSF stars", "sec. 4")
+    psf_bootstrap: int = _opt(64, "bootstrap resamplings of the stars for the PSF model's rms "
+                                  "(shearfit psf diagnostics)", "sec. 5")
+
     def __post_init__(self):
+        if self.psf_size < 5 or self.psf_size % 2 == 0:
+            raise ShearfitValueError(f"setting psf_size={self.psf_size!r} must be an odd number of at least 5")
+        if self.psf_oversampling < 1 or self.psf_oversampling % 2 == 0:
+            raise ShearfitValueError(f"setting psf_oversampling={self.psf_oversampling!r} must be 1 or odd")
         if self.stamp_size < 8:
             raise ShearfitValueError(f"setting stamp_size={self.stamp_size!r} must be at least 8 pixels")
         for name in ("isophote_nsigma", "isophote_centroid_max_shift"):

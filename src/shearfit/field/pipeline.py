@@ -40,7 +40,9 @@ from .io import empty_output_table, provenance_cards, read_catalog, read_exposur
 from .psfinput import PSFExModel, read_psf_fits
 from .stamps import cut_stamp, locate_all
 from .blends import analyse_stamps
-from .wcs import local_jacobian
+from .wcs import local_jacobian, pixel_to_sky
+from ..psf.build import (FieldFrame, build_exposure_psf, is_psf_model_file, read_psf_model,
+                         stellar_locus)
 
 log = logging.getLogger(__name__)
 
@@ -102,18 +104,39 @@ def psf_ellipticity(psf, jacobian, oversampling=1, moments=None):
 class _ExposurePSF:
     images: Optional[list] = None     # one (array, oversampling) per CCD
     psfex: Optional[list] = None      # one PSFExModel per CCD
+    fitted: Optional[object] = None   # a shearfit.psf PixelPSF fitted to the exposure's stars
+    ccds: Optional[list] = None
 
     def at(self, ccd_index, x, y):
+        """(PSF image, oversampling) at CCD pixel (x, y), or None where the model has no stars."""
+        if self.fitted is not None:
+            if not self.fitted.ccd_used[ccd_index]:
+                return None
+            ra, dec = pixel_to_sky(self.ccds[ccd_index].wcs, x, y)
+            u, v = FieldFrame(**self.fitted.frame).uv(ra, dec)
+            return self.fitted.image(ccd_index, float(u), float(v)), self.fitted.oversampling
         if self.images is not None:
             return self.images[ccd_index]
         return self.psfex[ccd_index].image_at(x, y)
 
+    def shift(self, ccd_index, x, y):
+        """Astrometric registration offset (dx, dy) pixels at (x, y) (sec. 4); 0 for a given PSF."""
+        if self.fitted is None:
+            return 0.0, 0.0
+        return self.fitted.registration_shift(ccd_index, x, y)
 
-def _load_psf(spec, n_ccd, index):
+
+def _load_psf(spec, n_ccd, index, ccds=None, fit=None):
+    """The exposure's PSF: the given file (FITS images, PSFEx, or a shearfit model), else ``fit()``."""
     if spec.psf is None:
-        raise ShearfitValueError(
-            f"exposure {index} ({spec.image}) has no psf: give a PSF file per exposure (psf:); "
-            "PSF models from stars are not available in this version")
+        if fit is None:
+            raise ShearfitValueError(f"exposure {index} ({spec.image}) has no psf and no stars to fit one")
+        return _ExposurePSF(fitted=fit(), ccds=ccds)
+    if is_psf_model_file(spec.psf):
+        model = read_psf_model(spec.psf)
+        if model.n_ccd != n_ccd:
+            raise ShearfitValueError(f"{spec.psf}: PSF model of {model.n_ccd} CCDs for {n_ccd} in {spec.image}")
+        return _ExposurePSF(fitted=model, ccds=ccds)
     if str(spec.psf).endswith(".psf"):
         if n_ccd != 1:
             raise ShearfitValueError(f"{spec.psf}: a PSFEx .psf file describes one CCD, but {spec.image} has "
@@ -126,6 +149,26 @@ def _load_psf(spec, n_ccd, index):
     if len(idx) != n_ccd:
         raise ShearfitValueError(f"{spec.psf}: {len(idx)} PSF image HDUs for {n_ccd} CCDs in {spec.image}")
     return _ExposurePSF(images=[read_psf_fits(spec.psf, i) for i in idx])
+
+
+def psf_star_positions(cfg: FieldConfig, cat, ccds):
+    """(ra, dec) of the PSF stars of one exposure: the star catalogue, else the stellar locus of ``cat``."""
+    if cfg.stars is not None:
+        stars = read_catalog(cfg.stars)
+        return np.asarray(stars["ra"], float), np.asarray(stars["dec"], float)
+    rows = stellar_locus(ccds, cat, cfg.pipeline, FieldFrame.of_exposure(ccds))
+    return np.asarray(cat["ra"], float)[rows], np.asarray(cat["dec"], float)[rows]
+
+
+def fit_exposure_psf(cfg: FieldConfig, cat, ccds, label):
+    """Fit one exposure's pixel PSF model from its stars (sec. 5)."""
+    sra, sdec = psf_star_positions(cfg, cat, ccds)
+    ora = np.concatenate([np.asarray(cat["ra"], float), sra])
+    odec = np.concatenate([np.asarray(cat["dec"], float), sdec])
+    res = build_exposure_psf(ccds, sra, sdec, ora, odec, cfg.pipeline, label=label)
+    for note in res.notes:
+        log.warning(note)
+    return res
 
 
 def _psf_fwhm_pixels(moments, k):
@@ -180,7 +223,8 @@ def measure_field(cfg: FieldConfig, out_path=None, progress=False, processes=1) 
     exposures = []
     for k, spec in enumerate(cfg.exposures):
         ccds = read_exposure(spec.image, spec.weight)
-        exposures.append((ccds, _load_psf(spec, len(ccds), k)))
+        fit = (lambda ccds=ccds, k=k, spec=spec: fit_exposure_psf(cfg, cat, ccds, f"exposure {k} ({spec.image})").model)
+        exposures.append((ccds, _load_psf(spec, len(ccds), k, ccds=ccds, fit=fit)))
     flat = [(e, c) for e, (ccds, _) in enumerate(exposures) for c in range(len(ccds))]
     hits = locate_all([exposures[e][0][c] for e, c in flat], np.asarray(cat["ra"]), np.asarray(cat["dec"]))
     table = empty_output_table(cat)
@@ -241,10 +285,16 @@ def _measure_one(hits, exposures, mag, cfg, pc) -> dict:
     cuts = []
     for e, (margin, c, x, y) in sorted(best.items()):
         ccd = exposures[e][0][c]
-        st = cut_stamp(ccd.image, ccd.pixel_weight, x, y, pc.stamp_size)
+        epsf = exposures[e][1]
+        got = epsf.at(c, x, y)
+        if got is None:   # a CCD without enough PSF stars
+            continue
+        psf, k = got
+        # where the stars say the WCS is off, the object is where they put it (registration, sec. 4)
+        dx, dy = epsf.shift(c, x, y)
+        st = cut_stamp(ccd.image, ccd.pixel_weight, x + dx, y + dy, pc.stamp_size)
         if st is None:
             continue
-        psf, k = exposures[e][1].at(c, x, y)
         cuts.append(dict(e=e, ccd=ccd, image=np.array(st.image, float), weight=np.array(st.weight, float),
                          offset=st.offset, J=local_jacobian(ccd.wcs, x, y), psf=psf, k=k, moments=psf_moments(psf)))
     if not cuts:

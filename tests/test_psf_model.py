@@ -1,0 +1,128 @@
+"""Pixel PSF model from stars (sec. 5): recovery of a GalSim PSF varying over the field, registration,
+oversampled model, model files, and the ``shearfit psf`` command."""
+
+import galsim
+import numpy as np
+import pytest
+
+from shearfit.psf.pixelmodel import StarSet, fit_pixel_psf, gaussian_centroid
+from shearfit.psf.build import read_psf_model, write_psf_model
+
+PIX = 0.187
+N = 25
+
+
+def _psf_at(ccd, u, v, fwhm0=0.7):
+    fwhm = fwhm0 * (1 + 0.08 * u * u + 0.05 * v) + 0.02 * ccd
+    e1 = 0.03 + 0.04 * u - 0.02 * v * v + 0.01 * ccd
+    e2 = -0.02 + 0.03 * v + 0.02 * u * v
+    return galsim.Moffat(beta=3.0, fwhm=fwhm).shear(e1=e1, e2=e2)
+
+
+def _draw(p, dx, dy, flux=1.0, step=1):
+    im = galsim.ImageD(N * step, N * step, scale=PIX / step)
+    return galsim.Convolve(p, galsim.Pixel(PIX)).withFlux(flux).drawImage(
+        image=im, method="no_pixel", offset=(dx * step, dy * step)).array
+
+
+def _true_offset(ccd, x, y):
+    return np.stack([0.2 - 0.3 * ccd + 0.25 * (x / 2048 - 0.5) - 0.1 * (y / 4096 - 0.5),
+                     -0.1 + 0.2 * ccd + 0.15 * (y / 4096 - 0.5)], axis=-1)
+
+
+def _stars(n_stars, seed=1, snr_min=50, fwhm0=0.7):
+    rng = np.random.default_rng(seed)
+    ccd = rng.integers(0, 2, n_stars)
+    x = rng.uniform(0, 2048, n_stars)
+    y = rng.uniform(0, 4096, n_stars)
+    u = (x + 2048 * ccd) / 2048 - 1
+    v = y / 2048 - 1
+    delta = rng.uniform(-0.5, 0.5, (n_stars, 2))
+    snr = 10 ** rng.uniform(np.log10(snr_min), 3, n_stars)
+    imgs = []
+    for i in range(n_stars):
+        clean = _draw(_psf_at(ccd[i], u[i], v[i], fwhm0), *delta[i])
+        flux = snr[i] * np.sqrt(np.sum(clean ** 2)) / np.sum(clean ** 2)
+        imgs.append(flux * clean + rng.normal(0, 1.0, clean.shape))
+    # the catalogue (WCS) positions are off by a smooth astrometric error
+    nominal = delta - _true_offset(ccd, x, y)
+    return StarSet(image=np.array(imgs), ivar=np.ones((n_stars, N, N)), delta=nominal, ccd=ccd, u=u, v=v,
+                   x=x, y=y, snr=snr)
+
+
+@pytest.fixture(scope="module")
+def fitted():
+    st = _stars(600)
+    model, used, info = fit_pixel_psf(st, 2, order=3, ccd_shape=[(4096, 2048)] * 2)
+    return st, model, used, info
+
+
+def test_model_matches_the_true_psf(fitted):
+    st, model, _, _ = fitted
+    rng = np.random.default_rng(5)
+    res, de = [], []
+    for _ in range(20):
+        c = int(rng.integers(0, 2))
+        u = rng.uniform(-1, 0) if c == 0 else rng.uniform(0, 1)
+        v = rng.uniform(-1, 1)
+        m = model.image(c, u, v)
+        t = _draw(_psf_at(c, u, v), 0, 0)
+        t /= t.sum()
+        res.append(np.sqrt(np.mean((m - t) ** 2)))
+        mm = galsim.hsm.FindAdaptiveMom(galsim.Image(m))
+        mt = galsim.hsm.FindAdaptiveMom(galsim.Image(t))
+        de.append((mm.observed_shape.e1 - mt.observed_shape.e1, mm.observed_shape.e2 - mt.observed_shape.e2))
+    # 300 stars per CCD at SNR 50-1000: the paper reports ~3e-4 per pixel; the issue asks < 5e-4
+    assert np.mean(res) < 3e-4
+    assert np.max(res) < 5e-4
+    # ellipticity of the model: noise of 600 stars over 13 terms, about 1.5e-3 rms
+    assert np.sqrt(np.mean(np.array(de) ** 2)) < 3e-3
+
+
+def test_registration_offsets_recovered(fitted):
+    st, model, _, _ = fitted
+    reg = np.array([model.registration_shift(c, x, y) for c, x, y in zip(st.ccd, st.x, st.y)])
+    assert np.max(np.abs(reg - _true_offset(st.ccd, st.x, st.y))) < 0.02
+
+
+def test_model_is_centred_and_normalised(fitted):
+    _, model, _, _ = fitted
+    img = model.image(0, -0.5, 0.2)
+    assert img.sum() == pytest.approx(1.0)
+    cx, cy = gaussian_centroid(img, 1.0, 2.0)
+    assert abs(cx) < 0.01 and abs(cy) < 0.01
+
+
+def test_model_file_round_trip(fitted, tmp_path):
+    _, model, _, _ = fitted
+    p = tmp_path / "m.psfmodel.fits"
+    write_psf_model(model, p)
+    back = read_psf_model(p)
+    assert np.allclose(back.image(1, 0.3, -0.4), model.image(1, 0.3, -0.4))
+    assert back.registration_shift(1, 100.0, 200.0) == pytest.approx(model.registration_shift(1, 100.0, 200.0))
+
+
+def test_oversampled_model_of_an_undersampled_psf():
+    # FWHM 2 pixels: the native model cannot hold the PSF above Nyquist; the 3x model samples it
+    st = _stars(300, seed=2, fwhm0=0.374)
+    model, _, _ = fit_pixel_psf(st, 2, order=2, oversampling=3, ccd_shape=[(4096, 2048)] * 2)
+    m = model.image(1, 0.5, 0.0)
+    assert m.shape == (3 * N, 3 * N)
+    t = _draw(_psf_at(1, 0.5, 0.0, 0.374), 0, 0, step=3)
+    t /= t.sum()
+    # against the truth sampled every 1/3 pixel: single fine pixels carry the noise of the alias
+    # components (a few per cent of the peak), the moments are right
+    assert np.sqrt(np.mean((m - t) ** 2)) < 0.02 * t.max()
+    mm = galsim.hsm.FindAdaptiveMom(galsim.Image(m))
+    mt = galsim.hsm.FindAdaptiveMom(galsim.Image(t))
+    assert abs(mm.moments_sigma / mt.moments_sigma - 1) < 0.01
+    assert abs(mm.observed_shape.e1 - mt.observed_shape.e1) < 0.005
+    assert abs(mm.observed_shape.e2 - mt.observed_shape.e2) < 0.005
+
+
+def test_too_few_stars_is_an_error():
+    from shearfit.errors import ShearfitValueError
+
+    st = _stars(6)
+    with pytest.raises(ShearfitValueError, match="stars cannot constrain"):
+        fit_pixel_psf(st, 2, order=3)
