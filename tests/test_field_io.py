@@ -136,16 +136,21 @@ def test_config_unknown_exposure_key(tmp_path):
     assert "'wieght'" in msg and "exposures[0]" in msg and str(p) in msg
 
 
+def _config_error(tmp_path, text, exc_type):
+    """Write ``text`` as a config, load it expecting ``exc_type``: (path, one-line message)."""
+    p = write_config(tmp_path, text)
+    with pytest.raises(exc_type) as exc:
+        load_field_config(p)
+    return p, one_line(exc)
+
+
 @pytest.mark.parametrize("text, key", [
     ("catalog: c.fits\n", "'exposures'"),
     ("exposures:\n  - weight: w.fits\ncatalog: c.fits\n", "exposures[0].image"),
     ("exposures:\n  - image: a.fits\n", "'catalog'"),
 ])
 def test_config_missing_required_key(tmp_path, text, key):
-    p = write_config(tmp_path, text)
-    with pytest.raises(ShearfitKeyError) as exc:
-        load_field_config(p)
-    msg = one_line(exc)
+    p, msg = _config_error(tmp_path, text, ShearfitKeyError)
     assert key in msg and "missing" in msg and str(p) in msg
 
 
@@ -158,10 +163,7 @@ def test_config_missing_required_key(tmp_path, text, key):
     ("stamp_size: 4\n", "stamp_size"),
 ])
 def test_config_wrong_type_or_range_names_key_and_file(tmp_path, extra, key):
-    p = write_config(tmp_path, MINIMAL + extra)
-    with pytest.raises(ShearfitValueError) as exc:
-        load_field_config(p)
-    msg = one_line(exc)
+    p, msg = _config_error(tmp_path, MINIMAL + extra, ShearfitValueError)
     assert key in msg and str(p) in msg
 
 
@@ -176,10 +178,7 @@ def test_config_wrong_type_or_range_names_key_and_file(tmp_path, extra, key):
     ("exposures:\n  - image: a.fits\ncatalog: c.fits\ncatalog: d.fits\n", "duplicate key 'catalog'"),
 ])
 def test_config_malformed(tmp_path, text, words):
-    p = write_config(tmp_path, text)
-    with pytest.raises(ShearfitError) as exc:
-        load_field_config(p)
-    msg = one_line(exc)
+    p, msg = _config_error(tmp_path, text, ShearfitError)
     assert words in msg and str(p) in msg
 
 

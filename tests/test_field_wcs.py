@@ -115,12 +115,17 @@ def _rel(J, Jref):
 
 # ------------------------------------------------------------------ real headers
 
-@pytest.mark.parametrize("name", sorted(REAL_HEADERS))
-def test_real_tpv_jacobian_matches_finite_differences_and_galsim(name):
+def _real_header(name):
+    """A real header of ../shared/data/real/, its astropy WCS and test positions over its CCD."""
     factory, nx, ny = REAL_HEADERS[name]
     header = factory()
-    w = as_wcs(header)
     x, y = _positions(nx, ny)
+    return header, as_wcs(header), x, y
+
+
+@pytest.mark.parametrize("name", sorted(REAL_HEADERS))
+def test_real_tpv_jacobian_matches_finite_differences_and_galsim(name):
+    header, w, x, y = _real_header(name)
     J = local_jacobian(w, x, y)
     assert J.shape == (x.size, 2, 2)
     worst_fd = worst_gs = 0.0
@@ -137,10 +142,7 @@ def test_real_tpv_jacobian_matches_finite_differences_and_galsim(name):
 @pytest.mark.parametrize("name", sorted(REAL_HEADERS))
 def test_real_tpv_distortion_is_applied(name):
     """astropy must apply the TPV polynomial (PVi_j), and agree with GalSim's TPV code."""
-    factory, nx, ny = REAL_HEADERS[name]
-    header = factory()
-    w = as_wcs(header)
-    x, y = _positions(nx, ny)
+    header, w, x, y = _real_header(name)
     ra, dec = pixel_to_sky(w, x, y)
     gw = galsim.GSFitsWCS(header=header)
     for i in range(x.size):

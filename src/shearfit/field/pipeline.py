@@ -106,14 +106,17 @@ class _ExposurePSF:
     psfex: Optional[list] = None      # one PSFExModel per CCD
     fitted: Optional[object] = None   # a shearfit.psf PixelPSF fitted to the exposure's stars
     ccds: Optional[list] = None
+    _frame: Optional[FieldFrame] = None
 
     def at(self, ccd_index, x, y):
         """(PSF image, oversampling) at CCD pixel (x, y), or None where the model has no stars."""
         if self.fitted is not None:
             if not self.fitted.ccd_used[ccd_index]:
                 return None
+            if self._frame is None:
+                self._frame = FieldFrame(**self.fitted.frame)
             ra, dec = pixel_to_sky(self.ccds[ccd_index].wcs, x, y)
-            u, v = FieldFrame(**self.fitted.frame).uv(ra, dec)
+            u, v = self._frame.uv(ra, dec)
             return self.fitted.image(ccd_index, float(u), float(v)), self.fitted.oversampling
         if self.images is not None:
             return self.images[ccd_index]

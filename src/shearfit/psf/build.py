@@ -92,13 +92,15 @@ def _integrated_snr(img, w):
 def select_stars(ccds, ra, dec, others_ra, others_dec, pc, frame: FieldFrame):
     """Cut and select the stars of one exposure (see module doc).
 
-    Returns (StarSet of usable stars, candidates per CCD, usable per CCD, rejection counts).
+    Returns (StarSet of usable stars, the index into ``ra``/``dec`` of each, candidates per CCD,
+    usable per CCD, rejection counts).
     """
     n = int(pc.psf_size)
     hits = locate_all(ccds, ra, dec)
     rejected = {"off CCD edge or unusable pixel": 0, "SNR below minimum": 0, "saturated": 0, "neighbour": 0}
     cand = np.zeros(len(ccds), int)
     rows = {k: [] for k in ("image", "ivar", "delta", "ccd", "u", "v", "x", "y", "snr")}
+    index = []
     trees = {}
     for obj, c, x, y in zip(hits.object, hits.ccd, hits.x, hits.y):
         cand[c] += 1
@@ -136,6 +138,7 @@ def select_stars(ccds, ra, dec, others_ra, others_dec, pc, frame: FieldFrame):
         rows["x"].append(x)
         rows["y"].append(y)
         rows["snr"].append(snr)
+        index.append(obj)
     if not rows["image"]:
         stars = StarSet(np.zeros((0, n, n)), np.zeros((0, n, n)), np.zeros((0, 2)), np.zeros(0, int),
                         *(np.zeros(0) for _ in range(5)))
@@ -145,7 +148,7 @@ def select_stars(ccds, ra, dec, others_ra, others_dec, pc, frame: FieldFrame):
                         u=np.array(rows["u"]), v=np.array(rows["v"]), x=np.array(rows["x"]),
                         y=np.array(rows["y"]), snr=np.array(rows["snr"]))
     usable = np.bincount(stars.ccd, minlength=len(ccds)) if len(stars) else np.zeros(len(ccds), int)
-    return stars, cand, usable, rejected
+    return stars, np.array(index, int), cand, usable, rejected
 
 
 def stellar_locus(ccds, catalog, pc, frame, max_candidates=2000):
@@ -161,7 +164,7 @@ def stellar_locus(ccds, catalog, pc, frame, max_candidates=2000):
     ra = np.asarray(catalog["ra"], float)
     dec = np.asarray(catalog["dec"], float)
     order = np.argsort(np.asarray(catalog["mag"], float))[:max_candidates]
-    stars, _, _, _ = select_stars(ccds, ra[order], dec[order], ra, dec, pc, frame)
+    stars, index, _, _, _ = select_stars(ccds, ra[order], dec[order], ra, dec, pc, frame)
     if len(stars) == 0:
         return np.zeros(0, int)
     sig = np.full(len(stars), np.nan)
@@ -176,19 +179,14 @@ def stellar_locus(ccds, catalog, pc, frame, max_candidates=2000):
     s = np.sort(sig[ok])
     locus = float(np.median(s[: max(len(s) // 4, 3)]))
     keep = np.isfinite(sig) & (np.abs(sig / locus - 1) < 0.1)
-    # map each star back to its catalogue row through its (CCD pixel) position
-    hits = locate_all(ccds, ra[order], dec[order])
-    where = {(int(c), round(float(x), 6), round(float(y), 6)): order[o]
-             for o, c, x, y in zip(hits.object, hits.ccd, hits.x, hits.y)}
-    rows = np.array([where[(int(c), round(float(x), 6), round(float(y), 6))]
-                     for c, x, y in zip(stars.ccd, stars.x, stars.y)])
+    rows = order[index]
     return np.unique(rows[keep])
 
 
 def build_exposure_psf(ccds, star_ra, star_dec, others_ra, others_dec, pc, label="exposure") -> ExposurePSFResult:
     """Select the stars of one exposure and fit its pixel PSF model."""
     frame = FieldFrame.of_exposure(ccds)
-    stars, cand, usable, rejected = select_stars(ccds, star_ra, star_dec, others_ra, others_dec, pc, frame)
+    stars, _, cand, usable, rejected = select_stars(ccds, star_ra, star_dec, others_ra, others_dec, pc, frame)
     notes = []
     good_ccd = usable >= pc.psf_min_stars
     for c in np.nonzero(~good_ccd)[0]:
@@ -229,6 +227,7 @@ def write_psf_model(model: PixelPSF, path, extra_cards=()):
     ph["PSFORDER"] = (model.order, "polynomial order over the field")
     ph["NCCD"] = (model.n_ccd, "CCDs of the exposure")
     ph["REGORDER"] = (model.registration_order, "registration polynomial order per CCD")
+    ph["ALIASORD"] = (model.alias_order, "order of the above-Nyquist terms")
     ph["RA0"] = (model.frame.get("ra0", 0.0), "field centre RA, deg")
     ph["DEC0"] = (model.frame.get("dec0", 0.0), "field centre Dec, deg")
     ph["FSCALE"] = (model.frame.get("scale", 1.0), "arcsec per unit field coordinate")
@@ -275,6 +274,7 @@ def read_psf_model(path) -> PixelPSF:
                             ccd_used=np.asarray(c["used"], bool),
                             frame={"ra0": float(ph["RA0"]), "dec0": float(ph["DEC0"]), "scale": float(ph["FSCALE"])},
                             registration=reg, registration_order=int(ph["REGORDER"]),
+                            alias_order=int(ph.get("ALIASORD", 0)),
                             ccd_shape=np.stack([c["ny"], c["nx"]], axis=1))
     except OSError as exc:
         raise ShearfitIOError(f"{path}: cannot read the PSF model: {exc}") from None

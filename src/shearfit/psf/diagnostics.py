@@ -57,7 +57,7 @@ def psf_diagnostics(result, ccds, n_bootstrap=64, grid=8, seed=0, pc=None):
         idx = rng.integers(0, len(stars), len(stars))
         try:
             mb, _, _ = fit_pixel_psf(stars.subset(idx), model.n_ccd, order=model.order, oversampling=k,
-                                     alias_order=int(np.max(model.powers[model.kind == 2].sum(axis=1), initial=1)),
+                                     alias_order=model.alias_order,
                                      iterations=0, centre=False, clip=0)
         except Exception:   # a resampling without enough stars on a CCD
             continue

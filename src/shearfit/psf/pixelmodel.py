@@ -136,6 +136,7 @@ class PixelPSF:
     frame: dict = field(default_factory=dict)            # how (u, v) were made: ra0, dec0, scale
     registration: Optional[np.ndarray] = None            # (n_ccd, 2, n_reg) polynomial coefficients
     registration_order: int = 1
+    alias_order: int = 0
     ccd_shape: Optional[np.ndarray] = None               # (n_ccd, 2) ny, nx for the registration's scaling
     _images: Optional[np.ndarray] = field(default=None, repr=False)
 
@@ -155,15 +156,8 @@ class PixelPSF:
     def images(self) -> np.ndarray:
         """Real-space images of the terms, (n_terms, k n, k n), sampled every 1/k pixel."""
         if self._images is None:
-            k, n = self.oversampling, self.size
-            K = k * n
-            j = _signed_freq(n)
-            h = (k - 1) // 2
-            m = np.arange(-h, h + 1)
-            fy = (j[None, :] + n * m[:, None]) % K        # (k, n): fine FFT index of (m, j)
-            grid = np.zeros((self.spectra.shape[0], K, K), complex)
-            grid[:, fy[:, None, :, None], fy[None, :, None, :]] = self.spectra
-            self._images = np.fft.fftshift(np.fft.ifft2(grid), axes=(-2, -1)).real * k * k
+            fine = _fold_to_fine(self.spectra, self.size, self.oversampling)
+            self._images = np.fft.fftshift(np.fft.ifft2(fine), axes=(-2, -1)).real
         return self._images
 
     def image(self, ccd, u, v) -> np.ndarray:
@@ -377,7 +371,7 @@ def fit_pixel_psf(stars: StarSet, n_ccd: int, order: int = 3, oversampling: int 
         raise ShearfitValueError(f"{len(stars)} stars cannot constrain a PSF model with {n_base} terms")
     model = PixelPSF(size=n, oversampling=k, order=order, n_ccd=n_ccd, kind=kind, term_ccd=tccd, powers=powers,
                      spectra=np.zeros((kind.size, k, k, n, n), complex), ccd_used=ccd_used, frame=dict(frame or {}),
-                     registration_order=registration_order,
+                     registration_order=registration_order, alias_order=alias_order,
                      ccd_shape=None if ccd_shape is None else np.asarray(ccd_shape))
     initial = stars.delta.copy()
     st = stars.subset(np.arange(len(stars)))
@@ -420,7 +414,7 @@ def fit_pixel_psf(stars: StarSet, n_ccd: int, order: int = 3, oversampling: int 
 
 
 def _fold_to_fine(P, n, k):
-    """Per-star spectra (n_s, k, k, n, n) on the fine FFT grid (n_s, kn, kn), FFT order, times k^2.
+    """Spectra (m, k, k, n, n) (per star or per term) on the fine FFT grid (m, kn, kn), FFT order, times k^2.
 
     Its inverse FFT is the model sampled every 1/k pixel (origin at index 0).
     """
