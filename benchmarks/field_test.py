@@ -125,8 +125,16 @@ def make_field(d, sign, args, gals, psfs, sigma, stars=None, with_psf=True):
             data = img.array + (0.0 if args.noise_free else noise)
             hdus.append(fits.ImageHDU(data, header=h))
             whdus.append(fits.ImageHDU(np.full((NPIX, NPIX), 1 / sigma ** 2, dtype=np.float32), header=h))
-            pim = psfs[k][c].drawImage(nx=48, ny=48, scale=1.0, method="auto", use_true_center=False).array
-            phdus.append(fits.ImageHDU(pim / pim.sum()))
+            os_k = args.true_psf_oversampling
+            if os_k == 1:
+                pim = psfs[k][c].drawImage(nx=48, ny=48, scale=1.0, method="auto", use_true_center=False).array
+            else:
+                # the pixel-convolved PSF sampled every 1/k pixel (INTERFACE: header OVERSAMP = k)
+                pim = galsim.Convolve(psfs[k][c], galsim.Pixel(1.0)).drawImage(
+                    nx=48 * os_k, ny=48 * os_k, scale=1.0 / os_k, method="no_pixel", use_true_center=False).array
+            phdu = fits.ImageHDU(pim / pim.sum())
+            phdu.header["OVERSAMP"] = os_k
+            phdus.append(phdu)
         fits.HDUList(hdus).writeto(os.path.join(d, f"exp{k}.fits"), overwrite=True)
         fits.HDUList(whdus).writeto(os.path.join(d, f"exp{k}.weight.fits"), overwrite=True)
         fits.HDUList([fits.PrimaryHDU()] + phdus).writeto(os.path.join(d, f"exp{k}.psf.fits"), overwrite=True)
@@ -164,6 +172,8 @@ def main(argv=None):
     ap.add_argument("--psf", choices=["given", "fitted", "both"], default="given",
                     help="measure with the true PSF (given), one fitted from stars, or both")
     ap.add_argument("--psf-fwhm", type=float, nargs=2, default=[0.5, 0.8], help="range of PSF FWHM, arcsec")
+    ap.add_argument("--true-psf-oversampling", type=int, default=1,
+                    help="samples per pixel of the true PSF given to the 'given' runs (odd; 3 for undersampled PSFs)")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="setting for the fitted-PSF runs (e.g. psf_oversampling=3)")
     args = ap.parse_args(argv)

@@ -110,12 +110,12 @@ def test_oversampled_model_of_an_undersampled_psf():
     assert m.shape == (3 * N, 3 * N)
     t = _draw(_psf_at(1, 0.5, 0.0, 0.374), 0, 0, step=3)
     t /= t.sum()
-    # against the truth sampled every 1/3 pixel: single fine pixels carry the noise of the alias
-    # components (a few per cent of the peak), the moments are right
-    assert np.sqrt(np.mean((m - t) ** 2)) < 0.02 * t.max()
+    # against the truth sampled every 1/3 pixel (measured: 0.17 % of the peak; it was 2 % before the
+    # alias components had the Moffat-extrapolation prior, which keeps noise out of the unconstrained ones)
+    assert np.sqrt(np.mean((m - t) ** 2)) < 0.005 * t.max()
     mm = galsim.hsm.FindAdaptiveMom(galsim.Image(m))
     mt = galsim.hsm.FindAdaptiveMom(galsim.Image(t))
-    assert abs(mm.moments_sigma / mt.moments_sigma - 1) < 0.01
+    assert abs(mm.moments_sigma / mt.moments_sigma - 1) < 0.005
     assert abs(mm.observed_shape.e1 - mt.observed_shape.e1) < 0.005
     assert abs(mm.observed_shape.e2 - mt.observed_shape.e2) < 0.005
 

@@ -27,6 +27,7 @@ import warnings
 
 import numpy as np
 
+from ._atomic import atomic_path
 from .errors import FITCLASS_GALAXY, FITCLASS_NAMES, FITCLASS_STAR, ShearfitValueError
 
 __all__ = ["run_demo", "main", "OBJECTS_FILE", "SUMMARY_FILE"]
@@ -472,31 +473,15 @@ def _write_table(table, path, summary):
     t.meta.update({"SEED": summary["seed"], "G1": summary["input_shear"][0], "G2": summary["input_shear"][1],
                    "NGAL": summary["n_galaxies"], "NROT": summary["settings"]["n_rotations"],
                    "NEXP": summary["settings"]["n_exposures"], "SFVER": summary["versions"]["shearfit"]})
-    tmp = _tmp_name(path)
-    try:
+    with atomic_path(path) as tmp:
         t.write(tmp, format="fits", overwrite=True)
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.remove(tmp)
 
 
 def _write_yaml(summary, path):
     import yaml
 
-    tmp = _tmp_name(path)
-    try:
-        with open(tmp, "w", encoding="utf-8") as fh:
-            yaml.safe_dump(summary, fh, sort_keys=False, default_flow_style=None)
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.remove(tmp)
-
-
-def _tmp_name(path):
-    d, base = os.path.split(path)
-    return os.path.join(d, f".{base}.tmp{os.getpid()}")
+    with atomic_path(path) as tmp, open(tmp, "w", encoding="utf-8") as fh:
+        yaml.safe_dump(summary, fh, sort_keys=False, default_flow_style=None)
 
 
 def _plain(obj):

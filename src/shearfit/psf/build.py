@@ -14,13 +14,13 @@ the object catalogue on the size-magnitude locus (:func:`stellar_locus`).
 from __future__ import annotations
 
 import logging
-import os
 from dataclasses import dataclass, field
 
 import numpy as np
 from astropy.io import fits
 from scipy.spatial import cKDTree
 
+from .._atomic import atomic_path
 from ..errors import ShearfitIOError, ShearfitValueError
 from ..field.stamps import cut_stamp, locate_all
 from ..field.wcs import pixel_to_sky, tangent_plane_offsets
@@ -246,13 +246,8 @@ def write_psf_model(model: PixelPSF, path, extra_cards=()):
     hdul = fits.HDUList([fits.PrimaryHDU(header=ph), terms, ccd,
                          fits.ImageHDU(model.spectra.real, name="SPEC_RE"),
                          fits.ImageHDU(model.spectra.imag, name="SPEC_IM")])
-    tmp = f"{path}.tmp{os.getpid()}"
-    try:
+    with atomic_path(path) as tmp:
         hdul.writeto(tmp, overwrite=True)
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.remove(tmp)
 
 
 def read_psf_model(path) -> PixelPSF:

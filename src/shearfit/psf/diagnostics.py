@@ -9,11 +9,11 @@ fraction of its light in the central pixel.
 
 from __future__ import annotations
 
-import os
 
 import numpy as np
 from astropy.io import fits
 
+from .._atomic import atomic_path
 from ..field.wcs import pixel_to_sky
 from .build import FieldFrame
 from .pixelmodel import fit_pixel_psf, residual_images
@@ -106,9 +106,8 @@ def write_diagnostics(diag, result, path_prefix):
         fits.Column("dy", "D", array=result.info["offset"][:, 1]),
         fits.Column("chi2", "D", array=result.info["chi2"])], name="STARS"))
     fits_path = f"{path_prefix}.psfdiag.fits"
-    tmp = fits_path + ".tmp"
-    fits.HDUList(hdus).writeto(tmp, overwrite=True)
-    os.replace(tmp, fits_path)
+    with atomic_path(fits_path) as tmp:
+        fits.HDUList(hdus).writeto(tmp, overwrite=True)
     paths = [fits_path]
     import matplotlib
 

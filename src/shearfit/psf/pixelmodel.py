@@ -22,7 +22,13 @@ fit is one weighted least-squares problem shared by every pixel. With
 unknowns too: stars at many sub-pixel phases separate them, and the model
 is the PSF sampled every 1/k pixel (beyond the paper, which names this as
 the next step in its sec. 5 and App. A). The alias components vary over
-the field as a global polynomial of order ``alias_order``.
+the field as a global polynomial of order ``alias_order``. The native
+model is fitted first; a circular Moffat fitted to it (as the likelihood's
+App. A correction) predicts each alias component, and that prediction is
+the mean of a Gaussian prior (width half of itself) weighed against the
+stars' residual variance at each frequency: components that the stars'
+phases constrain follow the stars, the others fall back on the Moffat
+extrapolation instead of on noise.
 
 Stars are centred iteratively by cross-correlation with the current model
 (Newton steps on the band-limited cross-correlation), then moved by the
@@ -229,8 +235,14 @@ def _term_table(order, n_ccd, ccd_terms, ccd_used, k, alias_order):
     return np.array(kind), np.array(tccd), np.array(powers, int).reshape(-1, 2)
 
 
-def _solve_modes(model: PixelPSF, D, stars: StarSet, flux, ridge):
-    """Least-squares spectra of every term, given star DFTs D (n_s, n, n), offsets and fluxes."""
+def _solve_modes(model: PixelPSF, D, stars: StarSet, flux, prior=None):
+    """Least-squares spectra of every term, given star DFTs D (n_s, n, n), offsets and fluxes.
+
+    With oversampling, ``prior`` = (mu, tau, s2): the alias unknowns get a
+    Gaussian prior of mean ``mu`` and width ``tau`` (arrays like the alias
+    terms' spectra), weighed against the data with ``s2`` (n, n), the
+    residual variance per unit star weight at each stamp frequency.
+    """
     n, k = model.size, model.oversampling
     w = stars.weight
     C = model.coefficients(stars.ccd, stars.u, stars.v)           # (n_s, T)
@@ -248,13 +260,12 @@ def _solve_modes(model: PixelPSF, D, stars: StarSet, flux, ridge):
         coef, *_ = np.linalg.lstsq(sw * C, sw * Yc, rcond=None)
         spectra[:, 0, 0] = coef.reshape(T, n, n)
         return spectra
+    mu, tau, s2 = prior
     ph = _phases(n, k, stars.delta)                                # (n_s, k, k, n, n)
     Cb, Ca = C[:, base], C[:, alias]
     nb, na = Cb.shape[1], Ca.shape[1]
     others = [(my, mx) for my in range(k) for mx in range(k) if (my, mx) != (h, h)]
     U = nb + na * len(others)
-    reg = np.zeros(U)
-    reg[nb:] = 1.0
     for jy in range(n):
         for jx in range(n):
             cols = [Cb * ph[:, h, h, jy, jx, None]]
@@ -263,12 +274,61 @@ def _solve_modes(model: PixelPSF, D, stars: StarSet, flux, ridge):
             X = np.concatenate(cols, axis=1)
             XW = np.conj(X).T * w[None, :]
             N = XW @ X
-            lam = ridge * np.real(np.trace(N)) / U
-            sol = np.linalg.solve(N + lam * np.diag(reg), XW @ Y[:, jy, jx])
+            rhs = XW @ Y[:, jy, jx]
+            # prior precision s2 / tau^2 on the alias unknowns (none on the base terms)
+            m0 = np.concatenate([mu[:, my, mx, jy, jx] for my, mx in others])
+            t0 = np.concatenate([tau[:, my, mx, jy, jx] for my, mx in others])
+            lam = np.zeros(U)
+            lam[nb:] = s2[jy, jx] / t0 ** 2
+            rhs[nb:] += lam[nb:] * m0
+            sol = np.linalg.solve(N + np.diag(lam), rhs)
             spectra[base, h, h, jy, jx] = sol[:nb]
             for q, (my, mx) in enumerate(others):
                 spectra[alias, my, mx, jy, jx] = sol[nb + q * na: nb + (q + 1) * na]
     return spectra
+
+
+def _residual_variance(model: PixelPSF, D, stars: StarSet, flux):
+    """Per stamp frequency, the weighted residual variance per unit star weight, (n, n)."""
+    M = model.native_dft(stars.ccd, stars.u, stars.v, stars.delta) if np.any(model.spectra) else 0.0
+    r = D / flux[:, None, None] - M
+    w = stars.weight
+    dof = max(len(stars) - int(np.sum(model.kind != 2)), 1)
+    return np.sum(w[:, None, None] * np.abs(r) ** 2, axis=0) / dof
+
+
+def _alias_prior(native: PixelPSF, stars: StarSet, k, model: PixelPSF, rel_width=0.5, floor=1e-5):
+    """Prior mean and width of the above-Nyquist components: the native model extrapolated by a Moffat.
+
+    The mean of the native model over the stars is fitted with a circular
+    Moffat times the pixel response (as the likelihood's alias correction,
+    App. A); alias m of stamp frequency j is expected at
+    ``P(j) G(j + n m) / G(j)``, give or take ``rel_width`` of itself (plus a
+    small floor), so that components the stars' sub-pixel phases constrain
+    follow the stars and the others fall back on the Moffat extrapolation.
+    """
+    from ..model import _moffat_ft, fit_moffat
+
+    n = native.size
+    P0 = np.mean(native.star_spectra(stars.ccd, stars.u, stars.v)[:, 0, 0], axis=0)   # (n, n)
+    P0 = P0 / P0[0, 0].real
+    kyc = 2 * np.pi * np.fft.fftfreq(n)
+    kxc = 2 * np.pi * np.fft.rfftfreq(n)
+    rs, beta = fit_moffat(P0[:, : n // 2 + 1], kyc, kxc)
+    f = _fine_freqs(n, k)                                   # (k, n) signed fine frequencies per axis
+    kf = 2 * np.pi * f / n
+    pix = np.sinc(f / n)
+    kk = np.hypot(kf[:, None, :, None], kf[None, :, None, :])          # (k, k, n, n)
+    G = _moffat_ft(kk, rs, beta) * pix[:, None, :, None] * pix[None, :, None, :]
+    h = (k - 1) // 2
+    g0 = G[h, h]
+    ratio = np.where(np.abs(g0) > 1e-12, G / np.where(np.abs(g0) > 1e-12, g0, 1.0), 0.0)
+    alias = model.kind == 2
+    const = alias & (model.powers[:, 0] == 0) & (model.powers[:, 1] == 0)
+    mu = np.zeros((int(alias.sum()), k, k, n, n), complex)
+    mu[const[alias]] = ratio * P0[None, None]
+    tau = np.broadcast_to(rel_width * np.abs(ratio * P0[None, None]) + floor, mu.shape).copy()
+    return mu, tau
 
 
 def _centre_by_xcorr(model: PixelPSF, D, stars: StarSet, n_newton=6, max_step=0.5):
@@ -319,7 +379,7 @@ def residual_images(model: PixelPSF, stars: StarSet, flux=None):
 
 
 def fit_pixel_psf(stars: StarSet, n_ccd: int, order: int = 3, oversampling: int = 1, ccd_terms: bool = True,
-                  alias_order: int = 0, iterations: int = 3, ridge: float = 1e-3, clip: float = 5.0,
+                  alias_order: int = 0, iterations: int = 3, alias_width: float = 0.5, clip: float = 5.0,
                   centroid_sigma: float = 2.0, registration_order: int = 1, ccd_shape=None,
                   centre: bool = True, frame=None) -> tuple:
     """Fit the pixel PSF model of one exposure to its stars.
@@ -340,9 +400,11 @@ def fit_pixel_psf(stars: StarSet, n_ccd: int, order: int = 3, oversampling: int 
         Polynomial order of the above-Nyquist components (oversampling > 1).
     iterations : int
         Centring / fitting rounds after the first fit.
-    ridge : float
-        Relative ridge on the alias unknowns, which pulls components that the
-        stars' sub-pixel phases do not constrain to zero.
+    alias_width : float
+        With oversampling, the relative width of the prior on the
+        above-Nyquist components around the native model's Moffat
+        extrapolation (see ``_alias_prior``); the native model is fitted
+        first and gives the stars' starting centres.
     clip : float
         Stars whose reduced chi^2 exceeds the median by ``clip`` robust
         sigmas are dropped (binaries, galaxies, cosmic rays) before the last fit.
@@ -374,16 +436,29 @@ def fit_pixel_psf(stars: StarSet, n_ccd: int, order: int = 3, oversampling: int 
                      registration_order=registration_order, alias_order=alias_order,
                      ccd_shape=None if ccd_shape is None else np.asarray(ccd_shape))
     initial = stars.delta.copy()
-    st = stars.subset(np.arange(len(stars)))
-    # starting point: Gaussian-weighted centroids and stamp sums
-    if centre:
-        cx, cy = gaussian_centroid(st.image, 1.0, centroid_sigma)
-        st.delta = np.stack([cx, cy], axis=1)
-    D = np.fft.fft2(np.fft.ifftshift(st.image, axes=(-2, -1)))
-    flux = D[:, 0, 0].real.copy()
-    kept = np.ones(len(stars), bool)
+    prior = None
+    if k > 1:
+        # the native model first: the stars' centres, fluxes and outlier cut, and the prior above Nyquist
+        native, st, nat = fit_pixel_psf(stars, n_ccd, order=order, oversampling=1, ccd_terms=ccd_terms,
+                                        iterations=iterations, clip=clip, centroid_sigma=centroid_sigma,
+                                        centre=centre, frame=frame)
+        kept = nat["kept"].copy()
+        flux = nat["flux"]
+        D = np.fft.fft2(np.fft.ifftshift(st.image, axes=(-2, -1)))
+        mu, tau = _alias_prior(native, st, k, model, rel_width=alias_width)
+        prior = (mu, tau, _residual_variance(native, D, st, flux))
+        clip = 0.0
+    else:
+        st = stars.subset(np.arange(len(stars)))
+        # starting point: Gaussian-weighted centroids and stamp sums
+        if centre:
+            cx, cy = gaussian_centroid(st.image, 1.0, centroid_sigma)
+            st.delta = np.stack([cx, cy], axis=1)
+        D = np.fft.fft2(np.fft.ifftshift(st.image, axes=(-2, -1)))
+        flux = D[:, 0, 0].real.copy()
+        kept = np.ones(len(stars), bool)
     for it in range(iterations + 1):
-        model.spectra = _solve_modes(model, D, st, flux, ridge)
+        model.spectra = _solve_modes(model, D, st, flux, prior)
         model._images = None
         if it == iterations:
             break
@@ -395,6 +470,8 @@ def fit_pixel_psf(stars: StarSet, n_ccd: int, order: int = 3, oversampling: int 
             mx, my = gaussian_centroid(imgs, 1.0 / k, centroid_sigma)
             st.delta = st.delta + np.stack([mx, my], axis=1)
         flux, M = _star_fluxes(model, D, st)
+        if prior is not None:
+            prior = (prior[0], prior[1], _residual_variance(model, D, st, flux))
         if it == iterations - 1 and clip > 0:
             chi2 = _reduced_chi2(st, D, flux, M)
             med = np.median(chi2)
