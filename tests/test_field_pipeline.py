@@ -190,3 +190,21 @@ def test_blends_neighbours_and_masks(crowded):
         _, _, r, e1, e2, _, _ = objs[k]
         sd = np.sqrt(row[k]["e_var"])
         assert abs(row[k]["e1"] - e1) < 4 * sd + 0.01 and abs(row[k]["e2"] - e2) < 4 * sd + 0.01, k
+
+
+def test_measure_applies_a_given_calibration(field):
+    from shearfit.calibrate import calibration_m
+
+    d, gals = field
+    (d / "cal.yaml").write_text("alpha: 0.1\nbeta: -0.5\n")
+    conf = yaml.safe_load((d / "field.yaml").read_text())
+    conf["calibration"] = "cal.yaml"
+    (d / "field_cal.yaml").write_text(yaml.safe_dump(conf))
+    out = d / "shear_cal.fits"
+    assert main(["measure", str(d / "field_cal.yaml"), "--out", str(out), "--quiet"]) == 0
+    t = Table.read(out)
+    good = t["fitclass"] == 0
+    np.testing.assert_allclose(t["m"][good], calibration_m(t["snr"][good], t["scalelength"][good], 0.1, -0.5))
+    assert not np.any(np.isfinite(np.ma.filled(t["m"][~good], np.nan)))
+    hdr = fits.getheader(out, 1)
+    assert hdr["CALALPHA"] == 0.1 and hdr["CALBETA"] == -0.5 and "cal.yaml" in hdr.comments["CALALPHA"]

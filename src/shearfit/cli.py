@@ -27,10 +27,15 @@ def _add_common(p):
 
 
 def _cmd_demo(args):
-    from .demo import run_demo
+    if args.stamps:
+        from .demo import run_demo
 
-    kwargs = {} if args.n_galaxies is None else {"n_galaxies": args.n_galaxies}
-    run_demo(out_dir=args.out, processes=args.processes, seed=args.seed, quiet=args.quiet, **kwargs)
+        kwargs = {} if args.n_galaxies is None else {"n_galaxies": args.n_galaxies}
+        run_demo(out_dir=args.out, processes=args.processes, seed=args.seed, quiet=args.quiet, **kwargs)
+        return 0
+    from .demo_field import run_field_demo
+
+    run_field_demo(out_dir=args.out, processes=args.processes, seed=args.seed, quiet=args.quiet, psf=args.psf)
     return 0
 
 
@@ -87,6 +92,43 @@ def _cmd_psf(args):
     return 0
 
 
+def _cmd_simulate(args):
+    from ._atomic import read_yaml_mapping
+    from .simulate.field import simulate_field, simulation_config
+
+    mapping = read_yaml_mapping(args.config, "simulation config")
+    if args.seed is not None:
+        mapping["seed"] = args.seed
+    sc = simulation_config(mapping)
+    res = simulate_field(sc, args.out)
+    if not args.quiet:
+        print(f"simulated {sc.suite} field (preset {sc.preset}, seed {sc.seed}): {res['n_galaxies']} galaxies, "
+              f"{res['n_stars']} stars, {sc.n_exposures} exposures x {sc.n_ccd} CCDs, pixel noise {res['sigma']:.3g}; "
+              f"config {res['config']}, truth {res['truth']}")
+    return 0
+
+
+def _cmd_calibrate(args):
+    import os
+
+    from .calibrate import calibrate, plot_calibration, weight_bins, write_calibration
+    from .field.io import write_catalog_atomic
+
+    result, bins, tab = calibrate(args.measured, args.truth, n_snr=args.n_snr, n_size=args.n_size,
+                                  n_boot=args.bootstrap, seed=args.seed)
+    write_calibration(result, args.out)
+    stem = os.path.splitext(args.out)[0]
+    write_catalog_atomic(bins, f"{stem}_bins.fits", [])
+    wb = weight_bins(tab, result["alpha"], result["beta"])
+    plot_calibration(bins, result, f"{stem}.png", weight_bins=wb)
+    if not args.quiet:
+        print(f"calibration from {result['n_galaxies']} galaxies in {result['n_snr_bins']} x {result['n_size_bins']} "
+              f"bins: alpha = {result['alpha']:.4f} +- {result['alpha_err']:.4f}, beta = {result['beta']:.3f} +- "
+              f"{result['beta_err']:.3f} (paper 0.057, -0.37); overall raw m = {result['m_raw']:+.4f}, "
+              f"c = ({result['c1']:+.5f}, {result['c2']:+.5f}); written {args.out}, {stem}_bins.fits, {stem}.png")
+    return 0
+
+
 def build_parser():
     parser = argparse.ArgumentParser(
         prog="shearfit",
@@ -94,12 +136,17 @@ def build_parser():
     parser.add_argument("--version", action="version", version=f"shearfit {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
 
-    p = sub.add_parser("demo", help="simulate GalSim galaxies with a known shear, measure them, print m and c",
-                       description="Simulate a small CFHTLenS-like set of galaxies (7 dithered exposures each, "
-                                   "elliptical Moffat PSFs) with a known shear, measure them with the lensfit "
-                                   "engine and print the recovered shear with its multiplicative and additive bias.")
-    p.add_argument("--out", default=None, help="directory for the per-object table and summary")
-    p.add_argument("--n-galaxies", type=int, default=None, help="galaxies (each measured at several orientations)")
+    p = sub.add_parser("demo", help="simulate a small field with a known shear, run the pipeline, print m and c",
+                       description="Simulate a small CFHTLenS-like field twice (shear +g and -g; 2 CCDs, 7 dithered "
+                                   "exposures with elliptical Moffat PSFs, stars), fit the PSF models from the "
+                                   "stars, measure every object and print the input and recovered shear with the "
+                                   "multiplicative and additive bias. --stamps runs the single-object engine on "
+                                   "GalSim postage stamps instead.")
+    p.add_argument("--out", default=None, help="output directory (default: ./shearfit_demo)")
+    p.add_argument("--psf", choices=["fitted", "true"], default="fitted",
+                   help="PSF models fitted from the stars (default) or the true PSF given")
+    p.add_argument("--stamps", action="store_true", help="the postage-stamp ring demo of the engine alone")
+    p.add_argument("--n-galaxies", type=int, default=None, help="(--stamps) galaxies, each at several orientations")
     p.add_argument("--processes", type=int, default=None, help="worker processes (default: all cores)")
     p.add_argument("--seed", type=int, default=1, help="random seed")
     _add_common(p)
@@ -124,6 +171,32 @@ def build_parser():
     p.add_argument("--no-bootstrap", action="store_true", help="skip the bootstrap rms (faster)")
     _add_common(p)
     p.set_defaults(func=_cmd_psf)
+
+    p = sub.add_parser("simulate", help="write a GalSim-simulated field in the input format, plus truth.fits",
+                       description="The GREAT-like suite (paper's population, several CCDs, dithered exposures "
+                                   "with elliptical Moffat PSFs) or the second suite (Kolmogorov + optics, one "
+                                   "exposure, random positions). CONFIG holds preset: (small, cfhtlens, "
+                                   "second-small, second) and any simulation key to override.")
+    p.add_argument("config", help="YAML of simulation keys")
+    p.add_argument("--out", required=True, help="output directory")
+    p.add_argument("--seed", type=int, default=None, help="override the config's seed")
+    _add_common(p)
+    p.set_defaults(func=_cmd_simulate)
+
+    p = sub.add_parser("calibrate", help="fit the noise-bias calibration m(SNR, size) from a measured simulation",
+                       description="Sec. 8.4: bins of SNR and size with equal numbers, m and c per bin from the "
+                                   "measured minus intrinsic ellipticities, the fit of m = beta / ln(nu) "
+                                   "exp(-alpha r nu); writes the YAML (with the (alpha, beta) likelihood grid), the "
+                                   "bins as FITS and a plot.")
+    p.add_argument("measured", help="shear catalogue of the simulated field (shearfit measure)")
+    p.add_argument("truth", help="truth.fits of the simulation")
+    p.add_argument("--out", required=True, help="calibration YAML to write")
+    p.add_argument("--n-snr", type=int, default=20, help="SNR bins (fewer if the sample is small)")
+    p.add_argument("--n-size", type=int, default=20, help="size bins per SNR bin")
+    p.add_argument("--bootstrap", type=int, default=100, help="bootstrap resamplings per bin")
+    p.add_argument("--seed", type=int, default=0)
+    _add_common(p)
+    p.set_defaults(func=_cmd_calibrate)
     return parser
 
 

@@ -110,6 +110,13 @@ class FitConfig:
         0.01,
         "an object is a star if the F-test probability that the galaxy model's improvement over a point source "
         "arises by chance exceeds this", "sec. 3.2")
+    star_psf_error: float = _opt(
+        0.03,
+        "fractional PSF model error allowed for in the star/galaxy test: the galaxy model's chi^2 improvement "
+        "over a point source is reduced by (SNR x this)^2 before the F-test, so that bright stars, which a "
+        "slightly imperfect PSF model lets a tiny galaxy fit better, stay stars (the paper's magnitude-dependent "
+        "limit, matched to visual classification, expressed through the PSF error it compensates)",
+        "sec. 3.2 (implementation)")
     star_faint_limit: float = _opt(
         23.0,
         "objects fainter than this magnitude are never classified as stars: the paper's limit is "

@@ -138,7 +138,8 @@ def _measure(obs, mag, cfg, return_samples):
     chi2_star = jm.yy + float(min(z.chi2_disk[0], z.chi2_bulge[0]))
     chi2_gal = jm.yy + like.best_chi2_gal
     dof = max(jm.npix - _NPAR_GALAXY, 1)
-    fstat = max(chi2_star - chi2_gal, 0.0) / (_NPAR_GALAXY - _NPAR_STAR) / max(chi2_gal / dof, 1e-12)
+    allowance = (like.best_snr * cfg.star_psf_error) ** 2 if np.isfinite(like.best_snr) else 0.0
+    fstat = max(chi2_star - chi2_gal - allowance, 0.0) / (_NPAR_GALAXY - _NPAR_STAR) / max(chi2_gal / dof, 1e-12)
     pvalue = float(stats.f.sf(fstat, _NPAR_GALAXY - _NPAR_STAR, dof))
     is_star = pvalue > cfg.star_pvalue and mag <= cfg.star_faint_limit
     result = FitResult(

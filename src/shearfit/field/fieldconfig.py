@@ -144,6 +144,9 @@ class FieldConfig:
         PSF stars; None means select them automatically.
     output : str or None
         Default output catalogue (the command line's ``--out`` wins).
+    calibration : str or None
+        A calibration.yaml from ``shearfit calibrate``: its (alpha, beta) fill
+        the ``m`` column; None uses the paper's (0.057, -0.37).
     fit : FitConfig
         The per-object engine's settings.
     pipeline : PipelineConfig
@@ -156,6 +159,7 @@ class FieldConfig:
     catalog: str
     stars: Optional[str] = None
     output: Optional[str] = None
+    calibration: Optional[str] = None
     fit: FitConfig = field(default_factory=FitConfig)
     pipeline: PipelineConfig = field(default_factory=PipelineConfig)
     source: str = "<mapping>"
@@ -171,6 +175,7 @@ class FieldConfig:
             "catalog": self.catalog,
             "stars": self.stars,
             "output": self.output,
+            "calibration": self.calibration,
         }
         out.update(self.pipeline.to_dict())
         out.update(self.fit.to_dict())
@@ -178,7 +183,7 @@ class FieldConfig:
 
     def check_files(self) -> None:
         """Raise :class:`ShearfitIOError` naming the first input file that does not exist."""
-        inputs = [("catalog", self.catalog), ("stars", self.stars)]
+        inputs = [("catalog", self.catalog), ("stars", self.stars), ("calibration", self.calibration)]
         for i, e in enumerate(self.exposures):
             inputs += [(f"exposures[{i}].image", e.image), (f"exposures[{i}].weight", e.weight),
                        (f"exposures[{i}].psf", e.psf)]
@@ -238,7 +243,7 @@ def _yaml_load(text: str, source: str):
 
 # --- schema -----------------------------------------------------------------------------
 
-_FILE_KEYS = ("exposures", "catalog", "stars", "output")
+_FILE_KEYS = ("exposures", "catalog", "stars", "output", "calibration")
 _EXPOSURE_KEYS = ("image", "weight", "psf")
 _FIT_FIELDS = {f.name: f for f in fields(FitConfig)}
 _PIPELINE_FIELDS = {f.name: f for f in fields(PipelineConfig)}
@@ -355,6 +360,7 @@ def field_config_from_mapping(mapping: Mapping[str, Any], base_dir: str = ".",
         catalog=_resolve(mapping.get("catalog"), "catalog", base_dir, source, True),
         stars=_resolve(mapping.get("stars"), "stars", base_dir, source, False),
         output=_resolve(mapping.get("output"), "output", base_dir, source, False),
+        calibration=_resolve(mapping.get("calibration"), "calibration", base_dir, source, False),
         fit=fit,
         pipeline=pipeline,
         source=source,

@@ -510,6 +510,8 @@ _OUTPUT_COLUMNS = (
     OutputColumn("psf_e1", "f8", "", "mean PSF model ellipticity at the object, (u, v) frame"),
     OutputColumn("psf_e2", "f8", "", "mean PSF model ellipticity at the object, (u, v) frame"),
     OutputColumn("m", "f8", "", "multiplicative calibration m(snr, scalelength)"),
+    OutputColumn("star_pvalue", "f8", "", "F-test probability that the galaxy model's improvement over a point "
+                                          "source is chance (sec. 3.2); large for stars"),
 )
 
 

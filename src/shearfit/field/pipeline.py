@@ -33,6 +33,7 @@ from astropy.table import Table
 
 from .. import __version__
 from ..errors import (FITCLASS_FEW_EXPOSURES, FITCLASS_FIT_FAILED, FITCLASS_OFF_EXPOSURES, ShearfitValueError)
+from ..calibrate import PAPER_ALPHA, PAPER_BETA, calibration_m, read_calibration
 from ..measure import measure_object
 from ..observation import Observation
 from .fieldconfig import FieldConfig
@@ -47,20 +48,6 @@ from ..psf.build import (FieldFrame, build_exposure_psf, is_psf_model_file, read
 log = logging.getLogger(__name__)
 
 __all__ = ["measure_field", "calibration_m", "psf_ellipticity"]
-
-# the paper's noise-bias calibration, eq. (alphabeta), the default until a calibration is given
-PAPER_ALPHA = 0.057
-PAPER_BETA = -0.37
-
-
-def calibration_m(snr, scalelength, alpha=PAPER_ALPHA, beta=PAPER_BETA):
-    """m(nu, r) = beta / ln(nu) exp(-alpha r nu), r in arcsec (eq. alphabeta); NaN where nu <= 1."""
-    snr = np.asarray(snr, float)
-    r = np.asarray(scalelength, float)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        m = beta / np.log(snr) * np.exp(-alpha * r * snr)
-    return np.where((snr > 1) & np.isfinite(r), m, np.nan)
-
 
 def psf_moments(psf):
     """Adaptive moments of a PSF image: (sigma in array pixels, reduced shear (g1, g2)), or None if HSM fails."""
@@ -252,9 +239,16 @@ def measure_field(cfg: FieldConfig, out_path=None, progress=False, processes=1) 
     for i, row in enumerate(rows):
         for key, val in row.items():
             table[key][i] = val
+    if cfg.calibration:
+        alpha, beta = read_calibration(cfg.calibration)
+        src = os.path.basename(cfg.calibration)
+    else:
+        alpha, beta, src = PAPER_ALPHA, PAPER_BETA, "paper default"
+    measured = np.asarray(table["fitclass"]) >= 0
+    table["m"] = np.where(measured, calibration_m(table["snr"], table["scalelength"], alpha, beta), np.nan)
     cards = provenance_cards(cfg.to_dict(), __version__)
-    cards = list(cards) + [("CALALPHA", PAPER_ALPHA, "calibration alpha (paper default)"),
-                           ("CALBETA", PAPER_BETA, "calibration beta (paper default)")]
+    cards = list(cards) + [("CALALPHA", alpha, f"calibration alpha ({src})"),
+                           ("CALBETA", beta, f"calibration beta ({src})")]
     write_catalog_atomic(table, out_path, cards)
     return table
 
@@ -321,10 +315,9 @@ def _measure_one(hits, exposures, mag, cfg, pc) -> dict:
     res = measure_object(obs, mag, cfg.fit)
     row = {"e1": res.e1, "e2": res.e2, "weight": res.weight, "e_var": res.e_var, "fitclass": res.fitclass,
            "snr": res.snr, "scalelength": res.scalelength, "bulge_fraction": res.bulge_fraction,
-           "model_flux": res.model_flux, "n_exposures_used": res.n_exposures_used}
+           "model_flux": res.model_flux, "n_exposures_used": res.n_exposures_used, "star_pvalue": res.star_pvalue}
     pe = np.array(psf_e, float)
     row["psf_e1"], row["psf_e2"] = np.nanmean(pe[:, 0]), np.nanmean(pe[:, 1])
-    row["m"] = float(calibration_m(res.snr, res.scalelength)) if res.fitclass >= 0 else np.nan
     if res.fitclass == FITCLASS_FIT_FAILED:
         log.debug("fit failed: %s", res.message)
     return row

@@ -1,0 +1,284 @@
+"""The noise-bias calibration m(SNR, size) from simulations (sec. 8.4).
+
+Measured galaxies (``fitclass`` 0, weight > 0) are matched by ``id`` to the
+simulation's truth. Each galaxy gives, per shear component k, the
+observation ``y_k = e_k - e_int,k - g_k``, which is ``m g_k + c_k`` plus
+noise (the intrinsic shape is subtracted, so shape noise does not enter).
+Galaxies are put in bins of measured SNR and measured scalelength with
+equal numbers (SNR quantiles first, then size quantiles within each SNR
+bin; 20 x 20 by default, fewer when the sample is small), each galaxy
+entering its bin once per shear component; in each bin m, c_1 and c_2 come
+from a weighted least-squares fit with the lensfit weights, and their
+errors from bootstrap resampling of the bin's galaxies. The shear must vary
+between galaxies (a shear field, or several fields) for m and c to separate.
+
+Then the paper's form m(nu, r) = beta / ln(nu) exp(-alpha r nu) (r in
+arcsec) is fitted to the bins by chi^2; the likelihood of (alpha, beta) on a
+grid is kept in the output for the systematic-error resampling of the
+two-point functions.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import yaml
+from astropy.table import Table, join
+from scipy.optimize import least_squares
+
+from ._atomic import atomic_path, read_yaml_mapping
+from .errors import ShearfitIOError, ShearfitValueError
+
+__all__ = ["matched_galaxies", "bin_indices", "bin_bias", "fit_alpha_beta", "calibrate", "read_calibration",
+           "write_calibration", "model_m", "calibration_m", "calibrated_bias", "plot_calibration",
+           "weight_bins", "PAPER_ALPHA", "PAPER_BETA"]
+
+PAPER_ALPHA = 0.057
+PAPER_BETA = -0.37
+MIN_PER_BIN = 50
+
+
+def model_m(snr, r, alpha, beta):
+    """m(nu, r) = beta / ln(nu) exp(-alpha r nu)."""
+    snr = np.asarray(snr, float)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return beta / np.log(snr) * np.exp(-alpha * np.asarray(r, float) * snr)
+
+
+def calibration_m(snr, scalelength, alpha=PAPER_ALPHA, beta=PAPER_BETA):
+    """m(nu, r) of eq. (alphabeta), r in arcsec; NaN where nu <= 1 or r is not finite."""
+    snr = np.asarray(snr, float)
+    r = np.asarray(scalelength, float)
+    return np.where((snr > 1) & np.isfinite(r), model_m(np.where(snr > 1, snr, 2.0), r, alpha, beta), np.nan)
+
+
+def _read(path, what):
+    try:
+        t = Table.read(path)
+    except (OSError, ValueError) as exc:
+        raise ShearfitIOError(f"{path}: cannot read the {what} table: {str(exc).splitlines()[0]}") from None
+    t.rename_columns(t.colnames, [c.lower() for c in t.colnames])
+    return t
+
+
+def matched_galaxies(measured_path, truth_path) -> Table:
+    """Measured galaxies joined to their truth rows by ``id`` (truth columns suffixed ``_true``)."""
+    m = _read(measured_path, "measured")
+    t = _read(truth_path, "truth")
+    for col in ("id", "e1", "e2", "weight", "fitclass", "snr", "scalelength"):
+        if col not in m.colnames:
+            raise ShearfitIOError(f"{measured_path}: no column {col}")
+    for col in ("id", "g1", "g2", "e1_int", "e2_int", "is_star"):
+        if col not in t.colnames:
+            raise ShearfitIOError(f"{truth_path}: no column {col}")
+    t = t[["id", "g1", "g2", "e1_int", "e2_int", "is_star"] + [c for c in ("snr", "scalelength") if c in t.colnames]]
+    for c in ("snr", "scalelength"):
+        if c in t.colnames:
+            t.rename_column(c, f"{c}_true")
+    j = join(m, t, keys="id")
+    keep = (np.asarray(j["fitclass"]) == 0) & (np.asarray(j["weight"]) > 0) & ~np.asarray(j["is_star"], bool)
+    keep &= np.isfinite(np.asarray(j["e1"], float)) & np.isfinite(np.asarray(j["snr"], float))
+    keep &= np.asarray(j["snr"], float) > 1.0
+    return j[keep]
+
+
+def bin_indices(snr, r, n_snr=20, n_size=20, min_per_bin=MIN_PER_BIN):
+    """Bin index (0 .. n_snr*n_size - 1) of each galaxy: equal numbers in SNR, then in size within each.
+
+    The bin counts shrink (keeping their ratio) until every bin has at least ``min_per_bin`` galaxies.
+    Returns (index, n_snr, n_size).
+    """
+    snr = np.asarray(snr, float)
+    r = np.asarray(r, float)
+    n = snr.size
+    while n_snr * n_size * min_per_bin > n and (n_snr > 1 or n_size > 1):
+        n_snr, n_size = max(1, n_snr - 1), max(1, n_size - 1)
+    order = np.argsort(snr, kind="stable")
+    ib = np.empty(n, int)
+    ib[order] = np.arange(n) * n_snr // max(n, 1)
+    idx = np.empty(n, int)
+    for b in range(n_snr):
+        sel = np.nonzero(ib == b)[0]
+        o = sel[np.argsort(r[sel], kind="stable")]
+        idx[o] = b * n_size + np.arange(o.size) * n_size // max(o.size, 1)
+    return idx, n_snr, n_size
+
+
+def _fit_mc(y1, y2, g1, g2, w):
+    """Weighted least squares of y_k = m g_k + c_k over both components: (m, c1, c2)."""
+    z = np.zeros_like(g1)
+    one = np.ones_like(g1)
+    X = np.concatenate([np.stack([g1, one, z], 1), np.stack([g2, z, one], 1)])
+    y = np.concatenate([y1, y2])
+    ww = np.sqrt(np.concatenate([w, w]))
+    sol, *_ = np.linalg.lstsq(X * ww[:, None], y * ww, rcond=None)
+    return sol
+
+
+def bin_bias(tab: Table, idx, n_bins, n_boot=100, rng=None, m_pred=None):
+    """Per bin: weighted mean SNR and size, m, c1, c2 with bootstrap errors (and the mean prediction)."""
+    rng = np.random.default_rng(0) if rng is None else rng
+    e1, e2 = np.asarray(tab["e1"], float), np.asarray(tab["e2"], float)
+    g1, g2 = np.asarray(tab["g1"], float), np.asarray(tab["g2"], float)
+    y1 = e1 - np.asarray(tab["e1_int"], float) - g1
+    y2 = e2 - np.asarray(tab["e2_int"], float) - g2
+    w = np.asarray(tab["weight"], float)
+    snr, r = np.asarray(tab["snr"], float), np.asarray(tab["scalelength"], float)
+    rows = []
+    for b in range(n_bins):
+        sel = np.nonzero(idx == b)[0]
+        if sel.size < 3:
+            continue
+        est = _fit_mc(y1[sel], y2[sel], g1[sel], g2[sel], w[sel])
+        boot = np.array([_fit_mc(y1[s], y2[s], g1[s], g2[s], w[s])
+                         for s in (rng.choice(sel, sel.size) for _ in range(n_boot))])
+        err = boot.std(axis=0)
+        ws = w[sel] / w[sel].sum()
+        row = dict(bin=b, n=int(sel.size), snr=float(np.sum(ws * snr[sel])), r=float(np.sum(ws * r[sel])),
+                   weight=float(np.mean(w[sel])), m=float(est[0]), m_err=float(err[0]), c1=float(est[1]),
+                   c1_err=float(err[1]), c2=float(est[2]), c2_err=float(err[2]))
+        if m_pred is not None:
+            row["m_pred"] = float(np.sum(ws * m_pred[sel]))
+        rows.append(row)
+    if not rows:
+        raise ShearfitValueError("no calibration bin has 3 galaxies")
+    return Table(rows=[tuple(r.values()) for r in rows], names=list(rows[0].keys()))
+
+
+def fit_alpha_beta(bins: Table, n_grid=81):
+    """chi^2 fit of m(nu, r) to the bins, and the (alpha, beta) likelihood on a grid around the best fit."""
+    snr, r, m, s = (np.asarray(bins[c], float) for c in ("snr", "r", "m", "m_err"))
+    s = np.where(s > 0, s, np.inf)
+
+    def resid(p):
+        return (model_m(snr, r, p[0], p[1]) - m) / s
+
+    sol = least_squares(resid, x0=[PAPER_ALPHA, PAPER_BETA], method="lm")
+    J = sol.jac
+    try:
+        cov = np.linalg.inv(J.T @ J)
+    except np.linalg.LinAlgError:
+        cov = np.full((2, 2), np.nan)
+    a0, b0 = sol.x
+    sa = float(np.sqrt(abs(cov[0, 0]))) if np.isfinite(cov[0, 0]) else 0.05
+    sb = float(np.sqrt(abs(cov[1, 1]))) if np.isfinite(cov[1, 1]) else 0.2
+    alphas = np.linspace(max(a0 - 5 * sa, -0.5), a0 + 5 * sa, n_grid)
+    betas = np.linspace(b0 - 5 * sb, b0 + 5 * sb, n_grid)
+    A, B = np.meshgrid(alphas, betas, indexing="ij")
+    pred = model_m(snr[None, None], r[None, None], A[..., None], B[..., None])
+    chi2 = np.sum(((pred - m) / s) ** 2, axis=-1)
+    loglike = -0.5 * (chi2 - chi2.min())
+    return dict(alpha=float(a0), beta=float(b0), alpha_err=sa, beta_err=sb, cov=cov.tolist(),
+                chi2=float(np.sum(resid(sol.x) ** 2)), dof=int(len(m) - 2),
+                grid_alpha=alphas.tolist(), grid_beta=betas.tolist(), loglike=loglike.tolist())
+
+
+def calibrate(measured_path, truth_path, n_snr=20, n_size=20, n_boot=100, seed=0, min_per_bin=MIN_PER_BIN):
+    """The calibration of one simulation (see the module doc): (result dict, bins table, matched table)."""
+    tab = matched_galaxies(measured_path, truth_path)
+    if len(tab) < 3 * min_per_bin:
+        raise ShearfitValueError(f"{measured_path}: {len(tab)} measured galaxies match the truth; the calibration "
+                                 f"needs at least {3 * min_per_bin}")
+    if min(np.std(np.asarray(tab["g1"], float)), np.std(np.asarray(tab["g2"], float))) < 1e-4:
+        raise ShearfitValueError(f"{truth_path}: the shear is the same for every galaxy; m and c cannot be separated "
+                                 "(simulate with shear_rms > 0, or stack fields with different shears)")
+    idx, ns, nr = bin_indices(tab["snr"], tab["scalelength"], n_snr, n_size, min_per_bin)
+    rng = np.random.default_rng(seed)
+    bins = bin_bias(tab, idx, ns * nr, n_boot, rng)
+    fit = fit_alpha_beta(bins)
+    y1 = np.asarray(tab["e1"], float) - np.asarray(tab["e1_int"], float) - np.asarray(tab["g1"], float)
+    y2 = np.asarray(tab["e2"], float) - np.asarray(tab["e2_int"], float) - np.asarray(tab["g2"], float)
+    tot = _fit_mc(y1, y2, np.asarray(tab["g1"], float), np.asarray(tab["g2"], float), np.asarray(tab["weight"], float))
+    result = dict(fit, n_galaxies=int(len(tab)), n_snr_bins=int(ns), n_size_bins=int(nr),
+                  m_raw=float(tot[0]), c1=float(tot[1]), c2=float(tot[2]),
+                  paper_alpha=PAPER_ALPHA, paper_beta=PAPER_BETA,
+                  measured=str(measured_path), truth=str(truth_path))
+    return result, bins, tab
+
+
+def write_calibration(result, path):
+    with atomic_path(path) as tmp, open(tmp, "w") as f:
+        f.write("# shearfit noise-bias calibration: m(nu, r) = beta / ln(nu) exp(-alpha r nu), r in arcsec\n")
+        yaml.safe_dump(result, f, sort_keys=False, default_flow_style=None)
+
+
+def read_calibration(path):
+    """(alpha, beta) of a calibration.yaml."""
+    d = read_yaml_mapping(path, "calibration")
+    for k in ("alpha", "beta"):
+        if k not in d:
+            raise ShearfitIOError(f"{path}: calibration has no key {k!r}")
+        try:
+            d[k] = float(d[k])
+        except (TypeError, ValueError):
+            raise ShearfitIOError(f"{path}: calibration key {k!r} is not a number: {d[k]!r}") from None
+    return d["alpha"], d["beta"]
+
+
+def calibrated_bias(tab: Table, alpha, beta):
+    """Overall m, c1, c2 of a matched table before and after the calibration (alpha, beta).
+
+    The calibration divides the weighted shear estimate by 1 + the weighted mean m of the
+    galaxies (the paper's ensemble correction), so the calibrated m is (1 + m_raw) / (1 + <m>) - 1.
+    """
+    e1, e2 = np.asarray(tab["e1"], float), np.asarray(tab["e2"], float)
+    g1, g2 = np.asarray(tab["g1"], float), np.asarray(tab["g2"], float)
+    w = np.asarray(tab["weight"], float)
+    y1 = e1 - np.asarray(tab["e1_int"], float) - g1
+    y2 = e2 - np.asarray(tab["e2_int"], float) - g2
+    raw = _fit_mc(y1, y2, g1, g2, w)
+    mbar = float(np.sum(w * calibration_m(tab["snr"], tab["scalelength"], alpha, beta)) / np.sum(w))
+    return dict(m_raw=float(raw[0]), c1=float(raw[1]), c2=float(raw[2]), m_mean=mbar,
+                m_cal=float((1 + raw[0]) / (1 + mbar) - 1))
+
+
+def plot_calibration(bins: Table, result, path, weight_bins=None):
+    """m against SNR and size per bin with the fitted and the paper's m(nu, r), and m against weight."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(1, 3, figsize=(15, 4.5))
+    snr, r, m, s = (np.asarray(bins[c], float) for c in ("snr", "r", "m", "m_err"))
+    sc = ax[0].scatter(snr, m, c=r, s=12, cmap="viridis")
+    ax[0].errorbar(snr, m, s, fmt="none", ecolor="0.7", lw=0.5, zorder=0)
+    xs = np.geomspace(max(snr.min(), 2), snr.max(), 100)
+    for rr in np.percentile(r, [10, 50, 90]):
+        ax[0].plot(xs, model_m(xs, rr, result["alpha"], result["beta"]), "-", lw=1, label=f"fit, r = {rr:.2f}\"")
+        ax[0].plot(xs, model_m(xs, rr, PAPER_ALPHA, PAPER_BETA), ":", lw=1)
+    ax[0].set_xscale("log")
+    ax[0].set_xlabel("SNR")
+    ax[0].set_ylabel("m")
+    ax[0].axhline(0, color="k", lw=0.5)
+    ax[0].legend(fontsize=7, title="dotted: paper (0.057, -0.37)", title_fontsize=7)
+    fig.colorbar(sc, ax=ax[0], label="scalelength (arcsec)")
+    ax[1].scatter(r, m, c=np.log10(snr), s=12, cmap="plasma")
+    ax[1].errorbar(r, m, s, fmt="none", ecolor="0.7", lw=0.5, zorder=0)
+    ax[1].set_xlabel("scalelength (arcsec)")
+    ax[1].set_ylabel("m")
+    ax[1].axhline(0, color="k", lw=0.5)
+    if weight_bins is not None:
+        wb = weight_bins
+        ax[2].errorbar(wb["weight"], wb["m"], wb["m_err"], fmt="o", ms=3, label="raw")
+        if "m_pred" in wb.colnames:
+            ax[2].plot(wb["weight"], wb["m_pred"], "-", label="calibration m(nu, r)")
+        ax[2].set_xlabel("mean lensfit weight")
+        ax[2].set_ylabel("m")
+        ax[2].axhline(0, color="k", lw=0.5)
+        ax[2].legend(fontsize=8)
+    fig.suptitle(f"alpha = {result['alpha']:.3f} +- {result['alpha_err']:.3f}, beta = {result['beta']:.3f} +- "
+                 f"{result['beta_err']:.3f} ({result['n_galaxies']} galaxies)")
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=110, format="png")
+    plt.close(fig)
+
+
+def weight_bins(tab: Table, alpha, beta, n=10, n_boot=100, seed=0):
+    """m in bins of lensfit weight (equal numbers), with the calibration's mean prediction per bin."""
+    w = np.asarray(tab["weight"], float)
+    order = np.argsort(w, kind="stable")
+    idx = np.empty(w.size, int)
+    idx[order] = np.arange(w.size) * n // max(w.size, 1)
+    pred = calibration_m(tab["snr"], tab["scalelength"], alpha, beta)
+    return bin_bias(tab, idx, n, n_boot, np.random.default_rng(seed), m_pred=pred)

@@ -1,0 +1,95 @@
+"""``shearfit calibrate``: bins, m and c per bin, the (alpha, beta) fit, closure on a synthetic catalogue."""
+
+import numpy as np
+import pytest
+import yaml
+from astropy.table import Table
+
+from shearfit.calibrate import (bin_indices, calibrate, calibrated_bias, calibration_m, matched_galaxies,
+                                read_calibration)
+from shearfit.cli import main
+from shearfit.errors import ShearfitIOError, ShearfitValueError
+
+ALPHA, BETA = 0.08, -0.6
+
+
+def _synthetic(tmp_path, n=40000, seed=0, alpha=ALPHA, beta=BETA, const_shear=False, c=(0.002, -0.001)):
+    """Measured and truth tables whose ellipticities carry m(nu, r) of (alpha, beta), c and noise."""
+    rng = np.random.default_rng(seed)
+    snr = np.exp(rng.uniform(np.log(7), np.log(80), n))
+    r = np.exp(rng.uniform(np.log(0.1), np.log(1.0), n))
+    g = np.full((n, 2), [0.03, -0.02]) if const_shear else rng.normal(0, 0.05, (n, 2))
+    eint = rng.normal(0, 0.25, (n, 2))
+    m = calibration_m(snr, r, alpha, beta)
+    noise = rng.normal(0, 1, (n, 2)) * (2.0 / snr)[:, None]
+    e = eint + (1 + m)[:, None] * g + np.array(c) + noise
+    w = 1.0 / (0.25 ** 2 + (2.0 / snr) ** 2)
+    ids = np.arange(n)
+    meas = Table({"id": ids, "e1": e[:, 0], "e2": e[:, 1], "weight": w, "fitclass": np.zeros(n, int), "snr": snr,
+                  "scalelength": r})
+    truth = Table({"id": ids, "g1": g[:, 0], "g2": g[:, 1], "e1_int": eint[:, 0], "e2_int": eint[:, 1],
+                   "is_star": np.zeros(n, bool)})
+    # a star and an unmeasured object, which the calibration must leave out
+    meas.add_row((n, 0.0, 0.0, 0.0, 1, 100.0, 0.0))
+    truth.add_row((n, 0.0, 0.0, 0.0, 0.0, True))
+    meas.add_row((n + 1, np.nan, np.nan, 0.0, -2, np.nan, np.nan))
+    truth.add_row((n + 1, 0.01, 0.0, 0.1, 0.0, False))
+    mp, tp = tmp_path / f"m{seed}.fits", tmp_path / f"t{seed}.fits"
+    meas.write(mp)
+    truth.write(tp)
+    return mp, tp
+
+
+def test_bins_have_equal_numbers_and_shrink_for_small_samples():
+    rng = np.random.default_rng(1)
+    snr, r = rng.uniform(5, 50, 4000), rng.uniform(0.1, 1, 4000)
+    idx, ns, nr = bin_indices(snr, r, 20, 20, min_per_bin=10)
+    assert (ns, nr) == (20, 20)
+    counts = np.bincount(idx, minlength=400)
+    assert counts.min() == 10 and counts.max() == 10
+    idx, ns, nr = bin_indices(snr[:500], r[:500], 20, 20, min_per_bin=50)
+    assert ns * nr * 50 <= 500 and np.bincount(idx).min() >= 50 // 2
+
+
+def test_recovers_alpha_beta_and_closes(tmp_path):
+    mp, tp = _synthetic(tmp_path)
+    res, bins, tab = calibrate(mp, tp, n_snr=8, n_size=8, n_boot=30)
+    assert len(tab) == 40000                  # star and failed fit left out
+    # the fitted parameters agree with the input within 3 sigma (errors from the bins' bootstrap)
+    assert abs(res["alpha"] - ALPHA) < 3 * res["alpha_err"] + 1e-3
+    assert abs(res["beta"] - BETA) < 3 * res["beta_err"]
+    assert res["c1"] == pytest.approx(0.002, abs=2e-3) and res["c2"] == pytest.approx(-0.001, abs=2e-3)
+    assert np.array(res["loglike"]).shape == (len(res["grid_alpha"]), len(res["grid_beta"]))
+    # closure on an independent sample: the calibrated m is zero within its statistical reach
+    mp2, tp2 = _synthetic(tmp_path, seed=5)
+    cb = calibrated_bias(matched_galaxies(mp2, tp2), res["alpha"], res["beta"])
+    assert cb["m_raw"] < -0.05                # a real noise bias to correct
+    assert abs(cb["m_cal"]) < 0.015
+
+
+def test_constant_shear_is_refused(tmp_path):
+    mp, tp = _synthetic(tmp_path, n=2000, const_shear=True)
+    with pytest.raises(ShearfitValueError, match="shear is the same"):
+        calibrate(mp, tp)
+
+
+def test_cli_writes_yaml_bins_plot_and_reads_back(tmp_path, capsys):
+    mp, tp = _synthetic(tmp_path, n=6000)
+    out = tmp_path / "cal.yaml"
+    assert main(["calibrate", str(mp), str(tp), "--out", str(out), "--n-snr", "4", "--n-size", "4",
+                 "--bootstrap", "10"]) == 0
+    assert "alpha =" in capsys.readouterr().out
+    assert (tmp_path / "cal_bins.fits").exists() and (tmp_path / "cal.png").exists()
+    a, b = read_calibration(out)
+    d = yaml.safe_load(out.read_text())
+    assert (a, b) == (d["alpha"], d["beta"]) and d["paper_alpha"] == 0.057
+
+
+def test_bad_inputs_name_the_file(tmp_path):
+    mp, tp = _synthetic(tmp_path, n=500)
+    Table({"id": [1]}).write(tmp_path / "bad.fits")
+    with pytest.raises(ShearfitIOError, match="bad.fits: no column g1"):
+        matched_galaxies(mp, tmp_path / "bad.fits")
+    (tmp_path / "c.yaml").write_text("alpha: 0.1\n")
+    with pytest.raises(ShearfitIOError, match="c.yaml: calibration has no key 'beta'"):
+        read_calibration(tmp_path / "c.yaml")

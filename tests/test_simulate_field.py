@@ -1,0 +1,125 @@
+"""``shearfit simulate``: presets, reproducibility, truth, defects in the weights, the second suite."""
+
+import numpy as np
+import pytest
+from astropy.io import fits
+from astropy.table import Table
+
+galsim = pytest.importorskip("galsim")
+
+from shearfit.cli import main  # noqa: E402
+from shearfit.errors import ShearfitValueError  # noqa: E402
+from shearfit.simulate.field import PRESETS, simulate_field, simulation_config  # noqa: E402
+
+
+def test_config_presets_and_errors():
+    assert simulation_config().suite == "great"
+    for name in PRESETS:
+        simulation_config({"preset": name})
+    assert simulation_config({"preset": "second"}).n_exposures == 1
+    with pytest.raises(ShearfitValueError, match="unknown simulation key 'shaer'"):
+        simulation_config({"shaer": [0.1, 0]})
+    with pytest.raises(ShearfitValueError, match="preset"):
+        simulation_config({"preset": "huge"})
+    with pytest.raises(ShearfitValueError, match="suite"):
+        simulation_config({"suite": "third"})
+
+
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory):
+    d = tmp_path_factory.mktemp("sim")
+    sc = simulation_config({"preset": "tiny", "seed": 7, "shear_rms": 0.05})
+    res = simulate_field(sc, d / "a")
+    return sc, res, d
+
+
+def test_field_files_and_truth(tiny):
+    sc, res, d = tiny
+    a = d / "a"
+    for name in ("exp0.fits", "exp2.weight.fits", "exp1.psf.fits", "objects.fits", "stars.fits", "truth.fits",
+                 "field.yaml", "field_truepsf.yaml", "simulation.yaml"):
+        assert (a / name).exists(), name
+    t = Table.read(a / "truth.fits")
+    for col in ("id", "ra", "dec", "mag", "g1", "g2", "e1_int", "e2_int", "scalelength", "bulge_fraction",
+                "is_star", "snr"):
+        assert col in t.colnames
+    assert t.meta["SEED"] == 7
+    gal = t[~t["is_star"]]
+    assert len(gal) == res["n_galaxies"] and np.sum(t["is_star"]) == res["n_stars"] > 8
+    # a shear field: the shear varies, with about the requested rms
+    assert 0.02 < np.sqrt(np.mean(gal["g1"] ** 2 + gal["g2"] ** 2) / 2) < 0.1
+    # 90-degree pairs: consecutive galaxies have opposite intrinsic ellipticity and the same size
+    assert np.allclose(gal["e1_int"][1::2], -gal["e1_int"][0::2][: len(gal) // 2])
+    assert np.allclose(gal["scalelength"][1::2], gal["scalelength"][0::2][: len(gal) // 2])
+    # PSF given 3x oversampled, normalised
+    with fits.open(a / "exp0.psf.fits") as h:
+        assert h[1].header["OVERSAMP"] == 3 and h[1].data.sum() == pytest.approx(1.0)
+
+
+def test_snr_is_the_five_pixel_aperture_snr(tiny):
+    sc, res, d = tiny
+    t = Table.read(d / "a" / "truth.fits")
+    g = t[~t["is_star"]]
+    # independent check for one galaxy: redraw it without noise through exposure 0's WCS
+    from shearfit.simulate.stamps import galaxy_profile, mag_to_flux
+    from shearfit.simulate import field as F
+
+    i = int(np.argmax(g["snr"]))
+    row = g[i]
+    h = fits.getheader(d / "a" / "exp0.fits", 1)
+    wcs = galsim.GSFitsWCS(header=h)
+    pos = wcs.toImage(galsim.CelestialCoord(row["ra"] * galsim.degrees, row["dec"] * galsim.degrees))
+    assert 1 <= pos.x <= sc.ccd_nx and 1 <= pos.y <= sc.ccd_ny
+    assert 3 < row["snr"] < 1e4
+    prof = galaxy_profile(row["scalelength"], row["bulge_fraction"], row["e1_int"], row["e2_int"],
+                          flux=mag_to_flux(row["mag"]), g1=row["g1"], g2=row["g2"], is_bulge=bool(row["is_bulge"]))
+    # the PSF differs per exposure: compare the aperture flux with the flux, not the exact SNR
+    stamp = prof.drawImage(wcs=wcs.local(pos), nx=64, ny=64, center=pos, method="no_pixel")
+    assert F._aperture_sum(stamp, pos) < mag_to_flux(row["mag"])
+
+
+def test_same_seed_same_field_and_defects_in_weights(tiny, tmp_path):
+    sc, res, d = tiny
+    res2 = simulate_field(sc, tmp_path / "b")
+    with fits.open(d / "a" / "exp1.fits") as h1, fits.open(tmp_path / "b" / "exp1.fits") as h2:
+        assert np.array_equal(h1[1].data, h2[1].data)
+    with fits.open(d / "a" / "exp0.weight.fits") as w:
+        wt = w[1].data
+    bad = wt == 0
+    assert bad.any() and bad.mean() < 0.05
+    assert res2["n_galaxies"] == res["n_galaxies"]
+
+
+def test_second_suite_cli(tmp_path, capsys):
+    cfg = tmp_path / "sim.yaml"
+    cfg.write_text("preset: second-small\nccd_nx: 200\nccd_ny: 200\ngalaxy_density: 80\nstar_density: 30\n")
+    assert main(["simulate", str(cfg), "--out", str(tmp_path / "s"), "--seed", "3"]) == 0
+    assert "second field" in capsys.readouterr().out
+    t = Table.read(tmp_path / "s" / "truth.fits")
+    assert t.meta["SUITE"] == "second" and t.meta["SEED"] == 3
+    assert len(fits.open(tmp_path / "s" / "exp0.fits")) == 2       # one exposure, one CCD
+    assert not (tmp_path / "s" / "exp1.fits").exists()
+
+
+def test_simulate_bad_config_is_one_line(tmp_path, capsys):
+    cfg = tmp_path / "sim.yaml"
+    cfg.write_text("preset: small\nn_exposures: 0\n")
+    assert main(["simulate", str(cfg), "--out", str(tmp_path / "x")]) == 1
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "n_exposures" in err
+
+
+def test_field_demo_end_to_end(tmp_path):
+    """The demo's whole chain (simulate +g/-g, PSF from stars, measure, match, m and c) on the tiny preset."""
+    import io
+
+    from shearfit.demo_field import run_field_demo
+
+    buf = io.StringIO()
+    s = run_field_demo(out_dir=tmp_path / "demo", processes=2, preset="tiny", stream=buf)
+    text = buf.getvalue()
+    assert "input shear" in text and "multiplicative" in text and str(tmp_path / "demo") in text
+    assert s["n_galaxies"] >= 12
+    # bright galaxies (mag 20-23), true shear 0.04 / -0.03: the raw m is small, within a loose bound
+    assert all(abs(m) < 0.3 for m in s["m"]) and all(e > 0 for e in s["m_err"])
+    assert (tmp_path / "demo" / "field_plus" / "shear.fits").exists()
