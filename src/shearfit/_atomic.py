@@ -22,18 +22,17 @@ def atomic_path(path):
 
 
 def read_yaml_mapping(path, what):
-    """A YAML file's top-level mapping; one-line ShearfitIOError naming the file otherwise."""
-    import yaml
-
+    """A YAML file's top-level mapping, read with the field config's strict loader (duplicate keys refused,
+    ``1e-6`` a float); one-line errors naming the file."""
     from .errors import ShearfitIOError
+    from .field.fieldconfig import _yaml_load
 
     try:
         with open(path) as f:
-            d = yaml.safe_load(f)
+            text = f.read()
     except OSError as exc:
         raise ShearfitIOError(f"{path}: cannot read the {what}: {exc.strerror}") from None
-    except yaml.YAMLError as exc:
-        raise ShearfitIOError(f"{path}: not valid YAML: {str(exc).splitlines()[0]}") from None
+    d = _yaml_load(text, str(path))
     if d is None:
         d = {}
     if not isinstance(d, dict):

@@ -288,9 +288,11 @@ def _solve_modes(model: PixelPSF, D, stars: StarSet, flux, prior=None):
     return spectra
 
 
-def _residual_variance(model: PixelPSF, D, stars: StarSet, flux):
-    """Per stamp frequency, the weighted residual variance per unit star weight, (n, n)."""
-    M = model.native_dft(stars.ccd, stars.u, stars.v, stars.delta) if np.any(model.spectra) else 0.0
+def _residual_variance(model: PixelPSF, D, stars: StarSet, flux, M):
+    """Per stamp frequency, the weighted residual variance per unit star weight, (n, n).
+
+    ``M`` is the model's DFT at the stars (``_star_fluxes`` returns it with the fluxes).
+    """
     r = D / flux[:, None, None] - M
     w = stars.weight
     dof = max(len(stars) - int(np.sum(model.kind != 2)), 1)
@@ -443,10 +445,10 @@ def fit_pixel_psf(stars: StarSet, n_ccd: int, order: int = 3, oversampling: int 
                                         iterations=iterations, clip=clip, centroid_sigma=centroid_sigma,
                                         centre=centre, frame=frame)
         kept = nat["kept"].copy()
-        flux = nat["flux"]
         D = np.fft.fft2(np.fft.ifftshift(st.image, axes=(-2, -1)))
+        flux, M = _star_fluxes(native, D, st)
         mu, tau = _alias_prior(native, st, k, model, rel_width=alias_width)
-        prior = (mu, tau, _residual_variance(native, D, st, flux))
+        prior = (mu, tau, _residual_variance(native, D, st, flux, M))
         clip = 0.0
     else:
         st = stars.subset(np.arange(len(stars)))
@@ -471,7 +473,7 @@ def fit_pixel_psf(stars: StarSet, n_ccd: int, order: int = 3, oversampling: int 
             st.delta = st.delta + np.stack([mx, my], axis=1)
         flux, M = _star_fluxes(model, D, st)
         if prior is not None:
-            prior = (prior[0], prior[1], _residual_variance(model, D, st, flux))
+            prior = (prior[0], prior[1], _residual_variance(model, D, st, flux, M))
         if it == iterations - 1 and clip > 0:
             chi2 = _reduced_chi2(st, D, flux, M)
             med = np.median(chi2)
