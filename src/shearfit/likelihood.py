@@ -285,15 +285,24 @@ def log_erf_diff(a, b):
     return out
 
 
+_EI_SERIES_FROM = 40.0
+# coefficients k! of the asymptotic series Ei(x) ~ (e^x / x) sum_k k! / x^k, to k = 12: at x >= 40 the
+# first omitted term, 13!/40^13, is 1e-11 of the sum (the series is used where it is that good)
+_EI_FACTORIALS = np.cumprod(np.concatenate([[1.0], np.arange(1.0, 13.0)]))
+
+
 def _log_ei(x):
-    """log Ei(x) for x > 0.37 (where Ei > 0); asymptotic series beyond 500."""
+    """log Ei(x) for x > 0.37 (where Ei > 0): scipy's expi below 40, the asymptotic series beyond."""
     x = np.asarray(x, float)
     out = np.empty(x.shape)
-    small = x < 500
-    out[small] = np.log(special.expi(x[small]))
+    small = x < _EI_SERIES_FROM
+    if np.any(small):
+        out[small] = np.log(special.expi(x[small]))
     xl = x[~small]
     inv = 1.0 / xl
-    series = 1 + inv * (1 + inv * (2 + inv * (6 + inv * (24 + inv * (120 + inv * 720)))))
+    series = np.zeros_like(xl)
+    for c in _EI_FACTORIALS[::-1]:
+        series = series * inv + c
     out[~small] = xl - np.log(xl) + np.log(series)
     return out
 
@@ -386,9 +395,8 @@ def _spline_logint(u, logv, n_fine=61):
     good_rows = np.isfinite(rowmax[:, 0])
     floor = np.where(good_rows[:, None], rowmax - 40.0, 0.0)
     lv = np.where(finite, np.maximum(logv, floor), floor)
-    spl = CubicSpline(u, lv, axis=1)
     uf = np.linspace(u[0], u[-1], n_fine)
-    vf = spl(uf)
+    vf = lv @ spline_matrix(u, uf)
     m = np.max(vf, axis=1, keepdims=True)
     w = np.exp(vf - m)
     integral = np.trapezoid(w, uf, axis=1)
@@ -399,12 +407,33 @@ def _spline_logint(u, logv, n_fine=61):
 _INTERP_CACHE = {}
 
 
+def _grid_key(kind, x, xf):
+    return (kind, x.size, xf.size) + tuple(float(v) for v in x) + (float(xf[0]), float(xf[-1]))
+
+
 def _interp_matrix(x, xf):
     """Matrix W with (values at x) @ W = linear interpolation at xf (cached per grid pair)."""
-    key = (x.size, float(x[0]), float(x[-1]), xf.size, float(xf[0]), float(xf[-1]))
+    key = _grid_key("linear", x, xf)
     w = _INTERP_CACHE.get(key)
     if w is None:
         w = _INTERP_CACHE[key] = np.array([np.interp(xf, x, col) for col in np.eye(x.size)])
+    return w
+
+
+def spline_matrix(x, xf):
+    """Matrix W with (values at x) @ W = the not-a-knot cubic spline through them, at xf.
+
+    A cubic spline is linear in the values it passes through, so for fixed
+    nodes it is one matrix product (cached per grid pair): the same numbers
+    as ``CubicSpline(x, values, axis=-1)(xf)`` without solving its system
+    for every row.
+    """
+    key = _grid_key("spline", x, xf)
+    w = _INTERP_CACHE.get(key)
+    if w is None:
+        if len(_INTERP_CACHE) > 256:   # the size grid changes per object: keep the cache bounded
+            _INTERP_CACHE.clear()
+        w = _INTERP_CACHE[key] = CubicSpline(x, np.eye(x.size), axis=0)(xf).T.copy()
     return w
 
 

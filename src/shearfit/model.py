@@ -24,6 +24,8 @@ is exact.
 
 from __future__ import annotations
 
+import functools
+
 from dataclasses import dataclass
 
 import numpy as np
@@ -187,24 +189,28 @@ def _fine_modes_from_psf(psf, s, ny, nx):
     return ky, kx, P[keep], coarse
 
 
-def _fine_modes_moffat(psf, ny, nx, s):
-    """Native PSF with the App. A alias correction, generalised (see fit_moffat).
+def psf_moffat(psf):
+    """(rs, beta) of the circular Moffat that stands for a native PSF above Nyquist (see fit_moffat)."""
+    ny, nx = psf.shape
+    Ps = np.fft.rfft2(np.fft.ifftshift(_pad_center(psf, (ny + ny % 2, nx + nx % 2))))
+    ny, nx = ny + ny % 2, nx + nx % 2
+    return fit_moffat(Ps, 2 * np.pi * np.fft.fftfreq(ny), 2 * np.pi * np.fft.rfftfreq(nx))
 
-    Above Nyquist the PSF is taken to be a circular Moffat times the pixel
-    response, scaled mode by mode so that its aliased sum reproduces the
-    sampled PSF's transform exactly inside the band: the model is
-    ``sum_n (R G)(k + 2 pi n) * P_s(k) / sum_n G(k + 2 pi n)``. For a
-    band-limited PSF this is the exact convolution; for a Moffat-like PSF it
-    models the modes a native image cannot hold.
+
+@functools.lru_cache(maxsize=64)
+def _moffat_aliases(rs, beta, ny, nx, s):
+    """The Moffat (times the pixel response) at every alias of the stamp's rfft modes.
+
+    Returns the aliased sum ``A = sum_n G(k + 2 pi n)`` over n in [-2, 2]^2
+    (beyond +-2 the Moffat is below 1e-8) and, for the s x s aliases the
+    model keeps, G with their wavevectors and the sampled mode each folds
+    onto. Cached: one exposure's CCD shares one Moffat (App. A fits one
+    near the field centre), so its objects reuse these tables.
     """
-    p = _pad_center(psf, (ny, nx))
-    Ps = np.fft.rfft2(np.fft.ifftshift(p))
     kyc = 2 * np.pi * np.fft.fftfreq(ny)
     kxc = 2 * np.pi * np.fft.rfftfreq(nx)
-    rs, beta = fit_moffat(Ps, kyc, kxc)
-
     # the Moffat's transform is radial: tabulate it once on |k| and interpolate; the pixel response is
-    # separable. All aliases (n_y, n_x) in [-2, 2]^2 at once; beyond +-2 the Moffat is below 1e-8.
+    # separable
     na = 2
     offs = 2 * np.pi * np.arange(-na, na + 1)
     kmax = np.hypot(np.pi + offs[-1], np.pi + offs[-1]) + 1.0
@@ -217,17 +223,40 @@ def _fine_modes_moffat(psf, ny, nx, s):
     kk = np.hypot(KYa[:, None, :, None], KXa[None, :, None, :])          # (5, 5, ny, nxh)
     G = np.interp(kk, ktab, mtab, right=0.0) * sy[:, None, :, None] * sx[None, :, None, :]
     A = G.sum(axis=(0, 1))
-    ratio = np.where(np.abs(A) > 1e-12, Ps / np.where(np.abs(A) > 1e-12, A, 1.0), 0.0)
     half = s // 2
     sel = slice(na - half, na + half + 1)
-    Gs = G[sel, sel] * ratio[None, None]
-    ny_, nxh = ratio.shape
-    KYf = np.broadcast_to(KYa[sel][:, None, :, None], Gs.shape)
-    KXf = np.broadcast_to(KXa[sel][None, :, None, :], Gs.shape)
-    coarse_index = (np.arange(ny_)[:, None] * nxh + np.arange(nxh)[None, :])
-    cs = np.broadcast_to(coarse_index, Gs.shape)
-    return KYf.ravel(), KXf.ravel(), Gs.ravel(), cs.ravel()
+    Gs = G[sel, sel]
+    nxh = kxc.size
+    KYf = np.broadcast_to(KYa[sel][:, None, :, None], Gs.shape).ravel()
+    KXf = np.broadcast_to(KXa[sel][None, :, None, :], Gs.shape).ravel()
+    coarse_index = (np.arange(ny)[:, None] * nxh + np.arange(nxh)[None, :])
+    cs = np.broadcast_to(coarse_index, Gs.shape).ravel()
+    for a in (A, Gs, KYf, KXf, cs):
+        a.setflags(write=False)
+    return A, Gs, KYf, KXf, cs
 
+
+def _fine_modes_moffat(psf, ny, nx, s, moffat=None):
+    """Native PSF with the App. A alias correction, generalised (see fit_moffat).
+
+    Above Nyquist the PSF is taken to be a circular Moffat times the pixel
+    response, scaled mode by mode so that its aliased sum reproduces the
+    sampled PSF's transform exactly inside the band: the model is
+    ``sum_n (R G)(k + 2 pi n) * P_s(k) / sum_n G(k + 2 pi n)``. For a
+    band-limited PSF this is the exact convolution; for a Moffat-like PSF it
+    models the modes a native image cannot hold. ``moffat`` = (rs, beta)
+    gives the Moffat (one per CCD, as the pipeline does); by default it is
+    fitted to this PSF.
+    """
+    p = _pad_center(psf, (ny, nx))
+    Ps = np.fft.rfft2(np.fft.ifftshift(p))
+    if moffat is None:
+        rs, beta = fit_moffat(Ps, 2 * np.pi * np.fft.fftfreq(ny), 2 * np.pi * np.fft.rfftfreq(nx))
+    else:
+        rs, beta = moffat
+    A, Gs, KYf, KXf, cs = _moffat_aliases(float(rs), float(beta), ny, nx, int(s))
+    ratio = np.where(np.abs(A) > 1e-12, Ps / np.where(np.abs(A) > 1e-12, A, 1.0), 0.0)
+    return KYf, KXf, (Gs * ratio[None, None]).ravel(), cs
 
 
 def noise_variance(weight):
@@ -247,7 +276,7 @@ def prepare_exposure(obs: Observation, cfg: FitConfig, grid_shape=None, with_dat
     ny, nx = grid_shape if grid_shape is not None else obs.shape
     s = obs.psf_oversampling
     if s == 1 and cfg.alias_correction == "moffat":
-        ky, kx, T, coarse = _fine_modes_moffat(obs.psf, ny, nx, cfg.alias_oversampling)
+        ky, kx, T, coarse = _fine_modes_moffat(obs.psf, ny, nx, cfg.alias_oversampling, obs.psf_moffat)
     else:
         ky, kx, T, coarse = _fine_modes_from_psf(obs.psf, s, ny, nx)
     # the object's nominal position sits at (stamp centre + offset)

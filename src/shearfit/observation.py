@@ -49,10 +49,14 @@ class Observation:
         The object's nominal position minus the stamp centre, in pixels.
     flux_scale : float
         Counts in this exposure per unit of the common flux.
+    psf_moffat : (rs, beta), optional
+        For a native PSF, the circular Moffat (scale radius in pixels, beta)
+        that carries it above Nyquist (App. A; see :func:`shearfit.model.psf_moffat`).
+        The pipeline fits one per CCD; by default one is fitted to ``psf``.
     """
 
     def __init__(self, image, psf, jacobian, weight=None, psf_oversampling=1, offset=(0.0, 0.0),
-                 flux_scale=1.0):
+                 flux_scale=1.0, psf_moffat=None):
         self.image = _readonly(image, "image")
         if weight is None:
             sigma = _mad_sigma(self.image)
@@ -84,6 +88,12 @@ class Observation:
         self.flux_scale = float(flux_scale)
         if not self.flux_scale > 0:
             raise ShearfitValueError("Observation flux_scale must be positive")
+        if psf_moffat is not None:
+            rs, beta = (float(v) for v in psf_moffat)
+            if not (rs > 0 and beta > 1 and np.isfinite(rs) and np.isfinite(beta)):
+                raise ShearfitValueError(f"Observation psf_moffat must be (rs > 0, beta > 1), got {psf_moffat!r}")
+            psf_moffat = (rs, beta)
+        self.psf_moffat = psf_moffat
 
     @property
     def shape(self):

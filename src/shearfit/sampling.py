@@ -21,11 +21,10 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.interpolate import CubicSpline
 
 from . import priors
 from .config import FitConfig
-from .likelihood import flux_position_marginal, model_sums, _linear_vectors
+from .likelihood import flux_position_marginal, model_sums, spline_matrix, _linear_vectors
 
 __all__ = ["EllipticityLikelihood", "Samples", "adaptive_samples", "two_pass_samples", "estimate",
            "lensing_weight"]
@@ -202,7 +201,7 @@ class EllipticityLikelihood:
             good = np.isfinite(rowmax[:, 0])
             floor = np.where(good[:, None], rowmax - 40.0, 0.0)
             lv = np.where(finite, np.maximum(logl, floor), floor)
-            vf = CubicSpline(x, lv, axis=1)(xf) + logprior
+            vf = lv @ spline_matrix(x, xf) + logprior
             # from r = 0 to the first node: log L linear in r^2 between the point source and the node
             l0 = float((self.zero.logl_disk if name == "disk" else self.zero.logl_bulge)[0])
             l0 = l0 if np.isfinite(l0) else -np.inf

@@ -35,6 +35,7 @@ from .. import __version__
 from ..errors import (FITCLASS_FEW_EXPOSURES, FITCLASS_FIT_FAILED, FITCLASS_OFF_EXPOSURES, ShearfitValueError)
 from ..calibrate import PAPER_ALPHA, PAPER_BETA, calibration_m, read_calibration
 from ..measure import measure_object
+from ..model import psf_moffat
 from ..observation import Observation
 from .fieldconfig import FieldConfig
 from .io import empty_output_table, provenance_cards, read_catalog, read_exposure, write_catalog_atomic
@@ -94,6 +95,20 @@ class _ExposurePSF:
     fitted: Optional[object] = None   # a shearfit.psf PixelPSF fitted to the exposure's stars
     ccds: Optional[list] = None
     _frame: Optional[FieldFrame] = None
+    _moffat: Optional[dict] = None
+
+    def moffat(self, ccd_index, shape):
+        """The CCD's above-Nyquist Moffat (rs, beta), fitted once to its PSF at the CCD centre (App. A).
+
+        None for an oversampled PSF (it needs none) or where the centre has no PSF.
+        """
+        if self._moffat is None:
+            self._moffat = {}
+        if ccd_index not in self._moffat:
+            ny, nx = shape
+            got = self.at(ccd_index, 0.5 * (nx - 1), 0.5 * (ny - 1))
+            self._moffat[ccd_index] = psf_moffat(got[0]) if got is not None and got[1] == 1 else None
+        return self._moffat[ccd_index]
 
     def at(self, ccd_index, x, y):
         """(PSF image, oversampling) at CCD pixel (x, y), or None where the model has no stars."""
@@ -293,7 +308,8 @@ def _measure_one(hits, exposures, mag, cfg, pc) -> dict:
         if st is None:
             continue
         cuts.append(dict(e=e, ccd=ccd, image=np.array(st.image, float), weight=np.array(st.weight, float),
-                         offset=st.offset, J=local_jacobian(ccd.wcs, x, y), psf=psf, k=k, moments=psf_moments(psf)))
+                         offset=st.offset, J=local_jacobian(ccd.wcs, x, y), psf=psf, k=k, moments=psf_moments(psf),
+                         moffat=epsf.moffat(c, ccd.image.shape) if k == 1 else None))
     if not cuts:
         return {"fitclass": FITCLASS_FEW_EXPOSURES, "n_exposures_used": 0}
     flag = _isophote_analysis(cuts, pc)
@@ -305,7 +321,8 @@ def _measure_one(hits, exposures, mag, cfg, pc) -> dict:
             continue
         try:
             obs.append(Observation(image=cut["image"], weight=cut["weight"], psf=cut["psf"], psf_oversampling=cut["k"],
-                                   jacobian=cut["J"], offset=tuple(cut["offset"]), flux_scale=cut["ccd"].flux_scale))
+                                   jacobian=cut["J"], offset=tuple(cut["offset"]), flux_scale=cut["ccd"].flux_scale,
+                                   psf_moffat=cut["moffat"]))
         except ShearfitValueError as exc:
             log.warning("exposure %d CCD %s skipped for an object: %s", cut["e"], cut["ccd"].label, exc)
             continue
