@@ -14,12 +14,17 @@ pipeline's throughput.
     python benchmarks/field_test.py --n-galaxies 40 --wcs rotated     # each exposure rotated, odd ones flipped
     python benchmarks/field_test.py --n-galaxies 40 --wcs distorted   # + a few per cent SIP distortion
     python benchmarks/field_test.py --n-galaxies 40 --psf both        # PSF fitted from stars vs the true one
+    python benchmarks/field_test.py --wcs plain rotated distorted     # all three on the same galaxies, differences
+    python benchmarks/field_test.py --psf both --psf-fwhm 0.36 0.38 --true-psf-oversampling 3 \
+        --fitted-oversampling 1 3 --star-snr 200 2000                 # undersampled: native vs 3x fitted model
 
 With ``--psf fitted`` or ``both`` every CCD also holds stars (a star
 catalogue is given), each CCD of each exposure has its own PSF (a jump
 between CCDs), and ``shearfit measure`` fits the pixel PSF models itself;
 ``both`` measures each field with the true PSF too and prints the
 difference in m and c (same galaxies and noise, so most of the error cancels).
+Several variants (WCS modes, fitted-model oversampling) are measured on the
+same galaxies, and each is compared with the first.
 """
 
 from __future__ import annotations
@@ -67,7 +72,13 @@ def ccd_header(ccd, exposure, mode, rng_exp):
     h["CRPIX1"], h["CRPIX2"] = cx + dx, cy + dy
     h["CD1_1"], h["CD1_2"], h["CD2_1"], h["CD2_2"] = cd[0, 0], cd[0, 1], cd[1, 0], cd[1, 1]
     if mode == "distorted":
-        # quadratic SIP terms: a few per cent of scale change across the CCD
+        # tangent point at the CCD's centre (as the CCD's own solution would have it), so that the
+        # quadratic SIP terms change the scale by a few per cent across the CCD whatever its place
+        from astropy.wcs import WCS
+
+        ra_c, dec_c = WCS(h).all_pix2world([[NPIX / 2, NPIX / 2]], 1)[0]
+        h["CRVAL1"], h["CRVAL2"] = float(ra_c), float(dec_c)
+        h["CRPIX1"], h["CRPIX2"] = NPIX / 2, NPIX / 2
         h["A_ORDER"], h["B_ORDER"] = 2, 2
         h["A_2_0"], h["A_0_2"], h["A_1_1"] = 3e-5 * rng_exp[0], 2e-5 * rng_exp[1], 2e-5
         h["B_2_0"], h["B_0_2"], h["B_1_1"] = 2e-5 * rng_exp[2], 3e-5 * rng_exp[3], -2e-5
@@ -84,11 +95,11 @@ def star_positions(args, rng):
             for j in range(nx_side - 1):
                 du = ((c - 0.5) * (NPIX + 20) + (i - nx_side / 2 + 1.0) * SPACING + rng.uniform(-2, 2)) * PIX / 3600.0
                 dv = ((j - nx_side / 2 + 1.0) * SPACING + rng.uniform(-2, 2)) * PIX / 3600.0
-                out.append((RA0 - du / np.cos(np.radians(DEC0)), DEC0 + dv, 10 ** rng.uniform(np.log10(50), 3)))
+                out.append((RA0 - du / np.cos(np.radians(DEC0)), DEC0 + dv, 10 ** rng.uniform(*np.log10(args.star_snr))))
     return np.array(out)
 
 
-def make_field(d, sign, args, gals, psfs, sigma, stars=None, with_psf=True):
+def make_field(d, sign, args, gals, psfs, sigma, stars=None, with_psf=True, wcs_mode="plain", psf_settings=None):
     g = sign * np.array(args.shear)
     specs = []
     rng_noise = np.random.default_rng(args.seed + 1000)   # the same noise for +g and -g
@@ -96,11 +107,15 @@ def make_field(d, sign, args, gals, psfs, sigma, stars=None, with_psf=True):
         rng_exp = np.random.default_rng([args.seed, k]).uniform(0.5, 1.5, 4)
         hdus, whdus, phdus = [fits.PrimaryHDU()], [fits.PrimaryHDU()], []
         for c in range(args.n_ccd):
-            h = ccd_header(c, k, args.wcs, rng_exp)
+            h = ccd_header(c, k, wcs_mode, rng_exp)
             wcs = galsim.GSFitsWCS(header=h)
             img = galsim.ImageD(NPIX, NPIX, wcs=wcs)
+            centre = wcs.toWorld(galsim.PositionD(NPIX / 2, NPIX / 2))
+            reach = 0.75 * NPIX * PIX * galsim.arcsec   # beyond the CCD's corners: a SIP inverse may not converge
             for gal in gals:
                 coord = galsim.CelestialCoord(gal["ra"] * galsim.degrees, gal["dec"] * galsim.degrees)
+                if centre.distanceTo(coord) > reach:
+                    continue
                 pos = wcs.toImage(coord)
                 if not (8 < pos.x < NPIX - 8 and 8 < pos.y < NPIX - 8):
                     continue
@@ -114,7 +129,10 @@ def make_field(d, sign, args, gals, psfs, sigma, stars=None, with_psf=True):
             if stars is not None:
                 pow_psf = float(np.sum(psfs[k][c].drawImage(nx=32, ny=32, scale=1.0).array ** 2))
                 for ra, dec, snr in stars:
-                    pos = wcs.toImage(galsim.CelestialCoord(ra * galsim.degrees, dec * galsim.degrees))
+                    coord = galsim.CelestialCoord(ra * galsim.degrees, dec * galsim.degrees)
+                    if centre.distanceTo(coord) > reach:
+                        continue
+                    pos = wcs.toImage(coord)
                     if not (8 < pos.x < NPIX - 8 and 8 < pos.y < NPIX - 8):
                         continue
                     st = psfs[k][c].withFlux(snr * sigma / np.sqrt(pow_psf)).drawImage(
@@ -149,7 +167,7 @@ def make_field(d, sign, args, gals, psfs, sigma, stars=None, with_psf=True):
         Table({"id": np.arange(len(stars)), "ra": stars[:, 0], "dec": stars[:, 1],
                "mag": 30 - 2.5 * np.log10(stars[:, 2])}).write(os.path.join(d, "stars.fits"), overwrite=True)
         conf["stars"] = "stars.fits"
-        conf.update(args.psf_settings)
+        conf.update(psf_settings or {})
     with open(os.path.join(d, "field.yaml"), "w") as f:
         yaml.safe_dump(conf, f)
     return os.path.join(d, "field.yaml")
@@ -160,7 +178,9 @@ def main(argv=None):
     ap.add_argument("--n-galaxies", type=int, default=40, help="rings of 4 orientations")
     ap.add_argument("--n-exposures", type=int, default=7)
     ap.add_argument("--n-ccd", type=int, default=2)
-    ap.add_argument("--wcs", choices=["plain", "rotated", "distorted"], default="plain")
+    ap.add_argument("--wcs", choices=["plain", "rotated", "distorted"], nargs="+", default=["plain"],
+                    help="one or more WCS variants of the same field; with several, the differences from the "
+                         "first are printed with errors from the same rings resampled")
     ap.add_argument("--snr-min", type=float, default=100.0)
     ap.add_argument("--snr-max", type=float, default=200.0)
     ap.add_argument("--min-size", type=float, default=0.0, help="smallest scalelength drawn, arcsec")
@@ -171,6 +191,10 @@ def main(argv=None):
     ap.add_argument("--keep", default=None, help="keep the fields in this directory")
     ap.add_argument("--psf", choices=["given", "fitted", "both"], default="given",
                     help="measure with the true PSF (given), one fitted from stars, or both")
+    ap.add_argument("--fitted-oversampling", type=int, nargs="+", default=None,
+                    help="with --psf fitted/both: one fitted-PSF run per oversampling factor (e.g. 1 3)")
+    ap.add_argument("--star-snr", type=float, nargs=2, default=[50.0, 1000.0],
+                    help="range of the stars' integrated SNR per exposure (log-uniform)")
     ap.add_argument("--psf-fwhm", type=float, nargs=2, default=[0.5, 0.8], help="range of PSF FWHM, arcsec")
     ap.add_argument("--true-psf-oversampling", type=int, default=1,
                     help="samples per pixel of the true PSF given to the 'given' runs (odd; 3 for undersampled PSFs)")
@@ -218,47 +242,60 @@ def main(argv=None):
         power = sum(float(np.sum(galsim.Convolve(prof.dilate(1 / PIX), p[0]).drawImage(nx=64, ny=64, scale=1.0)
                                  .array ** 2)) for p in psfs)
         gal["flux"] = gal["snr"] * sigma / np.sqrt(power)
-    variants = {"given": [("given", True)], "fitted": [("fitted", False)],
-                "both": [("given", True), ("fitted", False)]}[args.psf]
+    fitted = [("fitted", False, dict(args.psf_settings))]
+    if args.fitted_oversampling:
+        fitted = [(f"fitted {k}x", False, {**args.psf_settings, "psf_oversampling": k}) for k in args.fitted_oversampling]
+    psf_variants = {"given": [("given", True, {})], "fitted": fitted, "both": [("given", True, {})] + fitted}[args.psf]
+    # every (WCS, PSF) combination of the same galaxies, PSFs and noise
+    variants = [(w, name, with_psf) for w in args.wcs for name, with_psf, _ in psf_variants]
+    settings = {name: st for name, _, st in psf_variants}
+    label = {v: (v[1] if len(args.wcs) == 1 else f"{v[0]} WCS, {v[1]}") for v in variants}
     tables = {}
     t_meas = 0.0
+    n_meas = 0
     with tempfile.TemporaryDirectory() as tmp:
         base_dir = args.keep or tmp
         for sign in (+1, -1):
-            for name, with_psf in variants:
-                d = os.path.join(base_dir, ("plus" if sign > 0 else "minus") + ("" if len(variants) == 1 else "_" + name))
+            for v in variants:
+                wcs_mode, name, with_psf = v
+                d = os.path.join(base_dir, ("plus" if sign > 0 else "minus") +
+                                 ("" if len(variants) == 1 else f"_{wcs_mode}_{name.replace(' ', '')}"))
                 os.makedirs(d, exist_ok=True)
                 t0 = time.perf_counter()
-                cfgpath = make_field(d, sign, args, gals, psfs, sigma, stars=stars, with_psf=with_psf)
+                cfgpath = make_field(d, sign, args, gals, psfs, sigma, stars=stars, with_psf=with_psf,
+                                     wcs_mode=wcs_mode, psf_settings=settings[name])
                 t_sim = time.perf_counter() - t0
                 out = os.path.join(d, "shear.fits")
                 t0 = time.perf_counter()
                 rc = shearfit_main(["measure", cfgpath, "--out", out, "--quiet", "-j", str(args.processes)])
                 t_meas += time.perf_counter() - t0
+                n_meas += len(gals)
                 if rc != 0:
                     raise SystemExit(f"shearfit measure failed ({rc})")
-                tables[(name, sign)] = Table.read(out)
-                print(f"field {'+g' if sign > 0 else '-g'} ({name} PSF): simulated in {t_sim:.0f} s, measured in "
-                      f"{time.perf_counter() - t0:.0f} s")
+                tables[(v, sign)] = Table.read(out)
+                print(f"field {'+g' if sign > 0 else '-g'} ({label[v]}): simulated in {t_sim:.0f} s, measured in "
+                      f"{time.perf_counter() - t0:.0f} s", flush=True)
+    print(f"\nshearfit measure: {n_meas / t_meas / args.processes:.2f} objects/s per process "
+          f"({args.processes} processes, PSF fitting included where fitted)")
     results = {}
-    for name, _ in variants:
-        results[name] = report({s: tables[(name, s)] for s in (+1, -1)}, gals, args, name)
-    if len(variants) == 2:
-        # the difference, resampling the same rings for both
-        diff = []
+    for v in variants:
+        results[label[v]] = report({s: tables[(v, s)] for s in (+1, -1)}, gals, args, label[v], v[0])
+    if len(variants) > 1:
+        # differences from the first variant, resampling the same rings for all
         rng_b = np.random.default_rng(0)
-        tabs = {name: _rows({s: tables[(name, s)] for s in (+1, -1)}, gals) for name, _ in variants}
         g = np.array(args.shear)
-        sums = {n: ring_sums(t, args.n_galaxies) for n, t in tabs.items()}
-        est = {n: shear_bias(sm, g, 2, rng_b)[0] for n, sm in sums.items()}
-        for _ in range(300):
-            pick = rng_b.integers(0, args.n_galaxies, args.n_galaxies)
-            vals = [shear_bias(sums[n][:, pick], g, 2, rng_b)[0] for n in ("given", "fitted")]
-            diff.append(vals[1] - vals[0])
-        err = np.std(diff, axis=0)
-        d0 = est["fitted"] - est["given"]
-        print(f"\nfitted minus true PSF: dm1 = {d0[0]:+.5f} +/- {err[0]:.5f}, dm2 = {d0[1]:+.5f} +/- {err[1]:.5f}, "
-              f"dc1 = {d0[2]:+.6f} +/- {err[2]:.6f}, dc2 = {d0[3]:+.6f} +/- {err[3]:.6f}")
+        sums = {v: ring_sums(_rows({s: tables[(v, s)] for s in (+1, -1)}, gals), args.n_galaxies) for v in variants}
+        est = {v: shear_bias(sm, g, 2, rng_b)[0] for v, sm in sums.items()}
+        picks = [rng_b.integers(0, args.n_galaxies, args.n_galaxies) for _ in range(300)]
+        ref = variants[0]
+        for v in variants[1:]:
+            diff = [shear_bias(sums[v][:, pick], g, 2, rng_b)[0] - shear_bias(sums[ref][:, pick], g, 2, rng_b)[0]
+                    for pick in picks]
+            err = np.std(diff, axis=0)
+            d0 = est[v] - est[ref]
+            print(f"\n{label[v]} minus {label[ref]}: dm1 = {d0[0]:+.5f} +/- {err[0]:.5f}, "
+                  f"dm2 = {d0[1]:+.5f} +/- {err[1]:.5f}, dc1 = {d0[2]:+.6f} +/- {err[2]:.6f}, "
+                  f"dc2 = {d0[3]:+.6f} +/- {err[3]:.6f}")
     return results
 
 
@@ -272,12 +309,12 @@ def _rows(tables, gals):
     return {k: np.array(v) for k, v in rows.items()}
 
 
-def report(tables, gals, args, name):
+def report(tables, gals, args, name, wcs_mode):
     tab = _rows(tables, gals)
     est, err = shear_bias(ring_sums(tab, args.n_galaxies), np.array(args.shear), 500, np.random.default_rng(0))
     fc = tab["fitclass"]
     print(f"\n[{name} PSF] {args.n_galaxies} rings x 4 x 2 shears, {args.n_exposures} exposures x {args.n_ccd} CCDs, "
-          f"WCS {args.wcs}, SNR {args.snr_min:.0f}-{args.snr_max:.0f}{' (noise-free)' if args.noise_free else ''}, "
+          f"WCS {wcs_mode}, SNR {args.snr_min:.0f}-{args.snr_max:.0f}{' (noise-free)' if args.noise_free else ''}, "
           f"scalelength >= {args.min_size}\"")
     print(f"  m1 = {est[0]:+.5f} +/- {err[0]:.5f}    c1 = {est[2]:+.6f} +/- {err[2]:.6f}")
     print(f"  m2 = {est[1]:+.5f} +/- {err[1]:.5f}    c2 = {est[3]:+.6f} +/- {err[3]:.6f}")

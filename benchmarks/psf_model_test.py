@@ -34,6 +34,7 @@ def main(argv=None):
     ap.add_argument("--order", type=int, default=3)
     ap.add_argument("--size", type=int, default=25)
     ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--alias-width", type=float, default=0.5, help="relative width of the above-Nyquist prior")
     a = ap.parse_args(argv)
     rng = np.random.default_rng(a.seed)
     n, k = a.size, a.oversampling
@@ -64,7 +65,8 @@ def main(argv=None):
     st = StarSet(image=np.array(imgs), ivar=np.ones((N, n, n)), delta=delta - true_off, ccd=ccd, u=u, v=v, x=x,
                  y=y, snr=snr)
     t0 = time.perf_counter()
-    model, used, info = fit_pixel_psf(st, 2, order=a.order, oversampling=k, ccd_shape=[(4096, 2048)] * 2)
+    model, used, info = fit_pixel_psf(st, 2, order=a.order, oversampling=k, ccd_shape=[(4096, 2048)] * 2,
+                                      alias_width=a.alias_width)
     print(f"{N} stars (SNR {a.snr_min:.0f}-1000), FWHM {a.fwhm}\" ({a.fwhm / PIX:.1f} pixels), order {a.order}, "
           f"oversampling {k}: fitted in {time.perf_counter() - t0:.1f} s, {len(used)} stars kept")
     res, de = [], []
@@ -79,13 +81,16 @@ def main(argv=None):
         res.append(np.sqrt(np.mean((m - t) ** 2)) * k * k)
         mm, mt = galsim.hsm.FindAdaptiveMom(galsim.Image(m)), galsim.hsm.FindAdaptiveMom(galsim.Image(t))
         de.append((mm.observed_shape.e1 - mt.observed_shape.e1, mm.observed_shape.e2 - mt.observed_shape.e2,
-                   mm.moments_sigma / mt.moments_sigma - 1))
+                   mm.moments_sigma / mt.moments_sigma - 1, mt.observed_shape.e1, mt.observed_shape.e2))
     de = np.array(de)
+    # a model rounder (or more elliptical) than the truth shows as a slope of the residual against e
+    et = np.concatenate([de[:, 3], de[:, 4]])
+    slope = float(np.polyfit(et, np.concatenate([de[:, 0], de[:, 1]]), 1)[0])
     reg = np.array([model.registration_shift(c, xx, yy) for c, xx, yy in zip(ccd, x, y)])
     print(f"  model - true PSF, rms per pixel / flux: mean {np.mean(res):.2e}, max {np.max(res):.2e}")
     print(f"  ellipticity residual: rms e1 {np.sqrt(np.mean(de[:, 0] ** 2)):.2e}, e2 {np.sqrt(np.mean(de[:, 1] ** 2)):.2e}"
           f" (mean {de[:, 0].mean():+.1e}, {de[:, 1].mean():+.1e}); size (sigma) residual rms "
-          f"{np.sqrt(np.mean(de[:, 2] ** 2)):.2e} (mean {de[:, 2].mean():+.1e})")
+          f"{np.sqrt(np.mean(de[:, 2] ** 2)):.2e} (mean {de[:, 2].mean():+.1e}); d e / e {slope:+.3f}")
     print(f"  registration error at the stars: rms {np.sqrt(np.mean((reg - true_off) ** 2)):.4f} pixel, "
           f"max {np.abs(reg - true_off).max():.4f} pixel")
 

@@ -214,6 +214,31 @@ def read_calibration(path):
     return d["alpha"], d["beta"]
 
 
+def calibration_samples(path, n, rng):
+    """``n`` (alpha, beta) pairs drawn from a calibration file's likelihood grid (uniform within each cell).
+
+    The systematic covariance of calibrated two-point functions (sec. 8.5)
+    propagates these draws. Files without the grid are refused.
+    """
+    d = read_yaml_mapping(path, "calibration")
+    try:
+        ga = np.asarray(d["grid_alpha"], float)
+        gb = np.asarray(d["grid_beta"], float)
+        ll = np.asarray(d["loglike"], float)
+    except KeyError as exc:
+        raise ShearfitIOError(f"{path}: calibration has no likelihood grid (key {exc.args[0]!r}); "
+                              "one written by shearfit calibrate has it") from None
+    except (TypeError, ValueError):
+        raise ShearfitIOError(f"{path}: calibration likelihood grid is not numeric") from None
+    if ll.shape != (ga.size, gb.size) or ga.size < 2 or gb.size < 2 or not np.all(np.isfinite(ll)):
+        raise ShearfitIOError(f"{path}: calibration loglike must be a finite {ga.size} x {gb.size} grid")
+    p = np.exp(ll - ll.max()).ravel()
+    k = rng.choice(p.size, size=n, p=p / p.sum())
+    ia, ib = np.unravel_index(k, ll.shape)
+    da, db = ga[1] - ga[0], gb[1] - gb[0]
+    return ga[ia] + da * rng.uniform(-0.5, 0.5, n), gb[ib] + db * rng.uniform(-0.5, 0.5, n)
+
+
 def calibrated_bias(tab: Table, alpha, beta):
     """Overall m, c1, c2 of a matched table before and after the calibration (alpha, beta).
 

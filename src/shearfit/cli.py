@@ -53,6 +53,57 @@ def _cmd_measure(args):
     return 0
 
 
+def _cmd_systematics(args):
+    from .systematics import run_systematics
+
+    if args.n_bins < 1:
+        raise ShearfitError("--n-bins must be at least 1")
+    tables = run_systematics(args.catalogs, args.out, truth=args.truth, n_bins=args.n_bins, seed=args.seed)
+    if not args.quiet:
+        t = tables["PSFGAL_SNR"]
+        t = t[t["field"] == "all"]
+        print(f"PSF-galaxy cross-correlation <e . e_psf> against SNR ({args.out}/systematics.fits, PNG plots):")
+        for row in t:
+            print(f"  SNR {row['lo']:7.1f}-{row['hi']:7.1f}: {row['xi_psf_gal']:+.2e} +/- {row['xi_err']:.1e} "
+                  f"({row['n']} galaxies)")
+    return 0
+
+
+def _cmd_xipm(args):
+    from .twopoint import parse_selection, read_shear_catalog, write_xipm, xipm
+
+    if not (0 < args.min_sep < args.max_sep) or args.nbins < 1:
+        raise ShearfitError("--min-sep must be positive and below --max-sep, --nbins at least 1")
+    sel = [parse_selection(t) for t in args.select]
+    tab = read_shear_catalog(args.catalog, sel)
+    table, cov = xipm(tab, args.min_sep, args.max_sep, args.nbins, calibration=args.calibration,
+                      n_sys=args.n_sys, seed=args.seed, bin_slop=args.bin_slop)
+    cards = [("NGAL", len(tab), "galaxies used"),
+             ("CALIB", args.calibration or "catalogue m column", "calibration used")]
+    cards += [(f"SELECT{i}", t, "selection") for i, t in enumerate(args.select)]
+    write_xipm(table, cov, args.out, cards)
+    if not args.quiet:
+        print(f"xi+/xi- of {len(tab)} galaxies in {args.nbins} bins, {args.min_sep}-{args.max_sep} arcmin: "
+              f"{args.out}" + (" (with the systematic covariance)" if cov is not None else ""))
+        for row in table:
+            print(f"  theta {row['theta']:8.3f}'  xi+ {row['xip']:+.3e} +/- {row['sigma_xip']:.1e}  "
+                  f"xi- {row['xim']:+.3e} +/- {row['sigma_xim']:.1e}  1+K {row['one_plus_k']:.4f}  "
+                  f"pairs {row['npairs']:.0f}")
+    return 0
+
+
+def _cmd_noisebias(args):
+    import io
+
+    from .noisebias import run_noisebias
+
+    if args.pairs < 10:
+        raise ShearfitError(f"--pairs must be at least 10 (got {args.pairs})")
+    run_noisebias(args.out, snr_mc=tuple(args.snr), n_pairs=args.pairs, seed=args.seed,
+                  stream=io.StringIO() if args.quiet else None)
+    return 0
+
+
 def _cmd_psf(args):
     import os
 
@@ -197,6 +248,52 @@ def build_parser():
     p.add_argument("--seed", type=int, default=0)
     _add_common(p)
     p.set_defaults(func=_cmd_calibrate)
+
+    p = sub.add_parser("systematics", help="PSF-galaxy cross-correlation against SNR and size, weights, weight bias",
+                       description="Sec. 7-8: the weighted <e . e_psf> in bins of SNR and scalelength with errors "
+                                   "from 10 random subsamples, per catalogue and combined; weight distributions "
+                                   "against magnitude, scalelength and SNR; with --truth, the weight bias <w e_int> "
+                                   "against PSF ellipticity in four size x SNR groups. Writes systematics.fits "
+                                   "and PNG plots.")
+    p.add_argument("catalogs", nargs="+", help="shear catalogue(s) (shearfit measure), e.g. one per field")
+    p.add_argument("--out", required=True, help="output directory")
+    p.add_argument("--truth", default=None, help="truth.fits of a simulation (for the weight bias)")
+    p.add_argument("--n-bins", type=int, default=8, help="bins of SNR, size, magnitude (equal numbers)")
+    p.add_argument("--seed", type=int, default=0)
+    _add_common(p)
+    p.set_defaults(func=_cmd_systematics)
+
+    p = sub.add_parser("xipm", help="calibrated shear two-point functions xi+ and xi- (TreeCorr)",
+                       description="xi+ and xi- of the weighted ellipticities (TreeCorr), the calibration term "
+                                   "1+K as the weighted pair average of (1+m_i)(1+m_j), xi/(1+K); with a "
+                                   "calibration file, the systematic covariance from its (alpha, beta) likelihood.")
+    p.add_argument("catalog", help="shear catalogue (shearfit measure)")
+    p.add_argument("--out", required=True, help="output FITS table")
+    p.add_argument("--min-sep", type=float, default=1.0, help="arcmin")
+    p.add_argument("--max-sep", type=float, default=100.0, help="arcmin")
+    p.add_argument("--nbins", type=int, default=10)
+    p.add_argument("--calibration", default=None,
+                   help="calibration YAML (shearfit calibrate): m from its alpha, beta and the systematic covariance")
+    p.add_argument("--n-sys", type=int, default=100, help="(alpha, beta) draws for the systematic covariance")
+    p.add_argument("--select", action="append", default=[], metavar="COLUMN:MIN:MAX",
+                   help="keep objects with MIN <= COLUMN < MAX (e.g. a photometric-redshift bin); repeatable")
+    p.add_argument("--bin-slop", type=float, default=None, help="TreeCorr's bin_slop (default: TreeCorr's)")
+    p.add_argument("--seed", type=int, default=0)
+    _add_common(p)
+    p.set_defaults(func=_cmd_xipm)
+
+    p = sub.add_parser("noisebias", help="appendix C: the Gaussian model of noise bias, with a Monte Carlo check",
+                       description="The expected log-likelihood surface of a Gaussian galaxy with a Gaussian PSF "
+                                   "(Fig. C1), the shear bias 1+m and the PSF-galaxy cross-correlation it implies "
+                                   "against SNR (Fig. C2), and a Monte Carlo of noisy GalSim images at a few SNR "
+                                   "values; writes contours.png, bias.png and noisebias.fits.")
+    p.add_argument("--out", required=True, help="output directory")
+    p.add_argument("--snr", type=float, nargs="+", default=[5.0, 8.0, 12.0, 20.0, 40.0],
+                   help="SNR values of the Monte Carlo")
+    p.add_argument("--pairs", type=int, default=2000, help="antithetic noise pairs per orientation and SNR")
+    p.add_argument("--seed", type=int, default=0)
+    _add_common(p)
+    p.set_defaults(func=_cmd_noisebias)
     return parser
 
 

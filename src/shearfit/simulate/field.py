@@ -345,11 +345,11 @@ def simulate_field(sc: SimulationConfig, out_dir, fit_cfg: FitConfig | None = No
                 if not (-20 < pos.x < sc.ccd_nx + 20 and -20 < pos.y < sc.ccd_ny + 20):
                     continue
                 psf = _psf_at(sc, psfp[k], star_pos[i, 0] / wx, star_pos[i, 1] / wy)
-                # flux for the target SNR of a PSF-weighted (matched) measurement on one exposure
-                pw = _psf_power(psf)
-                flux = star_snr[i] * sigma / np.sqrt(pw)
-                star_flux[i] = flux
-                st = psf.withFlux(flux).drawImage(nx=48, ny=48, scale=1.0, center=pos, method="auto")
+                # one flux per star, for the target SNR of a PSF-weighted (matched) measurement on the first
+                # exposure that holds it; on the others its SNR follows their PSFs
+                if star_flux[i] == 0:
+                    star_flux[i] = star_snr[i] * sigma / np.sqrt(_psf_power(psf))
+                st = psf.withFlux(star_flux[i]).drawImage(nx=48, ny=48, scale=1.0, center=pos, method="auto")
                 b = st.bounds & img.bounds
                 if b.isDefined():
                     img[b] += st[b]
