@@ -45,7 +45,7 @@ def _cmd_measure(args):
 
     cfg = load_field_config(args.config, overrides=args.overrides)
     table = measure_field(cfg, out_path=args.out, progress=not args.quiet and sys.stderr.isatty(),
-                          processes=args.processes)
+                          processes=args.processes, restart=args.restart)
     if not args.quiet:
         fc = table["fitclass"]
         print(f"measured {len(table)} objects: {int((fc == 0).sum())} galaxies, {int((fc == 1).sum())} stars, "
@@ -209,6 +209,8 @@ def build_parser():
     p.add_argument("overrides", nargs="*", metavar="key=value", help="settings that override the config's")
     p.add_argument("--out", default=None, help="output catalogue (default: the config's output:)")
     p.add_argument("-j", "--processes", type=int, default=1, help="worker processes")
+    p.add_argument("--restart", action="store_true",
+                   help="discard the checkpoint (OUTPUT.parts/) of an interrupted run instead of resuming it")
     _add_common(p)
     p.set_defaults(func=_cmd_measure)
 

@@ -335,14 +335,14 @@ def _plot(out_dir, ax, ll, snr_curve, paper, same, mc):
     from ._atomic import atomic_path
 
     fig, a = plt.subplots(figsize=(5.5, 5))
-    levels = -0.5 * np.arange(40, 0, -1)
-    a.contour(ax, ax, ll.T, levels=levels, colors="k", linewidths=0.6)
+    levels = -0.5 * np.arange(20, 0, -1)
+    a.contour(ax, ax, ll.T, levels=levels, colors="k", linewidths=0.6, linestyles="solid")
     a.plot([0.3], [0.0], "r+", ms=12, label="galaxy and maximum")
     a.plot([0.0], [0.3], "bx", ms=10, label="PSF")
     a.set_xlabel("model e1")
     a.set_ylabel("model e2")
     a.set_aspect("equal")
-    a.set_title("<log L>, contours every 0.5 below the maximum (SNR 20)", fontsize=9)
+    a.set_title("<log L>: contours every 0.5 below the maximum, to -10 (SNR 20)", fontsize=9)
     a.legend(fontsize=8)
     with atomic_path(os.path.join(out_dir, "contours.png")) as tmp:
         fig.savefig(tmp, dpi=120, format="png")
@@ -365,6 +365,7 @@ def _plot(out_dir, ax, ll, snr_curve, paper, same, mc):
     a2.set_ylabel("xi PSF-galaxy <e . e_psf>")
     a2.set_xlabel("SNR")
     a2.set_xscale("log")
+    fig.tight_layout()
     with atomic_path(os.path.join(out_dir, "bias.png")) as tmp:
         fig.savefig(tmp, dpi=120, format="png")
     plt.close(fig)

@@ -76,6 +76,11 @@ class PipelineConfig:
         True, "leave out an exposure whose masked pixels (weight 0) fall inside the target's isophote; "
         "masked pixels outside it only get zero weight", "sec. 3.6")
 
+    chunk_size: int = _opt(
+        256, "objects per checkpoint chunk: finished chunks are kept in OUTPUT.parts/ (each written "
+        "atomically), so that rerunning the same command after an interruption resumes where it stopped",
+        "implementation")
+
     psf_size: int = _opt(25, "side of the fitted PSF model and of the star stamps, native pixels (odd)", "sec. 5")
     psf_oversampling: int = _opt(
         1, "PSF model samples per pixel: 1 is the paper's native model (sinc-centred stars); 3 reconstructs "
@@ -113,6 +118,8 @@ class PipelineConfig:
             raise ShearfitValueError(f"setting min_exposures={self.min_exposures!r} must be at least 1")
         if self.deblend_min_pixels < 1:
             raise ShearfitValueError(f"setting deblend_min_pixels={self.deblend_min_pixels!r} must be at least 1")
+        if self.chunk_size < 1:
+            raise ShearfitValueError(f"setting chunk_size={self.chunk_size!r} must be at least 1")
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)

@@ -29,9 +29,11 @@ from dataclasses import dataclass
 from typing import Optional
 
 import numpy as np
+import yaml
 from astropy.table import Table
 
 from .. import __version__
+from .._atomic import atomic_path
 from ..errors import (FITCLASS_FEW_EXPOSURES, FITCLASS_FIT_FAILED, FITCLASS_OFF_EXPOSURES, ShearfitValueError)
 from ..calibrate import PAPER_ALPHA, PAPER_BETA, calibration_m, read_calibration
 from ..measure import measure_object
@@ -216,8 +218,14 @@ def _isophote_analysis(cuts, pc) -> int:
     return int(res.flag)
 
 
-def measure_field(cfg: FieldConfig, out_path=None, progress=False, processes=1) -> Table:
-    """Measure every catalogue object on the field's exposures; write and return the catalogue."""
+def measure_field(cfg: FieldConfig, out_path=None, progress=False, processes=1, restart=False) -> Table:
+    """Measure every catalogue object on the field's exposures; write and return the catalogue.
+
+    Objects are measured in chunks of ``chunk_size`` neighbouring objects;
+    finished chunks are kept in ``OUTPUT.parts/`` (see :class:`Checkpoint`),
+    so rerunning after an interruption resumes, and the final catalogue is
+    the same as an uninterrupted run's. ``restart`` discards a checkpoint.
+    """
     out_path = out_path or cfg.output
     if out_path is None:
         raise ShearfitValueError("no output path: give --out or output: in the config")
@@ -237,23 +245,32 @@ def measure_field(cfg: FieldConfig, out_path=None, progress=False, processes=1) 
     for obj, k, x, y in zip(hits.object, hits.ccd, hits.x, hits.y):
         tasks[obj].append((flat[k][0], flat[k][1], float(x), float(y)))
     mags = np.asarray(cat["mag"], float)
+    chunks = sky_chunks(cat, cfg.pipeline.chunk_size)
+    ckpt = Checkpoint(out_path, cfg, cat, len(chunks), restart=restart)
+    for k in ckpt.finished():
+        ckpt.load(k, table)
+    todo = [k for k in range(len(chunks)) if not ckpt.is_done(k)]
+    if todo and len(todo) < len(chunks):
+        log.info("resuming: %d of %d chunks already measured (%s)", len(chunks) - len(todo), len(chunks), ckpt.dir)
     global _STATE
-    _STATE = (tasks, exposures, mags, cfg)
+    _STATE = (tasks, exposures, mags, cfg, chunks)
+    bar = _progress_bar(sum(len(chunks[k]) for k in todo), progress)
     try:
-        if processes and processes > 1 and hasattr(os, "fork"):
+        if processes and processes > 1 and hasattr(os, "fork") and len(todo) > 1:
             import multiprocessing
 
-            # workers inherit the opened exposures through fork; each returns rows in input order
+            # workers inherit the opened exposures through fork; each returns one chunk's rows, which the
+            # parent writes to the checkpoint as they come (a kill loses at most the chunks in flight)
             with multiprocessing.get_context("fork").Pool(processes) as pool:
-                it = pool.imap(_measure_index, range(len(cat)), chunksize=max(1, len(cat) // (16 * processes)))
-                rows = list(_progress(it, len(cat), progress))
+                for k, rows in pool.imap_unordered(_measure_chunk, todo):
+                    _store_chunk(table, chunks[k], rows, ckpt, k, bar)
         else:
-            rows = list(_progress(map(_measure_index, range(len(cat))), len(cat), progress))
+            for k in todo:
+                _store_chunk(table, chunks[k], _measure_chunk(k)[1], ckpt, k, bar)
     finally:
         _STATE = None
-    for i, row in enumerate(rows):
-        for key, val in row.items():
-            table[key][i] = val
+        if bar is not None:
+            bar.close()
     if cfg.calibration:
         alpha, beta = read_calibration(cfg.calibration)
         src = os.path.basename(cfg.calibration)
@@ -265,22 +282,128 @@ def measure_field(cfg: FieldConfig, out_path=None, progress=False, processes=1) 
     cards = list(cards) + [("CALALPHA", alpha, f"calibration alpha ({src})"),
                            ("CALBETA", beta, f"calibration beta ({src})")]
     write_catalog_atomic(table, out_path, cards)
+    ckpt.remove()
     return table
 
 
-_STATE = None
+def sky_chunks(cat, size):
+    """Catalogue indices in chunks of ``size`` neighbouring objects (cells of 2 arcmin, then input order).
+
+    Deterministic: the same catalogue and size give the same chunks, so a
+    resumed run and an uninterrupted one measure the same objects per chunk;
+    the results do not depend on the chunking anyway (each object is fitted
+    on its own).
+    """
+    ra = np.asarray(cat["ra"], float)
+    dec = np.asarray(cat["dec"], float)
+    n = ra.size
+    if n == 0:
+        return []
+    cell = 2.0 / 60.0
+    cosd = np.cos(np.radians(np.median(dec)))
+    ra_c = ((ra - np.median(ra) + 180.0) % 360.0) * cosd
+    order = np.lexsort((np.arange(n), np.floor(ra_c / cell), np.floor(dec / cell)))
+    return [order[i:i + size] for i in range(0, n, size)]
 
 
-def _progress(it, total, show):
-    if not show:
-        return it
+def _progress_bar(total, show):
+    if not show or total == 0:
+        return None
     from tqdm import tqdm
-    return tqdm(it, total=total, desc="measuring", unit="obj")
+    return tqdm(total=total, desc="measuring", unit="obj")
 
 
-def _measure_index(i):
-    tasks, exposures, mags, cfg = _STATE
-    return _measure_one(tasks[i], exposures, mags[i], cfg, cfg.pipeline)
+def _measure_chunk(k):
+    tasks, exposures, mags, cfg, chunks = _STATE
+    return k, [_measure_one(tasks[i], exposures, mags[i], cfg, cfg.pipeline) for i in chunks[k]]
+
+
+def _store_chunk(table, idx, rows, ckpt, k, bar):
+    for i, row in zip(idx, rows):
+        for key, val in row.items():
+            table[key][i] = val
+    ckpt.save(k, table, idx)
+    if bar is not None:
+        bar.update(len(idx))
+
+
+class Checkpoint:
+    """Finished chunks of a run, kept beside its output in ``OUTPUT.parts/`` until the catalogue is written.
+
+    ``manifest.yaml`` identifies the run (software version, the resolved
+    configuration, the catalogue's ids and positions, the number of chunks);
+    each ``chunk_NNNNNN.fits`` holds the measured rows of one chunk and is
+    written atomically, so a kill leaves whole chunks or none. A rerun of the
+    same command loads them instead of measuring again; a checkpoint of a
+    different run is refused (``--restart`` discards it).
+    """
+
+    def __init__(self, out_path, cfg, cat, n_chunks, restart=False):
+        import hashlib
+        import json
+        import shutil
+
+        self.dir = os.fspath(out_path) + ".parts"
+        h = hashlib.sha256()
+        h.update(json.dumps(cfg.to_dict(), sort_keys=True, default=str).encode())
+        for col in ("id", "ra", "dec", "mag"):
+            h.update(np.ascontiguousarray(np.asarray(cat[col])).tobytes())
+        self.manifest = {"shearfit_version": __version__, "run": h.hexdigest(), "n_objects": len(cat),
+                         "n_chunks": int(n_chunks)}
+        mpath = os.path.join(self.dir, "manifest.yaml")
+        if restart and os.path.isdir(self.dir):
+            shutil.rmtree(self.dir)
+        if os.path.isdir(self.dir):
+            try:
+                with open(mpath) as f:
+                    old = yaml.safe_load(f)
+            except (OSError, yaml.YAMLError):
+                old = None
+            if old != self.manifest:
+                raise ShearfitValueError(f"{self.dir}: a checkpoint of a different run (configuration, catalogue, "
+                                         "chunk size or version changed); remove it or rerun with --restart")
+        else:
+            os.makedirs(self.dir)
+            with atomic_path(mpath) as tmp, open(tmp, "w") as f:
+                yaml.safe_dump(self.manifest, f)
+        self._done = {k for k in range(n_chunks) if os.path.exists(self._path(k))}
+
+    def _path(self, k):
+        return os.path.join(self.dir, f"chunk_{k:06d}.fits")
+
+    def finished(self):
+        return sorted(self._done)
+
+    def is_done(self, k):
+        return k in self._done
+
+    def save(self, k, table, idx):
+        part = table[idx]
+        part["row"] = np.asarray(idx, np.int64)
+        with atomic_path(self._path(k)) as tmp:
+            part.write(tmp, format="fits")
+        self._done.add(k)
+
+    def load(self, k, table):
+        from astropy.table import Table as _Table
+
+        try:
+            part = _Table.read(self._path(k), format="fits")
+        except (OSError, ValueError) as exc:
+            raise ShearfitValueError(f"{self._path(k)}: unreadable checkpoint chunk ({exc}); remove it or rerun "
+                                     "with --restart") from None
+        idx = np.asarray(part["row"], np.int64)
+        for col in table.colnames:
+            if col in part.colnames:
+                table[col][idx] = part[col]
+
+    def remove(self):
+        import shutil
+
+        shutil.rmtree(self.dir, ignore_errors=True)
+
+
+_STATE = None
 
 
 def _measure_one(hits, exposures, mag, cfg, pc) -> dict:

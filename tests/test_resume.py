@@ -1,0 +1,102 @@
+"""shearfit measure keeps finished chunks: a killed run resumes to the same catalogue, bit for bit."""
+
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+from astropy.table import Table
+
+pytest.importorskip("galsim")
+
+from shearfit.cli import main  # noqa: E402
+from shearfit.field import pipeline  # noqa: E402
+from shearfit.simulate.field import simulate_field, simulation_config  # noqa: E402
+
+
+@pytest.fixture(scope="module")
+def field(tmp_path_factory):
+    d = tmp_path_factory.mktemp("resume")
+    sc = simulation_config({"preset": "tiny", "seed": 11})
+    simulate_field(sc, d)
+    cfg = d / "field_truepsf.yaml"
+    ref = d / "ref.fits"
+    assert main(["measure", str(cfg), "chunk_size=6", "--out", str(ref), "--quiet"]) == 0
+    return d, cfg, Table.read(ref)
+
+
+def _same(a, b):
+    assert a.colnames == b.colnames
+    for c in a.colnames:
+        x, y = np.asarray(a[c]), np.asarray(b[c])
+        if x.dtype.kind == "f":
+            assert np.array_equal(x, y, equal_nan=True), c
+        else:
+            assert np.array_equal(x, y), c
+
+
+def test_chunks_are_deterministic_and_cover_the_catalogue(field):
+    _, _, ref = field
+    a = pipeline.sky_chunks(ref, 6)
+    b = pipeline.sky_chunks(ref, 6)
+    assert all(np.array_equal(x, y) for x, y in zip(a, b))
+    assert np.array_equal(np.sort(np.concatenate(a)), np.arange(len(ref)))
+    assert max(len(c) for c in a) == 6
+
+
+def test_same_catalogue_for_any_chunking_and_workers(field, tmp_path):
+    d, cfg, ref = field
+    out = tmp_path / "other.fits"
+    assert main(["measure", str(cfg), "chunk_size=17", "--out", str(out), "--quiet", "-j", "2"]) == 0
+    _same(Table.read(out), ref)
+    assert not os.path.exists(str(out) + ".parts")
+
+
+def test_killed_run_resumes_to_the_same_catalogue(field, tmp_path, monkeypatch):
+    d, cfg, ref = field
+    out = tmp_path / "shear.fits"
+    parts = str(out) + ".parts"
+    code = ("import sys; from shearfit.cli import main; "
+            f"sys.exit(main(['measure', {str(cfg)!r}, 'chunk_size=6', '--out', {str(out)!r}, '--quiet']))")
+    proc = subprocess.Popen([sys.executable, "-c", code])
+    t0 = time.time()
+    try:
+        while time.time() - t0 < 300:
+            done = [f for f in os.listdir(parts) if f.startswith("chunk_")] if os.path.isdir(parts) else []
+            if len(done) >= 2 or proc.poll() is not None:
+                break
+            time.sleep(0.05)
+        assert proc.poll() is None, "the run finished before it could be killed"
+        proc.send_signal(signal.SIGKILL)
+        proc.wait()
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert not out.exists()
+    n_done = len([f for f in os.listdir(parts) if f.startswith("chunk_") and f.endswith(".fits")])
+    n_chunks = len(pipeline.sky_chunks(ref, 6))
+    assert 2 <= n_done < n_chunks
+    calls = []
+    real = pipeline._measure_chunk
+    monkeypatch.setattr(pipeline, "_measure_chunk", lambda k: (calls.append(k), real(k))[1])
+    assert main(["measure", str(cfg), "chunk_size=6", "--out", str(out), "--quiet"]) == 0
+    assert len(calls) == n_chunks - n_done          # finished chunks were not measured again
+    _same(Table.read(out), ref)
+    assert not os.path.exists(parts)
+
+
+def test_checkpoint_of_another_run_is_refused(field, tmp_path, capsys):
+    d, cfg, ref = field
+    out = tmp_path / "shear.fits"
+    parts = tmp_path / "shear.fits.parts"
+    parts.mkdir()
+    (parts / "manifest.yaml").write_text("run: something else\n")
+    assert main(["measure", str(cfg), "chunk_size=6", "--out", str(out), "--quiet"]) != 0
+    err = capsys.readouterr().err
+    assert "different run" in err and "--restart" in err and len(err.strip().splitlines()) == 1
+    assert not out.exists()
+    assert main(["measure", str(cfg), "chunk_size=6", "--out", str(out), "--quiet", "--restart"]) == 0
+    _same(Table.read(out), ref)
