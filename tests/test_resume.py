@@ -100,3 +100,27 @@ def test_checkpoint_of_another_run_is_refused(field, tmp_path, capsys):
     assert not out.exists()
     assert main(["measure", str(cfg), "chunk_size=6", "--out", str(out), "--quiet", "--restart"]) == 0
     _same(Table.read(out), ref)
+
+
+def test_explicit_scheduler_and_fork_pool_give_the_same_catalogue(field, tmp_path):
+    from dask.distributed import LocalCluster
+
+    d, cfg, ref = field
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0") as cluster:
+        out = tmp_path / "sched.fits"
+        assert main(["measure", str(cfg), "chunk_size=9", "--out", str(out), "--quiet",
+                     "--scheduler", cluster.scheduler_address]) == 0
+    _same(Table.read(out), ref)
+    out2 = tmp_path / "fork.fits"
+    assert main(["measure", str(cfg), "chunk_size=9", "--out", str(out2), "--quiet", "-j", "2",
+                 "--executor", "fork"]) == 0
+    _same(Table.read(out2), ref)
+
+
+def test_unreachable_scheduler_is_one_line(field, tmp_path, capsys):
+    d, cfg, _ = field
+    out = tmp_path / "x.fits"
+    assert main(["measure", str(cfg), "--out", str(out), "--quiet", "--scheduler", "tcp://127.0.0.1:9"]) != 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "scheduler" in err[0]
+    assert not out.exists() and not os.path.exists(str(out) + ".parts")

@@ -6,13 +6,13 @@ import yaml
 from astropy.io import fits
 from astropy.table import Table
 
-galsim = pytest.importorskip("galsim")
-treecorr = pytest.importorskip("treecorr")
+import galsim
+import treecorr
 
-from shearfit.calibrate import calibration_samples  # noqa: E402
-from shearfit.cli import main  # noqa: E402
-from shearfit.errors import ShearfitIOError, ShearfitValueError  # noqa: E402
-from shearfit.twopoint import parse_selection, read_shear_catalog, xipm  # noqa: E402
+from shearfit.calibrate import calibration_samples
+from shearfit.cli import main
+from shearfit.errors import ShearfitIOError, ShearfitValueError
+from shearfit.twopoint import parse_selection, read_shear_catalog, xipm
 
 RA0, DEC0 = 35.0, -4.0
 

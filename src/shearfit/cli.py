@@ -45,7 +45,8 @@ def _cmd_measure(args):
 
     cfg = load_field_config(args.config, overrides=args.overrides)
     table = measure_field(cfg, out_path=args.out, progress=not args.quiet and sys.stderr.isatty(),
-                          processes=args.processes, restart=args.restart)
+                          processes=args.processes, restart=args.restart, scheduler=args.scheduler,
+                          executor=args.executor)
     if not args.quiet:
         fc = table["fitclass"]
         print(f"measured {len(table)} objects: {int((fc == 0).sum())} galaxies, {int((fc == 1).sum())} stars, "
@@ -208,7 +209,13 @@ def build_parser():
     p.add_argument("config", help="the field's YAML config (INTERFACE.md)")
     p.add_argument("overrides", nargs="*", metavar="key=value", help="settings that override the config's")
     p.add_argument("--out", default=None, help="output catalogue (default: the config's output:)")
-    p.add_argument("-j", "--processes", type=int, default=1, help="worker processes")
+    p.add_argument("-j", "--processes", type=int, default=1,
+                   help="worker processes (a local Dask cluster of that many workers when more than 1)")
+    p.add_argument("--scheduler", default=None, metavar="ADDRESS",
+                   help="run on an existing Dask distributed scheduler (e.g. tcp://host:8786; dask-jobqueue "
+                        "clusters serve one); its workers must see the same files")
+    p.add_argument("--executor", choices=["dask", "fork"], default="dask",
+                   help="with -j N: a local Dask cluster (default) or a plain fork pool")
     p.add_argument("--restart", action="store_true",
                    help="discard the checkpoint (OUTPUT.parts/) of an interrupted run instead of resuming it")
     _add_common(p)

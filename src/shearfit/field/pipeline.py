@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import logging
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Optional
 
 import numpy as np
@@ -218,13 +218,19 @@ def _isophote_analysis(cuts, pc) -> int:
     return int(res.flag)
 
 
-def measure_field(cfg: FieldConfig, out_path=None, progress=False, processes=1, restart=False) -> Table:
+def measure_field(cfg: FieldConfig, out_path=None, progress=False, processes=1, restart=False, scheduler=None,
+                  executor="dask") -> Table:
     """Measure every catalogue object on the field's exposures; write and return the catalogue.
 
     Objects are measured in chunks of ``chunk_size`` neighbouring objects;
     finished chunks are kept in ``OUTPUT.parts/`` (see :class:`Checkpoint`),
     so rerunning after an interruption resumes, and the final catalogue is
     the same as an uninterrupted run's. ``restart`` discards a checkpoint.
+
+    Chunks run on Dask: on ``processes`` workers of a local cluster, or on
+    the distributed scheduler at ``scheduler`` (its workers must see the
+    same files); ``executor="fork"`` uses a plain fork pool instead. The
+    catalogue does not depend on either.
     """
     out_path = out_path or cfg.output
     if out_path is None:
@@ -256,7 +262,9 @@ def measure_field(cfg: FieldConfig, out_path=None, progress=False, processes=1, 
     _STATE = (tasks, exposures, mags, cfg, chunks)
     bar = _progress_bar(sum(len(chunks[k]) for k in todo), progress)
     try:
-        if processes and processes > 1 and hasattr(os, "fork") and len(todo) > 1:
+        if todo and (scheduler is not None or (processes and processes > 1 and executor == "dask")):
+            _run_dask(cfg, exposures, tasks, mags, chunks, todo, table, ckpt, bar, processes, scheduler)
+        elif processes and processes > 1 and hasattr(os, "fork") and len(todo) > 1:
             import multiprocessing
 
             # workers inherit the opened exposures through fork; each returns one chunk's rows, which the
@@ -318,6 +326,57 @@ def _measure_chunk(k):
     return k, [_measure_one(tasks[i], exposures, mags[i], cfg, cfg.pipeline) for i in chunks[k]]
 
 
+_WORKER_FIELDS = {}
+
+
+def _portable_psfs(exposures):
+    """The exposures' PSF objects without their opened CCDs (workers open the files themselves)."""
+    return [replace(p, ccds=None, _frame=None, _moffat=None) for _, p in exposures]
+
+
+def _dask_chunk(run, k, hits, mags):
+    """One chunk on a Dask worker: the field's exposures are opened once per worker process (memory-mapped)."""
+    key, cfg, psfs = run
+    exposures = _WORKER_FIELDS.get(key)
+    if exposures is None:
+        _WORKER_FIELDS.clear()
+        exposures = []
+        for spec, p in zip(cfg.exposures, psfs):
+            ccds = read_exposure(spec.image, spec.weight)
+            exposures.append((ccds, p if p.fitted is None else replace(p, ccds=ccds)))
+        _WORKER_FIELDS[key] = exposures
+    return k, [_measure_one(h, exposures, m, cfg, cfg.pipeline) for h, m in zip(hits, mags)]
+
+
+def _run_dask(cfg, exposures, tasks, mags, chunks, todo, table, ckpt, bar, processes, scheduler):
+    """Submit the chunks to Dask and checkpoint each as it completes."""
+    from dask.distributed import Client, LocalCluster, as_completed
+
+    # Dask's own progress messages are not the user's business at the default verbosity
+    logging.getLogger("distributed").setLevel(max(logging.WARNING, log.getEffectiveLevel()))
+    cluster = None
+    if scheduler is None:
+        cluster = LocalCluster(n_workers=int(processes), threads_per_worker=1, processes=True,
+                               dashboard_address=":0", silence_logs=logging.WARNING)
+        client = Client(cluster)
+    else:
+        try:
+            client = Client(scheduler, timeout="10s")
+        except (OSError, TimeoutError) as exc:
+            raise ShearfitValueError(f"cannot reach the Dask scheduler at {scheduler}: {exc}") from None
+    try:
+        run = client.scatter((ckpt.manifest["run"], cfg, _portable_psfs(exposures)), broadcast=True)
+        futures = [client.submit(_dask_chunk, run, k, [tasks[i] for i in chunks[k]], mags[chunks[k]], pure=False)
+                   for k in todo]
+        for fut in as_completed(futures):
+            k, rows = fut.result()
+            _store_chunk(table, chunks[k], rows, ckpt, k, bar)
+    finally:
+        client.close()
+        if cluster is not None:
+            cluster.close()
+
+
 def _store_chunk(table, idx, rows, ckpt, k, bar):
     for i, row in zip(idx, rows):
         for key, val in row.items():
@@ -362,10 +421,7 @@ class Checkpoint:
             if old != self.manifest:
                 raise ShearfitValueError(f"{self.dir}: a checkpoint of a different run (configuration, catalogue, "
                                          "chunk size or version changed); remove it or rerun with --restart")
-        else:
-            os.makedirs(self.dir)
-            with atomic_path(mpath) as tmp, open(tmp, "w") as f:
-                yaml.safe_dump(self.manifest, f)
+        self._mpath = mpath
         self._done = {k for k in range(n_chunks) if os.path.exists(self._path(k))}
 
     def _path(self, k):
@@ -378,6 +434,10 @@ class Checkpoint:
         return k in self._done
 
     def save(self, k, table, idx):
+        if not os.path.isdir(self.dir):   # created with the first finished chunk: a run that fails first leaves nothing
+            os.makedirs(self.dir)
+            with atomic_path(self._mpath) as tmp, open(tmp, "w") as f:
+                yaml.safe_dump(self.manifest, f)
         part = table[idx]
         part["row"] = np.asarray(idx, np.int64)
         with atomic_path(self._path(k)) as tmp:
