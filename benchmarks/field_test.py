@@ -195,6 +195,8 @@ def main(argv=None):
                     help="with --psf fitted/both: one fitted-PSF run per oversampling factor (e.g. 1 3)")
     ap.add_argument("--star-snr", type=float, nargs=2, default=[50.0, 1000.0],
                     help="range of the stars' integrated SNR per exposure (log-uniform)")
+    ap.add_argument("--psf-e-max", type=float, default=0.07,
+                    help="PSF ellipticity components drawn uniformly in +-this per exposure (0: round PSFs)")
     ap.add_argument("--psf-fwhm", type=float, nargs=2, default=[0.5, 0.8], help="range of PSF FWHM, arcsec")
     ap.add_argument("--true-psf-oversampling", type=int, default=1,
                     help="samples per pixel of the true PSF given to the 'given' runs (odd; 3 for undersampled PSFs)")
@@ -204,8 +206,8 @@ def main(argv=None):
     args.psf_settings = {kv.split("=", 1)[0]: yaml.safe_load(kv.split("=", 1)[1]) for kv in args.set}
     rng = np.random.default_rng(args.seed)
     sigma = 1.0
-    base = [(rng.uniform(2.5, 4.5), rng.uniform(*args.psf_fwhm) / PIX, rng.uniform(-0.07, 0.07),
-             rng.uniform(-0.07, 0.07)) for _ in range(args.n_exposures)]
+    base = [(rng.uniform(2.5, 4.5), rng.uniform(*args.psf_fwhm) / PIX, args.psf_e_max * rng.uniform(-1, 1),
+             args.psf_e_max * rng.uniform(-1, 1)) for _ in range(args.n_exposures)]
     # with stars, each CCD has its own PSF (a jump at the CCD boundary); otherwise one per exposure
     jump = 0.0 if args.psf == "given" else 1.0
     psfs = [[galsim.Moffat(beta=b, fwhm=f * (1 + 0.04 * jump * c)).shear(g1=g1 + 0.015 * jump * c,

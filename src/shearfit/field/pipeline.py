@@ -365,7 +365,8 @@ def _run_dask(cfg, exposures, tasks, mags, chunks, todo, table, ckpt, bar, proce
         except (OSError, TimeoutError) as exc:
             raise ShearfitValueError(f"cannot reach the Dask scheduler at {scheduler}: {exc}") from None
     try:
-        run = client.scatter((ckpt.manifest["run"], cfg, _portable_psfs(exposures)), broadcast=True)
+        # one copy of the run's settings and PSF models per worker (a list of one: scatter sends it whole)
+        [run] = client.scatter([(ckpt.manifest["run"], cfg, _portable_psfs(exposures))], broadcast=True)
         futures = [client.submit(_dask_chunk, run, k, [tasks[i] for i in chunks[k]], mags[chunks[k]], pure=False)
                    for k in todo]
         for fut in as_completed(futures):
