@@ -121,8 +121,8 @@ def make_field(d, sign, args, gals, psfs, sigma, stars=None, with_psf=True, wcs_
                     continue
                 local = wcs.local(pos)
                 prof = galaxy_profile(gal["r"], gal["B"], gal["e1"], gal["e2"], flux=gal["flux"], g1=g[0], g2=g[1],
-                                      is_bulge=gal["is_bulge"])
-                conv = galsim.Convolve(local.toImage(prof), psfs[k][c])
+                                      is_bulge=gal["is_bulge"], gsparams=args.gsparams)
+                conv = galsim.Convolve(local.toImage(prof), psfs[k][c], gsparams=args.gsparams)
                 stamp = conv.drawImage(nx=64, ny=64, scale=1.0, center=pos, method="auto")
                 b = stamp.bounds & img.bounds
                 img[b] += stamp[b]
@@ -195,6 +195,8 @@ def main(argv=None):
                     help="with --psf fitted/both: one fitted-PSF run per oversampling factor (e.g. 1 3)")
     ap.add_argument("--star-snr", type=float, nargs=2, default=[50.0, 1000.0],
                     help="range of the stars' integrated SNR per exposure (log-uniform)")
+    ap.add_argument("--accurate-rendering", action="store_true",
+                    help="GalSim folding_threshold 1e-3, maxk_threshold 1e-4 (defaults 5e-3, 1e-3)")
     ap.add_argument("--psf-e-max", type=float, default=0.07,
                     help="PSF ellipticity components drawn uniformly in +-this per exposure (0: round PSFs)")
     ap.add_argument("--psf-fwhm", type=float, nargs=2, default=[0.5, 0.8], help="range of PSF FWHM, arcsec")
@@ -203,6 +205,8 @@ def main(argv=None):
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="setting for the fitted-PSF runs (e.g. psf_oversampling=3)")
     args = ap.parse_args(argv)
+    args.gsparams = (galsim.GSParams(folding_threshold=1e-3, maxk_threshold=1e-4)
+                     if args.accurate_rendering else None)
     args.psf_settings = {kv.split("=", 1)[0]: yaml.safe_load(kv.split("=", 1)[1]) for kv in args.set}
     rng = np.random.default_rng(args.seed)
     sigma = 1.0
