@@ -23,8 +23,11 @@ dropped, bad pixels elsewhere are background.
 
 from __future__ import annotations
 
+import hashlib
+import json
 import logging
 import os
+import shutil
 from dataclasses import dataclass, replace
 from typing import Optional
 
@@ -399,10 +402,6 @@ class Checkpoint:
     """
 
     def __init__(self, out_path, cfg, cat, n_chunks, restart=False):
-        import hashlib
-        import json
-        import shutil
-
         self.dir = os.fspath(out_path) + ".parts"
         h = hashlib.sha256()
         h.update(json.dumps(cfg.to_dict(), sort_keys=True, default=str).encode())
@@ -446,10 +445,8 @@ class Checkpoint:
         self._done.add(k)
 
     def load(self, k, table):
-        from astropy.table import Table as _Table
-
         try:
-            part = _Table.read(self._path(k), format="fits")
+            part = Table.read(self._path(k), format="fits")
         except (OSError, ValueError) as exc:
             raise ShearfitValueError(f"{self._path(k)}: unreadable checkpoint chunk ({exc}); remove it or rerun "
                                      "with --restart") from None
@@ -459,8 +456,6 @@ class Checkpoint:
                 table[col][idx] = part[col]
 
     def remove(self):
-        import shutil
-
         shutil.rmtree(self.dir, ignore_errors=True)
 
 
