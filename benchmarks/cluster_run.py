@@ -21,6 +21,7 @@ true PSF given so that every run does the same work):
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import resource
 import signal
@@ -35,12 +36,16 @@ from astropy.table import Table, vstack
 from shearfit.simulate.field import simulate_field, simulation_config
 
 
+# ``shearfit measure ARGS`` in a fresh interpreter
+MEASURE = [sys.executable, "-c", "import sys; from shearfit.cli import main; sys.exit(main(sys.argv[1:]))",
+           "measure"]
+
+
 def run(args, env=None):
     """``shearfit measure ...`` in a fresh process: (wall seconds, max RSS MB of its process tree)."""
-    code = "import sys; from shearfit.cli import main; sys.exit(main(sys.argv[1:]))"
     before = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
     t0 = time.perf_counter()
-    subprocess.run([sys.executable, "-c", code, "measure"] + args, check=True, env=env)
+    subprocess.run(MEASURE + args, check=True, env=env)
     wall = time.perf_counter() - t0
     after = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
     return wall, max(after, before) / 1024.0
@@ -56,10 +61,8 @@ def same(a, b):
 
 def kill_after(cfg, out, n_chunks, chunk_size):
     """Start the run, SIGKILL it once ``n_chunks`` chunks are on disk; the chunks done and seconds run."""
-    code = "import sys; from shearfit.cli import main; sys.exit(main(sys.argv[1:]))"
     parts = out + ".parts"
-    proc = subprocess.Popen([sys.executable, "-c", code, "measure", cfg, f"chunk_size={chunk_size}", "--out", out,
-                             "--quiet"])
+    proc = subprocess.Popen(MEASURE + [cfg, f"chunk_size={chunk_size}", "--out", out, "--quiet"])
     t0 = time.perf_counter()
     while proc.poll() is None:
         done = [f for f in os.listdir(parts) if f.startswith("chunk_")] if os.path.isdir(parts) else []
@@ -132,11 +135,11 @@ def main(argv=None):
 
 def run_isolated(args):
     """Like ``run`` but the RSS measured under /usr/bin/time-like isolation: a fresh grandchild per run."""
-    code = ("import resource, subprocess, sys, time; t0 = time.perf_counter(); "
-            "subprocess.run([sys.executable, '-c', 'import sys; from shearfit.cli import main; "
-            "sys.exit(main(sys.argv[1:]))', 'measure'] + sys.argv[1:], check=True); "
+    code = ("import json, resource, subprocess, sys, time; t0 = time.perf_counter(); "
+            "subprocess.run(json.loads(sys.argv[1]) + sys.argv[2:], check=True); "
             "print(time.perf_counter() - t0, resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss)")
-    out = subprocess.run([sys.executable, "-c", code] + args, check=True, capture_output=True, text=True).stdout
+    out = subprocess.run([sys.executable, "-c", code, json.dumps(MEASURE)] + args, check=True,
+                         capture_output=True, text=True).stdout
     wall, rss = out.split()[-2:]
     return float(wall), float(rss) / 1024.0
 

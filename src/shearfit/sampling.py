@@ -24,7 +24,7 @@ import numpy as np
 
 from . import priors
 from .config import FitConfig
-from .likelihood import flux_position_marginal, model_sums, spline_matrix, _linear_vectors
+from .likelihood import _interp_matrix, _linear_vectors, flux_position_marginal, model_sums, spline_matrix
 
 __all__ = ["EllipticityLikelihood", "Samples", "adaptive_samples", "two_pass_samples", "estimate",
            "lensing_weight"]
@@ -179,13 +179,9 @@ class EllipticityLikelihood:
                                    mg.mean_b_disk.reshape(shape))
 
     def _fine_grid(self):
-        """The fine ln r grid of the size integral and the node->grid interpolation matrix (built once)."""
-        cache = getattr(self, "_fine", None)
-        if cache is None or cache[0] is not self.x:
-            xf = np.linspace(self.x[0], self.x[-1], self.N_FINE)
-            w = np.array([np.interp(xf, self.x, col) for col in np.eye(self.x.size)])   # (n_nodes, n_fine)
-            cache = self._fine = (self.x, xf, w)
-        return cache[1], cache[2]
+        """The fine ln r grid of the size integral and the node->grid interpolation matrix (cached)."""
+        xf = np.linspace(self.x[0], self.x[-1], self.N_FINE)
+        return xf, _interp_matrix(self.x, xf)   # (n_nodes, n_fine)
 
     def _size_marginal(self, rnodes, ld, lb, fd, fb, bd):
         """Spline log L over ln r and integrate against the size prior (dr = r d ln r)."""

@@ -123,8 +123,7 @@ def weight_bias(tab: Table, n_psf_bins=6, snr_split=None, size_split=None, n_sub
     ep = np.concatenate([np.asarray(tab["psf_e1"], float), np.asarray(tab["psf_e2"], float)])
     ei = np.concatenate([np.asarray(tab["e1_int"], float), np.asarray(tab["e2_int"], float)])
     ww = np.concatenate([w, w])
-    edges = np.quantile(ep, np.linspace(0, 1, n_psf_bins + 1))
-    edges[-1] = np.nextafter(edges[-1], np.inf)
+    edges = _edges(ep, n_psf_bins)
     rows = []
     for big in (False, True):
         for bright in (False, True):

@@ -16,6 +16,7 @@ drawn from the calibration's likelihood.
 from __future__ import annotations
 
 import numpy as np
+import treecorr
 from astropy.table import Table
 
 from .calibrate import calibration_m, calibration_samples
@@ -62,19 +63,13 @@ def read_shear_catalog(path, selections=(), extra=None) -> Table:
     return t[keep]
 
 
-def _treecorr_pairs(tab, k, min_sep, max_sep, nbins, bin_slop):
-    import treecorr
-
-    ra, dec = np.asarray(tab["ra"], float), np.asarray(tab["dec"], float)
-    w = np.asarray(tab["weight"], float)
-    cat = treecorr.Catalog(ra=ra, dec=dec, ra_units="deg", dec_units="deg", g1=np.asarray(tab["e1"], float),
-                           g2=np.asarray(tab["e2"], float), w=w, k=k)
-    cfg = dict(min_sep=min_sep, max_sep=max_sep, nbins=nbins, sep_units="arcmin", bin_slop=bin_slop)
-    gg = treecorr.GGCorrelation(**cfg)
-    gg.process(cat)
-    kk = treecorr.KKCorrelation(**cfg)
-    kk.process(cat)
-    return gg, kk, cat, cfg
+def _catalog(tab, k, with_shear=True):
+    """TreeCorr catalogue of the galaxies' positions and weights, with k (and the ellipticities)."""
+    cols = dict(ra=np.asarray(tab["ra"], float), dec=np.asarray(tab["dec"], float), ra_units="deg",
+                dec_units="deg", w=np.asarray(tab["weight"], float), k=k)
+    if with_shear:
+        cols.update(g1=np.asarray(tab["e1"], float), g2=np.asarray(tab["e2"], float))
+    return treecorr.Catalog(**cols)
 
 
 def xipm(tab: Table, min_sep=1.0, max_sep=100.0, nbins=10, calibration=None, n_sys=100, seed=0, bin_slop=None):
@@ -102,7 +97,12 @@ def xipm(tab: Table, min_sep=1.0, max_sep=100.0, nbins=10, calibration=None, n_s
     else:
         m = np.zeros(len(tab))
     m = np.where(np.isfinite(m), m, 0.0)
-    gg, kk, cat, cfg = _treecorr_pairs(tab, 1.0 + m, min_sep, max_sep, nbins, bin_slop)
+    cfg = dict(min_sep=min_sep, max_sep=max_sep, nbins=nbins, sep_units="arcmin", bin_slop=bin_slop)
+    cat = _catalog(tab, 1.0 + m)
+    gg = treecorr.GGCorrelation(**cfg)
+    gg.process(cat)
+    kk = treecorr.KKCorrelation(**cfg)
+    kk.process(cat)
     one_plus_k = kk.xi
     out = Table({"theta": gg.meanr, "xip": gg.xip / one_plus_k, "xim": gg.xim / one_plus_k,
                  "xip_raw": gg.xip, "xim_raw": gg.xim, "xip_im": gg.xip_im, "one_plus_k": one_plus_k,
@@ -110,18 +110,13 @@ def xipm(tab: Table, min_sep=1.0, max_sep=100.0, nbins=10, calibration=None, n_s
                  "npairs": gg.npairs, "weight": gg.weight})
     cov = None
     if calibration is not None and n_sys > 0:
-        import treecorr
-
         rng = np.random.default_rng(seed)
         a_s, b_s = calibration_samples(calibration, n_sys, rng)
         vecs = []
         for a, b in zip(a_s, b_s):
             mk = calibration_m(snr, r, a, b)
-            c2 = treecorr.Catalog(ra=np.asarray(tab["ra"], float), dec=np.asarray(tab["dec"], float),
-                                  ra_units="deg", dec_units="deg", w=np.asarray(tab["weight"], float),
-                                  k=1.0 + np.where(np.isfinite(mk), mk, 0.0))
             k2 = treecorr.KKCorrelation(**cfg)
-            k2.process(c2)
+            k2.process(_catalog(tab, 1.0 + np.where(np.isfinite(mk), mk, 0.0), with_shear=False))
             vecs.append(np.concatenate([gg.xip / k2.xi, gg.xim / k2.xi]))
         cov = np.cov(np.array(vecs), rowvar=False)
     return out, cov
