@@ -26,6 +26,12 @@ Simulation only, while the engine is unavailable::
 Noise bias across SNR::
 
     python benchmarks/ring_test.py --n-galaxies 2000 --snr-min 10 --snr-max 100 --out ring.fits
+
+Metacalibration (issue 8): every object measured in its five metacal versions; the shear of each sign
+is <R>^-1 <e> with the ensemble response (shear and selection, :mod:`shearfit.metacal`), no external
+calibration. The symmetrising noise of an object is the same at +g and -g, so it cancels too::
+
+    python benchmarks/ring_test.py --n-galaxies 400 --snr-min 10 --snr-max 40 --metacal
 """
 
 from __future__ import annotations
@@ -52,6 +58,8 @@ from shearfit.simulate.shear_bias import (format_with_error, galaxy_column, ring
 # m(SNR) is printed when snr_max / snr_min exceeds this: a narrower range has no noise-bias trend to see.
 WIDE_SNR_RATIO = 2.5
 RESULT_FIELDS = ("e1", "e2", "e_var", "weight", "snr", "scalelength", "bulge_fraction", "model_flux")
+METACAL_FIELDS = tuple(f"{q}_{v}" for v in ("1p", "1m", "2p", "2m") for q in ("e1", "e2", "weight", "fitclass")) + \
+    ("R11", "R12", "R21", "R22")
 
 
 # ----------------------------------------------------------------------------- workers
@@ -68,6 +76,7 @@ def _work(task):
     cfg = opts["config"]
     records = []
     t_sim = t_meas = 0.0
+    metacal = opts.get("metacal", False)
     for sign in (+1, -1):
         # The same seed for both signs: nothing ring_set draws depends on the shear, so the
         # galaxy, PSFs, dithers and noise are identical and cancel in the +g / -g difference.
@@ -88,9 +97,27 @@ def _work(task):
                 "peak_over_sigma": float(max(o.image.max() for o in obs) / truth["sigma"]),
                 "fitclass": -99, "time": np.nan, "error": "",
             }
-            for name in RESULT_FIELDS:
+            for name in RESULT_FIELDS + (METACAL_FIELDS if metacal else ()):
                 rec[name] = np.nan
-            if measure is not None:
+            if measure is not None and metacal:
+                from shearfit.metacal import SHEARED, measure_metacal
+
+                t0 = time.perf_counter()
+                mrng = np.random.default_rng([int(seed.generate_state(1)[0]), truth["rotation"]])
+                mc = measure_metacal(obs, truth["mag"], cfg, rng=mrng)
+                res = mc.noshear
+                rec["fitclass"] = int(res.fitclass)
+                for name in RESULT_FIELDS:
+                    rec[name] = float(getattr(res, name, np.nan))
+                for v in SHEARED:
+                    for q in ("e1", "e2", "weight", "fitclass"):
+                        rec[f"{q}_{v}"] = float(getattr(mc.results[v], q))
+                for i in range(2):
+                    for j in range(2):
+                        rec[f"R{i + 1}{j + 1}"] = float(mc.R[i, j])
+                rec["time"] = time.perf_counter() - t0
+                t_meas += rec["time"]
+            elif measure is not None:
                 t0 = time.perf_counter()
                 try:
                     res = measure(obs, mag=truth["mag"], config=cfg)
@@ -156,6 +183,52 @@ def report_bias(tab, args, n_gal):
                   f"{format_with_error(e_b[0], err_b[0])}   {format_with_error(e_b[1], err_b[1])}")
 
 
+def report_metacal(tab, args, n_gal):
+    """m and c of the metacal shear <R>^-1 <e> per sign (shear and selection response), bootstrap errors."""
+    from astropy.table import Table
+
+    from shearfit.metacal import ensemble_response
+
+    g = np.array(args.shear, dtype=float)
+    cols = ["e1", "e2", "weight", "fitclass"] + list(METACAL_FIELDS)
+    gal = np.asarray(tab["galaxy"])
+    sign = np.asarray(tab["sign"])
+
+    def shear_of(rows):
+        t = Table({c: np.asarray(tab[c])[rows] for c in cols})
+        for c in t.colnames:
+            if c.startswith("fitclass"):
+                t[c] = np.nan_to_num(np.asarray(t[c], float), nan=-2).astype(int)
+        R, Rg, Rs = ensemble_response(t, delta=0.01)
+        w = np.where(np.asarray(t["fitclass"]) == 0, np.nan_to_num(np.asarray(t["weight"], float)), 0.0)
+        e = np.nan_to_num(np.stack([np.asarray(t["e1"], float), np.asarray(t["e2"], float)]))
+        ebar = e @ w / w.sum()
+        return np.linalg.solve(R, ebar), ebar, Rg, Rs
+
+    def bias(sel_gal):
+        rows_p = np.concatenate([np.nonzero((gal == k) & (sign > 0))[0] for k in sel_gal])
+        rows_m = np.concatenate([np.nonzero((gal == k) & (sign < 0))[0] for k in sel_gal])
+        gp, ep, Rgp, Rsp = shear_of(rows_p)
+        gm, em, Rgm, Rsm = shear_of(rows_m)
+        raw_m = (ep - em) / (2 * g) - 1
+        return np.concatenate([(gp - gm) / (2 * g) - 1, (gp + gm) / 2, raw_m]), (Rgp + Rgm) / 2, (Rsp + Rsm) / 2
+
+    ids = np.arange(n_gal)
+    est, Rg, Rs = bias(ids)
+    rng = np.random.default_rng([args.seed, 54321])
+    boots = np.array([bias(rng.choice(ids, ids.size))[0] for _ in range(args.n_bootstrap)])
+    err = boots.std(axis=0)
+    print(f"\nmetacal shear bias (<R>^-1 <e> per sign, lensfit weights, {args.n_bootstrap} bootstrap resamplings "
+          f"of {n_gal} galaxies):")
+    print(f"  m1 = {format_with_error(est[0], err[0])}    c1 = {format_with_error(est[2], err[2])}")
+    print(f"  m2 = {format_with_error(est[1], err[1])}    c2 = {format_with_error(est[3], err[3])}")
+    print(f"  without the response (raw lensfit on the metacal noshear images): m1 = "
+          f"{format_with_error(est[4], err[4])}, m2 = {format_with_error(est[5], err[5])}")
+    print(f"  <R_gamma> = [[{Rg[0, 0]:.4f}, {Rg[0, 1]:+.4f}], [{Rg[1, 0]:+.4f}, {Rg[1, 1]:.4f}]]; "
+          f"R_S = [[{Rs[0, 0]:+.4f}, {Rs[0, 1]:+.4f}], [{Rs[1, 0]:+.4f}, {Rs[1, 1]:+.4f}]]")
+    print(f"  fitclass != 0: {np.mean(np.asarray(tab['fitclass']) != 0):.3%} of {len(tab)} objects")
+
+
 def report_dry(tab):
     first = tab["sign"] > 0
     t = tab[first]
@@ -201,6 +274,8 @@ def parse_args(argv=None):
                    help="noise-free images with the weights of the target SNR: the likelihood has that SNR's "
                         "width but is centred on the truth (implementation accuracy without noise bias)")
     p.add_argument("--dry-run", action="store_true", help="simulate only and summarise the stamps")
+    p.add_argument("--metacal", action="store_true",
+                   help="measure the five metacal versions of every object and report the metacal shear bias")
     p.add_argument("--quiet", action="store_true")
     args = p.parse_args(argv)
     if args.n_galaxies < 1 or args.n_rotations < 1 or args.n_exposures < 1 or args.processes < 1:
@@ -262,7 +337,7 @@ def main(argv=None):
             print(f"ring_test.py: error: {exc}", file=sys.stderr)
             return 2
     opts = {
-        "shear": tuple(args.shear), "dry_run": args.dry_run, "config": cfg,
+        "shear": tuple(args.shear), "dry_run": args.dry_run, "config": cfg, "metacal": args.metacal,
         "ring_kwargs": dict(n_rotations=args.n_rotations, n_exposures=args.n_exposures,
                             snr_range=(args.snr_min, args.snr_max), mag_range=(args.mag_min, args.mag_max),
                             stamp_size=args.stamp_size, psf_oversampling=args.psf_oversampling,
@@ -310,6 +385,8 @@ def main(argv=None):
         rate = n_obj / t_meas if t_meas > 0 else np.nan
         print(f"; measurement {t_meas / n_obj * 1e3:.1f} ms per object = {rate:.2f} galaxies / s / process")
         report_bias(tab, args, args.n_galaxies)
+        if args.metacal:
+            report_metacal(tab, args, args.n_galaxies)
     if args.out:
         _write_table(tab, args.out)
         print(f"\nper-object results written to {args.out}")

@@ -184,3 +184,34 @@ def test_size_spline_integral_against_quadrature(mag, peak, width):
     ref = integrate.quad(lambda r: np.exp(logl(r)) * priors.size_prior_pdf(r, mag, cfg), 0, 50 * peak,
                          points=[peak], limit=500, epsrel=1e-10)[0]
     assert float(pt.logl_disk[0]) == pytest.approx(np.log(ref), abs=0.02)
+
+
+def test_position_integral_bounded_where_the_curvature_vanishes():
+    """A model much longer than the galaxy: one curvature eigenvalue through zero, a gradient along it.
+
+    The bare second-order peak runs away there (the Newton step and the
+    Gaussian volume diverge); the bounded integral stays within the position
+    prior: continuous across the zero, and the peak gain at most
+    |g| * max_step.
+    """
+    t = 3.0
+    radius = 0.75                     # arcsec: 4 pixels of 0.187
+    mu_min = 1 / radius ** 2
+    g = np.array([[2.0, 0.5]])
+    lam = np.linspace(-2.0, 2.0, 81)  # curvature along x through zero; steep along y
+    H = np.stack([-lam, np.zeros_like(lam), np.full_like(lam, -80.0)], axis=1)
+    logp_ref, logp0 = np.full(lam.size, 20.0), np.full(lam.size, 10.0)
+    val, A, corr = _position_integral(logp_ref, logp0, np.repeat(g, lam.size, 0), H, t, mu_min=mu_min,
+                                      max_step=radius)
+    assert np.all(np.isfinite(val))
+    assert np.all(corr <= np.hypot(*g[0]) * radius + 1e-12)
+    assert np.max(np.abs(np.diff(val))) < 0.2          # no jump as the eigenvalue crosses zero
+    bare, _, _ = _position_integral(logp_ref, logp0, np.repeat(g, lam.size, 0), H, t)
+    near = np.abs(lam) < 0.06
+    assert np.all(~np.isfinite(bare[lam < 0])) and np.all(bare[near & (lam > 0)] > val[near & (lam > 0)] + 10)
+    # where the bounds are inactive (steep peak, small step) the two agree exactly
+    Hs = np.array([[-30.0, 4.0, -18.0]])
+    gs = np.array([[0.3, -0.2]])
+    v1, _, _ = _position_integral(np.array([20.0]), np.array([10.0]), gs, Hs, t, mu_min=mu_min, max_step=radius)
+    v2, _, _ = _position_integral(np.array([20.0]), np.array([10.0]), gs, Hs, t)
+    assert v1[0] == pytest.approx(v2[0], abs=1e-12)

@@ -2,15 +2,25 @@
 
 Measured galaxies (``fitclass`` 0, weight > 0) are matched by ``id`` to the
 simulation's truth. Each galaxy gives, per shear component k, the
-observation ``y_k = e_k - e_int,k - g_k``, which is ``m g_k + c_k`` plus
-noise (the intrinsic shape is subtracted, so shape noise does not enter).
-Galaxies are put in bins of measured SNR and measured scalelength with
-equal numbers (SNR quantiles first, then size quantiles within each SNR
-bin; 20 x 20 by default, fewer when the sample is small), each galaxy
-entering its bin once per shear component; in each bin m, c_1 and c_2 come
-from a weighted least-squares fit with the lensfit weights, and their
-errors from bootstrap resampling of the bin's galaxies. The shear must vary
-between galaxies (a shear field, or several fields) for m and c to separate.
+observation ``y_k = e_k - e_s,k``, with ``e_s = (e_int + g) / (1 + g* e_int)``
+its true sheared ellipticity; ``y_k`` is ``m g_k + c_k`` plus noise (the
+intrinsic shape is subtracted, so shape noise does not enter, and the mean of
+``e_s`` over orientations is exactly ``g``). Galaxies are put in bins of
+measured SNR and measured scalelength with equal numbers (SNR quantiles
+first, then size quantiles within each SNR bin; 20 x 20 by default, fewer
+when the sample is small), each galaxy entering its bin once per shear
+component; in each bin m, c_1 and c_2 come from a weighted least-squares fit
+with the lensfit weights, and their errors from bootstrap resampling of the
+bin's galaxies. The shear must vary between galaxies (a shear field, or
+several fields) for m and c to separate.
+
+Several simulated fields calibrate together (``calibrate([(measured, truth),
+...])``). Fields made from the same seed share galaxies *and pixel noise*
+(``shearfit simulate`` with the seed in the truth header and only the shear
+changed, as the demo's +g / -g pair): the copies of one galaxy form a group,
+binned by the group's mean measured SNR and size and resampled together by
+the bootstrap, so that the noise common to the copies cancels in the
+difference that m measures, and the errors know it.
 
 Then the paper's form m(nu, r) = beta / ln(nu) exp(-alpha r nu) (r in
 arcsec) is fitted to the bins by chi^2; the likelihood of (alpha, beta) on a
@@ -22,13 +32,13 @@ from __future__ import annotations
 
 import numpy as np
 import yaml
-from astropy.table import Table, join
+from astropy.table import Table, join, vstack
 from scipy.optimize import least_squares
 
 from ._atomic import atomic_path, read_yaml_mapping
 from .errors import ShearfitIOError, ShearfitValueError
 
-__all__ = ["matched_galaxies", "bin_indices", "bin_bias", "fit_alpha_beta", "calibrate", "read_calibration",
+__all__ = ["matched_galaxies", "stack_matched", "sheared_ellipticity", "quantity_bins", "bin_indices", "bin_bias", "fit_alpha_beta", "calibrate", "read_calibration",
            "write_calibration", "model_m", "calibration_m", "calibrated_bias", "plot_calibration",
            "weight_bins", "PAPER_ALPHA", "PAPER_BETA"]
 
@@ -60,8 +70,18 @@ def _read(path, what):
     return t
 
 
-def matched_galaxies(measured_path, truth_path) -> Table:
-    """Measured galaxies joined to their truth rows by ``id`` (truth columns suffixed ``_true``)."""
+def matched_galaxies(measured_path, truth_path, field=0) -> Table:
+    """Measured galaxies joined to their truth rows by ``id`` (truth columns suffixed ``_true``).
+
+    A metacal catalogue (``CALMODE = metacal``) enters with its ellipticities
+    divided by its ensemble response (:func:`shearfit.metacal.ensemble_response`),
+    so that m and c are what remains after metacal.
+
+    Adds ``e1_sh``, ``e2_sh`` (the true sheared ellipticity), ``field`` and
+    ``group``: the truth header's ``SEED`` times 10^8 plus ``id``, so that a
+    galaxy simulated with the same seed in several fields (same noise,
+    another shear) is one group; without ``SEED`` every row is its own group.
+    """
     m = _read(measured_path, "measured")
     t = _read(truth_path, "truth")
     for col in ("id", "e1", "e2", "weight", "fitclass", "snr", "scalelength"):
@@ -70,6 +90,9 @@ def matched_galaxies(measured_path, truth_path) -> Table:
     for col in ("id", "g1", "g2", "e1_int", "e2_int", "is_star"):
         if col not in t.colnames:
             raise ShearfitIOError(f"{truth_path}: no column {col}")
+    seed = t.meta.get("SEED", t.meta.get("seed"))
+    if "r11" in m.colnames and str(m.meta.get("CALMODE", "")).lower() == "metacal":
+        m = _metacal_corrected(m, measured_path)
     t = t[["id", "g1", "g2", "e1_int", "e2_int", "is_star"] + [c for c in ("snr", "scalelength") if c in t.colnames]]
     for c in ("snr", "scalelength"):
         if c in t.colnames:
@@ -78,17 +101,82 @@ def matched_galaxies(measured_path, truth_path) -> Table:
     keep = (np.asarray(j["fitclass"]) == 0) & (np.asarray(j["weight"]) > 0) & ~np.asarray(j["is_star"], bool)
     keep &= np.isfinite(np.asarray(j["e1"], float)) & np.isfinite(np.asarray(j["snr"], float))
     keep &= np.asarray(j["snr"], float) > 1.0
-    return j[keep]
+    j = j[keep]
+    es = sheared_ellipticity(np.asarray(j["e1_int"], float) + 1j * np.asarray(j["e2_int"], float),
+                             np.asarray(j["g1"], float) + 1j * np.asarray(j["g2"], float))
+    j["e1_sh"], j["e2_sh"] = es.real, es.imag
+    j["field"] = np.full(len(j), int(field), dtype=np.int32)
+    ids = np.asarray(j["id"], np.int64)
+    if seed is None:
+        j["group"] = (int(field) + 1) * -(10 ** 8) - ids       # unique per field: no noise shared
+    else:
+        j["group"] = int(seed) * 10 ** 8 + ids
+    return j
 
 
-def bin_indices(snr, r, n_snr=20, n_size=20, min_per_bin=MIN_PER_BIN):
+def _metacal_corrected(m, path):
+    """A metacal catalogue with e replaced by <R>^-1 e (its ensemble response, shear and selection)."""
+    from .metacal import ensemble_response
+
+    names = {f"r{i}{j}": f"R{i}{j}" for i in (1, 2) for j in (1, 2)}
+    m = m.copy(copy_data=False)
+    m.rename_columns(list(names), list(names.values()))
+    try:
+        R, _, _ = ensemble_response(m)
+    except KeyError as exc:
+        raise ShearfitIOError(f"{path}: metacal catalogue has no column {exc.args[0]!r}") from None
+    e = np.linalg.solve(R, np.stack([np.asarray(m["e1"], float), np.asarray(m["e2"], float)]))
+    m["e1"], m["e2"] = e[0], e[1]
+    m.meta["METACAL_R"] = R.tolist()
+    return m
+
+
+def sheared_ellipticity(e, g):
+    """Complex ellipticity (a-b)/(a+b) after the reduced shear g: (e + g) / (1 + g* e)."""
+    return (e + g) / (1 + np.conj(g) * e)
+
+
+def stack_matched(pairs) -> Table:
+    """:func:`matched_galaxies` of several (measured, truth) pairs, one table (``field`` = pair index)."""
+    pairs = list(pairs)
+    if not pairs:
+        raise ShearfitValueError("no (measured, truth) pair to calibrate from")
+    tabs = [matched_galaxies(m, t, field=k) for k, (m, t) in enumerate(pairs)]
+    return vstack(tabs, metadata_conflicts="silent") if len(tabs) > 1 else tabs[0]
+
+
+def _residuals(tab):
+    """(y1, y2, g1, g2, w): measured minus true sheared ellipticity, shear and weight per galaxy."""
+    col = lambda c: np.asarray(tab[c], float)  # noqa: E731
+    return (col("e1") - col("e1_sh"), col("e2") - col("e2_sh"), col("g1"), col("g2"), col("weight"))
+
+
+def _group_codes(tab):
+    """Group of each row as 0 .. n_groups - 1 (rows without a ``group`` column are their own group)."""
+    if "group" not in tab.colnames:
+        return np.arange(len(tab))
+    return np.unique(np.asarray(tab["group"]), return_inverse=True)[1].ravel()
+
+
+def bin_indices(snr, r, n_snr=20, n_size=20, min_per_bin=MIN_PER_BIN, groups=None):
     """Bin index (0 .. n_snr*n_size - 1) of each galaxy: equal numbers in SNR, then in size within each.
 
-    The bin counts shrink (keeping their ratio) until every bin has at least ``min_per_bin`` galaxies.
-    Returns (index, n_snr, n_size).
+    With ``groups`` (an integer code per galaxy) whole groups are binned, by
+    their members' mean SNR and size, and the counts are of groups. The bin
+    counts shrink (keeping their ratio) until every bin has at least
+    ``min_per_bin`` galaxies (groups). Returns (index, n_snr, n_size).
     """
     snr = np.asarray(snr, float)
     r = np.asarray(r, float)
+    if groups is not None:
+        groups = np.asarray(groups)
+        cnt = np.bincount(groups)
+        gs = np.bincount(groups, snr) / np.maximum(cnt, 1)
+        gr = np.bincount(groups, r) / np.maximum(cnt, 1)
+        present = cnt > 0
+        gidx = np.full(cnt.size, -1)
+        gidx[present], n_snr, n_size = bin_indices(gs[present], gr[present], n_snr, n_size, min_per_bin)
+        return gidx[groups], n_snr, n_size
     n = snr.size
     while n_snr * n_size * min_per_bin > n and (n_snr > 1 or n_size > 1):
         n_snr, n_size = max(1, n_snr - 1), max(1, n_size - 1)
@@ -114,14 +202,25 @@ def _fit_mc(y1, y2, g1, g2, w):
     return sol
 
 
+def _group_resamples(rows, groups, n_boot, rng):
+    """Bootstrap resamplings of ``rows`` that draw whole groups (a list of row-index arrays)."""
+    codes, inv = np.unique(groups[rows], return_inverse=True)
+    order = np.argsort(inv, kind="stable")
+    starts = np.searchsorted(inv[order], np.arange(codes.size + 1))
+    members = [rows[order[starts[k]:starts[k + 1]]] for k in range(codes.size)]
+    if codes.size == rows.size:                      # one row per group: the plain bootstrap
+        return [rng.choice(rows, rows.size) for _ in range(n_boot)]
+    return [np.concatenate([members[k] for k in rng.integers(0, codes.size, codes.size)]) for _ in range(n_boot)]
+
+
 def bin_bias(tab: Table, idx, n_bins, n_boot=100, rng=None, m_pred=None):
-    """Per bin: weighted mean SNR and size, m, c1, c2 with bootstrap errors (and the mean prediction)."""
+    """Per bin: weighted mean SNR and size, m, c1, c2 with bootstrap errors (and the mean prediction).
+
+    The bootstrap draws groups (see :func:`matched_galaxies`) with all their rows.
+    """
     rng = np.random.default_rng(0) if rng is None else rng
-    e1, e2 = np.asarray(tab["e1"], float), np.asarray(tab["e2"], float)
-    g1, g2 = np.asarray(tab["g1"], float), np.asarray(tab["g2"], float)
-    y1 = e1 - np.asarray(tab["e1_int"], float) - g1
-    y2 = e2 - np.asarray(tab["e2_int"], float) - g2
-    w = np.asarray(tab["weight"], float)
+    y1, y2, g1, g2, w = _residuals(tab)
+    groups = _group_codes(tab)
     snr, r = np.asarray(tab["snr"], float), np.asarray(tab["scalelength"], float)
     rows = []
     for b in range(n_bins):
@@ -130,14 +229,17 @@ def bin_bias(tab: Table, idx, n_bins, n_boot=100, rng=None, m_pred=None):
             continue
         est = _fit_mc(y1[sel], y2[sel], g1[sel], g2[sel], w[sel])
         boot = np.array([_fit_mc(y1[s], y2[s], g1[s], g2[s], w[s])
-                         for s in (rng.choice(sel, sel.size) for _ in range(n_boot))])
+                         for s in _group_resamples(sel, groups, n_boot, rng)])
         err = boot.std(axis=0)
         ws = w[sel] / w[sel].sum()
         row = dict(bin=b, n=int(sel.size), snr=float(np.sum(ws * snr[sel])), r=float(np.sum(ws * r[sel])),
                    weight=float(np.mean(w[sel])), m=float(est[0]), m_err=float(err[0]), c1=float(est[1]),
                    c1_err=float(err[1]), c2=float(est[2]), c2_err=float(err[2]))
         if m_pred is not None:
-            row["m_pred"] = float(np.sum(ws * m_pred[sel]))
+            mp = float(np.sum(ws * m_pred[sel]))
+            row["m_pred"] = mp
+            row["m_cal"] = float((1 + est[0]) / (1 + mp) - 1)
+            row["m_cal_err"] = float(err[0] / abs(1 + mp))
         rows.append(row)
     if not rows:
         raise ShearfitValueError("no calibration bin has 3 galaxies")
@@ -172,26 +274,31 @@ def fit_alpha_beta(bins: Table, n_grid=81):
                 grid_alpha=alphas.tolist(), grid_beta=betas.tolist(), loglike=loglike.tolist())
 
 
-def calibrate(measured_path, truth_path, n_snr=20, n_size=20, n_boot=100, seed=0, min_per_bin=MIN_PER_BIN):
-    """The calibration of one simulation (see the module doc): (result dict, bins table, matched table)."""
-    tab = matched_galaxies(measured_path, truth_path)
+def calibrate(pairs, n_snr=20, n_size=20, n_boot=100, seed=0, min_per_bin=MIN_PER_BIN):
+    """The calibration from simulated fields (see the module doc): (result dict, bins table, matched table).
+
+    ``pairs``: a list of (measured catalogue, truth table) paths, one per field.
+    """
+    pairs = [tuple(p) for p in pairs]
+    tab = stack_matched(pairs)
+    names = ", ".join(str(m) for m, _ in pairs)
     if len(tab) < 3 * min_per_bin:
-        raise ShearfitValueError(f"{measured_path}: {len(tab)} measured galaxies match the truth; the calibration "
+        raise ShearfitValueError(f"{names}: {len(tab)} measured galaxies match the truth; the calibration "
                                  f"needs at least {3 * min_per_bin}")
     if min(np.std(np.asarray(tab["g1"], float)), np.std(np.asarray(tab["g2"], float))) < 1e-4:
-        raise ShearfitValueError(f"{truth_path}: the shear is the same for every galaxy; m and c cannot be separated "
-                                 "(simulate with shear_rms > 0, or stack fields with different shears)")
-    idx, ns, nr = bin_indices(tab["snr"], tab["scalelength"], n_snr, n_size, min_per_bin)
+        raise ShearfitValueError(f"{', '.join(str(t) for _, t in pairs)}: the shear is the same for every galaxy; "
+                                 "m and c cannot be separated (simulate with shear_rms > 0, or calibrate from "
+                                 "fields with different shears)")
+    groups = _group_codes(tab)
+    idx, ns, nr = bin_indices(tab["snr"], tab["scalelength"], n_snr, n_size, min_per_bin, groups=groups)
     rng = np.random.default_rng(seed)
     bins = bin_bias(tab, idx, ns * nr, n_boot, rng)
     fit = fit_alpha_beta(bins)
-    y1 = np.asarray(tab["e1"], float) - np.asarray(tab["e1_int"], float) - np.asarray(tab["g1"], float)
-    y2 = np.asarray(tab["e2"], float) - np.asarray(tab["e2_int"], float) - np.asarray(tab["g2"], float)
-    tot = _fit_mc(y1, y2, np.asarray(tab["g1"], float), np.asarray(tab["g2"], float), np.asarray(tab["weight"], float))
-    result = dict(fit, n_galaxies=int(len(tab)), n_snr_bins=int(ns), n_size_bins=int(nr),
-                  m_raw=float(tot[0]), c1=float(tot[1]), c2=float(tot[2]),
+    tot = _fit_mc(*_residuals(tab))
+    result = dict(fit, n_galaxies=int(len(tab)), n_groups=int(groups.max() + 1), n_snr_bins=int(ns),
+                  n_size_bins=int(nr), m_raw=float(tot[0]), c1=float(tot[1]), c2=float(tot[2]),
                   paper_alpha=PAPER_ALPHA, paper_beta=PAPER_BETA,
-                  measured=str(measured_path), truth=str(truth_path))
+                  measured=[str(m) for m, _ in pairs], truth=[str(t) for _, t in pairs])
     return result, bins, tab
 
 
@@ -239,21 +346,31 @@ def calibration_samples(path, n, rng):
     return ga[ia] + da * rng.uniform(-0.5, 0.5, n), gb[ib] + db * rng.uniform(-0.5, 0.5, n)
 
 
-def calibrated_bias(tab: Table, alpha, beta):
-    """Overall m, c1, c2 of a matched table before and after the calibration (alpha, beta).
+def calibrated_bias(tab: Table, alpha, beta, n_boot=200, seed=0):
+    """Overall m, c1, c2 of a matched table before and after the calibration (alpha, beta), with errors.
 
     The calibration divides the weighted shear estimate by 1 + the weighted mean m of the
     galaxies (the paper's ensemble correction), so the calibrated m is (1 + m_raw) / (1 + <m>) - 1.
+    Errors (``*_err``) from a bootstrap over groups (see :func:`matched_galaxies`).
     """
-    e1, e2 = np.asarray(tab["e1"], float), np.asarray(tab["e2"], float)
-    g1, g2 = np.asarray(tab["g1"], float), np.asarray(tab["g2"], float)
-    w = np.asarray(tab["weight"], float)
-    y1 = e1 - np.asarray(tab["e1_int"], float) - g1
-    y2 = e2 - np.asarray(tab["e2_int"], float) - g2
-    raw = _fit_mc(y1, y2, g1, g2, w)
-    mbar = float(np.sum(w * calibration_m(tab["snr"], tab["scalelength"], alpha, beta)) / np.sum(w))
-    return dict(m_raw=float(raw[0]), c1=float(raw[1]), c2=float(raw[2]), m_mean=mbar,
-                m_cal=float((1 + raw[0]) / (1 + mbar) - 1))
+    y1, y2, g1, g2, w = _residuals(tab)
+    mc = calibration_m(tab["snr"], tab["scalelength"], alpha, beta)
+
+    def est(s):
+        raw = _fit_mc(y1[s], y2[s], g1[s], g2[s], w[s])
+        mbar = float(np.sum(w[s] * mc[s]) / np.sum(w[s]))
+        return np.array([raw[0], raw[1], raw[2], mbar, (1 + raw[0]) / (1 + mbar) - 1])
+
+    rows = np.arange(len(tab))
+    full = est(rows)
+    boot = np.array([est(s) for s in _group_resamples(rows, _group_codes(tab), n_boot,
+                                                       np.random.default_rng(seed))])
+    err = boot.std(axis=0)
+    names = ("m_raw", "c1", "c2", "m_mean", "m_cal")
+    out = {k: float(v) for k, v in zip(names, full)}
+    out.update({f"{k}_err": float(v) for k, v in zip(names, err)})
+    out["n_galaxies"] = int(len(tab))
+    return out
 
 
 def plot_calibration(bins: Table, result, path, weight_bins=None):
@@ -301,9 +418,20 @@ def plot_calibration(bins: Table, result, path, weight_bins=None):
 
 def weight_bins(tab: Table, alpha, beta, n=10, n_boot=100, seed=0):
     """m in bins of lensfit weight (equal numbers), with the calibration's mean prediction per bin."""
-    w = np.asarray(tab["weight"], float)
-    order = np.argsort(w, kind="stable")
-    idx = np.empty(w.size, int)
-    idx[order] = np.arange(w.size) * n // max(w.size, 1)
+    return quantity_bins(tab, "weight", alpha, beta, n=n, n_boot=n_boot, seed=seed)
+
+
+def quantity_bins(tab: Table, column, alpha, beta, n=6, n_boot=100, seed=0):
+    """Raw and calibrated m (and c) in equal-number bins of one column (``snr``, ``scalelength``, ...).
+
+    Groups are binned by their mean value, so the copies of a galaxy stay together.
+    """
+    x = np.asarray(tab[column], float)
+    codes = _group_codes(tab)
+    cnt = np.bincount(codes)
+    gx = np.bincount(codes, x) / np.maximum(cnt, 1)
+    order = np.argsort(gx, kind="stable")
+    gidx = np.empty(gx.size, int)
+    gidx[order] = np.arange(gx.size) * n // max(gx.size, 1)
     pred = calibration_m(tab["snr"], tab["scalelength"], alpha, beta)
-    return bin_bias(tab, idx, n, n_boot, np.random.default_rng(seed), m_pred=pred)
+    return bin_bias(tab, gidx[codes], n, n_boot, np.random.default_rng(seed), m_pred=pred)

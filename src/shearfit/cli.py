@@ -14,7 +14,7 @@ import sys
 import numpy as np
 
 from . import __version__
-from .errors import ShearfitError
+from .errors import ShearfitError, ShearfitValueError
 
 __all__ = ["main"]
 
@@ -71,16 +71,20 @@ def _cmd_systematics(args):
 
 
 def _cmd_xipm(args):
-    from .twopoint import parse_selection, read_shear_catalog, write_xipm, xipm
+    from .twopoint import metacal_response_of, parse_selection, read_shear_catalog, write_xipm, xipm
 
     if not (0 < args.min_sep < args.max_sep) or args.nbins < 1:
         raise ShearfitError("--min-sep must be positive and below --max-sep, --nbins at least 1")
     sel = [parse_selection(t) for t in args.select]
     tab = read_shear_catalog(args.catalog, sel)
+    R = metacal_response_of(args.catalog, sel) if args.calibration is None else None
     table, cov = xipm(tab, args.min_sep, args.max_sep, args.nbins, calibration=args.calibration,
-                      n_sys=args.n_sys, seed=args.seed, bin_slop=args.bin_slop)
-    cards = [("NGAL", len(tab), "galaxies used"),
-             ("CALIB", args.calibration or "catalogue m column", "calibration used")]
+                      n_sys=args.n_sys, seed=args.seed, bin_slop=args.bin_slop, response=R)
+    calib = args.calibration or ("metacal response" if R is not None else "catalogue m column")
+    cards = [("NGAL", len(tab), "galaxies used"), ("CALIB", calib, "calibration used")]
+    if R is not None:
+        cards += [(f"MCR{i + 1}{j + 1}", float(R[i][j]), "metacal ensemble response (shear + selection)")
+                  for i in range(2) for j in range(2)]
     cards += [(f"SELECT{i}", t, "selection") for i, t in enumerate(args.select)]
     write_xipm(table, cov, args.out, cards)
     if not args.quiet:
@@ -166,8 +170,12 @@ def _cmd_calibrate(args):
     from .calibrate import calibrate, plot_calibration, weight_bins, write_calibration
     from .field.io import write_catalog_atomic
 
-    result, bins, tab = calibrate(args.measured, args.truth, n_snr=args.n_snr, n_size=args.n_size,
-                                  n_boot=args.bootstrap, seed=args.seed)
+    files = [args.measured, args.truth] + list(args.more)
+    if len(files) % 2:
+        raise ShearfitValueError(f"calibrate takes MEASURED TRUTH pairs; {files[-1]} has no partner")
+    pairs = list(zip(files[0::2], files[1::2]))
+    result, bins, tab = calibrate(pairs, n_snr=args.n_snr, n_size=args.n_size, n_boot=args.bootstrap,
+                                  seed=args.seed)
     write_calibration(result, args.out)
     stem = os.path.splitext(args.out)[0]
     write_catalog_atomic(bins, f"{stem}_bins.fits", [])
@@ -250,6 +258,9 @@ def build_parser():
                                    "bins as FITS and a plot.")
     p.add_argument("measured", help="shear catalogue of the simulated field (shearfit measure)")
     p.add_argument("truth", help="truth.fits of the simulation")
+    p.add_argument("more", nargs="*", metavar="MEASURED TRUTH",
+                   help="more fields, as pairs; fields simulated with the same seed (same noise, another shear) "
+                        "are paired galaxy by galaxy, so their common noise cancels")
     p.add_argument("--out", required=True, help="calibration YAML to write")
     p.add_argument("--n-snr", type=int, default=20, help="SNR bins (fewer if the sample is small)")
     p.add_argument("--n-size", type=int, default=20, help="size bins per SNR bin")

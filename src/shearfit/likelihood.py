@@ -349,7 +349,7 @@ def _disk_logp(S, ff, gg, fg, hf, hg, cfg: FitConfig, log_zb):
     return logp, meanb
 
 
-def _position_integral(logp_ref, logp0, g, H, tcrit):
+def _position_integral(logp_ref, logp0, g, H, tcrit, mu_min=0.0, max_step=np.inf):
     """Integral over position of exp(log P): Gaussian on a pedestal to r_max.
 
     log P(x) is approximated as log P0 + A exp(-x^T Q x / 2) with A the peak
@@ -357,18 +357,45 @@ def _position_integral(logp_ref, logp0, g, H, tcrit):
     (where the height exceeds Delta chi^2_crit / 2) integrates to
     ``P0 (2 pi / sqrt(det Q)) [Ei(A) - Ei(Delta chi^2_crit / 2)]``.
     The peak value is refined from the reference position to second order.
+
+    The second-order expansion only holds near the reference position. A
+    model much longer than the galaxy (extreme ellipticity) slides along its
+    major axis with almost no change in the cross-correlation, so the
+    curvature there can be near zero or negative with noise, and the Newton
+    step and the Gaussian volume would run away (log L up by 1e5 at one
+    ellipticity). Two bounds, both continuous in the model parameters, keep
+    the integral to the position prior's scale: the curvature's eigenvalues
+    are raised to at least ``mu_min`` (no peak wider than the prior's radius),
+    and the step to the peak is cut back along the Newton direction to at
+    most ``max_step`` (the quadratic model's value at that point).
     """
     h11, h12, h22 = -H[..., 0], -H[..., 1], -H[..., 2]
-    det = h11 * h22 - h12 * h12
-    ok = (h11 > 0) & (det > 0)
+    g1, g2 = g[..., 0], g[..., 1]
     with np.errstate(invalid="ignore", divide="ignore"):
-        inv11 = h22 / det
-        inv12 = -h12 / det
-        inv22 = h11 / det
-        corr = 0.5 * (g[..., 0] ** 2 * inv11 + 2 * g[..., 0] * g[..., 1] * inv12 + g[..., 1] ** 2 * inv22)
+        if mu_min > 0:
+            # eigen-decomposition of the 2x2 curvature, eigenvalues floored at mu_min
+            half_tr = 0.5 * (h11 + h22)
+            rad = np.sqrt(0.25 * (h11 - h22) ** 2 + h12 * h12)
+            lam1 = np.maximum(half_tr + rad, mu_min)
+            lam2 = np.maximum(half_tr - rad, mu_min)
+            th = 0.5 * np.arctan2(2 * h12, h11 - h22)
+            c, s = np.cos(th), np.sin(th)
+            p1 = c * g1 + s * g2
+            p2 = -s * g1 + c * g2
+            ok = np.isfinite(lam1) & np.isfinite(lam2)
+            logdet = np.log(lam1 * lam2)
+            gqg = p1 * p1 / lam1 + p2 * p2 / lam2            # g^T M^-1 g
+            step = np.sqrt((p1 / lam1) ** 2 + (p2 / lam2) ** 2)
+        else:
+            det = h11 * h22 - h12 * h12
+            ok = (h11 > 0) & (det > 0)
+            logdet = np.where(ok, np.log(np.where(ok, det, 1.0)), 0.0)
+            gqg = (g1 ** 2 * h22 - 2 * g1 * g2 * h12 + g2 ** 2 * h11) / det
+            step = np.zeros_like(gqg)
+        t = np.where(step > max_step, max_step / np.where(step > 0, step, 1.0), 1.0)
+        corr = (t - 0.5 * t * t) * gqg
         corr = np.where(ok, np.maximum(corr, 0.0), 0.0)
         A = logp_ref + corr - logp0
-        logdet = np.where(ok, np.log(np.where(ok, det, 1.0)), 0.0)
         val = logp0 + LOG_2PI - 0.5 * logdet + np.log(np.where(A > 0, A, 1.0)) + log_ei_minus(A, tcrit)
     return np.where(ok, val, -np.inf), A, corr
 
@@ -437,11 +464,21 @@ def spline_matrix(x, xf):
     return w
 
 
-def flux_position_marginal(sums: ModelSums, cfg: FitConfig) -> Marginal:
-    """Marginalise each model over B (disk population), position and flux."""
+def flux_position_marginal(sums: ModelSums, cfg: FitConfig, pixel_scale=None) -> Marginal:
+    """Marginalise each model over B (disk population), position and flux.
+
+    With ``pixel_scale`` (arcsec), the position integral is held to the
+    position prior's radius, ``max_centroid_shift`` pixels (see
+    :func:`_position_integral`); without it, the bare second-order integral.
+    """
     nflux = cfg.n_flux
     u = np.linspace(0.0, 1.0, nflux)
     tcrit = 0.5 * cfg.delta_chi2_crit
+    if pixel_scale is not None:
+        radius = cfg.max_centroid_shift * float(pixel_scale)
+        bounds = dict(mu_min=1.0 / radius ** 2, max_step=radius)
+    else:
+        bounds = {}
     sb = cfg.bulge_fraction_sigma
     b0 = cfg.bulge_fraction_mean
     # normalisation of the truncated-Gaussian B prior on [0, 1]
@@ -472,7 +509,7 @@ def flux_position_marginal(sums: ModelSums, cfg: FitConfig) -> Marginal:
             g = S[..., None] * sums.grad_g[:, None, :]
             H = S[..., None] * sums.hess_g[:, None, :]
             meanb = np.ones_like(S)
-        logpos, A, corr = _position_integral(logp, logp0, g, H, tcrit)
+        logpos, A, corr = _position_integral(logp, logp0, g, H, tcrit, **bounds)
         logpost = logpos - cfg.flux_prior_slope * np.log(S)
         logpost = np.where(good[:, None], logpost, -np.inf)
         logint, uf, w = _spline_logint(u, logpost)
@@ -487,7 +524,8 @@ def flux_position_marginal(sums: ModelSums, cfg: FitConfig) -> Marginal:
         # best-fit chi^2 of the single-component model at its best flux and position
         gpos = grad * s_ml[:, None]
         Hpos = hess * s_ml[:, None]
-        _, _, corr_ml = _position_integral(np.zeros_like(s_ml), np.zeros_like(s_ml) - 1.0, gpos, Hpos, tcrit)
+        _, _, corr_ml = _position_integral(np.zeros_like(s_ml), np.zeros_like(s_ml) - 1.0, gpos, Hpos, tcrit,
+                                           **bounds)
         chi2 = -(h * h / hh_s) - 2 * corr_ml
         chi2 = np.where(good, chi2, 0.0)
         snr = np.where(good, h / np.sqrt(hh_s), 0.0)

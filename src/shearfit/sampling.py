@@ -78,7 +78,7 @@ class EllipticityLikelihood:
         # r = 0, the point source: one model shared by every ellipticity; the size integral runs
         # from it to the first node (sec. 3.2: "the set of r values included a point source")
         s0 = model_sums(jm, [0.0], [0.0], [0.0], fast, cfg.bulge_size_ratio, lin=self.lin)
-        self.zero = flux_position_marginal(s0, cfg)
+        self.zero = flux_position_marginal(s0, cfg, jm.pixel_scale)
         self.n_models = 1
         self.chi2_star = None
         self.best_chi2_gal = np.inf
@@ -131,7 +131,7 @@ class EllipticityLikelihood:
         sums = model_sums(self.jm, np.repeat(e1, n), np.repeat(e2, n), R.ravel(), self.fast,
                           cfg.bulge_size_ratio, lin=self.lin)
         self.n_models += R.size
-        mg = flux_position_marginal(sums, cfg)
+        mg = flux_position_marginal(sums, cfg, self.jm.pixel_scale)
         fB = cfg.bulge_population_fraction
         y = np.logaddexp(np.log(max(1 - fB, 1e-300)) + mg.logl_disk,
                          np.log(max(fB, 1e-300)) + mg.logl_bulge).reshape(R.shape)
@@ -166,7 +166,7 @@ class EllipticityLikelihood:
         E2 = np.repeat(e2, nr)
         sums = model_sums(self.jm, E1, E2, R.ravel(), self.fast, cfg.bulge_size_ratio, lin=self.lin)
         self.n_models += E1.size
-        mg = flux_position_marginal(sums, cfg)
+        mg = flux_position_marginal(sums, cfg, self.jm.pixel_scale)
         # best single-component fit among galaxies (r > 0), for the star/galaxy test
         chi2 = np.minimum(mg.chi2_disk, mg.chi2_bulge)
         i = int(np.argmin(chi2))

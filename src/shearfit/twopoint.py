@@ -22,7 +22,7 @@ from astropy.table import Table
 from .calibrate import calibration_m, calibration_samples
 from .errors import ShearfitIOError, ShearfitValueError
 
-__all__ = ["read_shear_catalog", "parse_selection", "xipm", "write_xipm"]
+__all__ = ["read_shear_catalog", "parse_selection", "xipm", "write_xipm", "metacal_response_of"]
 
 _NEEDED = ("ra", "dec", "e1", "e2", "weight", "fitclass")
 
@@ -40,11 +40,14 @@ def parse_selection(text):
     return parts[0], lo, hi
 
 
-def read_shear_catalog(path, selections=(), extra=None) -> Table:
+def read_shear_catalog(path, selections=(), extra=None, measured_only=True) -> Table:
     """The measured galaxies of a shearfit catalogue (fitclass 0, weight > 0, finite e), after the selections.
 
     ``selections``: (column, lo, hi) ranges, e.g. a tomographic bin of a
     photometric-redshift column joined to the catalogue beforehand.
+    ``measured_only=False`` keeps every object that passes the selections
+    (a metacal selection response needs the objects that only the sheared
+    versions select).
     """
     try:
         t = Table.read(path)
@@ -53,14 +56,33 @@ def read_shear_catalog(path, selections=(), extra=None) -> Table:
     for col in tuple(_NEEDED) + tuple(extra or ()):
         if col not in t.colnames:
             raise ShearfitIOError(f"{path}: shear catalogue has no column {col!r}")
-    keep = (np.asarray(t["fitclass"]) == 0) & (np.asarray(t["weight"], float) > 0)
-    keep &= np.isfinite(np.asarray(t["e1"], float)) & np.isfinite(np.asarray(t["e2"], float))
+    keep = np.ones(len(t), bool)
+    if measured_only:
+        keep &= (np.asarray(t["fitclass"]) == 0) & (np.asarray(t["weight"], float) > 0)
+        keep &= np.isfinite(np.asarray(t["e1"], float)) & np.isfinite(np.asarray(t["e2"], float))
     for col, lo, hi in selections:
         if col not in t.colnames:
             raise ShearfitIOError(f"{path}: selection column {col!r} is not in the catalogue")
         v = np.asarray(t[col], float)
         keep &= (v >= lo) & (v < hi)
     return t[keep]
+
+
+def metacal_response_of(path, selections=()):
+    """The ensemble metacal response (2x2: shear and selection parts) of a catalogue, after the selections.
+
+    None for a catalogue without metacal columns (see :mod:`shearfit.metacal`).
+    """
+    from .metacal import ensemble_response
+
+    full = read_shear_catalog(path, selections, measured_only=False)
+    if "R11" not in full.colnames or str(full.meta.get("CALMODE", "metacal")).lower() != "metacal":
+        return None
+    try:
+        R, _, _ = ensemble_response(full)
+    except KeyError as exc:
+        raise ShearfitIOError(f"{path}: metacal catalogue has no column {exc.args[0]!r}") from None
+    return R
 
 
 def _catalog(tab, k, with_shear=True):
@@ -72,13 +94,16 @@ def _catalog(tab, k, with_shear=True):
     return treecorr.Catalog(**cols)
 
 
-def xipm(tab: Table, min_sep=1.0, max_sep=100.0, nbins=10, calibration=None, n_sys=100, seed=0, bin_slop=None):
+def xipm(tab: Table, min_sep=1.0, max_sep=100.0, nbins=10, calibration=None, n_sys=100, seed=0, bin_slop=None,
+         response=None):
     """xi+, xi- (raw and calibrated), 1 + K, errors and pair counts per bin; and the systematic covariance.
 
     The per-object m is the catalogue's ``m`` column unless a calibration
     file is given (then m(snr, scalelength) from its alpha, beta). With a
     calibration file holding the likelihood grid, ``n_sys`` draws of
     (alpha, beta) give the systematic covariance of (xip, xim) concatenated.
+    ``response`` (a metacal catalogue's ensemble response R, 2x2) replaces
+    1 + m by the mean of R's diagonal for every galaxy, so that 1 + K = R^2.
     Returns (table, covariance or None).
     """
     if len(tab) < 2:
@@ -92,6 +117,8 @@ def xipm(tab: Table, min_sep=1.0, max_sep=100.0, nbins=10, calibration=None, n_s
             raise ShearfitIOError("the catalogue needs snr and scalelength columns to apply a calibration file")
         alpha, beta = read_calibration(calibration)
         m = calibration_m(snr, r, alpha, beta)
+    elif response is not None:
+        m = np.full(len(tab), 0.5 * (response[0][0] + response[1][1]) - 1.0)
     elif "m" in tab.colnames:
         m = np.asarray(tab["m"], float)
     else:

@@ -81,6 +81,13 @@ class PipelineConfig:
         "atomically), so that rerunning the same command after an interruption resumes where it stopped",
         "implementation")
 
+    metacal_delta: float = _opt(
+        0.01, "with calibration: metacal, the shear applied to the deconvolved stamps in each component",
+        "Huff & Mandelbaum 2017; Sheldon & Huff 2017")
+    metacal_seed: int = _opt(
+        0, "with calibration: metacal, seed of the symmetrising noise fields (one stream per object id)",
+        "implementation")
+
     psf_size: int = _opt(25, "side of the fitted PSF model and of the star stamps, native pixels (odd)", "sec. 5")
     psf_oversampling: int = _opt(
         1, "PSF model samples per pixel: 1 is the paper's native model (sinc-centred stars); 3 reconstructs "
@@ -153,7 +160,10 @@ class FieldConfig:
         Default output catalogue (the command line's ``--out`` wins).
     calibration : str or None
         A calibration.yaml from ``shearfit calibrate``: its (alpha, beta) fill
-        the ``m`` column; None uses the paper's (0.057, -0.37).
+        the ``m`` column; None or ``simulations`` uses the paper's (0.057,
+        -0.37); ``metacal`` measures each object's shear response from its own
+        images instead (:mod:`shearfit.metacal`; ``m`` is then 0 and the
+        catalogue carries the sheared measurements and ``R11`` .. ``R22``).
     fit : FitConfig
         The per-object engine's settings.
     pipeline : PipelineConfig
@@ -190,7 +200,9 @@ class FieldConfig:
 
     def check_files(self) -> None:
         """Raise :class:`ShearfitIOError` naming the first input file that does not exist."""
-        inputs = [("catalog", self.catalog), ("stars", self.stars), ("calibration", self.calibration)]
+        inputs = [("catalog", self.catalog), ("stars", self.stars)]
+        if self.calibration not in CALIBRATION_MODES:
+            inputs.append(("calibration", self.calibration))
         for i, e in enumerate(self.exposures):
             inputs += [(f"exposures[{i}].image", e.image), (f"exposures[{i}].weight", e.weight),
                        (f"exposures[{i}].psf", e.psf)]
@@ -301,6 +313,16 @@ def _resolve(path_value, key: str, base_dir: str, source: str, required: bool) -
     return os.path.normpath(os.path.join(base_dir, p))
 
 
+#: Values of ``calibration:`` that name a method rather than a calibration file.
+CALIBRATION_MODES = (None, "simulations", "metacal")
+
+
+def _calibration_value(value, base_dir, source):
+    if isinstance(value, str) and value.strip().lower() in ("simulations", "metacal"):
+        return value.strip().lower()
+    return _resolve(value, "calibration", base_dir, source, False)
+
+
 def field_config_from_mapping(mapping: Mapping[str, Any], base_dir: str = ".",
                               source: str = "<mapping>") -> FieldConfig:
     """Build a :class:`FieldConfig` from a parsed config.
@@ -367,7 +389,7 @@ def field_config_from_mapping(mapping: Mapping[str, Any], base_dir: str = ".",
         catalog=_resolve(mapping.get("catalog"), "catalog", base_dir, source, True),
         stars=_resolve(mapping.get("stars"), "stars", base_dir, source, False),
         output=_resolve(mapping.get("output"), "output", base_dir, source, False),
-        calibration=_resolve(mapping.get("calibration"), "calibration", base_dir, source, False),
+        calibration=_calibration_value(mapping.get("calibration"), base_dir, source),
         fit=fit,
         pipeline=pipeline,
         source=source,
@@ -383,6 +405,8 @@ def _absolute_paths(value, top_key: str):
     not something relative to the config file.
     """
     if top_key not in _FILE_KEYS:
+        return value
+    if top_key == "calibration" and isinstance(value, str) and value.strip().lower() in CALIBRATION_MODES:
         return value
     if isinstance(value, str) and value:
         return os.path.abspath(os.path.expanduser(value))

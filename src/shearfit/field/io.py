@@ -34,6 +34,7 @@ __all__ = [
     "COMMON_ZEROPOINT",
     "ExposureCCD",
     "OutputColumn",
+    "metacal_columns",
     "read_catalog",
     "read_exposure",
     "estimate_noise",
@@ -515,6 +516,32 @@ _OUTPUT_COLUMNS = (
 )
 
 
+#: Quantities kept from each sheared metacal version (column ``name_1p`` etc.).
+METACAL_QUANTITIES = (("e1", "f8", ""), ("e2", "f8", ""), ("weight", "f8", ""), ("snr", "f8", ""),
+                      ("scalelength", "f8", "arcsec"), ("fitclass", "i2", ""))
+
+
+def metacal_columns() -> list:
+    """The extra columns of a metacal catalogue (``calibration: metacal``; INTERFACE terms).
+
+    For each sheared version v in 1p, 1m, 2p, 2m (shear +-delta in component
+    1 or 2, applied in the (u, v) frame) the fit's ``e1_v``, ``e2_v``,
+    ``weight_v``, ``snr_v``, ``scalelength_v``, ``fitclass_v``; and the
+    per-galaxy response ``Rij = (e_i[j+] - e_i[j-]) / (2 delta)``. The
+    catalogue's own ``e1``, ``e2``, ``weight``, ... are the ``noshear``
+    version's (the stamps deconvolved and reconvolved with the dilated PSF,
+    no shear).
+    """
+    cols = []
+    for v in ("1p", "1m", "2p", "2m"):
+        for q, dt, unit in METACAL_QUANTITIES:
+            cols.append(OutputColumn(f"{q}_{v}", dt, unit, f"metacal {v} version: {q}"))
+    for i in (1, 2):
+        for j in (1, 2):
+            cols.append(OutputColumn(f"R{i}{j}", "f8", "", f"metacal shear response de{i}/dg{j}"))
+    return cols
+
+
 def output_columns(include_input: bool = True) -> list:
     """The shear catalogue's columns (INTERFACE.md), in order.
 
@@ -547,16 +574,22 @@ def empty_result_row(fitclass: int = FITCLASS_FIT_FAILED) -> dict:
     return row
 
 
-def empty_output_table(catalog: Table, fitclass: int = FITCLASS_FIT_FAILED) -> Table:
+def empty_output_table(catalog: Table, fitclass: int = FITCLASS_FIT_FAILED, metacal: bool = False) -> Table:
     """A shear catalogue for ``catalog``, in its order, with every object unmeasured.
 
     The pipeline fills rows in as objects are fitted; ``id``, ``ra``,
-    ``dec`` and ``mag`` are copied from ``catalog``.
+    ``dec`` and ``mag`` are copied from ``catalog``. ``metacal`` adds
+    :func:`metacal_columns`.
     """
     out = Table()
     n = len(catalog)
     row = empty_result_row(fitclass)
-    for c in output_columns():
+    extra = metacal_columns() if metacal else []
+    for c in extra:
+        row[c.name] = (np.nan if c.dtype.startswith("f") else int(fitclass))
+        if c.name.startswith("weight_"):
+            row[c.name] = 0.0
+    for c in output_columns() + extra:
         if c.name in CATALOG_COLUMNS:
             data = np.asarray(catalog[c.name]) if c.name == "id" else np.asarray(catalog[c.name], dtype=c.dtype)
         else:

@@ -43,7 +43,7 @@ from ..measure import measure_object
 from ..model import psf_moffat
 from ..observation import Observation
 from .fieldconfig import FieldConfig
-from .io import empty_output_table, provenance_cards, read_catalog, read_exposure, write_catalog_atomic
+from .io import METACAL_QUANTITIES, empty_output_table, provenance_cards, read_catalog, read_exposure, write_catalog_atomic
 from .psfinput import PSFExModel, read_psf_fits
 from .stamps import cut_stamp, locate_all
 from .blends import analyse_stamps
@@ -249,7 +249,8 @@ def measure_field(cfg: FieldConfig, out_path=None, progress=False, processes=1, 
         exposures.append((ccds, _load_psf(spec, len(ccds), k, ccds=ccds, fit=fit)))
     flat = [(e, c) for e, (ccds, _) in enumerate(exposures) for c in range(len(ccds))]
     hits = locate_all([exposures[e][0][c] for e, c in flat], np.asarray(cat["ra"]), np.asarray(cat["dec"]))
-    table = empty_output_table(cat)
+    metacal = cfg.calibration == "metacal"
+    table = empty_output_table(cat, metacal=metacal)
     tasks = [[] for _ in range(len(cat))]
     for obj, k, x, y in zip(hits.object, hits.ccd, hits.x, hits.y):
         tasks[obj].append((flat[k][0], flat[k][1], float(x), float(y)))
@@ -262,11 +263,12 @@ def measure_field(cfg: FieldConfig, out_path=None, progress=False, processes=1, 
     if todo and len(todo) < len(chunks):
         log.info("resuming: %d of %d chunks already measured (%s)", len(chunks) - len(todo), len(chunks), ckpt.dir)
     global _STATE
-    _STATE = (tasks, exposures, mags, cfg, chunks)
+    ids = np.asarray(cat["id"])
+    _STATE = (tasks, exposures, mags, cfg, chunks, ids)
     bar = _progress_bar(sum(len(chunks[k]) for k in todo), progress)
     try:
         if todo and (scheduler is not None or (processes and processes > 1 and executor == "dask")):
-            _run_dask(cfg, exposures, tasks, mags, chunks, todo, table, ckpt, bar, processes, scheduler)
+            _run_dask(cfg, exposures, tasks, mags, ids, chunks, todo, table, ckpt, bar, processes, scheduler)
         elif processes and processes > 1 and hasattr(os, "fork") and len(todo) > 1:
             import multiprocessing
 
@@ -282,16 +284,22 @@ def measure_field(cfg: FieldConfig, out_path=None, progress=False, processes=1, 
         _STATE = None
         if bar is not None:
             bar.close()
-    if cfg.calibration:
-        alpha, beta = read_calibration(cfg.calibration)
-        src = os.path.basename(cfg.calibration)
-    else:
-        alpha, beta, src = PAPER_ALPHA, PAPER_BETA, "paper default"
     measured = np.asarray(table["fitclass"]) >= 0
-    table["m"] = np.where(measured, calibration_m(table["snr"], table["scalelength"], alpha, beta), np.nan)
-    cards = provenance_cards(cfg.to_dict(), __version__)
-    cards = list(cards) + [("CALALPHA", alpha, f"calibration alpha ({src})"),
-                           ("CALBETA", beta, f"calibration beta ({src})")]
+    cards = list(provenance_cards(cfg.to_dict(), __version__))
+    if metacal:
+        # the response is measured per galaxy (R11 .. R22): no simulation-based m
+        table["m"] = np.where(measured, 0.0, np.nan)
+        cards += [("CALMODE", "metacal", "shear response: metacal (R columns)"),
+                  ("MCDELTA", cfg.pipeline.metacal_delta, "metacal shear step")]
+    else:
+        if cfg.calibration not in (None, "simulations"):
+            alpha, beta = read_calibration(cfg.calibration)
+            src = os.path.basename(cfg.calibration)
+        else:
+            alpha, beta, src = PAPER_ALPHA, PAPER_BETA, "paper default"
+        table["m"] = np.where(measured, calibration_m(table["snr"], table["scalelength"], alpha, beta), np.nan)
+        cards += [("CALMODE", "simulations", "m(snr, size) from simulations"),
+                  ("CALALPHA", alpha, f"calibration alpha ({src})"), ("CALBETA", beta, f"calibration beta ({src})")]
     write_catalog_atomic(table, out_path, cards)
     ckpt.remove()
     return table
@@ -325,8 +333,8 @@ def _progress_bar(total, show):
 
 
 def _measure_chunk(k):
-    tasks, exposures, mags, cfg, chunks = _STATE
-    return k, [_measure_one(tasks[i], exposures, mags[i], cfg, cfg.pipeline) for i in chunks[k]]
+    tasks, exposures, mags, cfg, chunks, ids = _STATE
+    return k, [_measure_one(tasks[i], exposures, mags[i], cfg, cfg.pipeline, ids[i]) for i in chunks[k]]
 
 
 _WORKER_FIELDS = {}
@@ -337,7 +345,7 @@ def _portable_psfs(exposures):
     return [replace(p, ccds=None, _frame=None, _moffat=None) for _, p in exposures]
 
 
-def _dask_chunk(run, k, hits, mags):
+def _dask_chunk(run, k, hits, mags, ids):
     """One chunk on a Dask worker: the field's exposures are opened once per worker process (memory-mapped)."""
     key, cfg, psfs = run
     exposures = _WORKER_FIELDS.get(key)
@@ -348,10 +356,10 @@ def _dask_chunk(run, k, hits, mags):
             ccds = read_exposure(spec.image, spec.weight)
             exposures.append((ccds, p if p.fitted is None else replace(p, ccds=ccds)))
         _WORKER_FIELDS[key] = exposures
-    return k, [_measure_one(h, exposures, m, cfg, cfg.pipeline) for h, m in zip(hits, mags)]
+    return k, [_measure_one(h, exposures, m, cfg, cfg.pipeline, i) for h, m, i in zip(hits, mags, ids)]
 
 
-def _run_dask(cfg, exposures, tasks, mags, chunks, todo, table, ckpt, bar, processes, scheduler):
+def _run_dask(cfg, exposures, tasks, mags, ids, chunks, todo, table, ckpt, bar, processes, scheduler):
     """Submit the chunks to Dask and checkpoint each as it completes."""
     from dask.distributed import Client, LocalCluster, as_completed
 
@@ -370,8 +378,8 @@ def _run_dask(cfg, exposures, tasks, mags, chunks, todo, table, ckpt, bar, proce
     try:
         # one copy of the run's settings and PSF models per worker (a list of one: scatter sends it whole)
         [run] = client.scatter([(ckpt.manifest["run"], cfg, _portable_psfs(exposures))], broadcast=True)
-        futures = [client.submit(_dask_chunk, run, k, [tasks[i] for i in chunks[k]], mags[chunks[k]], pure=False)
-                   for k in todo]
+        futures = [client.submit(_dask_chunk, run, k, [tasks[i] for i in chunks[k]], mags[chunks[k]], ids[chunks[k]],
+                                 pure=False) for k in todo]
         for fut in as_completed(futures):
             k, rows = fut.result()
             _store_chunk(table, chunks[k], rows, ckpt, k, bar)
@@ -462,7 +470,10 @@ class Checkpoint:
 _STATE = None
 
 
-def _measure_one(hits, exposures, mag, cfg, pc) -> dict:
+_U64 = (1 << 64) - 1
+
+
+def _measure_one(hits, exposures, mag, cfg, pc, obj_id=0) -> dict:
     if not hits:
         return {"fitclass": FITCLASS_OFF_EXPOSURES}
     # one stamp per exposure: where dithers put an object on two CCDs of one exposure, the CCD
@@ -508,10 +519,21 @@ def _measure_one(hits, exposures, mag, cfg, pc) -> dict:
         psf_e.append(psf_ellipticity(cut["psf"], cut["J"], cut["k"], moments=cut["moments"]))
     if len(obs) < max(pc.min_exposures, 1):
         return {"fitclass": FITCLASS_FEW_EXPOSURES, "n_exposures_used": len(obs)}
-    res = measure_object(obs, mag, cfg.fit)
+    if cfg.calibration == "metacal":
+        from ..metacal import SHEARED, measure_metacal   # GalSim is imported only for metacal runs
+
+        rng = np.random.default_rng([int(pc.metacal_seed) & _U64, int(obj_id) & _U64])
+        mc = measure_metacal(obs, mag, cfg.fit, pc.metacal_delta, rng)
+        res = mc.noshear
+        extra = {f"{q}_{v}": getattr(mc.results[v], q) for v in SHEARED for q, _, _ in METACAL_QUANTITIES}
+        extra.update({f"R{i + 1}{j + 1}": float(mc.R[i, j]) for i in range(2) for j in range(2)})
+    else:
+        res = measure_object(obs, mag, cfg.fit)
+        extra = {}
     row = {"e1": res.e1, "e2": res.e2, "weight": res.weight, "e_var": res.e_var, "fitclass": res.fitclass,
            "snr": res.snr, "scalelength": res.scalelength, "bulge_fraction": res.bulge_fraction,
            "model_flux": res.model_flux, "n_exposures_used": res.n_exposures_used, "star_pvalue": res.star_pvalue}
+    row.update(extra)
     pe = np.array(psf_e, float)
     row["psf_e1"], row["psf_e2"] = np.nanmean(pe[:, 0]), np.nanmean(pe[:, 1])
     if res.fitclass == FITCLASS_FIT_FAILED:

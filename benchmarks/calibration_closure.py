@@ -1,0 +1,212 @@
+"""Closure of the noise-bias calibration (sec. 8.4) on simulated fields, and the second suite.
+
+Simulates (``shearfit simulate``) and measures (``shearfit measure``) three sets of fields:
+
+* calibration: ``--cal-seeds`` GREAT-like fields (the paper's population, 7 dithered exposures with
+  elliptical Moffat PSFs, 2 CCDs), each twice with shear +g and -g from the same seed (same galaxies
+  and noise), g of modulus ``--cal-g`` in a direction set by the seed;
+* test: ``--test-seeds`` other seeds, other shears (modulus ``--test-g``), same construction;
+* second suite: ``--second-seeds`` fields of the second suite (Kolmogorov + optics, one exposure,
+  random positions with overlaps), +g and -g.
+
+Then ``shearfit calibrate`` is fitted on the calibration set, applied to the test set and to the
+second suite, and the script prints raw and calibrated m and c with bootstrap errors (over galaxies,
+the +g and -g copies of a galaxy together), the fitted (alpha, beta) beside the paper's, and writes
+``closure.png`` (raw and calibrated m against SNR and size, m against weight) and ``closure.json``.
+
+Everything already simulated or measured under ``--out`` is reused, so the script resumes.
+
+    python benchmarks/calibration_closure.py --out /tmp/closure -j 2
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+from concurrent.futures import ProcessPoolExecutor
+
+import numpy as np
+
+from shearfit.calibrate import (PAPER_ALPHA, PAPER_BETA, calibrate, calibrated_bias, plot_calibration,
+                                quantity_bins, stack_matched, weight_bins, write_calibration)
+from shearfit.cli import main as cli_main
+from shearfit.simulate.field import simulate_field, simulation_config
+
+GREAT = dict(preset="small", ccd_nx=1024, ccd_ny=1024, grid_spacing=48.0, star_density=1.5)
+SECOND = dict(preset="second-small", ccd_nx=1024, ccd_ny=1024, galaxy_density=40.0, star_density=10.0)
+
+
+def shear_of(seed, modulus):
+    """A shear of the given modulus in a direction fixed by the seed."""
+    phi = np.random.default_rng(10_000 + seed).uniform(0, np.pi)
+    return [modulus * np.cos(2 * phi), modulus * np.sin(2 * phi)]
+
+
+def field_jobs(out, role, base, seeds, modulus):
+    jobs = []
+    for seed in seeds:
+        g = shear_of(seed, modulus)
+        for tag, sign in (("p", 1.0), ("m", -1.0)):
+            cfg = dict(base, seed=int(seed), shear=[sign * g[0], sign * g[1]])
+            jobs.append((os.path.join(out, role, f"s{seed}{tag}"), cfg))
+    return jobs
+
+
+def _simulate(job):
+    d, cfg = job
+    if not os.path.exists(os.path.join(d, "truth.fits")):
+        simulate_field(simulation_config(cfg), d)
+    return d
+
+
+def measure(d, processes, psf):
+    out = os.path.join(d, "shear.fits" if psf == "true" else "shear_fitted.fits")
+    if not os.path.exists(out):
+        config = os.path.join(d, "field_truepsf.yaml" if psf == "true" else "field.yaml")
+        args = ["measure", config, "--out", out, "--quiet"]
+        if processes > 1:
+            args += ["-j", str(processes)]
+        if cli_main(args) != 0:
+            raise SystemExit(f"shearfit measure failed on {config}")
+    return out, os.path.join(d, "truth.fits")
+
+
+def fmt(d, k, scale=1.0):
+    return f"{d[k] * scale:+.4f} +- {d[k + '_err'] * scale:.4f}"
+
+
+def plot(path, cal_result, bins, test_snr, test_size, test_weight, second_snr):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(1, 3, figsize=(15, 4.5))
+    for a, tb, lab, log in ((ax[0], test_snr, "SNR", True), (ax[1], test_size, "scalelength (arcsec)", False)):
+        x = np.asarray(tb["snr" if lab == "SNR" else "r"])
+        a.errorbar(x, tb["m"], tb["m_err"], fmt="o", ms=4, label="test set, raw")
+        a.errorbar(x * 1.02, tb["m_cal"], tb["m_cal_err"], fmt="s", ms=4, label="test set, calibrated")
+        a.plot(x, tb["m_pred"], "-", lw=1, label="calibration <m(nu, r)>")
+        if lab == "SNR" and second_snr is not None:
+            xs = np.asarray(second_snr["snr"])
+            a.errorbar(xs * 0.98, second_snr["m_cal"], second_snr["m_cal_err"], fmt="^", ms=4,
+                       label="second suite, calibrated")
+        a.axhline(0, color="k", lw=0.5)
+        a.set_xlabel(lab)
+        a.set_ylabel("m")
+        if log:
+            a.set_xscale("log")
+        a.legend(fontsize=7)
+    wb = test_weight
+    ax[2].errorbar(wb["weight"], wb["m"], wb["m_err"], fmt="o", ms=4, label="test set, raw")
+    ax[2].errorbar(wb["weight"], wb["m_cal"], wb["m_cal_err"], fmt="s", ms=4, label="test set, calibrated")
+    ax[2].plot(wb["weight"], wb["m_pred"], "-", lw=1, label="calibration <m(nu, r)>")
+    ax[2].axhline(0, color="k", lw=0.5)
+    ax[2].set_xlabel("mean lensfit weight")
+    ax[2].set_ylabel("m")
+    ax[2].legend(fontsize=7)
+    fig.suptitle(f"calibration alpha = {cal_result['alpha']:.3f} +- {cal_result['alpha_err']:.3f}, beta = "
+                 f"{cal_result['beta']:.3f} +- {cal_result['beta_err']:.3f} (paper 0.057, -0.37)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--out", required=True)
+    ap.add_argument("--cal-seeds", type=int, default=10)
+    ap.add_argument("--test-seeds", type=int, default=6)
+    ap.add_argument("--second-seeds", type=int, default=4)
+    ap.add_argument("--cal-g", type=float, default=0.04)
+    ap.add_argument("--test-g", type=float, default=0.05)
+    ap.add_argument("--psf", choices=["true", "fitted"], default="true",
+                    help="measure with the true PSF given (default) or with PSF models fitted from the stars")
+    ap.add_argument("--ccd", type=int, default=1024, help="CCD side in pixels (2 CCDs per field)")
+    ap.add_argument("--n-snr", type=int, default=20)
+    ap.add_argument("--n-size", type=int, default=20)
+    ap.add_argument("-j", "--processes", type=int, default=os.cpu_count() or 1)
+    args = ap.parse_args(argv)
+    out = os.path.abspath(args.out)
+    t0 = time.time()
+    great = dict(GREAT, ccd_nx=args.ccd, ccd_ny=args.ccd)
+    second = dict(SECOND, ccd_nx=args.ccd, ccd_ny=args.ccd)
+    sets = dict(cal=field_jobs(out, "cal", great, range(1000, 1000 + args.cal_seeds), args.cal_g),
+                test=field_jobs(out, "test", great, range(2000, 2000 + args.test_seeds), args.test_g),
+                second=field_jobs(out, "second", second, range(3000, 3000 + args.second_seeds), args.test_g))
+    jobs = [j for v in sets.values() for j in v]
+    with ProcessPoolExecutor(args.processes) as pool:
+        list(pool.map(_simulate, jobs))
+    print(f"simulated {len(jobs)} fields in {time.time() - t0:.0f} s", flush=True)
+    pairs = {}
+    for role, js in sets.items():
+        pairs[role] = []
+        for d, _ in js:
+            ts = time.time()
+            pairs[role].append(measure(d, args.processes, args.psf))
+            print(f"  measured {d} in {time.time() - ts:.0f} s", flush=True)
+    t_meas = time.time() - t0
+
+    result, bins, cal_tab = calibrate(pairs["cal"], n_snr=args.n_snr, n_size=args.n_size)
+    write_calibration(result, os.path.join(out, "calibration.yaml"))
+    a, b = result["alpha"], result["beta"]
+    plot_calibration(bins, result, os.path.join(out, "calibration.png"),
+                     weight_bins=weight_bins(cal_tab, a, b))
+    test = stack_matched(pairs["test"])
+    second = stack_matched(pairs["second"])
+    cal_self = calibrated_bias(cal_tab, a, b)
+    closure = calibrated_bias(test, a, b)
+    closure_paper = calibrated_bias(test, PAPER_ALPHA, PAPER_BETA)
+    sec = calibrated_bias(second, a, b)
+    sec_paper = calibrated_bias(second, PAPER_ALPHA, PAPER_BETA)
+    t_snr = quantity_bins(test, "snr", a, b, n=6)
+    t_size = quantity_bins(test, "scalelength", a, b, n=6)
+    t_w = weight_bins(test, a, b, n=8)
+    s_snr = quantity_bins(second, "snr", a, b, n=4)
+    plot(os.path.join(out, "closure.png"), result, bins, t_snr, t_size, t_w, s_snr)
+
+    print()
+    print(f"calibration set: {result['n_galaxies']} galaxy measurements ({result['n_groups']} galaxies, "
+          f"{len(pairs['cal'])} fields), {result['n_snr_bins']} x {result['n_size_bins']} bins")
+    print(f"  alpha = {a:.4f} +- {result['alpha_err']:.4f}   beta = {b:.4f} +- {result['beta_err']:.4f}   "
+          f"(paper {PAPER_ALPHA}, {PAPER_BETA});  chi2 = {result['chi2']:.1f} for {result['dof']} dof")
+    rows = (("calibration set (self)", cal_self), ("test set", closure), ("test set, paper's alpha, beta",
+                                                                            closure_paper),
+            ("second suite", sec), ("second suite, paper's alpha, beta", sec_paper))
+    print(f"{'':36s} {'n':>6s}  {'raw m':>18s}  {'<m(nu,r)>':>9s}  {'calibrated m':>18s}  "
+          f"{'c1':>20s}  {'c2':>20s}")
+    for name, d in rows:
+        print(f"{name:36s} {d['n_galaxies']:6d}  {fmt(d, 'm_raw')}  {d['m_mean']:+9.4f}  {fmt(d, 'm_cal')}  "
+              f"{fmt(d, 'c1')}  {fmt(d, 'c2')}")
+    print("\ntest set in bins of SNR:  snr, raw m, <m(nu,r)>, calibrated m")
+    for r in t_snr:
+        print(f"  {r['snr']:7.1f}  {r['m']:+.4f} +- {r['m_err']:.4f}  {r['m_pred']:+.4f}  "
+              f"{r['m_cal']:+.4f} +- {r['m_cal_err']:.4f}")
+    print("test set in bins of scalelength:  r, raw m, <m(nu,r)>, calibrated m")
+    for r in t_size:
+        print(f"  {r['r']:7.3f}  {r['m']:+.4f} +- {r['m_err']:.4f}  {r['m_pred']:+.4f}  "
+              f"{r['m_cal']:+.4f} +- {r['m_cal_err']:.4f}")
+    print("test set in bins of weight:  weight, raw m, <m(nu,r)>, calibrated m")
+    for r in t_w:
+        print(f"  {r['weight']:7.2f}  {r['m']:+.4f} +- {r['m_err']:.4f}  {r['m_pred']:+.4f}  "
+              f"{r['m_cal']:+.4f} +- {r['m_cal_err']:.4f}")
+    print("second suite in bins of SNR:")
+    for r in s_snr:
+        print(f"  {r['snr']:7.1f}  {r['m']:+.4f} +- {r['m_err']:.4f}  {r['m_pred']:+.4f}  "
+              f"{r['m_cal']:+.4f} +- {r['m_cal_err']:.4f}")
+    summary = dict(alpha=a, beta=b, alpha_err=result["alpha_err"], beta_err=result["beta_err"],
+                   calibration_self=cal_self, closure=closure, closure_paper=closure_paper, second=sec,
+                   second_paper=sec_paper, measure_wall_s=t_meas, total_wall_s=time.time() - t0,
+                   processes=args.processes, psf=args.psf)
+    with open(os.path.join(out, "closure.json"), "w") as f:
+        json.dump(summary, f, indent=1)
+    print(f"\nwritten {out}/calibration.yaml, calibration.png, closure.png, closure.json; "
+          f"{time.time() - t0:.0f} s in all ({t_meas:.0f} s simulating and measuring)")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

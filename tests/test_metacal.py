@@ -1,0 +1,218 @@
+"""Metacalibration on the lensfit engine: versions, response, noise symmetry, selection response, pipeline."""
+
+import numpy as np
+import pytest
+from astropy.table import Table
+
+import shearfit
+from shearfit.errors import FITCLASS_GALAXY
+from shearfit.metacal import ensemble_response, measure_metacal, metacal_observations, metacal_shear
+from shearfit.simulate.stamps import draw_psf_image, draw_stamp, galaxy_profile, moffat_psf, noise_for_snr
+
+PIX = 0.187
+
+
+def _obs(r, e, snr=None, n_exp=3, J=None, seed=0, g=(0.0, 0.0)):
+    rng = np.random.default_rng(seed)
+    J = PIX * np.array([[-1.0, 0.0], [0.0, 1.0]]) if J is None else J
+    offs = rng.uniform(-0.5, 0.5, (n_exp, 2))
+    psfs = [moffat_psf(0.6 + 0.05 * i, 3.0, 0.04 * (-1) ** i, 0.03) for i in range(n_exp)]
+    gal = galaxy_profile(r, 0.1, e[0], e[1], flux=1000.0, g1=g[0], g2=g[1])
+    ims = [draw_stamp(gal, p, J, o) for p, o in zip(psfs, offs)]
+    sig = noise_for_snr(ims, snr) if snr else noise_for_snr(ims, 300.0)   # noise-free, SNR-300 weights
+    return [shearfit.Observation(image=im + (rng.normal(0, sig, im.shape) if snr else 0.0),
+                                 weight=np.full(im.shape, 1 / sig ** 2), psf=draw_psf_image(p, J, size=25),
+                                 jacobian=J, offset=tuple(o)) for im, p, o in zip(ims, psfs, offs)]
+
+
+@pytest.mark.parametrize("J", [None, PIX * np.array([[0.6, -0.8], [0.8, 0.6]])])
+def test_noise_free_response_is_the_identity_in_the_sky_frame(J):
+    """A resolved noise-free galaxy: the noshear fit is the plain fit, and R = de/dg is the analytic response
+    of its ellipticity to a shear (lensfit is unbiased there), also on a rotated pixel grid: the metacal
+    shear acts in the catalogue's (u, v) frame."""
+    obs = _obs(0.45, (0.25, -0.1), J=J)
+    plain = shearfit.measure_object(obs, 22.0)
+    Rs = []
+    for seed in range(6):
+        mc = measure_metacal(obs, 22.0, rng=np.random.default_rng(seed))
+        n = mc.noshear
+        assert n.fitclass == FITCLASS_GALAXY
+        # the same up to the symmetrising noise added at the weights' level (SNR 300 here)
+        assert abs(n.e1 - plain.e1) < 0.03 and abs(n.e2 - plain.e2) < 0.03
+        # the sheared versions move the estimate the way a shear of delta does
+        assert mc.results["1p"].e1 > n.e1 > mc.results["1m"].e1
+        assert mc.results["2p"].e2 > n.e2 > mc.results["2m"].e2
+        Rs.append(mc.R)
+    # a shear g takes e to (e + g) / (1 + g* e), so de = dg - e^2 dg*: with e^2 = a + ib,
+    # R = [[1 - a, -b], [-b, 1 + a]] for one galaxy (the identity only on average over orientations)
+    e2 = complex(0.25, -0.1) ** 2
+    expected = np.array([[1 - e2.real, -e2.imag], [-e2.imag, 1 + e2.real]])
+    Rs = np.array(Rs)
+    err = Rs.std(axis=0, ddof=1) / np.sqrt(len(Rs))
+    assert np.all(np.abs(Rs.mean(axis=0) - expected) < 3 * err + 0.005), (Rs.mean(axis=0), err, expected)
+
+
+def test_symmetrised_noise_has_no_preferred_direction():
+    """On pure noise, the 1p version's noise correlates equally along x and y (the rotated field's job);
+    without it the shear's anisotropy shows."""
+    J = PIX * np.array([[-1.0, 0.0], [0.0, 1.0]])
+    psf = draw_psf_image(moffat_psf(0.7, 3.0), J, size=25)
+    rng = np.random.default_rng(3)
+    cx, cy = [], []
+    for _ in range(60):
+        im = rng.normal(0, 1.0, (48, 48))
+        o = shearfit.Observation(image=im, weight=np.ones((48, 48)), psf=psf, jacobian=J)
+        v = metacal_observations(o, delta=0.2, rng=rng, versions=("1p",))["1p"]
+        a = v.image[6:-6, 6:-6]
+        a = a - a.mean()
+        cx.append(np.mean(a[:, 1:] * a[:, :-1]) / np.mean(a * a))
+        cy.append(np.mean(a[1:, :] * a[:-1, :]) / np.mean(a * a))
+    d = np.array(cx) - np.array(cy)
+    assert abs(d.mean()) < 3 * d.std() / np.sqrt(d.size) + 2e-3
+    # the unsymmetrised part alone (the processed image, without the added field) is anisotropic
+    ux, uy = [], []
+    for _ in range(30):
+        im = rng.normal(0, 1.0, (48, 48))
+        o = shearfit.Observation(image=im, weight=np.ones((48, 48)), psf=psf, jacobian=J)
+        both = metacal_observations(o, delta=0.2, rng=np.random.default_rng(7), versions=("1p",))["1p"].image
+        added = metacal_observations(shearfit.Observation(image=np.zeros((48, 48)), weight=np.ones((48, 48)),
+                                                          psf=psf, jacobian=J), delta=0.2,
+                                     rng=np.random.default_rng(7), versions=("1p",))["1p"].image
+        a = (both - added)[6:-6, 6:-6]
+        ux.append(np.mean(a[:, 1:] * a[:, :-1]) / np.mean(a * a))
+        uy.append(np.mean(a[1:, :] * a[:-1, :]) / np.mean(a * a))
+    du = np.array(ux) - np.array(uy)
+    assert abs(du.mean()) > 5 * du.std() / np.sqrt(du.size)
+
+
+def test_weights_scale_with_the_processed_noise_and_masks_grow():
+    obs = _obs(0.3, (0.1, 0.1), snr=30, n_exp=1)[0]
+    w = np.array(obs.weight)
+    w[20, 30] = 0.0
+    o = shearfit.Observation(image=obs.image, weight=w, psf=obs.psf, jacobian=obs.jacobian)
+    v = metacal_observations(o, rng=np.random.default_rng(0))
+    for name, ob in v.items():
+        assert ob.weight[20, 30] == 0 and ob.weight[21, 31] == 0 and ob.weight[20, 33] > 0
+        assert np.all(ob.weight[:3] == 0) and np.all(ob.weight[:, -3:] == 0)
+        assert abs(ob.psf.sum() - 1) < 1e-6
+    # the reconvolution smooths: each version's noise is below the input's, doubled by the added field
+    ratio = v["noshear"].weight[24, 24] / w[24, 24]
+    assert 0.5 < ratio < 50
+
+
+def _table(n, rng, delta=0.01, shape_weights=False):
+    """A synthetic metacal catalogue: e = e_int + R g, intrinsic shapes in +-pairs (no shape noise).
+
+    ``shape_weights``: each version's weight falls with its own measured |e| (as lensfit's does).
+    """
+    R_true = np.array([[0.8, 0.02], [-0.01, 0.75]])
+    g = np.array([0.02, -0.03])
+    eint = rng.normal(0, 0.25, (n // 2, 2))
+    eint = np.concatenate([eint, -eint])
+    cols = {}
+
+    def version(dg):
+        return eint + (R_true @ (g + dg))[None, :]
+
+    def weight(e):
+        return 10.0 * np.exp(-np.sum(e * e, axis=1) / 0.08) if shape_weights else np.full(n, 10.0)
+
+    e0 = version(np.zeros(2))
+    cols.update(e1=e0[:, 0], e2=e0[:, 1], weight=weight(e0), fitclass=np.zeros(n, int))
+    for name, dg in (("1p", (delta, 0)), ("1m", (-delta, 0)), ("2p", (0, delta)), ("2m", (0, -delta))):
+        e = version(np.array(dg, float))
+        cols.update({f"e1_{name}": e[:, 0], f"e2_{name}": e[:, 1], f"weight_{name}": weight(e),
+                     f"fitclass_{name}": np.zeros(n, int)})
+    for i in range(2):
+        for j in range(2):
+            cols[f"R{i + 1}{j + 1}"] = np.full(n, R_true[i, j])
+    t = Table(cols)
+    t.meta["MCDELTA"] = delta
+    return t, R_true, g
+
+
+def test_ensemble_response_and_selection_response():
+    rng = np.random.default_rng(2)
+    t, R_true, g = _table(100000, rng)
+    R, Rg, Rs = ensemble_response(t)
+    assert np.allclose(Rg, R_true) and np.allclose(Rs, 0, atol=1e-9)
+    assert np.allclose(metacal_shear(t), g, atol=1e-9)
+    # a cut on the measured |e| keeps fewer galaxies aligned with the shear: a selection bias that the
+    # selection response, from each version's own |e|, corrects
+
+    def cut(tab, sfx):
+        return np.hypot(np.asarray(tab[f"e1{sfx}"]), np.asarray(tab[f"e2{sfx}"])) < 0.3
+
+    keep = cut(t, "")
+    naive = np.linalg.solve(R_true, [np.mean(np.asarray(t["e1"])[keep]), np.mean(np.asarray(t["e2"])[keep])])
+    assert np.all(np.abs(naive / g - 1) > 0.1)
+    R, Rg, Rs = ensemble_response(t, select=cut)
+    assert Rs[0, 0] < -0.05 and Rs[1, 1] < -0.05
+    est = metacal_shear(t, select=cut)
+    # a hard cut's response rests on the few galaxies that cross it: a few per cent of noise here
+    assert np.allclose(est, g, rtol=0.1), (est, naive, g)
+    # weights falling with the measured |e| bias the weighted mean the same way; smooth, so the
+    # correction is precise
+    t, R_true, g = _table(100000, rng, shape_weights=True)
+    w = np.asarray(t["weight"])
+    naive = np.linalg.solve(R_true, [np.average(t["e1"], weights=w), np.average(t["e2"], weights=w)])
+    assert np.all(np.abs(naive / g - 1) > 0.1)
+    est = metacal_shear(t)
+    assert np.allclose(est, g, rtol=3e-3), (est, naive, g)
+
+
+def test_pipeline_metacal_columns(tmp_path):
+    from shearfit.cli import main
+    from shearfit.simulate.field import simulate_field, simulation_config
+
+    d = tmp_path / "f"
+    simulate_field(simulation_config({"preset": "tiny", "seed": 5, "n_exposures": 2, "ccd_nx": 200, "ccd_ny": 200}),
+                   str(d))
+    out = tmp_path / "mc.fits"
+    assert main(["measure", str(d / "field_truepsf.yaml"), "calibration=metacal", "--out", str(out), "--quiet"]) == 0
+    t = Table.read(out)
+    assert t.meta["CALMODE"] == "metacal" and t.meta["MCDELTA"] == 0.01
+    for c in ("e1_1p", "weight_2m", "fitclass_1m", "R11", "R22"):
+        assert c in t.colnames
+    gal = np.asarray(t["fitclass"]) == FITCLASS_GALAXY
+    assert gal.sum() >= 3
+    assert 0.3 < np.nanmedian(np.asarray(t["R11"])[gal]) < 1.5
+    assert np.all(np.asarray(t["m"])[gal] == 0)
+    # the same run again gives the same catalogue (the noise fields are seeded per object id)
+    out2 = tmp_path / "mc2.fits"
+    assert main(["measure", str(d / "field_truepsf.yaml"), "calibration=metacal", "--out", str(out2),
+                 "--quiet"]) == 0
+    assert np.array_equal(np.asarray(Table.read(out2)["R11"]), np.asarray(t["R11"]), equal_nan=True)
+
+
+def test_xipm_and_calibrate_read_a_metacal_catalogue(tmp_path):
+    from astropy.io import fits
+
+    from shearfit.calibrate import matched_galaxies
+    from shearfit.cli import main
+
+    rng = np.random.default_rng(4)
+    t, R_true, g = _table(2000, rng)
+    n = len(t)
+    t["id"] = np.arange(n)
+    t["ra"] = 10 + rng.uniform(0, 0.05, n)
+    t["dec"] = rng.uniform(0, 0.05, n)
+    t["snr"] = np.full(n, 20.0)
+    t["scalelength"] = np.full(n, 0.3)
+    t["m"] = np.zeros(n)
+    t.meta["CALMODE"] = "metacal"
+    cat = tmp_path / "mc.fits"
+    t.write(cat)
+    out = tmp_path / "xi.fits"
+    assert main(["xipm", str(cat), "--out", str(out), "--min-sep", "0.5", "--max-sep", "2", "--nbins", "2",
+                 "--quiet"]) == 0
+    h = fits.getheader(out, 1)
+    assert h["CALIB"] == "metacal response" and h["MCR11"] == pytest.approx(0.8)
+    x = Table.read(out)
+    assert np.allclose(x["one_plus_k"], (0.5 * (0.8 + 0.75)) ** 2)
+    truth = Table({"id": np.arange(n), "g1": np.full(n, g[0]), "g2": np.full(n, g[1]), "e1_int": np.zeros(n),
+                   "e2_int": np.zeros(n), "is_star": np.zeros(n, bool)})
+    truth.write(tmp_path / "truth.fits")
+    mt = matched_galaxies(cat, tmp_path / "truth.fits")
+    corrected = np.linalg.solve(R_true, np.stack([np.asarray(t["e1"]), np.asarray(t["e2"])]))
+    assert np.allclose(np.asarray(mt["e1"]), corrected[0]) and np.allclose(np.asarray(mt["e2"]), corrected[1])
