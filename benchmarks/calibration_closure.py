@@ -181,22 +181,14 @@ def main(argv=None):
     for name, d in rows:
         print(f"{name:36s} {d['n_galaxies']:6d}  {fmt(d, 'm_raw')}  {d['m_mean']:+9.4f}  {fmt(d, 'm_cal')}  "
               f"{fmt(d, 'c1')}  {fmt(d, 'c2')}")
-    print("\ntest set in bins of SNR:  snr, raw m, <m(nu,r)>, calibrated m")
-    for r in t_snr:
-        print(f"  {r['snr']:7.1f}  {r['m']:+.4f} +- {r['m_err']:.4f}  {r['m_pred']:+.4f}  "
-              f"{r['m_cal']:+.4f} +- {r['m_cal_err']:.4f}")
-    print("test set in bins of scalelength:  r, raw m, <m(nu,r)>, calibrated m")
-    for r in t_size:
-        print(f"  {r['r']:7.3f}  {r['m']:+.4f} +- {r['m_err']:.4f}  {r['m_pred']:+.4f}  "
-              f"{r['m_cal']:+.4f} +- {r['m_cal_err']:.4f}")
-    print("test set in bins of weight:  weight, raw m, <m(nu,r)>, calibrated m")
-    for r in t_w:
-        print(f"  {r['weight']:7.2f}  {r['m']:+.4f} +- {r['m_err']:.4f}  {r['m_pred']:+.4f}  "
-              f"{r['m_cal']:+.4f} +- {r['m_cal_err']:.4f}")
-    print("second suite in bins of SNR:")
-    for r in s_snr:
-        print(f"  {r['snr']:7.1f}  {r['m']:+.4f} +- {r['m_err']:.4f}  {r['m_pred']:+.4f}  "
-              f"{r['m_cal']:+.4f} +- {r['m_cal_err']:.4f}")
+    for title, tb, key, f in (("test set in bins of SNR", t_snr, "snr", "7.1f"),
+                              ("test set in bins of scalelength", t_size, "r", "7.3f"),
+                              ("test set in bins of weight", t_w, "weight", "7.2f"),
+                              ("second suite in bins of SNR", s_snr, "snr", "7.1f")):
+        print(f"\n{title}: {key}, raw m, <m(nu,r)>, calibrated m")
+        for r in tb:
+            print(f"  {r[key]:{f}}  {r['m']:+.4f} +- {r['m_err']:.4f}  {r['m_pred']:+.4f}  "
+                  f"{r['m_cal']:+.4f} +- {r['m_cal_err']:.4f}")
     summary = dict(alpha=a, beta=b, alpha_err=result["alpha_err"], beta_err=result["beta_err"],
                    calibration_self=cal_self, closure=closure, closure_paper=closure_paper, second=sec,
                    second_paper=sec_paper, measure_wall_s=t_meas, total_wall_s=time.time() - t0,
