@@ -142,6 +142,26 @@ def _get_measure_object():
     return measure
 
 
+def odd_population(mags, rng, cfg):
+    """A population unlike the priors (issue 8): sizes doubled, a third of the galaxies single Sersic n = 2.5
+    profiles, ellipticities Gaussian with an rms |e| of 0.3 (redrawn above 0.9)."""
+    from shearfit.priors import sample_population
+
+    rec = sample_population(mags, rng, cfg)
+    pop = {k: np.array(rec[k], copy=True) for k in rec.dtype.names}
+    n = len(mags)
+    pop["scalelength"] = 2.0 * np.asarray(pop["scalelength"], float)
+    e = rng.normal(0.0, 0.3 / np.sqrt(2.0), (n, 2))
+    for _ in range(100):
+        big = np.hypot(e[:, 0], e[:, 1]) >= 0.9
+        if not big.any():
+            break
+        e[big] = rng.normal(0.0, 0.3 / np.sqrt(2.0), (int(big.sum()), 2))
+    pop["e1"], pop["e2"] = e[:, 0], e[:, 1]
+    pop["sersic_n"] = np.where(rng.uniform(size=n) < 1.0 / 3.0, 2.5, np.nan)
+    return pop
+
+
 # ----------------------------------------------------------------------------- reports
 
 def report_bias(tab, args, n_gal):
@@ -155,6 +175,17 @@ def report_bias(tab, args, n_gal):
           f"resamplings of {n_gal} galaxies):")
     print(f"  m1 = {format_with_error(est[0], err[0])}    c1 = {format_with_error(est[2], err[2])}")
     print(f"  m2 = {format_with_error(est[1], err[1])}    c2 = {format_with_error(est[3], err[3])}")
+    # the simulation calibration of the paper (or a calibration file): m(nu, r) of the measured galaxies
+    from shearfit.calibrate import PAPER_ALPHA, PAPER_BETA, calibration_m, read_calibration
+
+    alpha, beta = read_calibration(args.calibration) if args.calibration else (PAPER_ALPHA, PAPER_BETA)
+    good = tab["fitclass"] == 0
+    mc = calibration_m(tab["snr"], tab["scalelength"], alpha, beta)
+    w = np.where(good & np.isfinite(mc), np.nan_to_num(tab["weight"]) if weighted else 1.0, 0.0)
+    mbar = float(np.sum(w * np.nan_to_num(mc)) / np.sum(w))
+    cal = (1 + est[:2]) / (1 + mbar) - 1
+    print(f"  calibrated with m(nu, r) of (alpha, beta) = ({alpha:.4f}, {beta:.4f}): <m> = {mbar:+.4f}, "
+          f"m1 = {format_with_error(cal[0], err[0] / (1 + mbar))}, m2 = {format_with_error(cal[1], err[1] / (1 + mbar))}")
     print(f"  fitclass != 0: {fail.mean():.3%} of {len(tab)} objects"
           + "".join(f"; {int((tab['fitclass'] == k).sum())} x fitclass {k}" for k in np.unique(tab["fitclass"])
                     if k != 0))
@@ -274,6 +305,11 @@ def parse_args(argv=None):
                    help="noise-free images with the weights of the target SNR: the likelihood has that SNR's "
                         "width but is centred on the truth (implementation accuracy without noise bias)")
     p.add_argument("--dry-run", action="store_true", help="simulate only and summarise the stamps")
+    p.add_argument("--population", choices=["paper", "odd"], default="paper",
+                   help="the paper's population (priors) or one unlike it (sizes x2, a third Sersic n=2.5, "
+                        "e rms 0.3)")
+    p.add_argument("--calibration", default=None,
+                   help="calibration YAML for the calibrated m line (default: the paper's alpha, beta)")
     p.add_argument("--metacal", action="store_true",
                    help="measure the five metacal versions of every object and report the metacal shear bias")
     p.add_argument("--quiet", action="store_true")
@@ -341,7 +377,8 @@ def main(argv=None):
         "ring_kwargs": dict(n_rotations=args.n_rotations, n_exposures=args.n_exposures,
                             snr_range=(args.snr_min, args.snr_max), mag_range=(args.mag_min, args.mag_max),
                             stamp_size=args.stamp_size, psf_oversampling=args.psf_oversampling,
-                            rotate_exposures=args.rotate_exposures, add_noise=not args.noise_free),
+                            rotate_exposures=args.rotate_exposures, add_noise=not args.noise_free,
+                            population=odd_population if args.population == "odd" else None),
     }
     seeds = np.random.SeedSequence(args.seed).spawn(args.n_galaxies)
     tasks = [(i, seeds[i], opts) for i in range(args.n_galaxies)]

@@ -124,3 +124,33 @@ def test_unreachable_scheduler_is_one_line(field, tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "scheduler" in err[0]
     assert not out.exists() and not os.path.exists(str(out) + ".parts")
+
+
+@pytest.mark.parametrize("text,message", [("alpha: [1, 2\n", "invalid YAML"),
+                                          ("beta: -0.3\n", "calibration has no key 'alpha'")])
+def test_bad_calibration_file_fails_before_measuring(field, tmp_path, capsys, text, message):
+    d, cfg, _ = field
+    cal = tmp_path / "cal.yaml"
+    cal.write_text(text)
+    out = tmp_path / "x.fits"
+    assert main(["measure", str(cfg), f"calibration={cal}", "--out", str(out), "--quiet"]) != 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and str(cal) in err[0] and message in err[0]
+    assert not out.exists() and not os.path.exists(str(out) + ".parts")
+
+
+def test_truncated_exposure_is_one_line_naming_file_and_hdu(field, tmp_path, capsys):
+    import shutil
+
+    d, cfg, _ = field
+    work = tmp_path / "f"
+    shutil.copytree(d, work, ignore=shutil.ignore_patterns("*.parts", "ref.fits"))
+    img = work / "exp1.fits"
+    size = img.stat().st_size
+    with open(img, "r+b") as f:
+        f.truncate(size // 2)
+    out = tmp_path / "x.fits"
+    assert main(["measure", str(work / "field_truepsf.yaml"), "--out", str(out), "--quiet"]) != 0
+    err = [line for line in capsys.readouterr().err.strip().splitlines() if line.startswith("shearfit:")]
+    assert len(err) == 1 and "exp1.fits" in err[0] and "HDU" in err[0]
+    assert not out.exists() and not os.path.exists(str(out) + ".parts")

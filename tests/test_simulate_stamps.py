@@ -252,3 +252,15 @@ def test_star_stamp_matches_psf_image(J):
     star = draw_stamp(galsim.DeltaFunction(flux=50.0), psf, J)
     native = draw_psf_image(psf, J)
     assert np.abs(star / star.sum() - native).max() < 1e-3 * native.max()
+
+
+def test_sersic_galaxy_outside_the_models():
+    """sersic_n: one Sersic profile with the exponential's half-light radius for that scalelength."""
+    r = 0.4
+    p = galaxy_profile(r, 0.3, 0.0, 0.0, flux=7.0, sersic_n=2.5, truncation=20.0)
+    ref = galsim.Sersic(n=2.5, half_light_radius=galsim.Exponential(scale_radius=r).half_light_radius,
+                        trunc=20 * r, flux_untruncated=True)
+    assert p.flux == pytest.approx(7.0)
+    im = p.drawImage(nx=64, ny=64, scale=0.05, method="no_pixel").array
+    im_ref = ref.withFlux(7.0).drawImage(nx=64, ny=64, scale=0.05, method="no_pixel").array
+    assert np.allclose(im, im_ref, atol=1e-6 * im_ref.max())

@@ -241,6 +241,8 @@ def measure_field(cfg: FieldConfig, out_path=None, progress=False, processes=1, 
     out_dir = os.path.dirname(os.path.abspath(out_path))
     if not os.path.isdir(out_dir) or not os.access(out_dir, os.W_OK):
         raise ShearfitValueError(f"cannot write the output: directory {out_dir} does not exist or is not writable")
+    # a bad calibration file fails here, not after every object is measured
+    calibration = read_calibration(cfg.calibration) if cfg.calibration not in (None, "simulations", "metacal") else None
     cat = read_catalog(cfg.catalog)
     exposures = []
     for k, spec in enumerate(cfg.exposures):
@@ -292,8 +294,8 @@ def measure_field(cfg: FieldConfig, out_path=None, progress=False, processes=1, 
         cards += [("CALMODE", "metacal", "shear response: metacal (R columns)"),
                   ("MCDELTA", cfg.pipeline.metacal_delta, "metacal shear step")]
     else:
-        if cfg.calibration not in (None, "simulations"):
-            alpha, beta = read_calibration(cfg.calibration)
+        if calibration is not None:
+            alpha, beta = calibration
             src = os.path.basename(cfg.calibration)
         else:
             alpha, beta, src = PAPER_ALPHA, PAPER_BETA, "paper default"

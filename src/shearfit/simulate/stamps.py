@@ -66,8 +66,12 @@ def _intrinsic_shape(prof: galsim.GSObject, e1: float, e2: float) -> galsim.GSOb
     return prof.dilate(math.sqrt(q)).shear(g1=e1, g2=e2)
 
 
+#: Half-light radius of an exponential profile in units of its scalelength.
+_EXP_HLR = 1.6783469900166608
+
+
 def galaxy_profile(scalelength, bulge_fraction, e1, e2, flux=1.0, g1=0.0, g2=0.0, is_bulge=False,
-                   truncation=4.5, gsparams=None, bulge_size_ratio=1.0) -> galsim.GSObject:
+                   truncation=4.5, gsparams=None, bulge_size_ratio=1.0, sersic_n=None) -> galsim.GSObject:
     """The paper's bulge + disk galaxy as a GalSim profile in world (arcsec) units.
 
     Parameters
@@ -93,6 +97,11 @@ def galaxy_profile(scalelength, bulge_fraction, e1, e2, flux=1.0, g1=0.0, g2=0.0
         Accuracy settings passed to the components.
     bulge_size_ratio : float
         Bulge half-light radius over disk scalelength (1 in the paper).
+    sersic_n : float, optional
+        A galaxy outside the paper's models: one Sersic profile of this index
+        with the half-light radius of an exponential disk of scalelength
+        ``scalelength``, truncated at ``truncation * scalelength``
+        (``bulge_fraction`` and ``is_bulge`` are ignored).
 
     Returns
     -------
@@ -102,6 +111,13 @@ def galaxy_profile(scalelength, bulge_fraction, e1, e2, flux=1.0, g1=0.0, g2=0.0
     r = float(scalelength)
     if not r > 0:
         raise ShearfitValueError(f"scalelength must be positive, got {scalelength!r}")
+    if sersic_n is not None and np.isfinite(sersic_n) and sersic_n > 0:
+        prof = galsim.Sersic(n=float(sersic_n), half_light_radius=_EXP_HLR * r, trunc=truncation * r,
+                             flux_untruncated=True, gsparams=gsparams)
+        prof = _intrinsic_shape(prof, float(e1), float(e2))
+        if g1 != 0.0 or g2 != 0.0:
+            prof = prof.shear(g1=float(g1), g2=float(g2))
+        return prof.withFlux(float(flux))
     B = 1.0 if is_bulge else float(bulge_fraction)
     if not 0.0 <= B <= 1.0:
         raise ShearfitValueError(f"bulge_fraction must lie in [0, 1], got {bulge_fraction!r}")
@@ -410,7 +426,7 @@ def ring_set(n_galaxies, shear, rng, n_rotations=4, n_exposures=7, snr_range=(10
         def stamps(e1, e2, sg1, sg2):
             prof = galaxy_profile(gal["scalelength"], gal["bulge_fraction"], e1, e2, flux=gal["flux"], g1=sg1,
                                   g2=sg2, is_bulge=gal["is_bulge"], truncation=truncation, gsparams=gsparams,
-                                  bulge_size_ratio=bulge_ratio)
+                                  bulge_size_ratio=bulge_ratio, sersic_n=gal["sersic_n"])
             return [draw_stamp(prof, p, J, o, stamp_size, gsparams) for p, J, o in zip(psfs, Js, gal["offsets"])]
 
         # The sigma must not depend on the sign of the shear, else the noise would not cancel
@@ -468,6 +484,7 @@ def _draw_galaxy(rng, sampler, cfg, n_exposures, snr_range, mag_range, psf_fwhm_
             "mag": mag, "flux": float(mag_to_flux(mag)), "scalelength": r,
             "bulge_fraction": float(_field(pop, "bulge_fraction")), "is_bulge": bool(_field(pop, "is_bulge")),
             "e1": float(_field(pop, "e1")), "e2": float(_field(pop, "e2")),
+            "sersic_n": float(_field(pop, "sersic_n")) if _has_field(pop, "sersic_n") else None,
             "psf_fwhm": fwhm, "psf_beta": beta, "psf_e1": pe * np.cos(2 * pphi), "psf_e2": pe * np.sin(2 * pphi),
             "offsets": offsets, "jacobian_angles": angles, "snr": snr, "n_redraws": tries,
         }
@@ -479,6 +496,14 @@ def _population_sampler():
     # Imported late so that the simulation module loads even while priors.py is edited.
     from ..priors import sample_population
     return sample_population
+
+
+def _has_field(sample, name):
+    if isinstance(sample, Mapping):
+        return name in sample
+    if isinstance(sample, np.ndarray) and sample.dtype.names:
+        return name in sample.dtype.names
+    return hasattr(sample, name)
 
 
 def _field(sample, name):
