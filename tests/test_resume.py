@@ -154,3 +154,60 @@ def test_truncated_exposure_is_one_line_naming_file_and_hdu(field, tmp_path, cap
     err = [line for line in capsys.readouterr().err.strip().splitlines() if line.startswith("shearfit:")]
     assert len(err) == 1 and "exp1.fits" in err[0] and "HDU" in err[0]
     assert not out.exists() and not os.path.exists(str(out) + ".parts")
+
+
+def _disk_full(only_file_objects):
+    import errno
+
+    from astropy.io import fits
+
+    real = fits.HDUList.writeto
+
+    def writeto(self, fileobj, *a, **k):
+        if not only_file_objects or not isinstance(fileobj, (str, os.PathLike)):
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return real(self, fileobj, *a, **k)
+    return writeto
+
+
+def test_disk_full_at_the_final_write_keeps_the_checkpoint(field, tmp_path, capsys, monkeypatch):
+    """ENOSPC while writing the catalogue: one line, no catalogue and no temporary file, the finished
+    chunks kept; the same command afterwards resumes to the reference catalogue."""
+    from astropy.io import fits
+
+    d, cfg, ref = field
+    out = tmp_path / "shear.fits"
+    monkeypatch.setattr(fits.HDUList, "writeto", _disk_full(only_file_objects=True))
+    assert main(["measure", str(cfg), "chunk_size=6", "--out", str(out), "--quiet"]) != 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "shear.fits" in err[0] and "No space left" in err[0]
+    assert not out.exists() and not [p for p in os.listdir(tmp_path) if p.endswith(".tmp")]
+    assert len(os.listdir(str(out) + ".parts")) > 1
+    monkeypatch.undo()
+    assert main(["measure", str(cfg), "chunk_size=6", "--out", str(out), "--quiet"]) == 0
+    _same(Table.read(out), ref)
+
+
+def test_disk_full_at_a_checkpoint_is_one_line(field, tmp_path, capsys, monkeypatch):
+    from astropy.io import fits
+
+    d, cfg, _ = field
+    out = tmp_path / "shear.fits"
+    monkeypatch.setattr(fits.HDUList, "writeto", _disk_full(only_file_objects=False))
+    assert main(["measure", str(cfg), "chunk_size=6", "--out", str(out), "--quiet"]) != 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "checkpoint" in err[0] and "No space left" in err[0]
+    assert not out.exists()
+
+
+def test_memory_limit_per_worker(field, tmp_path, capsys):
+    d, cfg, ref = field
+    out = tmp_path / "m.fits"
+    assert main(["measure", str(cfg), "chunk_size=6", "--out", str(out), "--quiet", "-j", "2",
+                 "--memory-limit", "1GB"]) == 0
+    _same(Table.read(out), ref)
+    bad = tmp_path / "b.fits"
+    assert main(["measure", str(cfg), "--out", str(bad), "--quiet", "-j", "2", "--memory-limit", "lots"]) != 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--memory-limit" in err[0]
+    assert not bad.exists()

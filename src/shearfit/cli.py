@@ -46,7 +46,7 @@ def _cmd_measure(args):
     cfg = load_field_config(args.config, overrides=args.overrides)
     table = measure_field(cfg, out_path=args.out, progress=not args.quiet and sys.stderr.isatty(),
                           processes=args.processes, restart=args.restart, scheduler=args.scheduler,
-                          executor=args.executor)
+                          executor=args.executor, memory_limit=args.memory_limit)
     if not args.quiet:
         fc = table["fitclass"]
         print(f"measured {len(table)} objects: {int((fc == 0).sum())} galaxies, {int((fc == 1).sum())} stars, "
@@ -224,6 +224,9 @@ def build_parser():
                         "clusters serve one); its workers must see the same files")
     p.add_argument("--executor", choices=["dask", "fork"], default="dask",
                    help="with -j N: a local Dask cluster (default) or a plain fork pool")
+    p.add_argument("--memory-limit", default="auto", metavar="SIZE",
+                   help="memory per worker of the local Dask cluster (e.g. 2GB; Dask pauses, then restarts, a "
+                        "worker above it; default auto: the machine's memory shared by the workers)")
     p.add_argument("--restart", action="store_true",
                    help="discard the checkpoint (OUTPUT.parts/) of an interrupted run instead of resuming it")
     _add_common(p)

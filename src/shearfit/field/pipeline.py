@@ -37,7 +37,8 @@ from astropy.table import Table
 
 from .. import __version__
 from .._atomic import atomic_path
-from ..errors import (FITCLASS_FEW_EXPOSURES, FITCLASS_FIT_FAILED, FITCLASS_OFF_EXPOSURES, ShearfitValueError)
+from ..errors import (FITCLASS_FEW_EXPOSURES, FITCLASS_FIT_FAILED, FITCLASS_OFF_EXPOSURES, ShearfitIOError,
+                      ShearfitValueError)
 from ..calibrate import PAPER_ALPHA, PAPER_BETA, calibration_m, read_calibration
 from ..measure import measure_object
 from ..model import psf_moffat
@@ -222,7 +223,7 @@ def _isophote_analysis(cuts, pc) -> int:
 
 
 def measure_field(cfg: FieldConfig, out_path=None, progress=False, processes=1, restart=False, scheduler=None,
-                  executor="dask") -> Table:
+                  executor="dask", memory_limit="auto") -> Table:
     """Measure every catalogue object on the field's exposures; write and return the catalogue.
 
     Objects are measured in chunks of ``chunk_size`` neighbouring objects;
@@ -233,7 +234,8 @@ def measure_field(cfg: FieldConfig, out_path=None, progress=False, processes=1, 
     Chunks run on Dask: on ``processes`` workers of a local cluster, or on
     the distributed scheduler at ``scheduler`` (its workers must see the
     same files); ``executor="fork"`` uses a plain fork pool instead. The
-    catalogue does not depend on either.
+    catalogue does not depend on either. ``memory_limit`` is the local
+    cluster's per worker (Dask's format: ``"2GB"``, bytes, or ``"auto"``).
     """
     out_path = out_path or cfg.output
     if out_path is None:
@@ -270,7 +272,8 @@ def measure_field(cfg: FieldConfig, out_path=None, progress=False, processes=1, 
     bar = _progress_bar(sum(len(chunks[k]) for k in todo), progress)
     try:
         if todo and (scheduler is not None or (processes and processes > 1 and executor == "dask")):
-            _run_dask(cfg, exposures, tasks, mags, ids, chunks, todo, table, ckpt, bar, processes, scheduler)
+            _run_dask(cfg, exposures, tasks, mags, ids, chunks, todo, table, ckpt, bar, processes, scheduler,
+                      memory_limit)
         elif processes and processes > 1 and hasattr(os, "fork") and len(todo) > 1:
             import multiprocessing
 
@@ -361,7 +364,8 @@ def _dask_chunk(run, k, hits, mags, ids):
     return k, [_measure_one(h, exposures, m, cfg, cfg.pipeline, i) for h, m, i in zip(hits, mags, ids)]
 
 
-def _run_dask(cfg, exposures, tasks, mags, ids, chunks, todo, table, ckpt, bar, processes, scheduler):
+def _run_dask(cfg, exposures, tasks, mags, ids, chunks, todo, table, ckpt, bar, processes, scheduler,
+              memory_limit="auto"):
     """Submit the chunks to Dask and checkpoint each as it completes."""
     from dask.distributed import Client, LocalCluster, as_completed
 
@@ -369,8 +373,11 @@ def _run_dask(cfg, exposures, tasks, mags, ids, chunks, todo, table, ckpt, bar, 
     logging.getLogger("distributed").setLevel(max(logging.WARNING, log.getEffectiveLevel()))
     cluster = None
     if scheduler is None:
-        cluster = LocalCluster(n_workers=int(processes), threads_per_worker=1, processes=True,
-                               dashboard_address=":0", silence_logs=logging.WARNING)
+        try:
+            cluster = LocalCluster(n_workers=int(processes), threads_per_worker=1, processes=True,
+                                   dashboard_address=":0", silence_logs=logging.WARNING, memory_limit=memory_limit)
+        except (ValueError, TypeError) as exc:
+            raise ShearfitValueError(f"--memory-limit {memory_limit!r}: {exc}") from None
         client = Client(cluster)
     else:
         try:
@@ -444,14 +451,17 @@ class Checkpoint:
         return k in self._done
 
     def save(self, k, table, idx):
-        if not os.path.isdir(self.dir):   # created with the first finished chunk: a run that fails first leaves nothing
-            os.makedirs(self.dir)
-            with atomic_path(self._mpath) as tmp, open(tmp, "w") as f:
-                yaml.safe_dump(self.manifest, f)
-        part = table[idx]
-        part["row"] = np.asarray(idx, np.int64)
-        with atomic_path(self._path(k)) as tmp:
-            part.write(tmp, format="fits")
+        try:
+            if not os.path.isdir(self.dir):   # created with the first finished chunk: a run that fails first leaves nothing
+                os.makedirs(self.dir)
+                with atomic_path(self._mpath) as tmp, open(tmp, "w") as f:
+                    yaml.safe_dump(self.manifest, f)
+            part = table[idx]
+            part["row"] = np.asarray(idx, np.int64)
+            with atomic_path(self._path(k)) as tmp:
+                part.write(tmp, format="fits")
+        except OSError as exc:
+            raise ShearfitIOError(f"{self._path(k)}: cannot write the checkpoint: {exc.strerror or exc}") from None
         self._done.add(k)
 
     def load(self, k, table):
