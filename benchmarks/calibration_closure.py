@@ -30,8 +30,8 @@ from concurrent.futures import ProcessPoolExecutor
 
 import numpy as np
 
-from shearfit.calibrate import (PAPER_ALPHA, PAPER_BETA, calibrate, calibrated_bias, plot_calibration,
-                                quantity_bins, stack_matched, weight_bins, write_calibration)
+from shearfit.calibrate import (PAPER_ALPHA, PAPER_BETA, CalibrationModel, calibrate, calibrated_bias,
+                                plot_calibration, quantity_bins, stack_matched, weight_bins, write_calibration)
 from shearfit.cli import main as cli_main
 from shearfit.simulate.field import simulate_field, simulation_config
 
@@ -89,7 +89,7 @@ def plot(path, cal_result, bins, test_snr, test_size, test_weight, second_snr):
         x = np.asarray(tb["snr" if lab == "SNR" else "r"])
         a.errorbar(x, tb["m"], tb["m_err"], fmt="o", ms=4, label="test set, raw")
         a.errorbar(x * 1.02, tb["m_cal"], tb["m_cal_err"], fmt="s", ms=4, label="test set, calibrated")
-        a.plot(x, tb["m_pred"], "-", lw=1, label="calibration <m(nu, r)>")
+        a.plot(x, tb["m_pred"], "-", lw=1, label="calibration <m> (binned)")
         if lab == "SNR" and second_snr is not None:
             xs = np.asarray(second_snr["snr"])
             a.errorbar(xs * 0.98, second_snr["m_cal"], second_snr["m_cal_err"], fmt="^", ms=4,
@@ -103,7 +103,7 @@ def plot(path, cal_result, bins, test_snr, test_size, test_weight, second_snr):
     wb = test_weight
     ax[2].errorbar(wb["weight"], wb["m"], wb["m_err"], fmt="o", ms=4, label="test set, raw")
     ax[2].errorbar(wb["weight"], wb["m_cal"], wb["m_cal_err"], fmt="s", ms=4, label="test set, calibrated")
-    ax[2].plot(wb["weight"], wb["m_pred"], "-", lw=1, label="calibration <m(nu, r)>")
+    ax[2].plot(wb["weight"], wb["m_pred"], "-", lw=1, label="calibration <m> (binned)")
     ax[2].axhline(0, color="k", lw=0.5)
     ax[2].set_xlabel("mean lensfit weight")
     ax[2].set_ylabel("m")
@@ -153,19 +153,24 @@ def main(argv=None):
     result, bins, cal_tab = calibrate(pairs["cal"], n_snr=args.n_snr, n_size=args.n_size)
     write_calibration(result, os.path.join(out, "calibration.yaml"))
     a, b = result["alpha"], result["beta"]
-    plot_calibration(bins, result, os.path.join(out, "calibration.png"),
-                     weight_bins=weight_bins(cal_tab, a, b))
+    binned = CalibrationModel(a, b, "binned", result["binned"])
+    fitted = CalibrationModel(a, b)
+    paper = CalibrationModel(PAPER_ALPHA, PAPER_BETA)
+    plot_calibration(bins, result, os.path.join(out, "calibration.png"), weight_bins=weight_bins(cal_tab, binned))
     test = stack_matched(pairs["test"])
     second = stack_matched(pairs["second"])
-    cal_self = calibrated_bias(cal_tab, a, b)
-    closure = calibrated_bias(test, a, b)
-    closure_paper = calibrated_bias(test, PAPER_ALPHA, PAPER_BETA)
-    sec = calibrated_bias(second, a, b)
-    sec_paper = calibrated_bias(second, PAPER_ALPHA, PAPER_BETA)
-    t_snr = quantity_bins(test, "snr", a, b, n=6)
-    t_size = quantity_bins(test, "scalelength", a, b, n=6)
-    t_w = weight_bins(test, a, b, n=8)
-    s_snr = quantity_bins(second, "snr", a, b, n=4)
+    rows = [("calibration set (self), binned", calibrated_bias(cal_tab, binned)),
+            ("calibration set (self), fitted form", calibrated_bias(cal_tab, fitted)),
+            ("test set, binned", calibrated_bias(test, binned)),
+            ("test set, fitted form", calibrated_bias(test, fitted)),
+            ("test set, paper's alpha, beta", calibrated_bias(test, paper)),
+            ("second suite, binned", calibrated_bias(second, binned)),
+            ("second suite, fitted form", calibrated_bias(second, fitted)),
+            ("second suite, paper's alpha, beta", calibrated_bias(second, paper))]
+    t_snr = quantity_bins(test, "snr", binned, n=6)
+    t_size = quantity_bins(test, "scalelength", binned, n=6)
+    t_w = weight_bins(test, binned, n=8)
+    s_snr = quantity_bins(second, "snr", binned, n=4)
     plot(os.path.join(out, "closure.png"), result, bins, t_snr, t_size, t_w, s_snr)
 
     print()
@@ -173,13 +178,10 @@ def main(argv=None):
           f"{len(pairs['cal'])} fields), {result['n_snr_bins']} x {result['n_size_bins']} bins")
     print(f"  alpha = {a:.4f} +- {result['alpha_err']:.4f}   beta = {b:.4f} +- {result['beta_err']:.4f}   "
           f"(paper {PAPER_ALPHA}, {PAPER_BETA});  chi2 = {result['chi2']:.1f} for {result['dof']} dof")
-    rows = (("calibration set (self)", cal_self), ("test set", closure), ("test set, paper's alpha, beta",
-                                                                            closure_paper),
-            ("second suite", sec), ("second suite, paper's alpha, beta", sec_paper))
-    print(f"{'':36s} {'n':>6s}  {'raw m':>18s}  {'<m(nu,r)>':>9s}  {'calibrated m':>18s}  "
+    print(f"{'':38s} {'n':>6s}  {'raw m':>18s}  {'<m(nu,r)>':>9s}  {'calibrated m':>18s}  "
           f"{'c1':>20s}  {'c2':>20s}")
     for name, d in rows:
-        print(f"{name:36s} {d['n_galaxies']:6d}  {fmt(d, 'm_raw')}  {d['m_mean']:+9.4f}  {fmt(d, 'm_cal')}  "
+        print(f"{name:38s} {d['n_galaxies']:6d}  {fmt(d, 'm_raw')}  {d['m_mean']:+9.4f}  {fmt(d, 'm_cal')}  "
               f"{fmt(d, 'c1')}  {fmt(d, 'c2')}")
     for title, tb, key, f in (("test set in bins of SNR", t_snr, "snr", "7.1f"),
                               ("test set in bins of scalelength", t_size, "r", "7.3f"),
@@ -190,9 +192,8 @@ def main(argv=None):
             print(f"  {r[key]:{f}}  {r['m']:+.4f} +- {r['m_err']:.4f}  {r['m_pred']:+.4f}  "
                   f"{r['m_cal']:+.4f} +- {r['m_cal_err']:.4f}")
     summary = dict(alpha=a, beta=b, alpha_err=result["alpha_err"], beta_err=result["beta_err"],
-                   calibration_self=cal_self, closure=closure, closure_paper=closure_paper, second=sec,
-                   second_paper=sec_paper, measure_wall_s=t_meas, total_wall_s=time.time() - t0,
-                   processes=args.processes, psf=args.psf)
+                   chi2=result["chi2"], dof=result["dof"], rows={name: d for name, d in rows},
+                   measure_wall_s=t_meas, total_wall_s=time.time() - t0, processes=args.processes, psf=args.psf)
     with open(os.path.join(out, "closure.json"), "w") as f:
         json.dump(summary, f, indent=1)
     print(f"\nwritten {out}/calibration.yaml, calibration.png, closure.png, closure.json; "

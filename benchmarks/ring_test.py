@@ -176,15 +176,17 @@ def report_bias(tab, args, n_gal):
     print(f"  m1 = {format_with_error(est[0], err[0])}    c1 = {format_with_error(est[2], err[2])}")
     print(f"  m2 = {format_with_error(est[1], err[1])}    c2 = {format_with_error(est[3], err[3])}")
     # the simulation calibration of the paper (or a calibration file): m(nu, r) of the measured galaxies
-    from shearfit.calibrate import PAPER_ALPHA, PAPER_BETA, calibration_m, read_calibration
+    from shearfit.calibrate import PAPER_ALPHA, PAPER_BETA, as_model
 
-    alpha, beta = read_calibration(args.calibration) if args.calibration else (PAPER_ALPHA, PAPER_BETA)
+    model = as_model(args.calibration if args.calibration else (PAPER_ALPHA, PAPER_BETA))
     good = tab["fitclass"] == 0
-    mc = calibration_m(tab["snr"], tab["scalelength"], alpha, beta)
+    mc = model.m(tab["snr"], tab["scalelength"])
     w = np.where(good & np.isfinite(mc), np.nan_to_num(tab["weight"]) if weighted else 1.0, 0.0)
     mbar = float(np.sum(w * np.nan_to_num(mc)) / np.sum(w))
     cal = (1 + est[:2]) / (1 + mbar) - 1
-    print(f"  calibrated with m(nu, r) of (alpha, beta) = ({alpha:.4f}, {beta:.4f}): <m> = {mbar:+.4f}, "
+    what = (f"the {model.kind} calibration of {args.calibration}" if args.calibration else
+            f"the paper's m(nu, r), (alpha, beta) = ({PAPER_ALPHA}, {PAPER_BETA})")
+    print(f"  calibrated with {what}: <m> = {mbar:+.4f}, "
           f"m1 = {format_with_error(cal[0], err[0] / (1 + mbar))}, m2 = {format_with_error(cal[1], err[1] / (1 + mbar))}")
     print(f"  fitclass != 0: {fail.mean():.3%} of {len(tab)} objects"
           + "".join(f"; {int((tab['fitclass'] == k).sum())} x fitclass {k}" for k in np.unique(tab["fitclass"])

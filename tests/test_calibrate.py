@@ -5,8 +5,8 @@ import pytest
 import yaml
 from astropy.table import Table
 
-from shearfit.calibrate import (bin_indices, calibrate, calibrated_bias, calibration_m, matched_galaxies,
-                                read_calibration)
+from shearfit.calibrate import (CalibrationModel, bin_indices, calibrate, calibrated_bias, calibration_m,
+                                load_calibration, matched_galaxies, read_calibration, write_calibration)
 from shearfit.cli import main
 from shearfit.errors import ShearfitIOError, ShearfitValueError
 
@@ -62,7 +62,7 @@ def test_recovers_alpha_beta_and_closes(tmp_path):
     assert np.array(res["loglike"]).shape == (len(res["grid_alpha"]), len(res["grid_beta"]))
     # closure on an independent sample: the calibrated m is zero within its statistical reach
     mp2, tp2 = _synthetic(tmp_path, seed=5)
-    cb = calibrated_bias(matched_galaxies(mp2, tp2), res["alpha"], res["beta"])
+    cb = calibrated_bias(matched_galaxies(mp2, tp2), (res["alpha"], res["beta"]))
     assert cb["m_raw"] < -0.05                # a real noise bias to correct
     assert abs(cb["m_cal"]) < 0.015
 
@@ -77,7 +77,7 @@ def test_cli_writes_yaml_bins_plot_and_reads_back(tmp_path, capsys):
     mp, tp = _synthetic(tmp_path, n=6000)
     out = tmp_path / "cal.yaml"
     assert main(["calibrate", str(mp), str(tp), "--out", str(out), "--n-snr", "4", "--n-size", "4",
-                 "--bootstrap", "10"]) == 0
+                 "--bootstrap", "10", "--model", "paper"]) == 0
     assert "alpha =" in capsys.readouterr().out
     assert (tmp_path / "cal_bins.fits").exists() and (tmp_path / "cal.png").exists()
     a, b = read_calibration(out)
@@ -134,7 +134,7 @@ def test_fields_from_one_seed_pair_up_and_their_noise_cancels(tmp_path):
     pred = np.array([calibration_m(s, rr, ALPHA, BETA) for s, rr in zip(bins["snr"], bins["r"])])
     pulls = (np.asarray(bins["m"]) - pred) / np.asarray(bins["m_err"])
     assert np.all(np.abs(pulls) < 5) and 0.4 < np.std(pulls) < 2.0
-    cb = calibrated_bias(tab, ALPHA, BETA)
+    cb = calibrated_bias(tab, (ALPHA, BETA))
     assert abs(cb["m_cal"]) < 4 * cb["m_cal_err"] and cb["m_cal_err"] < 0.003
     # without shared noise the same sample measures m ten times less precisely
     res_ind, bins_ind, tab_ind = calibrate(_paired_fields(tmp_path, shared=False), n_snr=4, n_size=4, n_boot=50)
@@ -150,3 +150,43 @@ def test_cli_takes_several_pairs_and_refuses_an_odd_count(tmp_path, capsys):
     assert d["n_galaxies"] == 6000 and len(d["measured"]) == 2
     assert main(["calibrate", str(mp), str(tp), str(mm), "--out", str(out)]) != 0
     assert "has no partner" in capsys.readouterr().err
+
+
+def test_binned_model_closes_where_the_paper_form_cannot(tmp_path):
+    """m(nu, r) unlike the paper's form: the binned table applies each bin's m and closes; the form does not."""
+    rng = np.random.default_rng(8)
+    n = 60000
+    snr = np.exp(rng.uniform(np.log(7), np.log(80), n))
+    r = np.exp(rng.uniform(np.log(0.1), np.log(1.0), n))
+    m_true = -0.4 * (r < 0.2) - 3.0 / snr       # a step in size: no alpha, beta gives it
+
+    def field(seed):
+        g = np.random.default_rng(seed).normal(0, 0.05, (n, 2))
+        e = (1 + m_true)[:, None] * g + rng.normal(0, 1, (n, 2)) * 0.02
+        meas = Table({"id": np.arange(n), "e1": e[:, 0], "e2": e[:, 1], "weight": np.ones(n),
+                      "fitclass": np.zeros(n, int), "snr": snr, "scalelength": r})
+        truth = Table({"id": np.arange(n), "g1": g[:, 0], "g2": g[:, 1], "e1_int": np.zeros(n),
+                       "e2_int": np.zeros(n), "is_star": np.zeros(n, bool)})
+        mp, tp = tmp_path / f"bm{seed}.fits", tmp_path / f"bt{seed}.fits"
+        meas.write(mp)
+        truth.write(tp)
+        return mp, tp
+
+    res, bins, tab = calibrate([field(1)], n_snr=6, n_size=6, n_boot=20)
+    assert res["model"] == "binned" and np.asarray(res["binned"]["m"]).shape == (6, 6)
+    test = matched_galaxies(*field(2))
+    binned = calibrated_bias(test, CalibrationModel(res["alpha"], res["beta"], "binned", res["binned"]))
+    form = calibrated_bias(test, (res["alpha"], res["beta"]))
+    assert binned["m_raw"] < -0.1
+    assert abs(binned["m_cal"]) < 3 * binned["m_cal_err"] + 2e-3
+    assert abs(form["m_cal"]) > 5 * form["m_cal_err"]
+    # written and read back, the model is the binned one, and its draws scatter within the errors
+    out = tmp_path / "cal.yaml"
+    write_calibration(res, out)
+    model = load_calibration(out)
+    assert model.kind == "binned"
+    np.testing.assert_allclose(model.m(snr[:50], r[:50]), CalibrationModel(
+        res["alpha"], res["beta"], "binned", res["binned"]).m(snr[:50], r[:50]))
+    d = model.draws(200, np.random.default_rng(0))
+    spread = np.std([x.m(np.array([30.0]), np.array([0.5]))[0] for x in d])
+    assert 0.2 * np.median(np.asarray(res["binned"]["m_err"])) < spread < 5 * np.max(np.asarray(res["binned"]["m_err"]))

@@ -38,7 +38,7 @@ from scipy.optimize import least_squares
 from ._atomic import atomic_path, read_yaml_mapping
 from .errors import ShearfitIOError, ShearfitValueError
 
-__all__ = ["matched_galaxies", "stack_matched", "sheared_ellipticity", "quantity_bins", "bin_indices", "bin_bias", "fit_alpha_beta", "calibrate", "read_calibration",
+__all__ = ["CalibrationModel", "as_model", "load_calibration", "binned_table", "matched_galaxies", "stack_matched", "sheared_ellipticity", "quantity_bins", "bin_indices", "bin_bias", "fit_alpha_beta", "calibrate", "read_calibration",
            "write_calibration", "model_m", "calibration_m", "calibrated_bias", "plot_calibration",
            "weight_bins", "PAPER_ALPHA", "PAPER_BETA"]
 
@@ -274,11 +274,16 @@ def fit_alpha_beta(bins: Table, n_grid=81):
                 grid_alpha=alphas.tolist(), grid_beta=betas.tolist(), loglike=loglike.tolist())
 
 
-def calibrate(pairs, n_snr=20, n_size=20, n_boot=100, seed=0, min_per_bin=MIN_PER_BIN):
+def calibrate(pairs, n_snr=20, n_size=20, n_boot=100, seed=0, min_per_bin=MIN_PER_BIN, model="binned"):
     """The calibration from simulated fields (see the module doc): (result dict, bins table, matched table).
 
     ``pairs``: a list of (measured catalogue, truth table) paths, one per field.
+    ``model``: what the calibration applies, ``binned`` (the bins' m, looked
+    up per galaxy) or ``paper`` (the fitted m = beta / ln(nu) exp(-alpha r nu));
+    both are written.
     """
+    if model not in ("binned", "paper"):
+        raise ShearfitValueError(f"calibration model {model!r} is not 'binned' or 'paper'")
     pairs = [tuple(p) for p in pairs]
     tab = stack_matched(pairs)
     names = ", ".join(str(m) for m, _ in pairs)
@@ -295,16 +300,124 @@ def calibrate(pairs, n_snr=20, n_size=20, n_boot=100, seed=0, min_per_bin=MIN_PE
     bins = bin_bias(tab, idx, ns * nr, n_boot, rng)
     fit = fit_alpha_beta(bins)
     tot = _fit_mc(*_residuals(tab))
+    binned = binned_table(tab, idx, ns, nr, bins, groups)
     result = dict(fit, n_galaxies=int(len(tab)), n_groups=int(groups.max() + 1), n_snr_bins=int(ns),
                   n_size_bins=int(nr), m_raw=float(tot[0]), c1=float(tot[1]), c2=float(tot[2]),
-                  paper_alpha=PAPER_ALPHA, paper_beta=PAPER_BETA,
+                  paper_alpha=PAPER_ALPHA, paper_beta=PAPER_BETA, model=model, binned=binned,
                   measured=[str(m) for m, _ in pairs], truth=[str(t) for _, t in pairs])
     return result, bins, tab
 
 
+def binned_table(tab, idx, n_snr, n_size, bins, groups):
+    """The bins as a look-up table: SNR edges, size edges within each SNR bin, m and its error per bin.
+
+    Edges lie half-way between neighbouring bins' groups (mean SNR, then mean size within the SNR bin).
+    """
+    codes = np.asarray(groups)
+    cnt = np.maximum(np.bincount(codes), 1)
+    gs = np.bincount(codes, np.asarray(tab["snr"], float)) / cnt
+    gr = np.bincount(codes, np.asarray(tab["scalelength"], float)) / cnt
+    gidx = np.full(cnt.size, -1)
+    gidx[codes] = idx
+    snr_bin, size_bin = gidx // n_size, gidx % n_size
+    snr_edges = [0.5 * (gs[snr_bin == b].max() + gs[snr_bin == b + 1].min()) for b in range(n_snr - 1)]
+    size_edges = []
+    for b in range(n_snr):
+        rb, sb = gr[snr_bin == b], size_bin[snr_bin == b]
+        size_edges.append([0.5 * (rb[sb == k].max() + rb[sb == k + 1].min()) for k in range(n_size - 1)])
+    m = np.full((n_snr, n_size), np.nan)
+    merr = np.full((n_snr, n_size), np.nan)
+    for row in bins:
+        m[row["bin"] // n_size, row["bin"] % n_size] = row["m"]
+        merr[row["bin"] // n_size, row["bin"] % n_size] = row["m_err"]
+    return dict(snr_edges=[float(x) for x in snr_edges], size_edges=[[float(x) for x in e] for e in size_edges],
+                m=np.nan_to_num(m).tolist(), m_err=np.nan_to_num(merr, nan=1.0).tolist())
+
+
+class CalibrationModel:
+    """m(SNR, scalelength) of a calibration: the paper's form with (alpha, beta), or the binned table.
+
+    ``kind`` ``paper``: eq. (alphabeta). ``binned``: the m of the SNR-size bin a
+    galaxy falls in (bins of ``shearfit calibrate``; outside the table, the
+    nearest bin). ``draws(n, rng)`` gives ``n`` models drawn from the
+    calibration's uncertainty (the (alpha, beta) likelihood grid, or each
+    bin's m within its bootstrap error) for the systematic covariance.
+    """
+
+    def __init__(self, alpha=PAPER_ALPHA, beta=PAPER_BETA, kind="paper", binned=None, grid=None):
+        if kind not in ("paper", "binned"):
+            raise ShearfitValueError(f"calibration model {kind!r} is not 'paper' or 'binned'")
+        if kind == "binned" and binned is None:
+            raise ShearfitValueError("a binned calibration needs its table")
+        self.alpha, self.beta, self.kind, self.binned, self.grid = float(alpha), float(beta), kind, binned, grid
+
+    def m(self, snr, scalelength):
+        snr = np.asarray(snr, float)
+        r = np.asarray(scalelength, float)
+        if self.kind == "paper":
+            return calibration_m(snr, r, self.alpha, self.beta)
+        b = self.binned
+        m_tab = np.asarray(b["m"], float)
+        ib = np.searchsorted(np.asarray(b["snr_edges"], float), snr)
+        out = np.full(snr.shape, np.nan)
+        for k in range(m_tab.shape[0]):
+            sel = ib == k
+            if np.any(sel):
+                jb = np.searchsorted(np.asarray(b["size_edges"][k], float), r[sel])
+                out[sel] = m_tab[k, jb]
+        return np.where(np.isfinite(snr) & np.isfinite(r) & (snr > 1), out, np.nan)
+
+    def draws(self, n, rng):
+        if self.kind == "paper":
+            if self.grid is None:
+                raise ShearfitValueError("the calibration has no likelihood grid to draw from")
+            a_s, b_s = _grid_samples(*self.grid, n, rng)
+            return [CalibrationModel(a, b) for a, b in zip(a_s, b_s)]
+        m = np.asarray(self.binned["m"], float)
+        e = np.asarray(self.binned["m_err"], float)
+        return [CalibrationModel(self.alpha, self.beta, "binned", dict(self.binned, m=(m + e * rng.normal(size=m.shape))
+                                                                      .tolist())) for _ in range(n)]
+
+
+def as_model(calibration) -> CalibrationModel:
+    """A CalibrationModel from a model, an (alpha, beta) pair or a calibration file's path."""
+    if isinstance(calibration, CalibrationModel):
+        return calibration
+    if isinstance(calibration, (tuple, list)) and len(calibration) == 2:
+        return CalibrationModel(*calibration)
+    return load_calibration(calibration)
+
+
+def load_calibration(path) -> CalibrationModel:
+    """The model of a calibration.yaml (``model: binned`` or ``paper``; files without ``model`` are ``paper``)."""
+    alpha, beta = read_calibration(path)
+    d = read_yaml_mapping(path, "calibration")
+    kind = str(d.get("model", "paper")).lower()
+    grid = None
+    if all(k in d for k in ("grid_alpha", "grid_beta", "loglike")):
+        grid = _checked_grid(path, d)
+    binned = d.get("binned")
+    if kind == "binned":
+        try:
+            ns = len(binned["snr_edges"]) + 1
+            m = np.asarray(binned["m"], float)
+            me = np.asarray(binned["m_err"], float)
+            ok = (m.ndim == 2 and m.shape[0] == ns and me.shape == m.shape and len(binned["size_edges"]) == ns
+                  and all(len(e) == m.shape[1] - 1 for e in binned["size_edges"]))
+        except (TypeError, KeyError, ValueError):
+            ok = False
+        if not ok:
+            raise ShearfitIOError(f"{path}: calibration model binned needs a consistent 'binned' table "
+                                  "(snr_edges, size_edges, m, m_err)")
+    elif kind != "paper":
+        raise ShearfitIOError(f"{path}: calibration key 'model' must be 'paper' or 'binned', not {kind!r}")
+    return CalibrationModel(alpha, beta, kind, binned if kind == "binned" else None, grid)
+
+
 def write_calibration(result, path):
     with atomic_path(path) as tmp, open(tmp, "w") as f:
-        f.write("# shearfit noise-bias calibration: m(nu, r) = beta / ln(nu) exp(-alpha r nu), r in arcsec\n")
+        f.write("# shearfit noise-bias calibration. model: binned applies the m of each SNR-size bin (binned:), "
+                "paper the fit m(nu, r) = beta / ln(nu) exp(-alpha r nu), r in arcsec\n")
         yaml.safe_dump(result, f, sort_keys=False, default_flow_style=None)
 
 
@@ -321,13 +434,7 @@ def read_calibration(path):
     return d["alpha"], d["beta"]
 
 
-def calibration_samples(path, n, rng):
-    """``n`` (alpha, beta) pairs drawn from a calibration file's likelihood grid (uniform within each cell).
-
-    The systematic covariance of calibrated two-point functions (sec. 8.5)
-    propagates these draws. Files without the grid are refused.
-    """
-    d = read_yaml_mapping(path, "calibration")
+def _checked_grid(path, d):
     try:
         ga = np.asarray(d["grid_alpha"], float)
         gb = np.asarray(d["grid_beta"], float)
@@ -339,6 +446,10 @@ def calibration_samples(path, n, rng):
         raise ShearfitIOError(f"{path}: calibration likelihood grid is not numeric") from None
     if ll.shape != (ga.size, gb.size) or ga.size < 2 or gb.size < 2 or not np.all(np.isfinite(ll)):
         raise ShearfitIOError(f"{path}: calibration loglike must be a finite {ga.size} x {gb.size} grid")
+    return ga, gb, ll
+
+
+def _grid_samples(ga, gb, ll, n, rng):
     p = np.exp(ll - ll.max()).ravel()
     k = rng.choice(p.size, size=n, p=p / p.sum())
     ia, ib = np.unravel_index(k, ll.shape)
@@ -346,15 +457,28 @@ def calibration_samples(path, n, rng):
     return ga[ia] + da * rng.uniform(-0.5, 0.5, n), gb[ib] + db * rng.uniform(-0.5, 0.5, n)
 
 
-def calibrated_bias(tab: Table, alpha, beta, n_boot=200, seed=0):
-    """Overall m, c1, c2 of a matched table before and after the calibration (alpha, beta), with errors.
+def calibration_samples(path, n, rng):
+    """``n`` (alpha, beta) pairs drawn from a calibration file's likelihood grid (uniform within each cell).
+
+    The systematic covariance of calibrated two-point functions (sec. 8.5)
+    propagates these draws. Files without the grid are refused.
+    """
+    d = read_yaml_mapping(path, "calibration")
+    return _grid_samples(*_checked_grid(path, d), n, rng)
+
+
+def calibrated_bias(tab: Table, calibration, n_boot=200, seed=0):
+    """Overall m, c1, c2 of a matched table before and after a calibration, with errors.
+
+    ``calibration``: a :class:`CalibrationModel`, an (alpha, beta) pair or a calibration file.
 
     The calibration divides the weighted shear estimate by 1 + the weighted mean m of the
     galaxies (the paper's ensemble correction), so the calibrated m is (1 + m_raw) / (1 + <m>) - 1.
     Errors (``*_err``) from a bootstrap over groups (see :func:`matched_galaxies`).
     """
     y1, y2, g1, g2, w = _residuals(tab)
-    mc = calibration_m(tab["snr"], tab["scalelength"], alpha, beta)
+    mc = as_model(calibration).m(tab["snr"], tab["scalelength"])
+    mc = np.where(np.isfinite(mc), mc, 0.0)
 
     def est(s):
         raw = _fit_mc(y1[s], y2[s], g1[s], g2[s], w[s])
@@ -416,12 +540,12 @@ def plot_calibration(bins: Table, result, path, weight_bins=None):
     plt.close(fig)
 
 
-def weight_bins(tab: Table, alpha, beta, n=10, n_boot=100, seed=0):
+def weight_bins(tab: Table, calibration, n=10, n_boot=100, seed=0):
     """m in bins of lensfit weight (equal numbers), with the calibration's mean prediction per bin."""
-    return quantity_bins(tab, "weight", alpha, beta, n=n, n_boot=n_boot, seed=seed)
+    return quantity_bins(tab, "weight", calibration, n=n, n_boot=n_boot, seed=seed)
 
 
-def quantity_bins(tab: Table, column, alpha, beta, n=6, n_boot=100, seed=0):
+def quantity_bins(tab: Table, column, calibration, n=6, n_boot=100, seed=0):
     """Raw and calibrated m (and c) in equal-number bins of one column (``snr``, ``scalelength``, ...).
 
     Groups are binned by their mean value, so the copies of a galaxy stay together.
@@ -433,5 +557,6 @@ def quantity_bins(tab: Table, column, alpha, beta, n=6, n_boot=100, seed=0):
     order = np.argsort(gx, kind="stable")
     gidx = np.empty(gx.size, int)
     gidx[order] = np.arange(gx.size) * n // max(gx.size, 1)
-    pred = calibration_m(tab["snr"], tab["scalelength"], alpha, beta)
+    pred = as_model(calibration).m(tab["snr"], tab["scalelength"])
+    pred = np.where(np.isfinite(pred), pred, 0.0)
     return bin_bias(tab, gidx[codes], n, n_boot, np.random.default_rng(seed), m_pred=pred)

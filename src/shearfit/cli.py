@@ -167,7 +167,7 @@ def _cmd_simulate(args):
 def _cmd_calibrate(args):
     import os
 
-    from .calibrate import calibrate, plot_calibration, weight_bins, write_calibration
+    from .calibrate import CalibrationModel, calibrate, plot_calibration, weight_bins, write_calibration
     from .field.io import write_catalog_atomic
 
     files = [args.measured, args.truth] + list(args.more)
@@ -175,11 +175,11 @@ def _cmd_calibrate(args):
         raise ShearfitValueError(f"calibrate takes MEASURED TRUTH pairs; {files[-1]} has no partner")
     pairs = list(zip(files[0::2], files[1::2]))
     result, bins, tab = calibrate(pairs, n_snr=args.n_snr, n_size=args.n_size, n_boot=args.bootstrap,
-                                  seed=args.seed)
+                                  seed=args.seed, model=args.model)
     write_calibration(result, args.out)
     stem = os.path.splitext(args.out)[0]
     write_catalog_atomic(bins, f"{stem}_bins.fits", [])
-    wb = weight_bins(tab, result["alpha"], result["beta"])
+    wb = weight_bins(tab, CalibrationModel(result["alpha"], result["beta"], result["model"], result["binned"]))
     plot_calibration(bins, result, f"{stem}.png", weight_bins=wb)
     if not args.quiet:
         print(f"calibration from {result['n_galaxies']} galaxies in {result['n_snr_bins']} x {result['n_size_bins']} "
@@ -268,6 +268,9 @@ def build_parser():
     p.add_argument("--n-snr", type=int, default=20, help="SNR bins (fewer if the sample is small)")
     p.add_argument("--n-size", type=int, default=20, help="size bins per SNR bin")
     p.add_argument("--bootstrap", type=int, default=100, help="bootstrap resamplings per bin")
+    p.add_argument("--model", choices=["binned", "paper"], default="binned",
+                   help="what measure applies: each SNR-size bin's m (default) or the fitted paper form "
+                        "m = beta / ln(nu) exp(-alpha r nu); both are written")
     p.add_argument("--seed", type=int, default=0)
     _add_common(p)
     p.set_defaults(func=_cmd_calibrate)

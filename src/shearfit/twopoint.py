@@ -19,7 +19,7 @@ import numpy as np
 import treecorr
 from astropy.table import Table
 
-from .calibrate import calibration_m, calibration_samples
+from .calibrate import load_calibration
 from .errors import ShearfitIOError, ShearfitValueError
 
 __all__ = ["read_shear_catalog", "parse_selection", "xipm", "write_xipm", "metacal_response_of"]
@@ -111,12 +111,10 @@ def xipm(tab: Table, min_sep=1.0, max_sep=100.0, nbins=10, calibration=None, n_s
     snr = np.asarray(tab["snr"], float) if "snr" in tab.colnames else None
     r = np.asarray(tab["scalelength"], float) if "scalelength" in tab.colnames else None
     if calibration is not None:
-        from .calibrate import read_calibration
-
         if snr is None or r is None:
             raise ShearfitIOError("the catalogue needs snr and scalelength columns to apply a calibration file")
-        alpha, beta = read_calibration(calibration)
-        m = calibration_m(snr, r, alpha, beta)
+        model = load_calibration(calibration)
+        m = model.m(snr, r)
     elif response is not None:
         m = np.full(len(tab), 0.5 * (response[0][0] + response[1][1]) - 1.0)
     elif "m" in tab.colnames:
@@ -136,12 +134,11 @@ def xipm(tab: Table, min_sep=1.0, max_sep=100.0, nbins=10, calibration=None, n_s
                  "sigma_xip": np.sqrt(gg.varxip) / one_plus_k, "sigma_xim": np.sqrt(gg.varxim) / one_plus_k,
                  "npairs": gg.npairs, "weight": gg.weight})
     cov = None
-    if calibration is not None and n_sys > 0:
+    if calibration is not None and n_sys > 0 and (model.kind == "binned" or model.grid is not None):
         rng = np.random.default_rng(seed)
-        a_s, b_s = calibration_samples(calibration, n_sys, rng)
         vecs = []
-        for a, b in zip(a_s, b_s):
-            mk = calibration_m(snr, r, a, b)
+        for draw in model.draws(n_sys, rng):
+            mk = draw.m(snr, r)
             k2 = treecorr.KKCorrelation(**cfg)
             k2.process(_catalog(tab, 1.0 + np.where(np.isfinite(mk), mk, 0.0), with_shear=False))
             vecs.append(np.concatenate([gg.xip / k2.xi, gg.xim / k2.xi]))

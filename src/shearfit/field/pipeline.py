@@ -39,7 +39,7 @@ from .. import __version__
 from .._atomic import atomic_path
 from ..errors import (FITCLASS_FEW_EXPOSURES, FITCLASS_FIT_FAILED, FITCLASS_OFF_EXPOSURES, ShearfitIOError,
                       ShearfitValueError)
-from ..calibrate import PAPER_ALPHA, PAPER_BETA, calibration_m, read_calibration
+from ..calibrate import PAPER_ALPHA, PAPER_BETA, CalibrationModel, calibration_m, load_calibration
 from ..measure import measure_object
 from ..model import psf_moffat
 from ..observation import Observation
@@ -244,7 +244,7 @@ def measure_field(cfg: FieldConfig, out_path=None, progress=False, processes=1, 
     if not os.path.isdir(out_dir) or not os.access(out_dir, os.W_OK):
         raise ShearfitValueError(f"cannot write the output: directory {out_dir} does not exist or is not writable")
     # a bad calibration file fails here, not after every object is measured
-    calibration = read_calibration(cfg.calibration) if cfg.calibration not in (None, "simulations", "metacal") else None
+    calibration = load_calibration(cfg.calibration) if cfg.calibration not in (None, "simulations", "metacal") else None
     cat = read_catalog(cfg.catalog)
     exposures = []
     for k, spec in enumerate(cfg.exposures):
@@ -298,12 +298,13 @@ def measure_field(cfg: FieldConfig, out_path=None, progress=False, processes=1, 
                   ("MCDELTA", cfg.pipeline.metacal_delta, "metacal shear step")]
     else:
         if calibration is not None:
-            alpha, beta = calibration
             src = os.path.basename(cfg.calibration)
         else:
-            alpha, beta, src = PAPER_ALPHA, PAPER_BETA, "paper default"
-        table["m"] = np.where(measured, calibration_m(table["snr"], table["scalelength"], alpha, beta), np.nan)
+            calibration, src = CalibrationModel(PAPER_ALPHA, PAPER_BETA), "paper default"
+        alpha, beta = calibration.alpha, calibration.beta
+        table["m"] = np.where(measured, calibration.m(table["snr"], table["scalelength"]), np.nan)
         cards += [("CALMODE", "simulations", "m(snr, size) from simulations"),
+                  ("CALMODEL", calibration.kind, "m from the bins' table or the paper's form"),
                   ("CALALPHA", alpha, f"calibration alpha ({src})"), ("CALBETA", beta, f"calibration beta ({src})")]
     write_catalog_atomic(table, out_path, cards)
     ckpt.remove()
