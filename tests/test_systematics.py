@@ -69,12 +69,19 @@ def test_weight_bias_is_detected():
 
 def test_cli_tables_plots_and_errors(tmp_path, capsys):
     t, truth, _ = _catalog(n=6000)
-    t[:3000].write(tmp_path / "f1.fits")
-    t[3000:].write(tmp_path / "f2.fits")
+    # each field's catalogue carries its own configuration in the header, as shearfit measure writes it
+    for name, part, cfg in (("f1.fits", t[:3000], "field one"), ("f2.fits", t[3000:], "field two")):
+        part = part.copy()
+        part.meta["SFCONFIG"] = cfg
+        part.write(tmp_path / name)
     truth.write(tmp_path / "truth.fits")
     out = tmp_path / "sys"
-    assert main(["systematics", str(tmp_path / "f1.fits"), str(tmp_path / "f2.fits"), "--truth",
-                 str(tmp_path / "truth.fits"), "--out", str(out), "--n-bins", "5"]) == 0
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")       # no metadata-merge warning per field
+        assert main(["systematics", str(tmp_path / "f1.fits"), str(tmp_path / "f2.fits"), "--truth",
+                     str(tmp_path / "truth.fits"), "--out", str(out), "--n-bins", "5"]) == 0
     assert "PSF-galaxy" in capsys.readouterr().out
     for name in ("psf_galaxy.png", "weights.png", "weight_bias.png", "systematics.fits"):
         assert (out / name).stat().st_size > 0

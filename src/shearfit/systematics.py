@@ -147,7 +147,7 @@ def run_systematics(paths, out_dir, truth=None, n_bins=8, n_sub=10, seed=0):
     from ._atomic import atomic_path
 
     cats = read_catalogs(paths, truth)
-    allc = vstack([c for c in cats if len(c)])
+    allc = vstack([c for c in cats if len(c)], metadata_conflicts="silent")   # one SFCONFIG per field
     rng = np.random.default_rng(seed)
     os.makedirs(out_dir, exist_ok=True)
     tables = {}
