@@ -123,3 +123,17 @@ def test_field_demo_end_to_end(tmp_path):
     # bright galaxies (mag 20-23), true shear 0.04 / -0.03: the raw m is small, within a loose bound
     assert all(abs(m) < 0.3 for m in s["m"]) and all(e > 0 for e in s["m_err"])
     assert (tmp_path / "demo" / "field_plus" / "shear.fits").exists()
+
+
+def test_coherent_psf_anisotropy_keeps_the_rest_of_the_field():
+    """psf_e_fixed sets every exposure's PSF ellipticity and draws nothing else differently."""
+    from shearfit.simulate.field import _exposure_psf
+
+    a = simulation_config({"seed": 3})
+    b = simulation_config({"seed": 3, "psf_e_fixed": [0.1, -0.02]})
+    ra, rb = np.random.default_rng(5), np.random.default_rng(5)
+    pa, pb = _exposure_psf(a, ra), _exposure_psf(b, rb)
+    assert (pb["e1"], pb["e2"]) == (0.1, -0.02)
+    assert pa["fwhm"] == pb["fwhm"] and ra.uniform() == rb.uniform()
+    with pytest.raises(ShearfitValueError, match="psf_e_fixed"):
+        simulation_config({"psf_e_fixed": [0.6, 0.0]})

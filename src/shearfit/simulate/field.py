@@ -83,6 +83,7 @@ class SimulationConfig:
     psf_fwhm_range: tuple = (0.55, 0.85)  # arcsec
     psf_beta_range: tuple = (2.5, 4.5)
     psf_e_max: float = 0.08
+    psf_e_fixed: tuple = ()              # (e1, e2): every exposure's PSF this ellipticity (a coherent anisotropy)
     psf_variation: float = 0.02          # FWHM and e change by about this over the field
     bad_columns: int = 2                 # per CCD and exposure
     cosmic_rays: int = 10                # per CCD and exposure
@@ -98,6 +99,8 @@ class SimulationConfig:
                 raise ShearfitValueError(f"simulation key {name} must be positive")
         if float(np.hypot(*self.shear)) >= 0.5 or self.shear_rms < 0 or self.shear_rms > 0.2:
             raise ShearfitValueError("simulation keys shear / shear_rms: |g| must stay below 0.5, shear_rms in [0, 0.2]")
+        if len(self.psf_e_fixed) not in (0, 2) or (len(self.psf_e_fixed) and np.hypot(*self.psf_e_fixed) >= 0.5):
+            raise ShearfitValueError("simulation key psf_e_fixed: give [e1, e2] with |e| < 0.5, or leave it out")
         if self.mag_range[0] >= self.mag_range[1]:
             raise ShearfitValueError(f"simulation key mag_range: {list(self.mag_range)} is empty")
         return self
@@ -131,7 +134,7 @@ def simulation_config(mapping=None) -> SimulationConfig:
         if k not in known:
             raise ShearfitValueError(f"unknown simulation key {k!r} (known: {', '.join(sorted(known))})")
         values[k] = v
-    for k in ("dither", "mag_range", "star_snr_range", "shear", "psf_fwhm_range", "psf_beta_range"):
+    for k in ("dither", "mag_range", "star_snr_range", "shear", "psf_fwhm_range", "psf_beta_range", "psf_e_fixed"):
         if k in values:
             values[k] = tuple(float(x) for x in values[k])
     cfg = SimulationConfig(**values)
@@ -265,6 +268,8 @@ def _exposure_psf(sc, rng):
     e = sc.psf_e_max * np.sqrt(rng.uniform())
     phi = rng.uniform(0, np.pi)
     p["e1"], p["e2"] = e * np.cos(2 * phi), e * np.sin(2 * phi)
+    if len(sc.psf_e_fixed):
+        p["e1"], p["e2"] = (float(v) for v in sc.psf_e_fixed)
     p["gradient"] = rng.normal(0, 1, 4)
     # second suite: Kolmogorov seeing plus round optics
     p["defocus"] = rng.uniform(-0.4, 0.4)
