@@ -33,7 +33,7 @@ import numpy as np
 from shearfit.calibrate import (PAPER_ALPHA, PAPER_BETA, CalibrationModel, calibrate, calibrated_bias,
                                 plot_calibration, quantity_bins, stack_matched, weight_bins, write_calibration)
 from shearfit.cli import main as cli_main
-from shearfit.simulate.field import simulate_field, simulation_config
+from shearfit.simulate.field import simulate_missing
 
 GREAT = dict(preset="small", ccd_nx=1024, ccd_ny=1024, grid_spacing=48.0, star_density=1.5)
 SECOND = dict(preset="second-small", ccd_nx=1024, ccd_ny=1024, galaxy_density=40.0, star_density=10.0)
@@ -53,13 +53,6 @@ def field_jobs(out, role, base, seeds, modulus):
             cfg = dict(base, seed=int(seed), shear=[sign * g[0], sign * g[1]])
             jobs.append((os.path.join(out, role, f"s{seed}{tag}"), cfg))
     return jobs
-
-
-def _simulate(job):
-    d, cfg = job
-    if not os.path.exists(os.path.join(d, "truth.fits")):
-        simulate_field(simulation_config(cfg), d)
-    return d
 
 
 def measure(d, processes, psf):
@@ -139,7 +132,7 @@ def main(argv=None):
                 second=field_jobs(out, "second", second, range(3000, 3000 + args.second_seeds), args.test_g))
     jobs = [j for v in sets.values() for j in v]
     with ProcessPoolExecutor(args.processes) as pool:
-        list(pool.map(_simulate, jobs))
+        list(pool.map(simulate_missing, jobs))
     print(f"simulated {len(jobs)} fields in {time.time() - t0:.0f} s", flush=True)
     pairs = {}
     for role, js in sets.items():

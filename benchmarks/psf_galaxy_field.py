@@ -20,14 +20,7 @@ from concurrent.futures import ProcessPoolExecutor
 from astropy.io import fits
 
 from shearfit.cli import main as cli_main
-from shearfit.simulate.field import simulate_field, simulation_config
-
-
-def _simulate(job):
-    d, cfg = job
-    if not os.path.exists(os.path.join(d, "truth.fits")):
-        simulate_field(simulation_config(cfg), d)
-    return d
+from shearfit.simulate.field import simulate_missing
 
 
 def main(argv=None):
@@ -44,7 +37,7 @@ def main(argv=None):
                 shear=[0.0, 0.0], psf_e_fixed=[args.psf_e, 0.0])
     jobs = [(os.path.join(out, f"s{seed}"), dict(base, seed=seed)) for seed in range(4000, 4000 + args.seeds)]
     with ProcessPoolExecutor(args.processes) as pool:
-        list(pool.map(_simulate, jobs))
+        list(pool.map(simulate_missing, jobs))
     cats = []
     for d, _ in jobs:
         cat = os.path.join(d, "shear.fits")

@@ -49,7 +49,7 @@ from ..errors import ShearfitValueError
 from ..priors import sample_population
 from .stamps import galaxy_profile, mag_to_flux
 
-__all__ = ["SimulationConfig", "PRESETS", "simulate_field", "simulation_config"]
+__all__ = ["SimulationConfig", "PRESETS", "simulate_field", "simulation_config", "simulate_missing"]
 
 SNR_APERTURE = 5.0     # pixels (sec. 8.1)
 ZERO_POINT = 30.0
@@ -476,3 +476,12 @@ def _write_table(table, path):
 def _write_text(path, text):
     with atomic_path(path) as tmp, open(tmp, "w") as f:
         f.write(text)
+
+
+def simulate_missing(job):
+    """``(out_dir, mapping)``: simulate the field unless ``out_dir`` already holds its truth.fits (for
+    resumable benchmark suites; picklable for process pools). Returns ``out_dir``."""
+    out_dir, mapping = job
+    if not os.path.exists(os.path.join(out_dir, "truth.fits")):
+        simulate_field(simulation_config(mapping), out_dir)
+    return out_dir
