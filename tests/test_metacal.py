@@ -216,3 +216,14 @@ def test_xipm_and_calibrate_read_a_metacal_catalogue(tmp_path):
     mt = matched_galaxies(cat, tmp_path / "truth.fits")
     corrected = np.linalg.solve(R_true, np.stack([np.asarray(t["e1"]), np.asarray(t["e2"])]))
     assert np.allclose(np.asarray(mt["e1"]), corrected[0]) and np.allclose(np.asarray(mt["e2"]), corrected[1])
+
+
+def test_non_square_stamp_is_processed_with_a_warning(caplog):
+    J = PIX * np.eye(2)
+    psf = draw_psf_image(moffat_psf(0.7, 3.0), J, size=25)
+    o = shearfit.Observation(image=np.random.default_rng(0).normal(0, 1, (40, 48)), weight=np.ones((40, 48)),
+                             psf=psf, jacobian=J)
+    with caplog.at_level("WARNING", logger="shearfit.metacal"):
+        v = metacal_observations(o, rng=np.random.default_rng(1), versions=("noshear", "1p"))
+    assert set(v) == {"noshear", "1p"} and v["1p"].image.shape == (40, 48)
+    assert "not square" in caplog.text

@@ -14,7 +14,9 @@ The deconvolution and the shear correlate the noise anisotropically, which
 would itself respond to the shear. The standard cure: a new noise field with
 the stamp's variance, rotated by 90 degrees, is put through the same
 operations, rotated back and added; the sum's noise correlation is then
-symmetric under 90-degree rotation, so it carries no preferred ellipticity.
+symmetric under 90-degree rotation, so it carries no preferred ellipticity
+(square stamps only: a non-square stamp is processed with a warning and its
+noise left unsymmetrised).
 The weight maps of the versions are the original ones scaled to the variance
 of the processed noise; pixels near masked ones (whose contents were set to
 zero before interpolation) and near the stamp's edge are masked.
@@ -29,6 +31,7 @@ sheared version's own measurement and adds ``R_S``.
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass, field
 
 import galsim
@@ -37,6 +40,8 @@ import numpy as np
 from .errors import FITCLASS_GALAXY
 from .model import psf_moffat
 from .observation import Observation
+
+log = logging.getLogger(__name__)
 
 __all__ = ["VERSIONS", "SHEARED", "metacal_observations", "measure_metacal", "MetacalResult",
            "ensemble_response", "metacal_shear"]
@@ -105,6 +110,10 @@ def metacal_observations(obs: Observation, delta=0.01, rng=None, versions=tuple(
     sigma = np.where(good, 1.0 / np.sqrt(np.where(good, w, 1.0)), 0.0)
     noise = rng.normal(0.0, 1.0, w.shape) * sigma
     square = w.shape[0] == w.shape[1]
+    if not square:
+        # a 90-degree rotation of a non-square stamp is another shape: the added noise is then not rotated,
+        # and its correlation doubles the processed noise's instead of symmetrising it
+        log.warning("metacal: a %d x %d stamp is not square; its noise is not symmetrised", *w.shape)
     nrot = np.rot90(noise, 1) if square else noise
     ndec = galsim.Convolve(_interpolated(nrot, wcs), galsim.Deconvolve(psf))
     mask = _grow(~good, _MASK_GROW)
