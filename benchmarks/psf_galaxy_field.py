@@ -19,6 +19,7 @@ from concurrent.futures import ProcessPoolExecutor
 
 from astropy.io import fits
 
+from calibration_closure import measure   # the same resumable measure step (benchmarks/ is on sys.path)
 from shearfit.cli import main as cli_main
 from shearfit.simulate.field import simulate_missing
 
@@ -38,16 +39,7 @@ def main(argv=None):
     jobs = [(os.path.join(out, f"s{seed}"), dict(base, seed=seed)) for seed in range(4000, 4000 + args.seeds)]
     with ProcessPoolExecutor(args.processes) as pool:
         list(pool.map(simulate_missing, jobs))
-    cats = []
-    for d, _ in jobs:
-        cat = os.path.join(d, "shear.fits")
-        if not os.path.exists(cat):
-            cmd = ["measure", os.path.join(d, "field_truepsf.yaml"), "--out", cat, "--quiet"]
-            if args.processes > 1:
-                cmd += ["-j", str(args.processes)]
-            if cli_main(cmd) != 0:
-                raise SystemExit(f"shearfit measure failed on {d}")
-        cats.append(cat)
+    cats = [measure(d, args.processes, "true")[0] for d, _ in jobs]
     print(f"{len(cats)} fields simulated and measured in {time.time() - t0:.0f} s")
     if cli_main(["systematics", *cats, "--out", os.path.join(out, "systematics")]) != 0:
         raise SystemExit("shearfit systematics failed")

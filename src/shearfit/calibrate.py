@@ -38,8 +38,9 @@ from scipy.optimize import least_squares
 from ._atomic import atomic_path, read_yaml_mapping
 from .errors import ShearfitIOError, ShearfitValueError
 
-__all__ = ["CalibrationModel", "as_model", "load_calibration", "binned_table", "matched_galaxies", "stack_matched", "sheared_ellipticity", "quantity_bins", "bin_indices", "bin_bias", "fit_alpha_beta", "calibrate", "read_calibration",
-           "write_calibration", "model_m", "calibration_m", "calibrated_bias", "plot_calibration",
+__all__ = ["CalibrationModel", "as_model", "load_calibration", "binned_table", "matched_galaxies", "stack_matched",
+           "sheared_ellipticity", "quantity_bins", "bin_indices", "bin_bias", "fit_alpha_beta", "calibrate",
+           "read_calibration", "write_calibration", "model_m", "calibration_m", "calibrated_bias", "plot_calibration",
            "weight_bins", "PAPER_ALPHA", "PAPER_BETA"]
 
 PAPER_ALPHA = 0.057
@@ -116,15 +117,12 @@ def matched_galaxies(measured_path, truth_path, field=0) -> Table:
 
 def _metacal_corrected(m, path):
     """A metacal catalogue with e replaced by <R>^-1 e (its ensemble response, shear and selection)."""
-    from .metacal import ensemble_response
+    from .metacal import catalogue_response
 
     names = {f"r{i}{j}": f"R{i}{j}" for i in (1, 2) for j in (1, 2)}
     m = m.copy(copy_data=False)
     m.rename_columns(list(names), list(names.values()))
-    try:
-        R, _, _ = ensemble_response(m)
-    except KeyError as exc:
-        raise ShearfitIOError(f"{path}: metacal catalogue has no column {exc.args[0]!r}") from None
+    R = catalogue_response(m, path)
     e = np.linalg.solve(R, np.stack([np.asarray(m["e1"], float), np.asarray(m["e2"], float)]))
     m["e1"], m["e2"] = e[0], e[1]
     m.meta["METACAL_R"] = R.tolist()
@@ -151,6 +149,11 @@ def _residuals(tab):
     return (col("e1") - col("e1_sh"), col("e2") - col("e2_sh"), col("g1"), col("g2"), col("weight"))
 
 
+def _group_mean(codes, x):
+    """Mean of ``x`` over each group (integer codes 0 .. n - 1; 0 for a code without rows)."""
+    return np.bincount(codes, np.asarray(x, float)) / np.maximum(np.bincount(codes), 1)
+
+
 def _group_codes(tab):
     """Group of each row as 0 .. n_groups - 1 (rows without a ``group`` column are their own group)."""
     if "group" not in tab.colnames:
@@ -170,11 +173,9 @@ def bin_indices(snr, r, n_snr=20, n_size=20, min_per_bin=MIN_PER_BIN, groups=Non
     r = np.asarray(r, float)
     if groups is not None:
         groups = np.asarray(groups)
-        cnt = np.bincount(groups)
-        gs = np.bincount(groups, snr) / np.maximum(cnt, 1)
-        gr = np.bincount(groups, r) / np.maximum(cnt, 1)
-        present = cnt > 0
-        gidx = np.full(cnt.size, -1)
+        present = np.bincount(groups) > 0
+        gs, gr = _group_mean(groups, snr), _group_mean(groups, r)
+        gidx = np.full(present.size, -1)
         gidx[present], n_snr, n_size = bin_indices(gs[present], gr[present], n_snr, n_size, min_per_bin)
         return gidx[groups], n_snr, n_size
     n = snr.size
@@ -205,11 +206,11 @@ def _fit_mc(y1, y2, g1, g2, w):
 def _group_resamples(rows, groups, n_boot, rng):
     """Bootstrap resamplings of ``rows`` that draw whole groups (a list of row-index arrays)."""
     codes, inv = np.unique(groups[rows], return_inverse=True)
+    if codes.size == rows.size:                      # one row per group: the plain bootstrap
+        return [rng.choice(rows, rows.size) for _ in range(n_boot)]
     order = np.argsort(inv, kind="stable")
     starts = np.searchsorted(inv[order], np.arange(codes.size + 1))
     members = [rows[order[starts[k]:starts[k + 1]]] for k in range(codes.size)]
-    if codes.size == rows.size:                      # one row per group: the plain bootstrap
-        return [rng.choice(rows, rows.size) for _ in range(n_boot)]
     return [np.concatenate([members[k] for k in rng.integers(0, codes.size, codes.size)]) for _ in range(n_boot)]
 
 
@@ -314,10 +315,8 @@ def binned_table(tab, idx, n_snr, n_size, bins, groups):
     Edges lie half-way between neighbouring bins' groups (mean SNR, then mean size within the SNR bin).
     """
     codes = np.asarray(groups)
-    cnt = np.maximum(np.bincount(codes), 1)
-    gs = np.bincount(codes, np.asarray(tab["snr"], float)) / cnt
-    gr = np.bincount(codes, np.asarray(tab["scalelength"], float)) / cnt
-    gidx = np.full(cnt.size, -1)
+    gs, gr = _group_mean(codes, tab["snr"]), _group_mean(codes, tab["scalelength"])
+    gidx = np.full(gs.size, -1)
     gidx[codes] = idx
     snr_bin, size_bin = gidx // n_size, gidx % n_size
     snr_edges = [0.5 * (gs[snr_bin == b].max() + gs[snr_bin == b + 1].min()) for b in range(n_snr - 1)]
@@ -390,8 +389,8 @@ def as_model(calibration) -> CalibrationModel:
 
 def load_calibration(path) -> CalibrationModel:
     """The model of a calibration.yaml (``model: binned`` or ``paper``; files without ``model`` are ``paper``)."""
-    alpha, beta = read_calibration(path)
     d = read_yaml_mapping(path, "calibration")
+    alpha, beta = _alpha_beta(path, d)
     kind = str(d.get("model", "paper")).lower()
     grid = None
     if all(k in d for k in ("grid_alpha", "grid_beta", "loglike")):
@@ -423,7 +422,10 @@ def write_calibration(result, path):
 
 def read_calibration(path):
     """(alpha, beta) of a calibration.yaml."""
-    d = read_yaml_mapping(path, "calibration")
+    return _alpha_beta(path, read_yaml_mapping(path, "calibration"))
+
+
+def _alpha_beta(path, d):
     for k in ("alpha", "beta"):
         if k not in d:
             raise ShearfitIOError(f"{path}: calibration has no key {k!r}")
@@ -550,10 +552,8 @@ def quantity_bins(tab: Table, column, calibration, n=6, n_boot=100, seed=0):
 
     Groups are binned by their mean value, so the copies of a galaxy stay together.
     """
-    x = np.asarray(tab[column], float)
     codes = _group_codes(tab)
-    cnt = np.bincount(codes)
-    gx = np.bincount(codes, x) / np.maximum(cnt, 1)
+    gx = _group_mean(codes, tab[column])
     order = np.argsort(gx, kind="stable")
     gidx = np.empty(gx.size, int)
     gidx[order] = np.arange(gx.size) * n // max(gx.size, 1)

@@ -71,13 +71,14 @@ def _cmd_systematics(args):
 
 
 def _cmd_xipm(args):
-    from .twopoint import metacal_response_of, parse_selection, read_shear_catalog, write_xipm, xipm
+    from .twopoint import measured, metacal_response_of, parse_selection, read_shear_catalog, write_xipm, xipm
 
     if not (0 < args.min_sep < args.max_sep) or args.nbins < 1:
         raise ShearfitError("--min-sep must be positive and below --max-sep, --nbins at least 1")
     sel = [parse_selection(t) for t in args.select]
-    tab = read_shear_catalog(args.catalog, sel)
-    R = metacal_response_of(args.catalog, sel) if args.calibration is None else None
+    full = read_shear_catalog(args.catalog, sel, measured_only=False)
+    tab = measured(full)
+    R = metacal_response_of(full, args.catalog) if args.calibration is None else None
     table, cov = xipm(tab, args.min_sep, args.max_sep, args.nbins, calibration=args.calibration,
                       n_sys=args.n_sys, seed=args.seed, bin_slop=args.bin_slop, response=R)
     calib = args.calibration or ("metacal response" if R is not None else "catalogue m column")

@@ -36,15 +36,16 @@ from dataclasses import dataclass, field
 
 import galsim
 import numpy as np
+from scipy import ndimage
 
-from .errors import FITCLASS_GALAXY
+from .errors import FITCLASS_GALAXY, ShearfitIOError
 from .model import psf_moffat
 from .observation import Observation
 
 log = logging.getLogger(__name__)
 
 __all__ = ["VERSIONS", "SHEARED", "metacal_observations", "measure_metacal", "MetacalResult",
-           "ensemble_response", "metacal_shear"]
+           "ensemble_response", "catalogue_response", "metacal_shear"]
 
 #: The versions and the shear (g1, g2) in units of delta that each applies.
 VERSIONS = {"noshear": (0, 0), "1p": (1, 0), "1m": (-1, 0), "2p": (0, 1), "2m": (0, -1)}
@@ -72,18 +73,6 @@ def _interpolated(array, wcs, calculate_maxk=False):
 def _draw(prof, shape, wcs):
     ny, nx = shape
     return prof.drawImage(nx=nx, ny=ny, wcs=wcs, method="no_pixel", use_true_center=False).array
-
-
-def _grow(mask, n):
-    out = mask.copy()
-    for _ in range(n):
-        g = out.copy()
-        g[1:, :] |= out[:-1, :]
-        g[:-1, :] |= out[1:, :]
-        g[:, 1:] |= out[:, :-1]
-        g[:, :-1] |= out[:, 1:]
-        out = g
-    return out
 
 
 def metacal_observations(obs: Observation, delta=0.01, rng=None, versions=tuple(VERSIONS)) -> dict:
@@ -116,7 +105,7 @@ def metacal_observations(obs: Observation, delta=0.01, rng=None, versions=tuple(
         log.warning("metacal: a %d x %d stamp is not square; its noise is not symmetrised", *w.shape)
     nrot = np.rot90(noise, 1) if square else noise
     ndec = galsim.Convolve(_interpolated(nrot, wcs), galsim.Deconvolve(psf))
-    mask = _grow(~good, _MASK_GROW)
+    mask = ndimage.binary_dilation(~good, iterations=_MASK_GROW)
     mask[:_EDGE, :] = mask[-_EDGE:, :] = True
     mask[:, :_EDGE] = mask[:, -_EDGE:] = True
     var_in = float(np.mean(sigma[~mask] ** 2)) if np.any(~mask) else 1.0
@@ -226,6 +215,16 @@ def ensemble_response(tab, select=None, delta=None):
         wp, wm = _selected(tab, p, select), _selected(tab, m, select)
         R_S[:, j] = (e @ wp / wp.sum() - e @ wm / wm.sum()) / (2 * delta)
     return R_gamma + R_S, R_gamma, R_S
+
+
+def catalogue_response(tab, source):
+    """:func:`ensemble_response` of a metacal catalogue read from ``source``: R, with a missing column
+    named as a one-line error."""
+    try:
+        R, _, _ = ensemble_response(tab)
+    except KeyError as exc:
+        raise ShearfitIOError(f"{source}: metacal catalogue has no column {exc.args[0]!r}") from None
+    return R
 
 
 def metacal_shear(tab, select=None, delta=None):

@@ -22,7 +22,7 @@ from astropy.table import Table
 from .calibrate import load_calibration
 from .errors import ShearfitIOError, ShearfitValueError
 
-__all__ = ["read_shear_catalog", "parse_selection", "xipm", "write_xipm", "metacal_response_of"]
+__all__ = ["read_shear_catalog", "measured", "parse_selection", "xipm", "write_xipm", "metacal_response_of"]
 
 _NEEDED = ("ra", "dec", "e1", "e2", "weight", "fitclass")
 
@@ -47,7 +47,7 @@ def read_shear_catalog(path, selections=(), extra=None, measured_only=True) -> T
     photometric-redshift column joined to the catalogue beforehand.
     ``measured_only=False`` keeps every object that passes the selections
     (a metacal selection response needs the objects that only the sheared
-    versions select).
+    versions select); :func:`measured` takes the galaxies from it.
     """
     try:
         t = Table.read(path)
@@ -57,32 +57,34 @@ def read_shear_catalog(path, selections=(), extra=None, measured_only=True) -> T
         if col not in t.colnames:
             raise ShearfitIOError(f"{path}: shear catalogue has no column {col!r}")
     keep = np.ones(len(t), bool)
-    if measured_only:
-        keep &= (np.asarray(t["fitclass"]) == 0) & (np.asarray(t["weight"], float) > 0)
-        keep &= np.isfinite(np.asarray(t["e1"], float)) & np.isfinite(np.asarray(t["e2"], float))
     for col, lo, hi in selections:
         if col not in t.colnames:
             raise ShearfitIOError(f"{path}: selection column {col!r} is not in the catalogue")
         v = np.asarray(t[col], float)
         keep &= (v >= lo) & (v < hi)
+    t = t[keep]
+    return measured(t) if measured_only else t
+
+
+def measured(t: Table) -> Table:
+    """The rows of a shear catalogue that are measured galaxies (fitclass 0, weight > 0, finite e)."""
+    keep = (np.asarray(t["fitclass"]) == 0) & (np.asarray(t["weight"], float) > 0)
+    keep &= np.isfinite(np.asarray(t["e1"], float)) & np.isfinite(np.asarray(t["e2"], float))
     return t[keep]
 
 
-def metacal_response_of(path, selections=()):
-    """The ensemble metacal response (2x2: shear and selection parts) of a catalogue, after the selections.
+def metacal_response_of(full: Table, source):
+    """The ensemble metacal response (2x2: shear and selection parts) of a catalogue's selected objects.
 
-    None for a catalogue without metacal columns (see :mod:`shearfit.metacal`).
+    ``full``: every object that passes the selections (``read_shear_catalog(...,
+    measured_only=False)``). None for a catalogue without metacal columns
+    (see :mod:`shearfit.metacal`).
     """
-    from .metacal import ensemble_response
+    from .metacal import catalogue_response
 
-    full = read_shear_catalog(path, selections, measured_only=False)
     if "R11" not in full.colnames or str(full.meta.get("CALMODE", "metacal")).lower() != "metacal":
         return None
-    try:
-        R, _, _ = ensemble_response(full)
-    except KeyError as exc:
-        raise ShearfitIOError(f"{path}: metacal catalogue has no column {exc.args[0]!r}") from None
-    return R
+    return catalogue_response(full, source)
 
 
 def _catalog(tab, k, with_shear=True):

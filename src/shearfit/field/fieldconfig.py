@@ -318,7 +318,7 @@ CALIBRATION_MODES = (None, "simulations", "metacal")
 
 
 def _calibration_value(value, base_dir, source):
-    if isinstance(value, str) and value.strip().lower() in ("simulations", "metacal"):
+    if isinstance(value, str) and value.strip().lower() in CALIBRATION_MODES:
         return value.strip().lower()
     return _resolve(value, "calibration", base_dir, source, False)
 

@@ -43,8 +43,9 @@ from ..calibrate import PAPER_ALPHA, PAPER_BETA, CalibrationModel, calibration_m
 from ..measure import measure_object
 from ..model import psf_moffat
 from ..observation import Observation
-from .fieldconfig import FieldConfig
-from .io import METACAL_QUANTITIES, empty_output_table, provenance_cards, read_catalog, read_exposure, write_catalog_atomic
+from .fieldconfig import CALIBRATION_MODES, FieldConfig
+from .io import (METACAL_QUANTITIES, empty_output_table, provenance_cards, read_catalog, read_exposure,
+                 write_catalog_atomic)
 from .psfinput import PSFExModel, read_psf_fits
 from .stamps import cut_stamp, locate_all
 from .blends import analyse_stamps
@@ -244,7 +245,7 @@ def measure_field(cfg: FieldConfig, out_path=None, progress=False, processes=1, 
     if not os.path.isdir(out_dir) or not os.access(out_dir, os.W_OK):
         raise ShearfitValueError(f"cannot write the output: directory {out_dir} does not exist or is not writable")
     # a bad calibration file fails here, not after every object is measured
-    calibration = load_calibration(cfg.calibration) if cfg.calibration not in (None, "simulations", "metacal") else None
+    calibration = load_calibration(cfg.calibration) if cfg.calibration not in CALIBRATION_MODES else None
     cat = read_catalog(cfg.catalog)
     exposures = []
     for k, spec in enumerate(cfg.exposures):
