@@ -5,8 +5,10 @@ On one simulated field (``shearfit simulate``, preset ``small`` by default,
 true PSF given so that every run does the same work):
 
 1. throughput with 1 process, with a local Dask cluster of 2 workers
-   (``-j 2``), and on an explicitly started LocalCluster through
-   ``--scheduler ADDRESS``; scaling efficiency = rate(2) / (2 rate(1));
+   (``-j 2``, each under ``--memory-limit``), and on an explicitly started
+   LocalCluster through ``--scheduler ADDRESS``; scaling efficiency =
+   rate(2) / (2 rate(1)); the peak resident memory of the main process and
+   of the largest worker (sampled every 0.2 s);
 2. the run killed (SIGKILL) at three moments (after 1, 3 and 6 finished
    chunks), rerun to completion: the final catalogue against the
    uninterrupted one, and the work lost (objects measured twice);
@@ -16,6 +18,10 @@ true PSF given so that every run does the same work):
    the same and only the catalogue grows.
 
     python benchmarks/cluster_run.py
+    python benchmarks/cluster_run.py --field /tmp/psxi/field --chunk-size 256 --parts throughput,scheduler
+
+(the second on a CFHTLenS-sized field made by ``benchmarks/shear_field_xi.py`` or ``shearfit simulate``
+with ``preset: cfhtlens``).
 """
 
 from __future__ import annotations
@@ -23,7 +29,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import resource
 import signal
 import subprocess
 import sys
@@ -42,13 +47,28 @@ MEASURE = [sys.executable, "-c", "import sys; from shearfit.cli import main; sys
 
 
 def run(args, env=None):
-    """``shearfit measure ...`` in a fresh process: (wall seconds, max RSS MB of its process tree)."""
-    before = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
+    """``shearfit measure ...`` in a fresh process: (wall seconds, peak RSS MB of the main process, peak RSS MB
+    of the largest of its child processes (the Dask workers), or 0 without any), sampled every 0.2 s."""
+    import psutil
+
     t0 = time.perf_counter()
-    subprocess.run(MEASURE + args, check=True, env=env)
-    wall = time.perf_counter() - t0
-    after = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
-    return wall, max(after, before) / 1024.0
+    proc = subprocess.Popen(MEASURE + args, env=env)
+    main_peak, child_peak = 0, 0
+    ps = psutil.Process(proc.pid)
+    while proc.poll() is None:
+        try:
+            main_peak = max(main_peak, ps.memory_info().rss)
+            for c in ps.children(recursive=True):
+                try:
+                    child_peak = max(child_peak, c.memory_info().rss)
+                except psutil.Error:
+                    pass
+        except psutil.Error:
+            pass
+        time.sleep(0.2)
+    if proc.returncode != 0:
+        raise SystemExit(f"shearfit measure {' '.join(args)} failed ({proc.returncode})")
+    return time.perf_counter() - t0, main_peak / 1e6, child_peak / 1e6
 
 
 def same(a, b):
@@ -79,58 +99,74 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--preset", default="small")
     ap.add_argument("--seed", type=int, default=5)
+    ap.add_argument("--field", default=None, help="an already simulated field directory (then no simulation)")
     ap.add_argument("--chunk-size", type=int, default=32)
+    ap.add_argument("--memory-limit", default="1GB", help="per worker of the -j 2 and --scheduler runs")
+    ap.add_argument("--parts", default="throughput,scheduler,kill,memory",
+                    help="comma-separated: throughput (1 process and -j 2), scheduler, kill, memory")
     ap.add_argument("--keep", default=None)
     args = ap.parse_args(argv)
+    parts = set(args.parts.split(","))
     from dask.distributed import LocalCluster
 
     with tempfile.TemporaryDirectory() as tmp:
-        d = args.keep or tmp
+        d = args.field or args.keep or tmp
         os.makedirs(d, exist_ok=True)
-        simulate_field(simulation_config({"preset": args.preset, "seed": args.seed}), d)
+        if args.field is None:
+            simulate_field(simulation_config({"preset": args.preset, "seed": args.seed}), d)
+        out_dir = args.keep or tmp
         cfg = os.path.join(d, "field_truepsf.yaml")
         cs = f"chunk_size={args.chunk_size}"
         n = len(Table.read(os.path.join(d, "objects.fits")))
-        print(f"field: preset {args.preset}, {n} objects, chunks of {args.chunk_size}")
+        print(f"field: {d if args.field else 'preset ' + args.preset}, {n} objects, chunks of {args.chunk_size}")
 
-        ref = os.path.join(d, "ref.fits")
-        t1, mem1 = run([cfg, cs, "--out", ref, "--quiet"])
-        t2, _ = run([cfg, cs, "--out", os.path.join(d, "j2.fits"), "--quiet", "-j", "2"])
-        with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0") as cl:
-            t3, _ = run([cfg, cs, "--out", os.path.join(d, "sched.fits"), "--quiet", "--scheduler",
-                         cl.scheduler_address])
-        reft = Table.read(ref)
-        print("\n1. throughput (objects per second, the whole command):")
-        print(f"   1 process:                           {n / t1:6.2f}  ({t1:.0f} s)")
-        print(f"   -j 2 (local Dask cluster):            {n / t2:6.2f}  ({t2:.0f} s); scaling efficiency "
-              f"{t1 / (2 * t2):.2f}; catalogue identical: {same(Table.read(os.path.join(d, 'j2.fits')), reft)}")
-        print(f"   --scheduler {'(LocalCluster, 2 workers)':24s} {n / t3:6.2f}  ({t3:.0f} s); catalogue identical: "
-              f"{same(Table.read(os.path.join(d, 'sched.fits')), reft)}")
+        ref = os.path.join(out_dir, "ref.fits")
+        t1 = None
+        if parts & {"throughput", "kill"}:
+            t1, mem1, _ = run([cfg, cs, "--out", ref, "--quiet"])
+        reft = Table.read(ref) if t1 is not None else None
+        if "throughput" in parts:
+            t2, mem2, wmem2 = run([cfg, cs, "--out", os.path.join(out_dir, "j2.fits"), "--quiet", "-j", "2",
+                                   "--memory-limit", args.memory_limit])
+            print("\n1. throughput (objects per second, the whole command), peak RSS:")
+            print(f"   1 process:                 {n / t1:6.2f}  ({t1:.0f} s); {mem1:.0f} MB")
+            print(f"   -j 2 (local Dask cluster): {n / t2:6.2f}  ({t2:.0f} s); scaling efficiency "
+                  f"{t1 / (2 * t2):.2f}; catalogue identical: {same(Table.read(os.path.join(out_dir, 'j2.fits')), reft)}"
+                  f"; main process {mem2:.0f} MB, largest worker {wmem2:.0f} MB (limit {args.memory_limit})")
+        if "scheduler" in parts:
+            with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0",
+                              memory_limit=args.memory_limit) as cl:
+                t3, mem3, _ = run([cfg, cs, "--out", os.path.join(out_dir, "sched.fits"), "--quiet", "--scheduler",
+                                   cl.scheduler_address])
+            same3 = same(Table.read(os.path.join(out_dir, "sched.fits")), reft) if reft is not None else "(no reference)"
+            print(f"   --scheduler {cl.scheduler_address} (LocalCluster, 2 workers started beforehand): "
+                  f"{n / t3:6.2f}  ({t3:.0f} s); catalogue identical: {same3}; client process {mem3:.0f} MB")
 
-        print("\n2. killed with SIGKILL, then rerun:")
-        for k in (1, 3, 6):
-            out = os.path.join(d, f"killed{k}.fits")
-            done, t_kill = kill_after(cfg, out, k, args.chunk_size)
-            t_rest, _ = run([cfg, cs, "--out", out, "--quiet"])
-            ok = same(Table.read(out), reft)
-            lost = t_kill + t_rest - t1
-            print(f"   killed after {done} chunk(s) ({t_kill:.0f} s), resumed in {t_rest:.0f} s: identical {ok}; "
-                  f"time lost {lost:+.0f} s (a chunk takes about {t1 * args.chunk_size / n:.0f} s)")
+        if "kill" in parts:
+            print("\n2. killed with SIGKILL, then rerun:")
+            for k in (1, 3, 6):
+                out = os.path.join(out_dir, f"killed{k}.fits")
+                done, t_kill = kill_after(cfg, out, k, args.chunk_size)
+                t_rest, _, _ = run([cfg, cs, "--out", out, "--quiet"])
+                ok = same(Table.read(out), reft)
+                lost = t_kill + t_rest - t1
+                print(f"   killed after {done} chunk(s) ({t_kill:.0f} s), resumed in {t_rest:.0f} s: identical {ok}; "
+                      f"time lost {lost:+.0f} s (a chunk takes about {t1 * args.chunk_size / n:.0f} s)")
 
-        print("\n3. peak memory (max RSS of the measuring process) against catalogue size, same fitting work:")
-        cat = Table.read(os.path.join(d, "objects.fits"))
-        rng = np.random.default_rng(0)
-        for total in (1000, 10000, 100000):
-            extra = max(total - len(cat), 0)
-            far = Table({"id": np.arange(extra) + 10 ** 7, "ra": rng.uniform(100, 110, extra),
-                         "dec": rng.uniform(30, 40, extra), "mag": np.full(extra, 23.0)})
-            big = vstack([cat[["id", "ra", "dec", "mag"]], far])
-            cpath = os.path.join(d, f"objects_{total}.fits")
-            big.write(cpath, overwrite=True)
-            out = os.path.join(d, f"mem_{total}.fits")
-            wall, mem = run_isolated([cfg, f"catalog={cpath}", "--out", out, "--quiet"])
-            print(f"   {len(big):7d} objects: {mem:6.0f} MB peak, {wall:.0f} s")
-        print(f"   (the 1-process run of part 1: {mem1:.0f} MB)")
+        if "memory" in parts:
+            print("\n3. peak memory (max RSS of the measuring process) against catalogue size, same fitting work:")
+            cat = Table.read(os.path.join(d, "objects.fits"))
+            rng = np.random.default_rng(0)
+            for total in (1000, 10000, 100000):
+                extra = max(total - len(cat), 0)
+                far = Table({"id": np.arange(extra) + 10 ** 7, "ra": rng.uniform(100, 110, extra),
+                             "dec": rng.uniform(30, 40, extra), "mag": np.full(extra, 23.0)})
+                big = vstack([cat[["id", "ra", "dec", "mag"]], far])
+                cpath = os.path.join(out_dir, f"objects_{total}.fits")
+                big.write(cpath, overwrite=True)
+                out = os.path.join(out_dir, f"mem_{total}.fits")
+                wall, mem = run_isolated([cfg, f"catalog={cpath}", "--out", out, "--quiet"])
+                print(f"   {len(big):7d} objects: {mem:6.0f} MB peak, {wall:.0f} s")
 
 
 def run_isolated(args):

@@ -13,6 +13,7 @@ pipeline's throughput.
     python benchmarks/field_test.py --n-galaxies 40                   # plain TAN
     python benchmarks/field_test.py --n-galaxies 40 --wcs rotated     # each exposure rotated, odd ones flipped
     python benchmarks/field_test.py --n-galaxies 40 --wcs distorted   # + a few per cent SIP distortion
+    python benchmarks/field_test.py --wcs plain turned flipped        # the rotations alone, the flips alone
     python benchmarks/field_test.py --n-galaxies 40 --psf both        # PSF fitted from stars vs the true one
     python benchmarks/field_test.py --wcs plain rotated distorted     # all three on the same galaxies, differences
     python benchmarks/field_test.py --psf both --psf-fwhm 0.36 0.38 --true-psf-oversampling 3 \
@@ -56,8 +57,9 @@ def ccd_header(ccd, exposure, mode, rng_exp):
     dx, dy = 7.3 * exposure, -4.1 * exposure           # a linear dither pattern, pixels
     angle = 0.0
     flip = 1.0
-    if mode in ("rotated", "distorted"):
+    if mode in ("rotated", "distorted", "turned"):
         angle = np.radians(23.0 + 41.0 * exposure)
+    if mode in ("rotated", "distorted", "flipped"):
         flip = -1.0 if exposure % 2 else 1.0
     c, s = np.cos(angle), np.sin(angle)
     # north up, east left, then rotated about the reference pixel, odd exposures flipped in x
@@ -178,7 +180,8 @@ def main(argv=None):
     ap.add_argument("--n-galaxies", type=int, default=40, help="rings of 4 orientations")
     ap.add_argument("--n-exposures", type=int, default=7)
     ap.add_argument("--n-ccd", type=int, default=2)
-    ap.add_argument("--wcs", choices=["plain", "rotated", "distorted"], nargs="+", default=["plain"],
+    ap.add_argument("--wcs", choices=["plain", "rotated", "distorted", "turned", "flipped"], nargs="+",
+                    default=["plain"],
                     help="one or more WCS variants of the same field; with several, the differences from the "
                          "first are printed with errors from the same rings resampled")
     ap.add_argument("--snr-min", type=float, default=100.0)

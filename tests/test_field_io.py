@@ -18,7 +18,9 @@ from shearfit.errors import (FITCLASS_FIT_FAILED, FITCLASS_OFF_EXPOSURES, Shearf
                              ShearfitKeyError, ShearfitValueError)
 from shearfit.field.fieldconfig import (FieldConfig, PipelineConfig, field_config_from_mapping,
                                         load_field_config)
-from shearfit.field.io import (COMMON_ZEROPOINT, empty_output_table, empty_result_row, estimate_noise,
+from shearfit.field.stamps import cut_stamp
+from shearfit.field.io import (COMMON_ZEROPOINT, attach_pixels, detached, empty_output_table, empty_result_row,
+                               estimate_noise,
                                output_columns, photometric_scale, provenance_cards, read_catalog,
                                read_exposure, write_catalog_atomic)
 
@@ -365,15 +367,64 @@ def test_nan_pixels_get_zero_weight(tmp_path, caplog):
     with caplog.at_level(logging.WARNING, logger="shearfit.field.io"):
         ccds = read_exposure(image_path, weight_path)
     assert ccds[0].n_bad_pixels == 0 and ccds[1].n_bad_pixels == 2
-    assert ccds[1].weight[5, 7] == 0 and ccds[1].weight[6, 7] == 0 and ccds[1].weight[5, 8] == 0.25
     msgs = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
     assert len(msgs) == 1 and "HDU 2" in msgs[0] and " 2 " in msgs[0] and image_path in msgs[0]
+    # the weight file stays as it is (memory-mapped); a stamp over the bad pixels weights them 0
+    st = cut_stamp(ccds[1].image, ccds[1].pixel_weight, 7.0, 5.0, 8)
+    iy, ix = st.image.shape[0] // 2, st.image.shape[1] // 2
+    assert st.weight[iy, ix] == 0 and st.weight[iy + 1, ix] == 0 and st.weight[iy, ix + 1] == 0.25
+    assert st.image[iy, ix] == 0
 
-    # Without a weight file the constant weight becomes a map with the zeros.
+    # Without a weight file: the constant weight, and the stamp's zeros the same
     ccds = read_exposure(image_path)
-    assert ccds[1].weight is not None and ccds[1].weight[5, 7] == 0
-    assert ccds[1].weight[0, 0] == pytest.approx(ccds[1].noise_ivar)
-    assert ccds[0].weight is None
+    assert ccds[0].weight is None and ccds[1].weight is None and ccds[1].n_bad_pixels == 2
+    st = cut_stamp(ccds[1].image, ccds[1].pixel_weight, 7.0, 5.0, 8)
+    assert st.weight[iy, ix] == 0 and st.weight[iy + 1, ix] == 0
+    assert st.weight[0, 0] == pytest.approx(ccds[1].noise_ivar)
+
+
+def test_detached_ccds_attach_the_same_pixels(tmp_path):
+    image_path, weight_path, images = two_ccd_exposure(tmp_path)
+    ccds = read_exposure(image_path, weight_path)
+    meta = detached(ccds)
+    assert all(c.image is None and c.weight is None for c in meta)
+    assert [c.shape for c in meta] == [c.shape for c in ccds]
+    again = attach_pixels(meta)
+    for a, b in zip(again, ccds):
+        np.testing.assert_array_equal(a.image, b.image)
+        np.testing.assert_array_equal(a.weight, b.weight)
+        assert a.wcs is b.wcs and a.label == b.label and not a.image.flags.writeable
+    # without a weight file: no weight, the estimated noise carried over
+    again = attach_pixels(detached(read_exposure(image_path)))
+    assert again[0].weight is None and again[0].noise_ivar > 0
+
+
+def test_read_exposure_keeps_no_scanned_pixels_resident(tmp_path):
+    # the NaN and weight checks read every pixel; they must not leave the pages in this process's memory
+    shape = (4096, 2048)
+    rng = np.random.default_rng(1)
+    img = fits.ImageHDU(rng.normal(0, 1, shape).astype(np.float32))
+    for key, val in (("MAGZP", 30.0), ("GAIN", 1.0), ("SATURATE", 1e5), ("CTYPE1", "RA---TAN"),
+                     ("CTYPE2", "DEC--TAN"), ("CRVAL1", 10.0), ("CRVAL2", 0.0), ("CRPIX1", 1024.0),
+                     ("CRPIX2", 2048.0), ("CD1_1", -5e-5), ("CD2_2", 5e-5)):
+        img.header[key] = val
+    path = str(tmp_path / "big.fits")
+    wpath = str(tmp_path / "big.weight.fits")
+    fits.HDUList([fits.PrimaryHDU(), img]).writeto(path)
+    fits.HDUList([fits.PrimaryHDU(), fits.ImageHDU(np.ones(shape, np.float32))]).writeto(wpath)
+
+    def resident_mb():
+        with open("/proc/self/statm") as f:
+            return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 1e6
+
+    if not os.path.exists("/proc/self/statm"):
+        pytest.skip("needs /proc to read the resident set")
+    before = resident_mb()
+    ccds = read_exposure(path, wpath)
+    grown = resident_mb() - before
+    # the two arrays are 64 MB together; blocks of 256 rows are 2 MB each
+    assert grown < 16, f"{grown:.0f} MB resident after reading"
+    assert ccds[0].n_bad_pixels == 0
 
 
 @pytest.mark.parametrize("key", ["MAGZP", "GAIN", "SATURATE"])

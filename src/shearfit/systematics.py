@@ -20,7 +20,7 @@ from astropy.table import Table, join, vstack
 
 from .errors import ShearfitIOError, ShearfitValueError
 
-__all__ = ["read_catalogs", "psf_galaxy_xcorr", "weight_distribution", "weight_bias", "run_systematics"]
+__all__ = ["read_catalogs", "equal_number_edges", "psf_galaxy_xcorr", "weight_distribution", "weight_bias", "run_systematics"]
 
 _NEEDED = ("id", "e1", "e2", "psf_e1", "psf_e2", "weight", "fitclass", "snr", "scalelength", "mag")
 
@@ -74,7 +74,7 @@ def _subsample_mean(values, weights, n_sub, rng):
     return mean, float(np.sqrt(np.mean((subs - subs.mean()) ** 2)) / np.sqrt(n_sub))
 
 
-def _edges(values, n):
+def equal_number_edges(values, n):
     """Bin edges with equal numbers (at least one object per bin)."""
     q = np.quantile(values, np.linspace(0, 1, n + 1))
     q[-1] = np.nextafter(q[-1], np.inf)
@@ -123,7 +123,7 @@ def weight_bias(tab: Table, n_psf_bins=6, snr_split=None, size_split=None, n_sub
     ep = np.concatenate([np.asarray(tab["psf_e1"], float), np.asarray(tab["psf_e2"], float)])
     ei = np.concatenate([np.asarray(tab["e1_int"], float), np.asarray(tab["e2_int"], float)])
     ww = np.concatenate([w, w])
-    edges = _edges(ep, n_psf_bins)
+    edges = equal_number_edges(ep, n_psf_bins)
     rows = []
     for big in (False, True):
         for bright in (False, True):
@@ -152,7 +152,7 @@ def run_systematics(paths, out_dir, truth=None, n_bins=8, n_sub=10, seed=0):
     os.makedirs(out_dir, exist_ok=True)
     tables = {}
     for col, key in (("snr", "PSFGAL_SNR"), ("scalelength", "PSFGAL_SIZE")):
-        edges = _edges(np.asarray(allc[col], float), n_bins)
+        edges = equal_number_edges(np.asarray(allc[col], float), n_bins)
         parts = []
         for label, c in [("all", allc)] + ([(str(p), c) for p, c in zip(paths, cats)] if len(cats) > 1 else []):
             t = psf_galaxy_xcorr(c, col, edges, n_sub, rng)
@@ -160,7 +160,7 @@ def run_systematics(paths, out_dir, truth=None, n_bins=8, n_sub=10, seed=0):
             parts.append(t)
         tables[key] = vstack(parts)
     for col in ("mag", "scalelength", "snr"):
-        tables[f"WEIGHT_{col.upper()[:4]}"] = weight_distribution(allc, col, _edges(np.asarray(allc[col], float),
+        tables[f"WEIGHT_{col.upper()[:4]}"] = weight_distribution(allc, col, equal_number_edges(np.asarray(allc[col], float),
                                                                                      n_bins))
     if truth is not None:
         tables["WEIGHTBIAS"] = weight_bias(allc, n_sub=n_sub, rng=rng)

@@ -18,7 +18,7 @@ import os
 import re
 import uuid
 import warnings
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, Mapping, NamedTuple, Optional
 
 import numpy as np
@@ -37,6 +37,8 @@ __all__ = [
     "metacal_columns",
     "read_catalog",
     "read_exposure",
+    "detached",
+    "attach_pixels",
     "estimate_noise",
     "photometric_scale",
     "write_catalog_atomic",
@@ -183,12 +185,13 @@ class ExposureCCD:
 
     Attributes
     ----------
-    image : 2D array
+    image : 2D array or None
         Background-subtracted counts, read-only (memory-mapped where the file
-        allows). May hold NaN/inf where the file does; their weight is 0.
+        allows). May hold NaN/inf where the file does: :func:`cut_stamp`
+        gives them weight 0. None in a :func:`detached` copy.
     weight : 2D array or None
-        Inverse variance per pixel, counts^-2, 0 for unusable pixels.
-        None when no weight file was given and every pixel is finite: then
+        Inverse variance per pixel, counts^-2, 0 for unusable pixels
+        (memory-mapped). None when no weight file was given: then
         :attr:`noise_ivar` holds everywhere.
     wcs : astropy.wcs.WCS
         The celestial WCS of the CCD.
@@ -210,6 +213,10 @@ class ExposureCCD:
         NaN/inf image pixels whose weight was set to 0.
     header : astropy.io.fits.Header
         The CCD's header (for keywords later steps may want).
+    dims : tuple
+        (ny, nx), which :attr:`shape` gives also when the pixels are detached.
+    weight_hdu : int or None
+        Index of the CCD's HDU in the weight file.
     """
 
     image: np.ndarray = field(repr=False)
@@ -225,10 +232,12 @@ class ExposureCCD:
     noise_ivar: Optional[float] = None
     n_bad_pixels: int = 0
     header: Optional[fits.Header] = field(default=None, repr=False)
+    dims: tuple = ()
+    weight_hdu: Optional[int] = None
 
     @property
     def shape(self) -> tuple:
-        return self.image.shape
+        return tuple(self.dims) if self.image is None else self.image.shape
 
     @property
     def pixel_weight(self):
@@ -376,6 +385,10 @@ def read_exposure(image_path, weight_path=None) -> list:
     weight_path = None if weight_path is None else os.fspath(weight_path)
     hdul = _open_fits(image_path, memmap=True)
     whdul = None
+    # the pixel checks read row blocks through handles without a memory map, so that a scan of every
+    # pixel leaves nothing resident: the maps above only ever hold the pages that stamps touch
+    scan = _open_fits(image_path, memmap=False)
+    wscan = None
     try:
         indices = _ccd_indices(hdul)
         if not indices:
@@ -383,6 +396,7 @@ def read_exposure(image_path, weight_path=None) -> list:
         windices = None
         if weight_path is not None:
             whdul = _open_fits(weight_path, memmap=True)
+            wscan = _open_fits(weight_path, memmap=False)
             windices = _ccd_indices(whdul)
             if len(windices) != len(indices):
                 raise ShearfitValueError(
@@ -404,11 +418,11 @@ def read_exposure(image_path, weight_path=None) -> list:
                 image = hdu.data
             except Exception as exc:
                 raise ShearfitIOError(f"{label}: cannot read the pixels ({_first_line(exc)})") from None
-            bad = ~np.isfinite(image)
-            n_bad = int(np.count_nonzero(bad))
+            n_bad = _count_blocks(scan[index], label, lambda b: ~np.isfinite(b))
 
             weight = None
             noise_ivar = None
+            windex = None
             if whdul is not None:
                 windex = windices[k]
                 whdu = whdul[windex]
@@ -421,15 +435,11 @@ def read_exposure(image_path, weight_path=None) -> list:
                 except Exception as exc:
                     raise ShearfitIOError(f"{wlabel}: cannot read the pixels ({_first_line(exc)})") from None
                 # NaN fails ">= 0", so this one test catches NaN, negative and infinite weights.
-                n_invalid = int(np.count_nonzero(~((weight >= 0) & (weight < np.inf))))
+                n_invalid = _count_blocks(wscan[windex], wlabel, lambda b: ~((b >= 0) & (b < np.inf)))
                 if n_invalid:
                     raise ShearfitValueError(
                         f"{wlabel}: {n_invalid} weights are negative, NaN or infinite; weights are inverse "
                         f"variances, 0 for unusable pixels")
-                if n_bad:
-                    # Copy only when pixels must change: the memory map stays read-only.
-                    weight = np.array(weight, dtype=np.result_type(weight.dtype.newbyteorder("="), np.float32))
-                    weight[bad] = 0
             else:
                 sigma = estimate_noise(image)
                 if not (np.isfinite(sigma) and sigma > 0):
@@ -437,9 +447,6 @@ def read_exposure(image_path, weight_path=None) -> list:
                                              f"the image has no scatter")
                 noise_ivar = 1.0 / sigma**2
                 estimated.append(f"HDU {index} sigma={sigma:.4g}")
-                if n_bad:
-                    weight = np.full(hdu.shape, noise_ivar, dtype=np.float32)
-                    weight[bad] = 0
             if n_bad:
                 logger.warning("%s: %d NaN or infinite pixels; their weight is set to 0", label, n_bad)
 
@@ -449,7 +456,7 @@ def read_exposure(image_path, weight_path=None) -> list:
                 wcs=wcs, magzp=magzp, gain=gain, saturate=saturate,
                 path=image_path, hdu=index, extname=str(hdu.header.get("EXTNAME", "")).strip(),
                 weight_path=weight_path, noise_ivar=noise_ivar, n_bad_pixels=n_bad,
-                header=hdu.header.copy(),
+                header=hdu.header.copy(), dims=tuple(hdu.shape), weight_hdu=windex,
             ))
         if weight_path is None:
             logger.info("%s: no weight file; a constant noise per CCD was estimated from the image "
@@ -457,9 +464,50 @@ def read_exposure(image_path, weight_path=None) -> list:
         return ccds
     finally:
         # Closing keeps memory-mapped arrays valid: astropy leaves the map open while they are referenced.
-        hdul.close()
-        if whdul is not None:
-            whdul.close()
+        for h in (hdul, whdul, scan, wscan):
+            if h is not None:
+                h.close()
+
+
+def _count_blocks(hdu, label, bad, rows=256) -> int:
+    """Pixels where ``bad(block)`` holds, read in blocks of ``rows`` rows (nothing kept in memory)."""
+    n = 0
+    try:
+        for y0 in range(0, hdu.shape[0], rows):
+            n += int(np.count_nonzero(bad(hdu.section[y0:y0 + rows, :])))
+    except (OSError, ValueError, TypeError, IndexError) as exc:
+        raise ShearfitIOError(f"{label}: cannot read the pixels ({_first_line(exc)})") from None
+    return n
+
+
+def detached(ccds) -> list:
+    """The CCDs without their pixels (metadata, WCS and shape): cheap to keep and to send to workers."""
+    return [replace(c, image=None, weight=None, dims=c.shape) for c in ccds]
+
+
+def attach_pixels(ccds) -> list:
+    """:func:`detached` CCDs with their pixels memory-mapped again (files already checked by :func:`read_exposure`).
+
+    The maps close when the returned CCDs are dropped, and with them the
+    pages read: a worker that attaches per chunk holds only that chunk's.
+    """
+    handles = {}
+    try:
+        out = []
+        for c in ccds:
+            for path in (c.path, c.weight_path):
+                if path is not None and path not in handles:
+                    handles[path] = _open_fits(path, memmap=True)
+            try:
+                image = handles[c.path][c.hdu].data
+                weight = None if c.weight_path is None else handles[c.weight_path][c.weight_hdu].data
+            except Exception as exc:
+                raise ShearfitIOError(f"{c.label}: cannot read the pixels ({_first_line(exc)})") from None
+            out.append(replace(c, image=_readonly(image), weight=None if weight is None else _readonly(weight)))
+        return out
+    finally:
+        for h in handles.values():
+            h.close()
 
 
 def photometric_scale(magzp, common_zp: float = COMMON_ZEROPOINT):

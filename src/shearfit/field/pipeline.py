@@ -44,8 +44,8 @@ from ..measure import measure_object
 from ..model import psf_moffat
 from ..observation import Observation
 from .fieldconfig import CALIBRATION_MODES, FieldConfig
-from .io import (METACAL_QUANTITIES, empty_output_table, provenance_cards, read_catalog, read_exposure,
-                 write_catalog_atomic)
+from .io import (METACAL_QUANTITIES, attach_pixels, detached, empty_output_table, provenance_cards, read_catalog,
+                 read_exposure, write_catalog_atomic)
 from .psfinput import PSFExModel, read_psf_fits
 from .stamps import cut_stamp, locate_all
 from .blends import analyse_stamps
@@ -254,6 +254,9 @@ def measure_field(cfg: FieldConfig, out_path=None, progress=False, processes=1, 
         exposures.append((ccds, _load_psf(spec, len(ccds), k, ccds=ccds, fit=fit)))
     flat = [(e, c) for e, (ccds, _) in enumerate(exposures) for c in range(len(ccds))]
     hits = locate_all([exposures[e][0][c] for e, c in flat], np.asarray(cat["ra"]), np.asarray(cat["dec"]))
+    # from here on the pixels are opened per chunk (memory-mapped), by whichever process measures it: the
+    # pages a chunk reads are released with it, so memory does not grow with the field or the run
+    exposures = _detached_exposures(exposures)
     metacal = cfg.calibration == "metacal"
     table = empty_output_table(cat, metacal=metacal)
     tasks = [[] for _ in range(len(cat))]
@@ -339,30 +342,30 @@ def _progress_bar(total, show):
     return tqdm(total=total, desc="measuring", unit="obj")
 
 
+def _detached_exposures(exposures):
+    """The exposures with their CCDs' pixels dropped (WCS, keywords and PSF models kept)."""
+    out = []
+    for ccds, p in exposures:
+        meta = detached(ccds)
+        out.append((meta, p if p.ccds is None else replace(p, ccds=meta)))
+    return out
+
+
+def _attached(exposures):
+    """The exposures with their pixels memory-mapped again, for one chunk."""
+    return [(attach_pixels(ccds), p) for ccds, p in exposures]
+
+
 def _measure_chunk(k):
     tasks, exposures, mags, cfg, chunks, ids = _STATE
+    exposures = _attached(exposures)
     return k, [_measure_one(tasks[i], exposures, mags[i], cfg, cfg.pipeline, ids[i]) for i in chunks[k]]
 
 
-_WORKER_FIELDS = {}
-
-
-def _portable_psfs(exposures):
-    """The exposures' PSF objects without their opened CCDs (workers open the files themselves)."""
-    return [replace(p, ccds=None, _frame=None, _moffat=None) for _, p in exposures]
-
-
 def _dask_chunk(run, k, hits, mags, ids):
-    """One chunk on a Dask worker: the field's exposures are opened once per worker process (memory-mapped)."""
-    key, cfg, psfs = run
-    exposures = _WORKER_FIELDS.get(key)
-    if exposures is None:
-        _WORKER_FIELDS.clear()
-        exposures = []
-        for spec, p in zip(cfg.exposures, psfs):
-            ccds = read_exposure(spec.image, spec.weight)
-            exposures.append((ccds, p if p.fitted is None else replace(p, ccds=ccds)))
-        _WORKER_FIELDS[key] = exposures
+    """One chunk on a Dask worker: the pixels it needs read through memory maps opened for this chunk only."""
+    cfg, exposures = run
+    exposures = _attached(exposures)
     return k, [_measure_one(h, exposures, m, cfg, cfg.pipeline, i) for h, m, i in zip(hits, mags, ids)]
 
 
@@ -387,8 +390,10 @@ def _run_dask(cfg, exposures, tasks, mags, ids, chunks, todo, table, ckpt, bar, 
         except (OSError, TimeoutError) as exc:
             raise ShearfitValueError(f"cannot reach the Dask scheduler at {scheduler}: {exc}") from None
     try:
-        # one copy of the run's settings and PSF models per worker (a list of one: scatter sends it whole)
-        [run] = client.scatter([(ckpt.manifest["run"], cfg, _portable_psfs(exposures))], broadcast=True)
+        # one copy of the run's settings, CCD metadata and PSF models per worker (a list of one: scatter sends
+        # it whole); the PSF models' caches are rebuilt there
+        portable = [(ccds, replace(p, _frame=None, _moffat=None)) for ccds, p in exposures]
+        [run] = client.scatter([(cfg, portable)], broadcast=True)
         futures = [client.submit(_dask_chunk, run, k, [tasks[i] for i in chunks[k]], mags[chunks[k]], ids[chunks[k]],
                                  pure=False) for k in todo]
         for fut in as_completed(futures):
