@@ -105,6 +105,8 @@ def main(argv=None):
     ap.add_argument("--parts", default="throughput,scheduler,kill,memory",
                     help="comma-separated: throughput (1 process and -j 2), scheduler, kill, memory")
     ap.add_argument("--keep", default=None)
+    ap.add_argument("--reuse-ref", action="store_true",
+                    help="take the 1-process reference (catalogue, time, memory) from an earlier run kept in --keep")
     args = ap.parse_args(argv)
     parts = set(args.parts.split(","))
     from dask.distributed import LocalCluster
@@ -121,9 +123,17 @@ def main(argv=None):
         print(f"field: {d if args.field else 'preset ' + args.preset}, {n} objects, chunks of {args.chunk_size}")
 
         ref = os.path.join(out_dir, "ref.fits")
+        ref_json = os.path.join(out_dir, "ref.json")
         t1 = None
-        if parts & {"throughput", "kill"}:
+        if args.reuse_ref and os.path.exists(ref) and os.path.exists(ref_json):
+            with open(ref_json) as f:
+                saved = json.load(f)
+            t1, mem1 = saved["seconds"], saved["rss_mb"]
+            print(f"(the 1-process reference catalogue and its time from an earlier run: {ref})")
+        elif parts & {"throughput", "kill"}:
             t1, mem1, _ = run([cfg, cs, "--out", ref, "--quiet"])
+            with open(ref_json, "w") as f:
+                json.dump({"seconds": t1, "rss_mb": mem1}, f)
         reft = Table.read(ref) if t1 is not None else None
         if "throughput" in parts:
             t2, mem2, wmem2 = run([cfg, cs, "--out", os.path.join(out_dir, "j2.fits"), "--quiet", "-j", "2",

@@ -481,8 +481,14 @@ def _count_blocks(hdu, label, bad, rows=256) -> int:
 
 
 def detached(ccds) -> list:
-    """The CCDs without their pixels (metadata, WCS and shape): cheap to keep and to send to workers."""
-    return [replace(c, image=None, weight=None, dims=c.shape) for c in ccds]
+    """The CCDs without their pixels and WCS (keywords, shape, file and HDU): cheap to send to workers.
+
+    The WCS goes too: astropy pickles a WCS through a header written with
+    fewer digits than it holds (1e-14 relative), which would make a worker's
+    catalogue differ from a single process's. :func:`attach_pixels` reads it
+    again from the file, as :func:`read_exposure` did.
+    """
+    return [replace(c, image=None, weight=None, wcs=None, dims=c.shape) for c in ccds]
 
 
 def attach_pixels(ccds) -> list:
@@ -490,6 +496,7 @@ def attach_pixels(ccds) -> list:
 
     The maps close when the returned CCDs are dropped, and with them the
     pages read: a worker that attaches per chunk holds only that chunk's.
+    The WCS is read from the image header as :func:`read_exposure` reads it.
     """
     handles = {}
     try:
@@ -503,7 +510,9 @@ def attach_pixels(ccds) -> list:
                 weight = None if c.weight_path is None else handles[c.weight_path][c.weight_hdu].data
             except Exception as exc:
                 raise ShearfitIOError(f"{c.label}: cannot read the pixels ({_first_line(exc)})") from None
-            out.append(replace(c, image=_readonly(image), weight=None if weight is None else _readonly(weight)))
+            wcs = _read_wcs(handles[c.path], c.hdu, c.label)
+            out.append(replace(c, image=_readonly(image), weight=None if weight is None else _readonly(weight),
+                               wcs=wcs))
         return out
     finally:
         for h in handles.values():
