@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import json
 import logging
+import mmap
 import os
 import re
 import uuid
@@ -39,6 +40,7 @@ __all__ = [
     "read_exposure",
     "detached",
     "attach_pixels",
+    "release_pages",
     "estimate_noise",
     "photometric_scale",
     "write_catalog_atomic",
@@ -489,6 +491,29 @@ def detached(ccds) -> list:
     again from the file, as :func:`read_exposure` did.
     """
     return [replace(c, image=None, weight=None, wcs=None, dims=c.shape) for c in ccds]
+
+
+def release_pages(ccds) -> None:
+    """Drop the memory-mapped pages read so far from this process's resident memory.
+
+    They stay in the operating system's file cache, so reading them again is
+    cheap; the process's own memory then holds no more than the stamps of
+    the object in hand, however many objects it has measured.
+    """
+    advice = getattr(mmap, "MADV_DONTNEED", None)
+    if advice is None:
+        return
+    seen = set()
+    for c in ccds:
+        for a in (c.image, c.weight):
+            while a is not None and not isinstance(a, mmap.mmap):
+                a = getattr(a, "base", None)
+            if a is not None and id(a) not in seen:
+                seen.add(id(a))
+                try:
+                    a.madvise(advice)
+                except (OSError, ValueError):
+                    pass
 
 
 def attach_pixels(ccds) -> list:
