@@ -254,8 +254,8 @@ def measure_field(cfg: FieldConfig, out_path=None, progress=False, processes=1, 
         exposures.append((ccds, _load_psf(spec, len(ccds), k, ccds=ccds, fit=fit)))
     flat = [(e, c) for e, (ccds, _) in enumerate(exposures) for c in range(len(ccds))]
     hits = locate_all([exposures[e][0][c] for e, c in flat], np.asarray(cat["ra"]), np.asarray(cat["dec"]))
-    # from here on the pixels are opened per chunk (memory-mapped), by whichever process measures it: the
-    # pages a chunk reads are released with it, so memory does not grow with the field or the run
+    # from here on the pixels are opened per chunk (memory-mapped), by whichever process measures it, and
+    # the pages each object read are released after it: memory does not grow with the field or the run
     exposures = _detached_exposures(exposures)
     metacal = cfg.calibration == "metacal"
     table = empty_output_table(cat, metacal=metacal)
@@ -383,7 +383,7 @@ def _measure_chunk(k):
 
 
 def _dask_chunk(run, k, hits, mags, ids):
-    """One chunk on a Dask worker: its objects' pixels read through memory maps opened per group of objects."""
+    """One chunk on a Dask worker: its objects' pixels read through memory maps opened for this chunk."""
     cfg, exposures = run
     return k, _measure_objects(exposures, hits, mags, ids, cfg)
 
