@@ -42,7 +42,8 @@ def main(argv=None):
     jobs = [(os.path.join(out, f"s{seed}"), dict(base, seed=seed)) for seed in range(4000, 4000 + args.seeds)]
     with ProcessPoolExecutor(args.processes) as pool:
         list(pool.map(simulate_missing, jobs))
-    cats = [measure(d, args.processes, "true")[0] for d, _ in jobs]
+    measured = [measure(d, args.processes, "true") for d, _ in jobs]   # (catalogue, truth) per field
+    cats = [cat for cat, _ in measured]
     print(f"{len(cats)} fields simulated and measured in {time.time() - t0:.0f} s")
     if cli_main(["systematics", *cats, "--out", os.path.join(out, "systematics")]) != 0:
         raise SystemExit("shearfit systematics failed")
@@ -57,7 +58,7 @@ def main(argv=None):
                 ea = row["xi_err"] / args.psf_e ** 2
                 print(f"  {row['lo']:8.3f} - {row['hi']:8.3f}: {row['xi_psf_gal']:+.2e} +/- {row['xi_err']:.1e}   "
                       f"alpha = {a:+.4f} +/- {ea:.4f}   ({row['n']} galaxies)")
-    residual_leakage(cats, [t for _, t in (measure(d, args.processes, "true") for d, _ in jobs)], args.psf_e)
+    residual_leakage(cats, [truth for _, truth in measured], args.psf_e)
     return 0
 
 
@@ -67,12 +68,8 @@ def residual_leakage(cats, truths, psf_e, n_bins=8):
     With zero shear e - e_int holds the measurement's noise and biases only: no shape noise, so the
     errors (10 random subsamples, as ``shearfit systematics``) are smaller than those of <e . e_psf>.
     """
-    tabs = []
-    for k, (cat, truth) in enumerate(zip(cats, truths)):
-        t = read_catalogs([cat], truth=truth)[0]
-        t["field"] = k
-        tabs.append(t)
-    tab = vstack(tabs, metadata_conflicts="silent")
+    tab = vstack([read_catalogs([cat], truth=truth)[0] for cat, truth in zip(cats, truths)],
+                 metadata_conflicts="silent")
     tab["e1"] = tab["e1"] - tab["e1_int"]
     tab["e2"] = tab["e2"] - tab["e2_int"]
     xc = psf_galaxy_xcorr(tab, "snr", equal_number_edges(np.asarray(tab["snr"], float), n_bins),

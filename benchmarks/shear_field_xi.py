@@ -107,7 +107,6 @@ def main(argv=None):
               f"{sig_m[i]:.1e}   {(res['xip'][i] - gt.xip[i]) / sig_d[i]:+6.2f}               |  "
               f"{gt.xim[i]:+.3e}  {res['xim'][i]:+.3e}  {(res['xim'][i] - gt.xim[i]) / sig_d[nb + i]:+6.2f}")
     d_vec = np.concatenate([res["xip"] - gt.xip, res["xim"] - gt.xim])
-    hartlap = (args.npatch - 2 * nb - 2) / (args.npatch - 1)
     for name, sl in (("xi+", slice(0, nb)), ("xi-", slice(nb, 2 * nb)), ("xi+ and xi-", slice(0, 2 * nb))):
         n = sl.stop - sl.start
         h = (args.npatch - n - 2) / (args.npatch - 1)
@@ -118,7 +117,7 @@ def main(argv=None):
     ratio_raw = np.sum(res["xip_raw"] / sig_d[:nb] ** 2 * gt.xip) / np.sum(gt.xip ** 2 / sig_d[:nb] ** 2)
     amp_err = 1.0 / np.sqrt(np.sum(gt.xip ** 2 / sig_d[:nb] ** 2))
     print(f"  amplitude xi+ measured / input (diagonal weights): calibrated {ratio:.3f}, raw {ratio_raw:.3f}, "
-          f"+/- {amp_err:.3f}; mean 1 + K = {np.mean(opk):.3f}; Hartlap for all bins {hartlap:.2f}")
+          f"+/- {amp_err:.3f}; mean 1 + K = {np.mean(opk):.3f}")
     plot(os.path.join(d, "xipm.png"), res, gt, sig_d, sig_m, nb)
     Table({"theta": res["theta"], "xip_in": gt.xip, "xim_in": gt.xim, "xip": res["xip"], "xim": res["xim"],
            "xip_raw": res["xip_raw"], "xim_raw": res["xim_raw"], "one_plus_k": opk, "sigma_diff_xip": sig_d[:nb],

@@ -426,15 +426,8 @@ def test_read_exposure_keeps_no_scanned_pixels_resident(tmp_path):
     # the NaN and weight checks read every pixel; they must not leave the pages in this process's memory
     shape = (4096, 2048)
     rng = np.random.default_rng(1)
-    img = fits.ImageHDU(rng.normal(0, 1, shape).astype(np.float32))
-    for key, val in (("MAGZP", 30.0), ("GAIN", 1.0), ("SATURATE", 1e5), ("CTYPE1", "RA---TAN"),
-                     ("CTYPE2", "DEC--TAN"), ("CRVAL1", 10.0), ("CRVAL2", 0.0), ("CRPIX1", 1024.0),
-                     ("CRPIX2", 2048.0), ("CD1_1", -5e-5), ("CD2_2", 5e-5)):
-        img.header[key] = val
-    path = str(tmp_path / "big.fits")
-    wpath = str(tmp_path / "big.weight.fits")
-    fits.HDUList([fits.PrimaryHDU(), img]).writeto(path)
-    fits.HDUList([fits.PrimaryHDU(), fits.ImageHDU(np.ones(shape, np.float32))]).writeto(wpath)
+    path = write_mef(tmp_path / "big.fits", [rng.normal(0, 1, shape)], [ccd_header(crpix=(1024.0, 2048.0))])
+    wpath = write_mef(tmp_path / "big.weight.fits", [np.ones(shape)], [fits.Header()])
 
     def resident_mb():
         with open("/proc/self/statm") as f:
