@@ -5,7 +5,9 @@ Simulates (``shearfit simulate``) and measures (``shearfit measure``) three sets
 * calibration: ``--cal-seeds`` GREAT-like fields (the paper's population, 7 dithered exposures with
   elliptical Moffat PSFs, 2 CCDs), each twice with shear +g and -g from the same seed (same galaxies
   and noise), g of modulus ``--cal-g`` in a direction set by the seed;
-* test: ``--test-seeds`` other seeds, other shears (modulus ``--test-g``), same construction;
+* test: ``--test-seeds`` other seeds, other shears (modulus ``--test-g``), same construction; with
+  ``--antithetic`` also each field's antithetic twin (``noise_sign: -1``: the same field with its
+  pixel noise reversed), so that the additive bias c is measured free of the noise's odd part;
 * second suite: ``--second-seeds`` fields of the second suite (Kolmogorov + optics, one exposure,
   random positions with overlaps), +g and -g.
 
@@ -17,6 +19,7 @@ the +g and -g copies of a galaxy together), the fitted (alpha, beta) beside the 
 Everything already simulated or measured under ``--out`` is reused, so the script resumes.
 
     python benchmarks/calibration_closure.py --out /tmp/closure -j 2
+    python benchmarks/calibration_closure.py --out /tmp/closure -j 2 --antithetic --test-seeds 12
 """
 
 from __future__ import annotations
@@ -45,13 +48,17 @@ def shear_of(seed, modulus):
     return [modulus * np.cos(2 * phi), modulus * np.sin(2 * phi)]
 
 
-def field_jobs(out, role, base, seeds, modulus):
+def field_jobs(out, role, base, seeds, modulus, twins=False):
+    """+g and -g fields of each seed; with ``twins`` also their antithetic twins (noise reversed, ``r``)."""
     jobs = []
     for seed in seeds:
         g = shear_of(seed, modulus)
-        for tag, sign in (("p", 1.0), ("m", -1.0)):
-            cfg = dict(base, seed=int(seed), shear=[sign * g[0], sign * g[1]])
-            jobs.append((os.path.join(out, role, f"s{seed}{tag}"), cfg))
+        for noise_sign in ((1, -1) if twins else (1,)):
+            for tag, sign in (("p", 1.0), ("m", -1.0)):
+                cfg = dict(base, seed=int(seed), shear=[sign * g[0], sign * g[1]])
+                if noise_sign < 0:
+                    cfg["noise_sign"] = -1
+                jobs.append((os.path.join(out, role, f"s{seed}{tag}" + ("r" if noise_sign < 0 else "")), cfg))
     return jobs
 
 
@@ -121,6 +128,9 @@ def main(argv=None):
     ap.add_argument("--ccd", type=int, default=1024, help="CCD side in pixels (2 CCDs per field)")
     ap.add_argument("--n-snr", type=int, default=20)
     ap.add_argument("--n-size", type=int, default=20)
+    ap.add_argument("--antithetic", action="store_true",
+                    help="add the test set's antithetic twins (the same fields with the pixel noise reversed): "
+                         "the noise's odd part cancels in c, which the +g / -g pairs do not free of it")
     ap.add_argument("-j", "--processes", type=int, default=os.cpu_count() or 1)
     args = ap.parse_args(argv)
     out = os.path.abspath(args.out)
@@ -128,7 +138,8 @@ def main(argv=None):
     great = dict(GREAT, ccd_nx=args.ccd, ccd_ny=args.ccd)
     second = dict(SECOND, ccd_nx=args.ccd, ccd_ny=args.ccd)
     sets = dict(cal=field_jobs(out, "cal", great, range(1000, 1000 + args.cal_seeds), args.cal_g),
-                test=field_jobs(out, "test", great, range(2000, 2000 + args.test_seeds), args.test_g),
+                test=field_jobs(out, "test", great, range(2000, 2000 + args.test_seeds), args.test_g,
+                                twins=args.antithetic),
                 second=field_jobs(out, "second", second, range(3000, 3000 + args.second_seeds), args.test_g))
     jobs = [j for v in sets.values() for j in v]
     with ProcessPoolExecutor(args.processes) as pool:
@@ -157,6 +168,9 @@ def main(argv=None):
             ("test set, binned", calibrated_bias(test, binned)),
             ("test set, fitted form", calibrated_bias(test, fitted)),
             ("test set, paper's alpha, beta", calibrated_bias(test, paper)),
+            *([("test set, noise sign +1 only, binned",
+                calibrated_bias(stack_matched([p for (d, _), p in zip(sets["test"], pairs["test"])
+                                               if not d.endswith("r")]), binned))] if args.antithetic else []),
             ("second suite, binned", calibrated_bias(second, binned)),
             ("second suite, fitted form", calibrated_bias(second, fitted)),
             ("second suite, paper's alpha, beta", calibrated_bias(second, paper))]

@@ -14,6 +14,7 @@ pipeline's throughput.
     python benchmarks/field_test.py --n-galaxies 40 --wcs rotated     # each exposure rotated, odd ones flipped
     python benchmarks/field_test.py --n-galaxies 40 --wcs distorted   # + a few per cent SIP distortion
     python benchmarks/field_test.py --wcs plain turned flipped        # the rotations alone, the flips alone
+    python benchmarks/field_test.py --wcs plain rotated --layout inner  # every galaxy on every exposure in both
     python benchmarks/field_test.py --n-galaxies 40 --psf both        # PSF fitted from stars vs the true one
     python benchmarks/field_test.py --wcs plain rotated distorted     # all three on the same galaxies, differences
     python benchmarks/field_test.py --psf both --psf-fwhm 0.36 0.38 --true-psf-oversampling 3 \
@@ -205,6 +206,10 @@ def main(argv=None):
     ap.add_argument("--psf-fwhm", type=float, nargs=2, default=[0.5, 0.8], help="range of PSF FWHM, arcsec")
     ap.add_argument("--true-psf-oversampling", type=int, default=1,
                     help="samples per pixel of the true PSF given to the 'given' runs (odd; 3 for undersampled PSFs)")
+    ap.add_argument("--layout", choices=["grid", "inner"], default="grid",
+                    help="grid: the whole galaxy grid of each CCD; inner: only the slots within 176 pixels of "
+                         "the CCD centre, whose stamps stay on the CCD in every exposure whatever its rotation "
+                         "and dither, so every WCS variant observes every galaxy on every exposure")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="setting for the fitted-PSF runs (e.g. psf_oversampling=3)")
     args = ap.parse_args(argv)
@@ -224,6 +229,11 @@ def main(argv=None):
     # galaxies on a grid over the CCDs (the dithers move them by < 30 pixels)
     nx_side = (NPIX - 2 * SPACING) // SPACING
     slots = [(c, i, j) for c in range(args.n_ccd) for i in range(nx_side) for j in range(nx_side)]
+    if args.layout == "inner":
+        # the largest dither moves a CCD by 50 pixels and a stamp reaches 24 beyond its centre: a slot
+        # within 176 pixels of the centre keeps its stamp 6 pixels inside the CCD at any rotation
+        slots = [(c, i, j) for c, i, j in slots
+                 if np.hypot(i - nx_side / 2 + 0.5, j - nx_side / 2 + 0.5) * SPACING <= 176.0]
     if 4 * args.n_galaxies > len(slots):
         raise SystemExit(f"at most {len(slots) // 4} rings fit on {args.n_ccd} CCDs")
     order = rng.permutation(len(slots))

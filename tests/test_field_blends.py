@@ -426,3 +426,57 @@ def test_resolved_pairs_are_flagged():
         objs = [(exp_gal(0.05), (0.0, 0.0)), (exp_gal(0.05), tuple(d))]
         hits += Sim(objs, rng).analyse(30.0, rng).flag != FITCLASS_GALAXY
     assert hits >= 24
+
+
+@pytest.mark.parametrize("seed", [3, 4, 5])
+def test_rotated_and_flipped_exposures_get_the_neighbour_masked_too(seed):
+    """The pipeline's co-add carries every exposure onto the first one's grid through the Jacobians.
+
+    Four exposures of a galaxy and a separate neighbour 20 pixels away: the first north-up, the
+    others rotated by 50 and 130 degrees and flipped. The neighbour must be masked on each of them
+    where it lies on that exposure's own pixels, the galaxy must not be, and a bad column through
+    the galaxy drops only the exposure that has it.
+    """
+    from shearfit.field.fieldconfig import PipelineConfig
+    from shearfit.field.pipeline import _isophote_analysis
+
+    rng = np.random.default_rng(seed)
+    nb_sky = np.array([14.0, -14.0]) * PIX            # arcsec (u, v) from the galaxy: 20 pixels
+    gal = exp_gal(0.3, 0.1, -0.2, flux=1.0)
+    nb = galsim.Gaussian(sigma=0.2, flux=0.5)
+    psf = moffat()
+
+    def jac(angle, flip):
+        c, s = math.cos(math.radians(angle)), math.sin(math.radians(angle))
+        return PIX * np.array([[-c, s], [s, c]]) @ np.diag([flip, 1.0])
+
+    cuts, nb_only = [], []
+    for angle, flip in ((0.0, 1.0), (50.0, 1.0), (0.0, -1.0), (130.0, -1.0)):
+        J = jac(angle, flip)
+        wcs = galsim.JacobianWCS(J[0, 0], J[0, 1], J[1, 0], J[1, 1])
+        off = rng.uniform(-0.5, 0.5, 2)
+        p_nb = np.linalg.solve(J, nb_sky)              # the neighbour on this exposure's pixels
+        draw = lambda prof, at: galsim.Convolve(prof, psf).drawImage(  # noqa: E731
+            nx=N, ny=N, wcs=wcs, use_true_center=False, offset=tuple(off + at), dtype=np.float64).array
+        clean = draw(gal, np.zeros(2)) + draw(nb, p_nb)
+        nb_only.append(draw(nb, p_nb))
+        cuts.append(dict(image=clean, weight=np.ones((N, N)), offset=tuple(off), J=J, k=1,
+                         moments=(PSF_FWHM / PIX / 2.3548,), p_nb=p_nb))
+    power = math.sqrt(sum(float(np.sum(c["image"] ** 2)) for c in cuts))
+    sigma = power / 25.0
+    for c in cuts:
+        c["image"] = c["image"] + rng.normal(0.0, sigma, (N, N))
+        c["weight"] = np.full((N, N), sigma ** -2)
+    cuts[1]["weight"][:, N // 2 + 1] = 0.0             # a bad column through the galaxy on exposure 1 only
+    pc = PipelineConfig()
+    assert _isophote_analysis(cuts, pc) == FITCLASS_GALAXY
+    assert [c["keep"] for c in cuts] == [True, False, True, True]
+    for k, (c, light) in enumerate(zip(cuts, nb_only)):
+        masked = c["weight"] == 0
+        masked[:, N // 2 + 1] &= k != 1
+        at = np.asarray(c["offset"]) + c["p_nb"]
+        row, col = N // 2 + int(round(at[1])), N // 2 + int(round(at[0]))
+        assert masked[row, col], k
+        assert not masked[N // 2 - 2:N // 2 + 3, N // 2 - 2:N // 2 + 3].any(), k
+        # most of the neighbour's light on this exposure falls on masked pixels
+        assert light[masked].sum() > 0.9 * light.sum(), k

@@ -137,3 +137,25 @@ def test_coherent_psf_anisotropy_keeps_the_rest_of_the_field():
     assert pa["fwhm"] == pb["fwhm"] and ra.uniform() == rb.uniform()
     with pytest.raises(ShearfitValueError, match="psf_e_fixed"):
         simulation_config({"psf_e_fixed": [0.6, 0.0]})
+
+
+def test_antithetic_twin_reverses_only_the_noise(tmp_path):
+    """noise_sign: -1 writes the same field with the pixel noise negated, everything else equal."""
+    base = {"preset": "tiny", "seed": 11, "ccd_nx": 160, "ccd_ny": 160, "n_exposures": 1}
+    simulate_field(simulation_config(base), tmp_path / "p")
+    simulate_field(simulation_config(dict(base, noise_sign=-1)), tmp_path / "n")
+    tp, tn = Table.read(tmp_path / "p" / "truth.fits"), Table.read(tmp_path / "n" / "truth.fits")
+    assert tp.meta["NOISESGN"] == 1 and tn.meta["NOISESGN"] == -1 and tn.meta["SIGMA"] == tp.meta["SIGMA"]
+    for c in ("e1_int", "scalelength", "snr", "ra"):
+        assert np.array_equal(tp[c], tn[c])
+    a, b = fits.getdata(tmp_path / "p" / "exp0.fits", 1), fits.getdata(tmp_path / "n" / "exp0.fits", 1)
+    wa, wb = fits.getdata(tmp_path / "p" / "exp0.weight.fits", 1), fits.getdata(tmp_path / "n" / "exp0.weight.fits", 1)
+    assert np.array_equal(wa, wb)                       # the same defects
+    sigma = tp.meta["SIGMA"]
+    # the twins differ by twice the Gaussian noise drawn for (seed, exposure 0, CCD 0), to float32 rounding
+    noise = np.random.default_rng([11, 0, 0]).normal(0.0, sigma, a.shape)
+    scale = np.abs(a).max()
+    assert np.max(np.abs((a.astype(float) - b) - 2 * noise)) < 1e-6 * scale
+    assert abs(np.std(a.astype(float) - b) / (2 * sigma) - 1) < 0.02
+    with pytest.raises(ShearfitValueError, match="noise_sign"):
+        simulation_config({"noise_sign": 0})

@@ -13,8 +13,10 @@ Per object (sec. 3.6, 4, 6 of the paper):
 5. the photometric scale from MAGZP, one flux for all exposures;
 6. the joint fit (:func:`shearfit.measure_object`), and one catalogue row.
 
-Sec. 3.6 (:mod:`.blends`): on the co-added stamp smoothed by the PSF, neighbours
-whose 2-sigma isophotes do not touch the object's are masked (set to
+Sec. 3.6 (:mod:`.blends`): on the co-added stamp smoothed by the PSF (built on the
+first exposure's pixel grid; an exposure rotated, flipped or distorted against it is
+carried onto that grid, and the masks back, to the nearest pixel through the local
+Jacobians), neighbours whose 2-sigma isophotes do not touch the object's are masked (set to
 background); several significant maxima inside the isophote flag the object
 blended or complex (-3); an isophote centroid more than 4 pixels from the input
 position flags it (-5); an exposure with a bad pixel inside the isophote is
@@ -188,38 +190,61 @@ def _psf_fwhm_pixels(moments, k):
     return 2.3548 * moments[0] / k if moments is not None else 3.5
 
 
+def _nearest_map(A, shape):
+    """Where each pixel of a stamp lands on another stamp of the same shape under the linear map ``A``.
+
+    Offsets from the centre pixel ``(ny // 2, nx // 2)`` are mapped by ``A`` and rounded to the
+    nearest pixel (no interpolation). Returns the flat indices into the other stamp and a mask of
+    the pixels that land inside it.
+    """
+    ny, nx = shape
+    yy, xx = np.indices(shape)
+    dx, dy = xx - nx // 2, yy - ny // 2
+    px = np.rint(A[0, 0] * dx + A[0, 1] * dy).astype(np.int64) + nx // 2
+    py = np.rint(A[1, 0] * dx + A[1, 1] * dy).astype(np.int64) + ny // 2
+    inside = (px >= 0) & (px < nx) & (py >= 0) & (py < ny)
+    return np.where(inside, py * nx + px, 0), inside
+
+
 def _isophote_analysis(cuts, pc) -> int:
     """Sec. 3.6 on the co-added, smoothed stamp: neighbour masks, dropped exposures, blend/centroid flags.
 
-    The co-add averages stamps already cut at the nearest pixel (no interpolation). It is only
-    meaningful for exposures whose pixel grids are aligned, so it uses those whose Jacobian matches
-    the first exposure's to 2 %; neighbour masks are applied to those exposures only, and the other
-    exposures keep their stamps but are still dropped if a bad pixel lies near the object.
+    The co-add is built on the first exposure's pixel grid, every other stamp carried onto it to
+    the nearest pixel (never interpolated). For exposures on the same grid, as the paper's were,
+    that is the stamps as cut; a rotated, flipped or differently distorted exposure is carried
+    through its local Jacobian (a reference pixel takes the value and weight of the exposure's
+    pixel nearest to the same sky position; where the exposure has none, weight 0). Neighbour
+    masks and the isophote go back to each exposure the same way, so every exposure gets its
+    neighbours masked and its bad pixels judged against the same isophote.
     """
     J0 = cuts[0]["J"]
-    scale = np.sqrt(abs(np.linalg.det(J0)))
-    aligned = [np.max(np.abs(c["J"] - J0)) < 0.02 * scale for c in cuts]
-    group = [c for c, a in zip(cuts, aligned) if a]
-    fwhm = float(np.mean([_psf_fwhm_pixels(c["moments"], c["k"]) for c in group]))
-    res = analyse_stamps([c["image"] for c in group], [c["weight"] for c in group], [c["offset"] for c in group],
-                         fwhm, nsigma=pc.isophote_nsigma, min_region_pixels=pc.deblend_min_pixels,
-                         centroid_max_shift=pc.isophote_centroid_max_shift, neighbour_mask=pc.neighbour_mask)
+    shape = cuts[0]["image"].shape
+    to_ref, from_ref, offsets = [], [], []
     for c in cuts:
+        A = np.linalg.solve(c["J"], J0)          # reference-pixel offsets -> this exposure's
+        B = np.linalg.inv(A)
+        to_ref.append(_nearest_map(A, shape))
+        from_ref.append(_nearest_map(B, shape))
+        offsets.append(B @ np.asarray(c["offset"], float))   # where its object lands on the reference grid
+    images = [np.where(ins, c["image"].ravel()[idx], 0.0) for c, (idx, ins) in zip(cuts, to_ref)]
+    weights = [np.where(ins, c["weight"].ravel()[idx], 0.0) for c, (idx, ins) in zip(cuts, to_ref)]
+    fwhm = float(np.mean([_psf_fwhm_pixels(c["moments"], c["k"]) for c in cuts]))
+    res = analyse_stamps([a.reshape(shape) for a in images], [w.reshape(shape) for w in weights],
+                         offsets, fwhm, nsigma=pc.isophote_nsigma,
+                         min_region_pixels=pc.deblend_min_pixels, centroid_max_shift=pc.isophote_centroid_max_shift,
+                         neighbour_mask=pc.neighbour_mask)
+    iso = res.isophote.ravel()
+    for c, mask, keep, (idx, ins) in zip(cuts, res.masks, res.keep_exposure, from_ref):
+        if iso.any():
+            # a bad pixel of this exposure's own stamp inside the isophote drops it (reference pixels
+            # beyond a rotated stamp's corners hold no data from it, but are not its bad pixels)
+            keep = not bool(np.any(ins & iso[idx] & (c["weight"] <= 0)))
         c["keep"] = True
-    for c, mask, keep in zip(group, res.masks, res.keep_exposure):
         if pc.neighbour_mask and mask is not None and np.any(mask):
-            c["weight"] = np.where(mask, 0.0, c["weight"])
+            back = (ins & mask.ravel()[idx]).reshape(shape)
+            c["weight"] = np.where(back, 0.0, c["weight"])
         if pc.drop_masked_exposures and not keep:
             c["keep"] = False
-    if pc.drop_masked_exposures:
-        # exposures outside the aligned group: a bad pixel within one PSF FWHM of the object drops them
-        for c, a in zip(cuts, aligned):
-            if not a:
-                n = c["weight"].shape
-                yy, xx = np.indices(n)
-                d2 = (xx - n[1] // 2 - c["offset"][0]) ** 2 + (yy - n[0] // 2 - c["offset"][1]) ** 2
-                if np.any((c["weight"] <= 0) & (d2 <= fwhm * fwhm)):
-                    c["keep"] = False
     return int(res.flag)
 
 

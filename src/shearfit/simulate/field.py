@@ -29,6 +29,15 @@ its noise, combined over exposures in quadrature.
 Everything random comes from one seed, recorded in ``simulation.yaml`` and
 in the header of ``truth.fits``: the same configuration and seed write the
 same field.
+
+``noise_sign: -1`` writes the same field with its pixel noise reversed
+(header ``NOISESGN``; bad columns and cosmic rays are unchanged): the
+antithetic twin of the ``noise_sign: 1`` field. The noise is Gaussian, so
+n and -n are equally likely and each twin is an honest simulation; in the
+mean of the two the terms of the estimate odd in the noise (the largest
+part of its scatter) cancel, while the noise bias, even in the noise,
+stays. Calibration sets use twins to measure the additive bias c, which
+the +g / -g pairs (same noise) do not free of pixel noise.
 """
 
 from __future__ import annotations
@@ -87,6 +96,7 @@ class SimulationConfig:
     psf_variation: float = 0.02          # FWHM and e change by about this over the field
     bad_columns: int = 2                 # per CCD and exposure
     cosmic_rays: int = 10                # per CCD and exposure
+    noise_sign: int = 1                  # -1: the same seed's pixel noise with its sign reversed (antithetic twin)
     give_psf: bool = True                # write the true PSF per exposure (``psf:`` in field.yaml)
     stamp_size: int = 48                 # the measurement's stamp
     fit_settings: dict = field(default_factory=dict)   # copied into field.yaml (psf_order, ...)
@@ -103,6 +113,8 @@ class SimulationConfig:
             raise ShearfitValueError("simulation key psf_e_fixed: give [e1, e2] with |e| < 0.5, or leave it out")
         if self.mag_range[0] >= self.mag_range[1]:
             raise ShearfitValueError(f"simulation key mag_range: {list(self.mag_range)} is empty")
+        if self.noise_sign not in (1, -1):
+            raise ShearfitValueError(f"simulation key noise_sign: {self.noise_sign!r} is not 1 or -1")
         return self
 
 
@@ -359,7 +371,7 @@ def simulate_field(sc: SimulationConfig, out_dir, fit_cfg: FitConfig | None = No
                 if b.isDefined():
                     img[b] += st[b]
             nrng = np.random.default_rng([sc.seed, k, c])
-            data = img.array + nrng.normal(0.0, sigma, img.array.shape)
+            data = img.array + sc.noise_sign * nrng.normal(0.0, sigma, img.array.shape)
             weight = np.full(data.shape, 1.0 / sigma ** 2, dtype=np.float32)
             _defects(sc, data, weight, nrng, sigma)
             hdus.append(fits.ImageHDU(data.astype(np.float32), header=h))
@@ -403,6 +415,7 @@ def simulate_field(sc: SimulationConfig, out_dir, fit_cfg: FitConfig | None = No
     truth.meta["SEED"] = sc.seed
     truth.meta["SUITE"] = sc.suite
     truth.meta["SIGMA"] = sigma
+    truth.meta["NOISESGN"] = sc.noise_sign
     _write_table(truth, os.path.join(out_dir, "truth.fits"))
     # the measurement's catalogue: every object (a detection catalogue holds the stars too)
     _write_table(Table({"id": ids, "ra": ra, "dec": dec, "mag": mag}), os.path.join(out_dir, "objects.fits"))
