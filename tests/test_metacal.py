@@ -227,3 +227,25 @@ def test_non_square_stamp_is_processed_with_a_warning(caplog):
         v = metacal_observations(o, rng=np.random.default_rng(1), versions=("noshear", "1p"))
     assert set(v) == {"noshear", "1p"} and v["1p"].image.shape == (40, 48)
     assert "not square" in caplog.text
+
+
+def test_new_psf_moffat_is_the_exposures_dilated():
+    """A given App. A Moffat is dilated with the PSF (shared alias tables), and matches a fit to the new PSF."""
+    import galsim
+
+    from shearfit.model import psf_moffat
+    from shearfit.observation import Observation
+
+    psf = galsim.Moffat(beta=3.0, fwhm=0.45 / 0.187).shear(g1=0.05)
+    im = galsim.Convolve(psf, galsim.Pixel(1.0)).drawImage(nx=48, ny=48, scale=1.0, method="no_pixel",
+                                                          use_true_center=False).array
+    im /= im.sum()
+    m0 = psf_moffat(im)
+    o = Observation(np.random.default_rng(1).normal(0, 1, (48, 48)), im, 0.187 * np.eye(2),
+                    weight=np.ones((48, 48)), psf_moffat=m0)
+    v = metacal_observations(o, 0.01, np.random.default_rng(0))
+    rs, beta = v["noshear"].psf_moffat
+    assert rs == pytest.approx(1.02 * m0[0]) and beta == m0[1]
+    assert all(v[k].psf_moffat == (rs, beta) for k in v)
+    refit = psf_moffat(v["noshear"].psf)
+    assert rs == pytest.approx(refit[0], rel=0.01) and beta == pytest.approx(refit[1], rel=0.01)

@@ -136,5 +136,10 @@ def test_cli(tmp_path, capsys):
     with fits.open(out) as h:
         assert len(h["XIPM"].data) == 3 and h["SYSCOV"].data.shape == (6, 6)
         assert h["XIPM"].header["NGAL"] == int(np.sum(tab["snr"] >= 10))
+    # bins wider than the field are named as empty, not printed as NaN
+    assert main(["xipm", str(p), "--out", str(tmp_path / "x3.fits"), "--min-sep", "2", "--max-sep", "5000",
+                 "--nbins", "4"]) == 0
+    text = capsys.readouterr().out
+    assert "no pairs" in text and "nan" not in text.lower()
     assert main(["xipm", str(p), "--out", str(tmp_path / "x2.fits"), "--min-sep", "5", "--max-sep", "2"]) != 0
     assert not (tmp_path / "x2.fits").exists()

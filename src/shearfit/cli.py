@@ -92,6 +92,10 @@ def _cmd_xipm(args):
         print(f"xi+/xi- of {len(tab)} galaxies in {args.nbins} bins, {args.min_sep}-{args.max_sep} arcmin: "
               f"{args.out}" + (" (with the systematic covariance)" if cov is not None else ""))
         for row in table:
+            if row["npairs"] == 0:
+                # a bin wider than the field: kept in the file (NaN), named here rather than printed as NaN
+                print(f"  theta {row['theta']:8.3f}'  no pairs (the catalogue spans less than this)")
+                continue
             print(f"  theta {row['theta']:8.3f}'  xi+ {row['xip']:+.3e} +/- {row['sigma_xip']:.1e}  "
                   f"xi- {row['xim']:+.3e} +/- {row['sigma_xim']:.1e}  1+K {row['one_plus_k']:.4f}  "
                   f"pairs {row['npairs']:.0f}")

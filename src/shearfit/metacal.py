@@ -94,7 +94,14 @@ def metacal_observations(obs: Observation, delta=0.01, rng=None, versions=tuple(
     new_psf = psf.dilate(1.0 + 2.0 * abs(delta))
     psf_img = _draw(new_psf, obs.psf.shape, pwcs)
     psf_img /= psf_img.sum()
-    moffat = psf_moffat(psf_img) if k == 1 else None
+    # the App. A Moffat of the new PSF: the exposure's own, dilated the same way (so objects sharing an
+    # exposure's Moffat share its alias tables); fitted to the new PSF only when none was given
+    if k != 1:
+        moffat = None
+    elif obs.psf_moffat is not None:
+        moffat = (float(obs.psf_moffat[0]) * (1.0 + 2.0 * abs(delta)), float(obs.psf_moffat[1]))
+    else:
+        moffat = psf_moffat(psf_img)
     # the symmetrising noise: the stamp's variance, rotated by 90 degrees before the operations
     sigma = np.where(good, 1.0 / np.sqrt(np.where(good, w, 1.0)), 0.0)
     noise = rng.normal(0.0, 1.0, w.shape) * sigma

@@ -130,8 +130,10 @@ def xipm(tab: Table, min_sep=1.0, max_sep=100.0, nbins=10, calibration=None, n_s
     gg.process(cat)
     kk = treecorr.KKCorrelation(**cfg)
     kk.process(cat)
-    one_plus_k = kk.xi
-    out = Table({"theta": gg.meanr, "xip": gg.xip / one_plus_k, "xim": gg.xim / one_plus_k,
+    # a bin without pairs (wider than the field) is NaN throughout, its theta the nominal one
+    empty = gg.npairs == 0
+    one_plus_k = np.where(empty, np.nan, kk.xi)
+    out = Table({"theta": np.where(empty, gg.rnom, gg.meanr), "xip": gg.xip / one_plus_k, "xim": gg.xim / one_plus_k,
                  "xip_raw": gg.xip, "xim_raw": gg.xim, "xip_im": gg.xip_im, "one_plus_k": one_plus_k,
                  "sigma_xip": np.sqrt(gg.varxip) / one_plus_k, "sigma_xim": np.sqrt(gg.varxim) / one_plus_k,
                  "npairs": gg.npairs, "weight": gg.weight})
@@ -143,7 +145,8 @@ def xipm(tab: Table, min_sep=1.0, max_sep=100.0, nbins=10, calibration=None, n_s
             mk = draw.m(snr, r)
             k2 = treecorr.KKCorrelation(**cfg)
             k2.process(_catalog(tab, 1.0 + np.where(np.isfinite(mk), mk, 0.0), with_shear=False))
-            vecs.append(np.concatenate([gg.xip / k2.xi, gg.xim / k2.xi]))
+            k2xi = np.where(empty, np.nan, k2.xi)
+            vecs.append(np.concatenate([gg.xip / k2xi, gg.xim / k2xi]))
         cov = np.cov(np.array(vecs), rowvar=False)
     return out, cov
 
