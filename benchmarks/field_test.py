@@ -210,6 +210,11 @@ def main(argv=None):
                     help="grid: the whole galaxy grid of each CCD; inner: only the slots within 176 pixels of "
                          "the CCD centre, whose stamps stay on the CCD in every exposure whatever its rotation "
                          "and dither, so every WCS variant observes every galaxy on every exposure")
+    ap.add_argument("--size-split", type=float, default=None, metavar="R",
+                    help="also print m and c for the rings of true scalelength below and above R arcsec")
+    ap.add_argument("--reuse", action="store_true",
+                    help="with --keep: read the catalogue of a field already measured there (same options) "
+                         "instead of simulating and measuring it again")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="setting for the fitted-PSF runs (e.g. psf_oversampling=3)")
     args = ap.parse_args(argv)
@@ -280,11 +285,15 @@ def main(argv=None):
                 d = os.path.join(base_dir, ("plus" if sign > 0 else "minus") +
                                  ("" if len(variants) == 1 else f"_{wcs_mode}_{name.replace(' ', '')}"))
                 os.makedirs(d, exist_ok=True)
+                out = os.path.join(d, "shear.fits")
+                if args.reuse and os.path.exists(out):
+                    tables[(v, sign)] = Table.read(out)
+                    print(f"field {'+g' if sign > 0 else '-g'} ({label[v]}): read from {out}", flush=True)
+                    continue
                 t0 = time.perf_counter()
                 cfgpath = make_field(d, sign, args, gals, psfs, sigma, stars=stars, with_psf=with_psf,
                                      wcs_mode=wcs_mode, psf_settings=settings[name])
                 t_sim = time.perf_counter() - t0
-                out = os.path.join(d, "shear.fits")
                 t0 = time.perf_counter()
                 rc = shearfit_main(["measure", cfgpath, "--out", out, "--quiet", "-j", str(args.processes)])
                 t_meas += time.perf_counter() - t0
@@ -294,8 +303,9 @@ def main(argv=None):
                 tables[(v, sign)] = Table.read(out)
                 print(f"field {'+g' if sign > 0 else '-g'} ({label[v]}): simulated in {t_sim:.0f} s, measured in "
                       f"{time.perf_counter() - t0:.0f} s", flush=True)
-    print(f"\nshearfit measure: {n_meas / t_meas / args.processes:.2f} objects/s per process "
-          f"({args.processes} processes, PSF fitting included where fitted)")
+    if n_meas:
+        print(f"\nshearfit measure: {n_meas / t_meas / args.processes:.2f} objects/s per process "
+              f"({args.processes} processes, PSF fitting included where fitted)")
     results = {}
     for v in variants:
         results[label[v]] = report({s: tables[(v, s)] for s in (+1, -1)}, gals, args, label[v], v[0])
@@ -304,17 +314,22 @@ def main(argv=None):
         rng_b = np.random.default_rng(0)
         g = np.array(args.shear)
         sums = {v: ring_sums(_rows({s: tables[(v, s)] for s in (+1, -1)}, gals), args.n_galaxies) for v in variants}
-        est = {v: shear_bias(sm, g, 2, rng_b)[0] for v, sm in sums.items()}
-        picks = [rng_b.integers(0, args.n_galaxies, args.n_galaxies) for _ in range(300)]
         ref = variants[0]
+        r = np.array([gals[4 * k]["r"] for k in range(args.n_galaxies)])
+        subsets = [("", np.arange(args.n_galaxies))]
+        if args.size_split:
+            subsets += [(f" (rings of scalelength {op} {args.size_split}\")", np.flatnonzero(sel))
+                        for op, sel in (("<", r < args.size_split), (">=", r >= args.size_split)) if sel.sum() > 1]
         for v in variants[1:]:
-            diff = [shear_bias(sums[v][:, pick], g, 2, rng_b)[0] - shear_bias(sums[ref][:, pick], g, 2, rng_b)[0]
-                    for pick in picks]
-            err = np.std(diff, axis=0)
-            d0 = est[v] - est[ref]
-            print(f"\n{label[v]} minus {label[ref]}: dm1 = {d0[0]:+.5f} +/- {err[0]:.5f}, "
-                  f"dm2 = {d0[1]:+.5f} +/- {err[1]:.5f}, dc1 = {d0[2]:+.6f} +/- {err[2]:.6f}, "
-                  f"dc2 = {d0[3]:+.6f} +/- {err[3]:.6f}")
+            for what, rings in subsets:
+                picks = [rings[rng_b.integers(0, rings.size, rings.size)] for _ in range(300)]
+                diff = [shear_bias(sums[v][:, pick], g, 2, rng_b)[0] - shear_bias(sums[ref][:, pick], g, 2, rng_b)[0]
+                        for pick in picks]
+                err = np.std(diff, axis=0)
+                d0 = shear_bias(sums[v][:, rings], g, 2, rng_b)[0] - shear_bias(sums[ref][:, rings], g, 2, rng_b)[0]
+                print(f"\n{label[v]} minus {label[ref]}{what}: dm1 = {d0[0]:+.5f} +/- {err[0]:.5f}, "
+                      f"dm2 = {d0[1]:+.5f} +/- {err[1]:.5f}, dc1 = {d0[2]:+.6f} +/- {err[2]:.6f}, "
+                      f"dc2 = {d0[3]:+.6f} +/- {err[3]:.6f}")
     return results
 
 
@@ -338,6 +353,17 @@ def report(tables, gals, args, name, wcs_mode):
     print(f"  m1 = {est[0]:+.5f} +/- {err[0]:.5f}    c1 = {est[2]:+.6f} +/- {err[2]:.6f}")
     print(f"  m2 = {est[1]:+.5f} +/- {err[1]:.5f}    c2 = {est[3]:+.6f} +/- {err[3]:.6f}")
     print("  fitclass: " + ", ".join(f"{int((fc == v).sum())} x {v}" for v in np.unique(fc)))
+    if args.size_split:
+        # rings chosen by their true scalelength (a choice on the truth, the same for the 8 objects of a ring)
+        sums = ring_sums(tab, args.n_galaxies)
+        r = np.array([gals[4 * k]["r"] for k in range(args.n_galaxies)])
+        for lab, sel in ((f"< {args.size_split}\"", r < args.size_split), (f">= {args.size_split}\"", r >= args.size_split)):
+            if sel.sum() < 2:
+                continue
+            e_s, r_s = shear_bias(sums[:, sel], np.array(args.shear), 500, np.random.default_rng(0))
+            print(f"  rings of scalelength {lab} ({int(sel.sum())}): m1 = {e_s[0]:+.5f} +/- {r_s[0]:.5f}, "
+                  f"m2 = {e_s[1]:+.5f} +/- {r_s[1]:.5f}, c1 = {e_s[2]:+.6f} +/- {r_s[2]:.6f}, "
+                  f"c2 = {e_s[3]:+.6f} +/- {r_s[3]:.6f}")
     return est, err
 
 
