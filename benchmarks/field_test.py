@@ -315,11 +315,8 @@ def main(argv=None):
         g = np.array(args.shear)
         sums = {v: ring_sums(_rows({s: tables[(v, s)] for s in (+1, -1)}, gals), args.n_galaxies) for v in variants}
         ref = variants[0]
-        r = np.array([gals[4 * k]["r"] for k in range(args.n_galaxies)])
-        subsets = [("", np.arange(args.n_galaxies))]
-        if args.size_split:
-            subsets += [(f" (rings of scalelength {op} {args.size_split}\")", np.flatnonzero(sel))
-                        for op, sel in (("<", r < args.size_split), (">=", r >= args.size_split)) if sel.sum() > 1]
+        subsets = [("", np.arange(args.n_galaxies))] + [(f" (rings of scalelength {what})", rings)
+                                                         for what, rings in size_subsets(gals, args)]
         for v in variants[1:]:
             for what, rings in subsets:
                 picks = [rings[rng_b.integers(0, rings.size, rings.size)] for _ in range(300)]
@@ -343,6 +340,18 @@ def _rows(tables, gals):
     return {k: np.array(v) for k, v in rows.items()}
 
 
+def size_subsets(gals, args):
+    """With ``--size-split R``: (label, ring indices) of the rings of true scalelength below and above R.
+
+    A choice on the truth, the same for the 8 objects of a ring; subsets of fewer than 2 rings are left out.
+    """
+    if not args.size_split:
+        return []
+    r = np.array([gals[4 * k]["r"] for k in range(args.n_galaxies)])
+    return [(f"{op} {args.size_split}\"", np.flatnonzero(sel))
+            for op, sel in (("<", r < args.size_split), (">=", r >= args.size_split)) if sel.sum() > 1]
+
+
 def report(tables, gals, args, name, wcs_mode):
     tab = _rows(tables, gals)
     est, err = shear_bias(ring_sums(tab, args.n_galaxies), np.array(args.shear), 500, np.random.default_rng(0))
@@ -353,15 +362,12 @@ def report(tables, gals, args, name, wcs_mode):
     print(f"  m1 = {est[0]:+.5f} +/- {err[0]:.5f}    c1 = {est[2]:+.6f} +/- {err[2]:.6f}")
     print(f"  m2 = {est[1]:+.5f} +/- {err[1]:.5f}    c2 = {est[3]:+.6f} +/- {err[3]:.6f}")
     print("  fitclass: " + ", ".join(f"{int((fc == v).sum())} x {v}" for v in np.unique(fc)))
-    if args.size_split:
-        # rings chosen by their true scalelength (a choice on the truth, the same for the 8 objects of a ring)
+    subsets = size_subsets(gals, args)
+    if subsets:
         sums = ring_sums(tab, args.n_galaxies)
-        r = np.array([gals[4 * k]["r"] for k in range(args.n_galaxies)])
-        for lab, sel in ((f"< {args.size_split}\"", r < args.size_split), (f">= {args.size_split}\"", r >= args.size_split)):
-            if sel.sum() < 2:
-                continue
+        for lab, sel in subsets:
             e_s, r_s = shear_bias(sums[:, sel], np.array(args.shear), 500, np.random.default_rng(0))
-            print(f"  rings of scalelength {lab} ({int(sel.sum())}): m1 = {e_s[0]:+.5f} +/- {r_s[0]:.5f}, "
+            print(f"  rings of scalelength {lab} ({sel.size}): m1 = {e_s[0]:+.5f} +/- {r_s[0]:.5f}, "
                   f"m2 = {e_s[1]:+.5f} +/- {r_s[1]:.5f}, c1 = {e_s[2]:+.6f} +/- {r_s[2]:.6f}, "
                   f"c2 = {e_s[3]:+.6f} +/- {r_s[3]:.6f}")
     return est, err

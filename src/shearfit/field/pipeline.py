@@ -25,12 +25,13 @@ dropped, bad pixels elsewhere are background.
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 import logging
 import os
 import shutil
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from typing import Optional
 
 import numpy as np
@@ -104,15 +105,13 @@ class _ExposurePSF:
     fitted: Optional[object] = None   # a shearfit.psf PixelPSF fitted to the exposure's stars
     ccds: Optional[list] = None
     _frame: Optional[FieldFrame] = None
-    _moffat: Optional[dict] = None
+    _moffat: dict = field(default_factory=dict)    # per-CCD Moffat fits; copies made by replace() share it
 
     def moffat(self, ccd_index, shape):
         """The CCD's above-Nyquist Moffat (rs, beta), fitted once to its PSF at the CCD centre (App. A).
 
         None for an oversampled PSF (it needs none) or where the centre has no PSF.
         """
-        if self._moffat is None:
-            self._moffat = {}
         if ccd_index not in self._moffat:
             ny, nx = shape
             got = self.at(ccd_index, 0.5 * (nx - 1), 0.5 * (ny - 1))
@@ -190,20 +189,35 @@ def _psf_fwhm_pixels(moments, k):
     return 2.3548 * moments[0] / k if moments is not None else 3.5
 
 
+@functools.lru_cache(maxsize=8)
+def _centred_offsets(shape):
+    """Pixel offsets (dx, dy) from the centre pixel ``(ny // 2, nx // 2)`` of a stamp of ``shape``."""
+    ny, nx = shape
+    yy, xx = np.indices(shape)
+    return xx - nx // 2, yy - ny // 2
+
+
 def _nearest_map(A, shape):
     """Where each pixel of a stamp lands on another stamp of the same shape under the linear map ``A``.
 
-    Offsets from the centre pixel ``(ny // 2, nx // 2)`` are mapped by ``A`` and rounded to the
-    nearest pixel (no interpolation). Returns the flat indices into the other stamp and a mask of
-    the pixels that land inside it.
+    Offsets from the centre pixel are mapped by ``A`` and rounded to the nearest pixel (no
+    interpolation). Returns the flat indices into the other stamp and a mask of the pixels that
+    land inside it; None where every pixel lands on itself (the grids are aligned to well under half
+    a pixel across the stamp, as for dithered exposures of one camera orientation).
     """
     ny, nx = shape
-    yy, xx = np.indices(shape)
-    dx, dy = xx - nx // 2, yy - ny // 2
+    if np.abs(A - np.eye(2)).max() * (nx + ny) < 1.0:
+        return None
+    dx, dy = _centred_offsets(shape)
     px = np.rint(A[0, 0] * dx + A[0, 1] * dy).astype(np.int64) + nx // 2
     py = np.rint(A[1, 0] * dx + A[1, 1] * dy).astype(np.int64) + ny // 2
     inside = (px >= 0) & (px < nx) & (py >= 0) & (py < ny)
     return np.where(inside, py * nx + px, 0), inside
+
+
+def _carry(a, m):
+    """Stamp ``a`` carried through a :func:`_nearest_map` ``m`` (0 where it has no pixel); ``a`` if None."""
+    return a if m is None else np.where(m[1], a.ravel()[m[0]], 0)
 
 
 def _isophote_analysis(cuts, pc) -> int:
@@ -226,23 +240,19 @@ def _isophote_analysis(cuts, pc) -> int:
         to_ref.append(_nearest_map(A, shape))
         from_ref.append(_nearest_map(B, shape))
         offsets.append(B @ np.asarray(c["offset"], float))   # where its object lands on the reference grid
-    images = [np.where(ins, c["image"].ravel()[idx], 0.0) for c, (idx, ins) in zip(cuts, to_ref)]
-    weights = [np.where(ins, c["weight"].ravel()[idx], 0.0) for c, (idx, ins) in zip(cuts, to_ref)]
     fwhm = float(np.mean([_psf_fwhm_pixels(c["moments"], c["k"]) for c in cuts]))
-    res = analyse_stamps([a.reshape(shape) for a in images], [w.reshape(shape) for w in weights],
-                         offsets, fwhm, nsigma=pc.isophote_nsigma,
-                         min_region_pixels=pc.deblend_min_pixels, centroid_max_shift=pc.isophote_centroid_max_shift,
-                         neighbour_mask=pc.neighbour_mask)
-    iso = res.isophote.ravel()
-    for c, mask, keep, (idx, ins) in zip(cuts, res.masks, res.keep_exposure, from_ref):
-        if iso.any():
+    res = analyse_stamps([_carry(c["image"], m) for c, m in zip(cuts, to_ref)],
+                         [_carry(c["weight"], m) for c, m in zip(cuts, to_ref)], offsets, fwhm,
+                         nsigma=pc.isophote_nsigma, min_region_pixels=pc.deblend_min_pixels,
+                         centroid_max_shift=pc.isophote_centroid_max_shift, neighbour_mask=pc.neighbour_mask)
+    for c, mask, keep, m in zip(cuts, res.masks, res.keep_exposure, from_ref):
+        if m is not None and res.isophote.any():
             # a bad pixel of this exposure's own stamp inside the isophote drops it (reference pixels
             # beyond a rotated stamp's corners hold no data from it, but are not its bad pixels)
-            keep = not bool(np.any(ins & iso[idx] & (c["weight"] <= 0)))
+            keep = not bool(np.any(_carry(res.isophote, m) & (c["weight"] <= 0)))
         c["keep"] = True
         if pc.neighbour_mask and mask is not None and np.any(mask):
-            back = (ins & mask.ravel()[idx]).reshape(shape)
-            c["weight"] = np.where(back, 0.0, c["weight"])
+            c["weight"] = np.where(_carry(mask, m), 0.0, c["weight"])
         if pc.drop_masked_exposures and not keep:
             c["keep"] = False
     return int(res.flag)
@@ -381,11 +391,7 @@ def _attached(exposures):
     out = []
     for ccds, p in exposures:
         ccds = attach_pixels(ccds)
-        if p.ccds is not None:
-            if p._moffat is None:
-                p._moffat = {}   # shared with the chunk's copy: the per-CCD Moffat fits persist
-            p = replace(p, ccds=ccds)
-        out.append((ccds, p))
+        out.append((ccds, p if p.ccds is None else replace(p, ccds=ccds)))
     return out
 
 
@@ -436,7 +442,7 @@ def _run_dask(cfg, exposures, tasks, mags, ids, chunks, todo, table, ckpt, bar, 
     try:
         # one copy of the run's settings, CCD metadata and PSF models per worker (a list of one: scatter sends
         # it whole); the PSF models' caches are rebuilt there
-        portable = [(ccds, replace(p, _frame=None, _moffat=None)) for ccds, p in exposures]
+        portable = [(ccds, replace(p, _frame=None, _moffat={})) for ccds, p in exposures]
         [run] = client.scatter([(cfg, portable)], broadcast=True)
         futures = [client.submit(_dask_chunk, run, k, [tasks[i] for i in chunks[k]], mags[chunks[k]], ids[chunks[k]],
                                  pure=False) for k in todo]
