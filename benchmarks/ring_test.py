@@ -315,6 +315,10 @@ def parse_args(argv=None):
     p.add_argument("--metacal", action="store_true",
                    help="measure the five metacal versions of every object and report the metacal shear bias")
     p.add_argument("--quiet", action="store_true")
+    p.add_argument("--from-tables", nargs="+", metavar="TABLE",
+                   help="report on per-object tables written by earlier runs (--out) instead of simulating: "
+                        "runs of different --seed add up (their galaxies are renumbered); give the shear, SNR "
+                        "range and --metacal those runs had")
     args = p.parse_args(argv)
     if args.n_galaxies < 1 or args.n_rotations < 1 or args.n_exposures < 1 or args.processes < 1:
         p.error("--n-galaxies, --n-rotations, --n-exposures and --processes must be positive")
@@ -361,6 +365,32 @@ def _to_array(records):
     return arr
 
 
+def report_tables(args):
+    """The reports of several earlier runs' per-object tables, as one run."""
+    from astropy.table import Table, vstack
+
+    parts, offset = [], 0
+    for path in args.from_tables:
+        try:
+            t = Table.read(path)
+        except (OSError, ValueError) as exc:
+            print(f"ring_test.py: error: {path}: {exc}", file=sys.stderr)
+            return 2
+        t["galaxy"] = np.asarray(t["galaxy"]) + offset
+        offset = int(np.max(t["galaxy"])) + 1
+        parts.append(t)
+    t = vstack(parts)
+    tab = np.asarray(t.as_array())
+    # renumber the galaxies 0..n-1 (the reports index rings by galaxy number)
+    _, tab["galaxy"] = np.unique(tab["galaxy"], return_inverse=True)
+    n_gal = int(tab["galaxy"].max()) + 1
+    print(f"ring test from {len(parts)} table(s): {n_gal} galaxies, {len(tab)} objects")
+    report_bias(tab, args, n_gal)
+    if args.metacal:
+        report_metacal(tab, args, n_gal)
+    return 0
+
+
 def main(argv=None):
     args = parse_args(argv)
     try:
@@ -374,6 +404,8 @@ def main(argv=None):
         except RuntimeError as exc:
             print(f"ring_test.py: error: {exc}", file=sys.stderr)
             return 2
+    if args.from_tables:
+        return report_tables(args)
     opts = {
         "shear": tuple(args.shear), "dry_run": args.dry_run, "config": cfg, "metacal": args.metacal,
         "ring_kwargs": dict(n_rotations=args.n_rotations, n_exposures=args.n_exposures,

@@ -249,3 +249,55 @@ def test_new_psf_moffat_is_the_exposures_dilated():
     assert all(v[k].psf_moffat == (rs, beta) for k in v)
     refit = psf_moffat(v["noshear"].psf)
     assert rs == pytest.approx(refit[0], rel=0.01) and beta == pytest.approx(refit[1], rel=0.01)
+
+
+def _fields(r):
+    return (r.e1, r.e2, r.e_var, r.weight, r.scalelength, r.bulge_fraction, r.model_flux, r.fitclass, r.snr)
+
+
+@pytest.mark.parametrize("sampling", ["adaptive", "two-pass"])
+def test_a_replayed_fit_of_the_same_stamps_is_the_fit_itself(sampling):
+    """measure_versions replays the first version's choices; on identical stamps it must give exactly what
+    measure_object gives, whether every reference sample is evaluated again or only those near the cut."""
+    from shearfit.measure import measure_versions
+
+    obs = _obs(0.3, (0.2, 0.1), snr=20, seed=4)
+    cfg = {"sampling": sampling}
+    plain = shearfit.measure_object(obs, 23.0, cfg)
+    for margin in (np.inf, 10.0):
+        first, again = measure_versions([obs, obs], 23.0, cfg, margin=margin)
+        assert _fields(first) == _fields(plain)
+        assert _fields(again) == _fields(plain)
+    # the replay evaluates fewer models than a fit of its own (no size-locating passes, no far samples)
+    assert again.n_models < first.n_models
+
+
+def test_replayed_versions_follow_a_small_shear_linearly():
+    """A galaxy drawn by GalSim at shears +-d with the same noise, the unsheared version the reference:
+    the replayed estimates respond to the shear, and (e1(+d) - e1(-d)) / 2d is the same for d = 0.01 and
+    0.005 to second order in d (a jump of one sample's weight would differ by far more between them)."""
+    from shearfit.measure import measure_versions
+
+    for seed in range(3):
+        R = []
+        for d in (0.01, 0.005):
+            vs = [_obs(0.3, (0.2, 0.1), snr=15, seed=seed, g=(s * d, 0.0)) for s in (0, 1, -1)]
+            res = measure_versions(vs, 23.0)
+            assert all(r.fitclass == FITCLASS_GALAXY for r in res)
+            R.append((res[1].e1 - res[2].e1) / (2 * d))
+        assert 0.2 < R[0] < 2.0
+        assert abs(R[0] - R[1]) < 0.08, (seed, R)
+
+
+def test_replay_needs_the_same_psfs():
+    from shearfit.errors import ShearfitValueError
+    from shearfit.measure import measure_versions
+
+    obs = _obs(0.3, (0.2, 0.1), snr=20, seed=4)
+    other = []
+    for o in obs:
+        psf = o.psf[2:-2, 2:-2]
+        other.append(shearfit.Observation(image=o.image, weight=o.weight, psf=psf / psf.sum(), jacobian=o.jacobian,
+                                          offset=o.offset))
+    with pytest.raises(ShearfitValueError, match="same PSFs"):
+        measure_versions([obs, other], 23.0)

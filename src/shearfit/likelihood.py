@@ -63,6 +63,7 @@ class JointModes:
     npix: int
     n_exposures: int
     pixel_scale: float
+    keep: list = None      # per exposure, the modes the noise-aware cut kept (None: all)
 
     @property
     def n_modes(self):
@@ -131,10 +132,17 @@ def _select(ex: ExposureModes, keep) -> ExposureModes:
                          yy=ex.yy, npix=ex.npix, pixel_scale=ex.pixel_scale)
 
 
-def join_exposures(exposures: list[ExposureModes], chi2_tolerance: float = 0.0) -> JointModes:
-    """Concatenate the exposures' modes (after the noise-aware cut, if a tolerance is given)."""
-    if chi2_tolerance > 0:
-        exposures = [_select(ex, k) for ex, k in zip(exposures, _noise_aware_cut(exposures, chi2_tolerance))]
+def join_exposures(exposures: list[ExposureModes], chi2_tolerance: float = 0.0, keep=None) -> JointModes:
+    """Concatenate the exposures' modes (after the noise-aware cut, if a tolerance is given).
+
+    ``keep`` (per exposure, a boolean mask of its modes) imposes the modes
+    another fit kept instead of cutting afresh; the masks used are
+    ``result.keep`` (None: no cut).
+    """
+    if keep is None and chi2_tolerance > 0:
+        keep = _noise_aware_cut(exposures, chi2_tolerance)
+    if keep is not None:
+        exposures = [_select(ex, k) for ex, k in zip(exposures, keep)]
     kx, ky, z, q, T_multi, c_multi, idx_multi = [], [], [], [], [], [], []
     group, tscaled = [], []
     goffset = 0
@@ -179,7 +187,7 @@ def join_exposures(exposures: list[ExposureModes], chi2_tolerance: float = 0.0) 
     return JointModes(kx=kx, ky=ky, z=np.concatenate(z), q=np.concatenate(q), multi=multi, fold=fold,
                       basis=basis, group=np.concatenate(group), tscaled=np.concatenate(tscaled),
                       yy=yy, npix=npix, n_exposures=len(exposures),
-                      pixel_scale=float(np.mean([e.pixel_scale for e in exposures])))
+                      pixel_scale=float(np.mean([e.pixel_scale for e in exposures])), keep=keep)
 
 
 def shift_joint(jm: JointModes, du, dv) -> JointModes:
@@ -190,8 +198,8 @@ def shift_joint(jm: JointModes, du, dv) -> JointModes:
         fold = jm.fold @ sparse.diags(phase[jm.multi])
         fold = sparse.csr_matrix(fold)
     return JointModes(kx=jm.kx, ky=jm.ky, z=jm.z * phase, q=jm.q, multi=jm.multi, fold=fold,
-                      basis=jm.basis, group=jm.group, tscaled=jm.tscaled * phase, yy=jm.yy, npix=jm.npix, n_exposures=jm.n_exposures,
-                      pixel_scale=jm.pixel_scale)
+                      basis=jm.basis, group=jm.group, tscaled=jm.tscaled * phase, yy=jm.yy, npix=jm.npix,
+                      n_exposures=jm.n_exposures, pixel_scale=jm.pixel_scale, keep=jm.keep)
 
 
 @dataclass

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+from dataclasses import dataclass
 from typing import Iterable, Mapping, Sequence
 
 import numpy as np
@@ -16,9 +17,9 @@ from .likelihood import coarse_peak, find_position, flux_position_marginal, join
 from .model import prepare_exposure
 from .observation import FitResult, Observation
 from .profiles import exponential_disk, fast_pair
-from .sampling import EllipticityLikelihood, adaptive_samples, estimate, two_pass_samples
+from .sampling import EllipticityLikelihood, Samples, adaptive_samples, estimate, replay_samples, two_pass_samples
 
-__all__ = ["measure_object", "measure_objects", "as_config"]
+__all__ = ["measure_object", "measure_objects", "measure_versions", "FitPlan", "as_config"]
 
 # free parameters of the galaxy (e1, e2, x, y, r, S, B) and of a point source (x, y, S)
 _NPAR_GALAXY = 7
@@ -95,43 +96,87 @@ def measure_object(observations: Sequence[Observation], mag: float, config=None,
     if not obs:
         return FitResult(fitclass=FITCLASS_FEW_EXPOSURES, message="no usable exposure")
     try:
-        return _measure(obs, float(mag), cfg, return_samples)
+        return _measure(obs, float(mag), cfg, return_samples)[0]
     except (np.linalg.LinAlgError, FloatingPointError, ZeroDivisionError, ValueError) as exc:
         if isinstance(exc, ShearfitValueError):
             raise
         return FitResult(fitclass=FITCLASS_FIT_FAILED, n_exposures_used=len(obs), message=f"fit failed: {exc}")
 
 
-def _measure(obs, mag, cfg, return_samples):
-    disk = exponential_disk(cfg.truncation)
+@dataclass
+class FitPlan:
+    """The choices a fit makes from its object's data, for replaying on other versions of the object.
+
+    ``keep``: per exposure, the Fourier modes kept by the noise-aware cut;
+    ``shift``: the sky offset (du, dv) of the cross-correlation peak;
+    ``size_nodes`` and ``r_center``: the ln r spline nodes and the round
+    model's size; ``centres``: the size centre used at each ellipticity
+    sample; ``samples``: the ellipticity samples, their cells and posterior.
+    """
+
+    keep: list
+    shift: tuple
+    size_nodes: np.ndarray
+    r_center: float
+    centres: dict
+    samples: Samples
+
+
+def _measure(obs, mag, cfg, return_samples, plan=None, margin=np.inf):
+    """One object's fit: (FitResult, the FitPlan it made, or None where it stopped early).
+
+    With ``plan``, the fit replays another version's choices (modes, position, size nodes and centres,
+    ellipticity samples within ``margin`` nats of its posterior cut) instead of making its own.
+    """
     fast = fast_pair(cfg.truncation)
     exposures = [prepare_exposure(o, cfg) for o in obs]
-    jm = join_exposures(exposures, cfg.mode_chi2_tolerance)
+    if plan is None:
+        disk = exponential_disk(cfg.truncation)
+        jm = join_exposures(exposures, cfg.mode_chi2_tolerance)
+        pix = jm.pixel_scale
+        a = float(priors.size_prior_scale(mag, cfg))
+        max_shift = cfg.max_centroid_shift * pix
+        r_ref = min(a, 2 * pix)
+        start = coarse_peak(exposures, [o.jacobian for o in obs], disk, r_ref, 2 * max_shift, pix)
+        du, dv, ok = find_position(jm, disk, r_ref, max_shift, start=start)
+        shift = float(np.hypot(du, dv))
+        if not ok or shift > max_shift:
+            return FitResult(fitclass=FITCLASS_CENTROID, n_exposures_used=len(obs), centroid_shift=shift / pix,
+                             message="cross-correlation peak too far from the input position"), None
+        jm = shift_joint(jm, du, dv)
+        rng = _size_range(jm, cfg, mag, fast)
+        if rng is None:
+            return FitResult(fitclass=FITCLASS_FIT_FAILED, n_exposures_used=len(obs), centroid_shift=shift / pix,
+                             message="no model correlates with the data"), None
+        med, lo, hi = rng
+        # spline nodes uniform in ln r from the round model's 0.1 % to its 99.9 % point (plus a margin),
+        # carried to each ellipticity by the predicted growth of the best size with e; where that range
+        # is narrower than the +-15 % uncertainty of the prediction, passes of 5 nodes over +-0.6 and then
+        # +-0.15 first locate the peak at each ellipticity
+        margin_x = 0.1
+        x = np.linspace(lo - med - margin_x, hi - med + margin_x, cfg.n_size)
+        locate = (0.6, 0.15) if (hi - lo) < 1.2 else None
+        like = EllipticityLikelihood(jm, cfg, mag, fast, x, float(np.exp(med)), locate_widths=locate)
+        samples = adaptive_samples(like, cfg) if cfg.sampling == "adaptive" else two_pass_samples(like, cfg)
+        n_samples = samples.e1.size
+        plan = FitPlan(keep=jm.keep, shift=(du, dv), size_nodes=x, r_center=like.r_center, centres=like.centres,
+                       samples=samples)
+    else:
+        if plan.keep is not None and [k.size for k in plan.keep] != [e.kx.size for e in exposures]:
+            raise ShearfitValueError("a replayed fit needs the same PSFs (Fourier modes) as the fit it replays")
+        jm = shift_joint(join_exposures(exposures, keep=plan.keep), *plan.shift)
+        pix = jm.pixel_scale
+        shift = float(np.hypot(*plan.shift))
+        like = EllipticityLikelihood(jm, cfg, mag, fast, plan.size_nodes, plan.r_center)
+        like.fixed_centres = plan.centres
+        samples = replay_samples(like, plan.samples, cfg, margin)
+        n_samples = int(np.count_nonzero(~np.isnan(samples.point.mean_r)))
+    return _result(obs, cfg, mag, jm, like, samples, n_samples, shift / pix, return_samples), plan
+
+
+def _result(obs, cfg, mag, jm, like, samples, n_samples, centroid_shift, return_samples):
+    """The estimate, the star/galaxy test and the size check of one fit, as a FitResult."""
     pix = jm.pixel_scale
-    a = float(priors.size_prior_scale(mag, cfg))
-    max_shift = cfg.max_centroid_shift * pix
-    r_ref = min(a, 2 * pix)
-    start = coarse_peak(exposures, [o.jacobian for o in obs], disk, r_ref, 2 * max_shift, pix)
-    du, dv, ok = find_position(jm, disk, r_ref, max_shift, start=start)
-    shift = float(np.hypot(du, dv))
-    if not ok or shift > max_shift:
-        return FitResult(fitclass=FITCLASS_CENTROID, n_exposures_used=len(obs), centroid_shift=shift / pix,
-                         message="cross-correlation peak too far from the input position")
-    jm = shift_joint(jm, du, dv)
-    rng = _size_range(jm, cfg, mag, fast)
-    if rng is None:
-        return FitResult(fitclass=FITCLASS_FIT_FAILED, n_exposures_used=len(obs), centroid_shift=shift / pix,
-                         message="no model correlates with the data")
-    med, lo, hi = rng
-    # spline nodes uniform in ln r from the round model's 0.1 % to its 99.9 % point (plus a margin),
-    # carried to each ellipticity by the predicted growth of the best size with e; where that range
-    # is narrower than the +-15 % uncertainty of the prediction, passes of 5 nodes over +-0.6 and then
-    # +-0.15 first locate the peak at each ellipticity
-    margin = 0.1
-    x = np.linspace(lo - med - margin, hi - med + margin, cfg.n_size)
-    locate = (0.6, 0.15) if (hi - lo) < 1.2 else None
-    like = EllipticityLikelihood(jm, cfg, mag, fast, x, float(np.exp(med)), locate_widths=locate)
-    samples = adaptive_samples(like, cfg) if cfg.sampling == "adaptive" else two_pass_samples(like, cfg)
     est = estimate(samples, cfg)
     # star/galaxy: F-ratio of the best galaxy (r > 0) against the best point source (sec. 3.2)
     z = like.zero   # the point source, already evaluated for the size integral
@@ -147,8 +192,8 @@ def _measure(obs, mag, cfg, return_samples):
         weight=0.0 if is_star else est.weight,
         snr=like.best_snr, scalelength=est.scalelength, bulge_fraction=est.bulge_fraction,
         model_flux=est.model_flux, fitclass=FITCLASS_STAR if is_star else FITCLASS_GALAXY,
-        n_exposures_used=len(obs), star_pvalue=pvalue, centroid_shift=shift / pix,
-        n_samples=int(samples.e1.size))
+        n_exposures_used=len(obs), star_pvalue=pvalue, centroid_shift=centroid_shift,
+        n_samples=n_samples)
     if not np.isfinite(est.e1):
         result.fitclass = FITCLASS_FIT_FAILED
         result.weight = 0.0
@@ -170,6 +215,46 @@ def _measure(obs, mag, cfg, return_samples):
             rec[f] = getattr(samples, f)
         result.samples = rec
     return result
+
+
+def measure_versions(versions: Sequence[Sequence[Observation]], mag: float, config=None,
+                     margin: float = 10.0) -> list:
+    """Measure versions of one object (its stamps slightly transformed, as metacalibration's) alike.
+
+    The first version is fitted as :func:`measure_object` fits it; every
+    other one replays the choices that fit made from its data (the Fourier
+    modes kept, the position, the size nodes and centres, and the
+    ellipticity samples and cells, see :func:`shearfit.sampling.replay_samples`),
+    so that differences between the versions' estimates follow the
+    differences between their pixels smoothly. The versions must carry the
+    same PSFs, Jacobians and weights. Returns one FitResult per version.
+    """
+    cfg = as_config(config)
+    versions = [list(v) for v in versions]
+    if not versions or any(any(not isinstance(o, Observation) for o in v) for v in versions):
+        raise ShearfitValueError("measure_versions takes a sequence of sequences of shearfit.Observation")
+    if len({len(v) for v in versions}) != 1:
+        raise ShearfitValueError("measure_versions: every version needs the same exposures")
+    usable = [i for i, o in enumerate(versions[0]) if np.any(o.weight > 0)]
+    versions = [[v[i] for i in usable] for v in versions]
+    if not usable:
+        return [FitResult(fitclass=FITCLASS_FEW_EXPOSURES, message="no usable exposure") for _ in versions]
+    plan = None
+    out = []
+    for k, obs in enumerate(versions):
+        try:
+            res, made = _measure(obs, float(mag), cfg, False, plan=plan, margin=margin)
+        except (np.linalg.LinAlgError, FloatingPointError, ZeroDivisionError, ValueError) as exc:
+            if isinstance(exc, ShearfitValueError):
+                raise
+            res, made = FitResult(fitclass=FITCLASS_FIT_FAILED, n_exposures_used=len(obs),
+                                  message=f"fit failed: {exc}"), None
+        if k == 0:
+            if made is None:   # nothing to replay: the reference stopped before sampling
+                return [res] + [measure_object(v, mag, cfg) for v in versions[1:]]
+            plan = made
+        out.append(res)
+    return out
 
 
 def _measure_one(args):

@@ -21,7 +21,12 @@ The weight maps of the versions are the original ones scaled to the variance
 of the processed noise; pixels near masked ones (whose contents were set to
 zero before interpolation) and near the stamp's edge are masked.
 
-The lensfit engine then measures each version jointly over the exposures,
+The lensfit engine then measures each version jointly over the exposures.
+The ``noshear`` fit makes its choices from its data as any fit does (the
+Fourier modes kept, the position, the size nodes, the ellipticity samples);
+the sheared versions replay them (:func:`shearfit.measure.measure_versions`),
+so that their estimates differ only through their pixels, and evaluate only
+the samples within ``replay_margin`` nats of the posterior cut.
 ``R_ij = (e_i[j+] - e_i[j-]) / (2 delta)`` per galaxy, and an ensemble
 shear is ``<R>^-1 <e>`` with the lensfit weights of the ``noshear`` fit.
 Cuts and weights computed from measured quantities respond to the shear too
@@ -163,11 +168,11 @@ class MetacalResult:
 E_GRID_MIN = 0.005
 
 
-def measure_metacal(observations, mag, config=None, delta=0.01, rng=None) -> MetacalResult:
+def measure_metacal(observations, mag, config=None, delta=0.01, rng=None, replay_margin=10.0) -> MetacalResult:
     """Measure the five metacal versions of one object jointly over its exposures (see the module doc)."""
     from dataclasses import replace
 
-    from .measure import as_config, measure_object
+    from .measure import as_config, measure_versions
 
     rng = np.random.default_rng() if rng is None else rng
     config = as_config(config)
@@ -175,8 +180,11 @@ def measure_metacal(observations, mag, config=None, delta=0.01, rng=None) -> Met
         config = replace(config, e_grid_min=E_GRID_MIN)
     per_exp = [metacal_observations(o, delta, rng) for o in observations]
     out = MetacalResult(delta=float(delta))
-    for name in VERSIONS:
-        out.results[name] = measure_object([v[name] for v in per_exp], mag, config)
+    # the sheared versions replay the noshear fit's choices (modes, position, size nodes, ellipticity
+    # samples): their estimates then differ only through their pixels (measure_versions)
+    results = measure_versions([[v[name] for v in per_exp] for name in VERSIONS], mag, config,
+                               margin=replay_margin)
+    out.results = dict(zip(VERSIONS, results))
     R = np.full((2, 2), np.nan)
     for j, (p, m) in enumerate((("1p", "1m"), ("2p", "2m"))):
         rp, rm = out.results[p], out.results[m]

@@ -26,8 +26,8 @@ from . import priors
 from .config import FitConfig
 from .likelihood import _interp_matrix, _linear_vectors, flux_position_marginal, model_sums, spline_matrix
 
-__all__ = ["EllipticityLikelihood", "Samples", "adaptive_samples", "two_pass_samples", "estimate",
-           "lensing_weight"]
+__all__ = ["EllipticityLikelihood", "Samples", "adaptive_samples", "two_pass_samples", "replay_samples",
+           "estimate", "lensing_weight"]
 
 
 def lensing_weight(e_var, cfg: FitConfig):
@@ -43,6 +43,12 @@ def lensing_weight(e_var, cfg: FitConfig):
     with np.errstate(divide="ignore", invalid="ignore"):
         w = 1.0 / (e_var * em2 / denom + cfg.sigma_pop ** 2)
     return np.where((denom > 0) & np.isfinite(e_var), w, 0.0)
+
+
+def e_key(e1, e2):
+    """Hashable keys of ellipticities (to 1e-9), for per-sample records."""
+    return list(zip(np.rint(np.asarray(e1) * 1e9).astype(np.int64).tolist(),
+                    np.rint(np.asarray(e2) * 1e9).astype(np.int64).tolist()))
 
 
 @dataclass
@@ -83,6 +89,10 @@ class EllipticityLikelihood:
         self.chi2_star = None
         self.best_chi2_gal = np.inf
         self.best_snr = 0.0
+        # the size centre used at each ellipticity, keyed by ``e_key``: a fit of another version of the
+        # same object (metacal's) replays them instead of locating its own (``fixed_centres``)
+        self.centres = {}
+        self.fixed_centres = None
 
     def centre(self, e1, e2):
         """Predicted best scalelength at ellipticity e from the round model's.
@@ -158,9 +168,14 @@ class EllipticityLikelihood:
         cfg = self.cfg
         ne = e1.size
         nr = self.x.size
-        rc = self.centre(e1, e2)
-        if self.locate_widths is not None:
-            rc = self._located_centres(e1, e2, rc)
+        keys = e_key(e1, e2)
+        if self.fixed_centres is not None:
+            rc = np.array([self.fixed_centres[k] for k in keys])
+        else:
+            rc = self.centre(e1, e2)
+            if self.locate_widths is not None:
+                rc = self._located_centres(e1, e2, rc)
+        self.centres.update(zip(keys, rc.tolist()))
         R = rc[:, None] * np.exp(self.x)[None, :]
         E1 = np.repeat(e1, nr)
         E2 = np.repeat(e2, nr)
@@ -413,6 +428,34 @@ def two_pass_samples(like: EllipticityLikelihood, cfg: FitConfig) -> Samples:
             break
         half = int(half * 1.5) + step
     return st.result()
+
+
+def replay_samples(like: EllipticityLikelihood, ref: Samples, cfg: FitConfig, margin: float) -> Samples:
+    """The ellipticity samples of a reference fit, evaluated on another version of the same object.
+
+    The estimator then follows the data smoothly from one version to the
+    other: no sample, cell or size node moves with the small change between
+    them (an adaptive grid re-chosen per version moves discretely, which
+    differences of estimates 2 delta apart would read as response). Only
+    samples whose reference posterior lies above the posterior cut less
+    ``margin`` nats are evaluated (and only those that stand for a cell);
+    the rest get log L = -inf, which the estimator leaves out anyway unless
+    the version's posterior differs from the reference's by more than
+    ``margin`` there.
+    """
+    ok = np.isfinite(ref.logpost) & (ref.area > 0)
+    n = ref.e1.size
+    logl = np.full(n, -np.inf)
+    logpost = np.full(n, -np.inf)
+    fields_ = ("logl_disk", "logl_bulge", "mean_r", "mean_b", "mean_flux")
+    cols = {f: np.full(n, np.nan) for f in fields_}
+    if np.any(ok):
+        sel = ok & (ref.logpost > np.max(ref.logpost[ok]) + np.log(cfg.posterior_cut) - margin)
+        pt = like(ref.e1[sel], ref.e2[sel])
+        logl[sel], logpost[sel] = _mix(pt, ref.e1[sel], ref.e2[sel], cfg)
+        for f in fields_:
+            cols[f][sel] = getattr(pt, f)
+    return Samples(e1=ref.e1, e2=ref.e2, area=ref.area, logl=logl, logpost=logpost, point=EPoint(**cols))
 
 
 @dataclass
