@@ -9,6 +9,7 @@ sizes. Prints a profile grouped by stage and the process's peak memory.
 
     python benchmarks/speed.py                 # 7 exposures, profile
     python benchmarks/speed.py --scaling       # growth with exposures and stamp size
+    python benchmarks/speed.py --check         # how far the speed settings move the estimates
 """
 
 from __future__ import annotations
@@ -94,6 +95,33 @@ def metacal_report(objs, cfg, dt_plain):
           f"{1e3 * t_img / n:.1f} ms per galaxy")
 
 
+#: the settings that trade exactness for speed, at their exact values
+EXACT = {"mode_bins_per_octave": 0, "n_flux": 11}
+
+
+def check_report(objs, cfg, res, seed):
+    """The speed settings against the exact ones (EXACT), on the timed galaxies and on faint ones:
+    how far the estimates move, in e and in units of their own error."""
+    from dataclasses import replace
+
+    exact = replace(cfg, **EXACT)
+    faint = ring_set(len(objs), (0.0, 0.0), np.random.default_rng(seed + 1000), n_rotations=1, n_exposures=7,
+                     snr_range=(7, 15), mag_range=(23.0, 24.7), stamp_size=48)
+    print(f"\ncheck: these settings against {', '.join(f'{k}={v}' for k, v in EXACT.items())}")
+    for label, ob, fast in (("timed set, SNR 10-60", objs, res), ("faint set, SNR 7-15", faint, None)):
+        if fast is None:
+            fast = [shearfit.measure_object(o, mag=t["mag"], config=cfg) for o, t in ob]
+        ref = [shearfit.measure_object(o, mag=t["mag"], config=exact) for o, t in ob]
+        ok = [(a, b) for a, b in zip(ref, fast) if a.fitclass == 0 and b.fitclass == 0]
+        de = np.array([[a.e1 - b.e1, a.e2 - b.e2] for a, b in ok])
+        rel = np.abs(de).max(axis=1) / np.sqrt([a.e_var for a, _ in ok])
+        dw = np.array([abs(a.weight - b.weight) / a.weight for a, b in ok if a.weight > 0])
+        same = sum(a.fitclass == b.fitclass for a, b in zip(ref, fast))
+        print(f"  {label}: {len(ok)} galaxies; max |de| {np.max(np.abs(de)):.1e} (rms {np.sqrt(np.mean(de ** 2)):.1e}), "
+              f"at most {np.max(rel):.1e} of the error on e; weights within {np.max(dw):.1e}; "
+              f"fitclass the same for {same} of {len(ref)}")
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--n-galaxies", type=int, default=40)
@@ -105,6 +133,9 @@ def main(argv=None):
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="engine setting")
     ap.add_argument("--metacal", action="store_true",
                     help="also time the metacal measurement (five versions per object) against the plain one")
+    ap.add_argument("--check", action="store_true",
+                    help="also measure the galaxies (and as many faint ones) with the exact settings and report "
+                         "how far the speed settings (mode binning, flux nodes) move the estimates")
     args = ap.parse_args(argv)
     cfg = {}
     for kv in args.set:
@@ -140,6 +171,8 @@ def main(argv=None):
     pstats.Stats(prof).sort_stats("tottime").print_stats(8)
     if args.metacal:
         metacal_report(objs, cfg, dt)
+    if args.check:
+        check_report(objs, cfg, res, args.seed)
     if args.scaling:
         print("growth with the number of exposures (48-pixel stamps):")
         base = None

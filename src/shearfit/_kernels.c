@@ -24,6 +24,10 @@
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
 #include <math.h>
+#include <stdlib.h>
+#include <string.h>
+#include <stdint.h>
+#include <limits.h>
 
 #define NSTRIDE 12
 #define NOUT 15
@@ -165,9 +169,495 @@ static PyObject *model_sums(PyObject *self, PyObject *args)
     Py_RETURN_NONE;
 }
 
+/*
+ * The same sums with the modes alone on their sampled mode binned per ellipticity in kappa = K^T C K:
+ * for a model of that ellipticity and any size r the transform depends on a mode only through
+ * r^2 kappa, so each bin's summed weights (the six linear vectors and q) stand for its modes at the
+ * bin's kappa, to second order in the bin's width. The bins are uniform in kappa within each octave,
+ * nb per octave (kappa = 2^E (1 + i/nb)): their relative width is 1/nb to 1/(2 nb), and a mode's bin
+ * and its cloud-in-cell weights come from the exponent and mantissa bits of kappa, without a log.
+ * The bins of a set of ellipticities are made once (make_bins) and serve models of any size at them
+ * (binned_sums): block_sums takes them as modes of their own (basis [kappa_b / c11, 0, 0], so that
+ * the model's coefficients give r^2 kappa_b); the folded modes are summed exactly, as in model_sums.
+ * The DC mode (K = 0) has its own bin at kappa = 0. Bins no mode reaches are left out.
+ */
+static inline void octave_bin(double k, int nb, long long *idx, double *frac)
+{
+    uint64_t bits;
+    memcpy(&bits, &k, sizeof bits);
+    long long e = (long long)((bits >> 52) & 0x7ff);
+    uint64_t mb = (bits & 0xfffffffffffffULL) | 0x3ff0000000000000ULL;  /* mantissa as a double in [1, 2) */
+    double m;
+    memcpy(&m, &mb, sizeof m);
+    double x = (m - 1.0) * nb;
+    long long i = (long long)x;
+    *idx = e * nb + i;
+    *frac = x - (double)i;
+}
+
+static inline double octave_kappa(long long idx, int nb)
+{
+    long long e = idx / nb, i = idx % nb;
+    return ldexp(1.0 + (double)i / nb, (int)(e - 1023));
+}
+
+/* pass 1 of the binning: each mode's bin and cloud-in-cell fraction; returns the lowest and highest bin */
+MULTIVERSION
+static void bin_index(const float *B3, Py_ssize_t n_single, double a0, double a1, double a2, int nb,
+                      long long *idx, double *frac, long long *lo_out, long long *hi_out)
+{
+    long long lo = LLONG_MAX, hi = LLONG_MIN;
+    for (Py_ssize_t j = 0; j < n_single; j++) {
+        const float *p = B3 + 4 * j;
+        double k = a0 * p[0] + a1 * p[1] + a2 * p[2];
+        long long i;
+        double f;
+        octave_bin(k > 0 ? k : 1.0, nb, &i, &f);
+        i = k > 0 ? i : LLONG_MIN;
+        idx[j] = i;
+        frac[j] = f;
+        if (k > 0) {
+            lo = i < lo ? i : lo;
+            hi = i > hi ? i : hi;
+        }
+    }
+    *lo_out = lo;
+    *hi_out = hi;
+}
+
+/* pass 2: the modes' weights into rows of 8 (the six linear vectors, q, padding) */
+MULTIVERSION
+static void bin_scatter(const float *C8, Py_ssize_t n_single, const long long *idx, const double *frac,
+                        long long lo, Py_ssize_t nbin, double *A, char *used)
+{
+    for (Py_ssize_t j = 0; j < n_single; j++) {
+        const float *c = C8 + 8 * j;
+        if (idx[j] == LLONG_MIN) {
+            double *w0 = A + 8 * nbin;
+            for (int t = 0; t < 8; t++) w0[t] += c[t];
+            used[nbin] = 1;
+            continue;
+        }
+        Py_ssize_t b = (Py_ssize_t)(idx[j] - lo);
+        double f = frac[j], g = 1.0 - f;
+        double *w0 = A + 8 * b;
+        for (int t = 0; t < 8; t++) { w0[t] += g * c[t]; w0[8 + t] += f * c[t]; }
+        used[b] = used[b + 1] = 1;
+    }
+}
+
+/*
+ * make_bins(shape, basis32, channels32, bins_per_octave) -> (rows, offsets): for each ellipticity
+ * (its shape coefficients c11, c12, c22), the bins some mode reached, as kernel modes of 12 doubles
+ * (basis [kappa_b / c11, 0, 0], the summed linear vectors and q), the DC bin last; rows of
+ * ellipticity e are offsets[e] .. offsets[e + 1] (bytes of float64 and of int64).
+ */
+static PyObject *make_bins(PyObject *self, PyObject *args)
+{
+    Py_buffer shape, b3, c8;
+    int nb;
+    if (!PyArg_ParseTuple(args, "y*y*y*i", &shape, &b3, &c8, &nb)) return NULL;
+    Py_ssize_t n_e = shape.len / (3 * (Py_ssize_t)sizeof(double));
+    Py_ssize_t n_single = b3.len / (4 * (Py_ssize_t)sizeof(float));
+    if (c8.len != 8 * n_single * (Py_ssize_t)sizeof(float) || nb < 1 || nb > 4096) {
+        PyBuffer_Release(&shape); PyBuffer_Release(&b3); PyBuffer_Release(&c8);
+        PyErr_SetString(PyExc_ValueError, "make_bins: inconsistent buffers");
+        return NULL;
+    }
+    const double *S = (const double *)shape.buf;
+    Py_ssize_t ns = n_single > 0 ? n_single : 1;
+    long long *idx = (long long *)malloc(ns * sizeof(long long));
+    double *frac = (double *)malloc(ns * sizeof(double));
+    long long *off = (long long *)malloc((n_e + 1) * sizeof(long long));
+    double *A = NULL, *rows = NULL;
+    char *used = NULL;
+    Py_ssize_t capA = 0, capR = 0, nrows = 0;
+    int nomem = (idx == NULL || frac == NULL || off == NULL);
+
+    Py_BEGIN_ALLOW_THREADS
+    for (Py_ssize_t e = 0; !nomem && e < n_e; e++) {
+        const double a0 = S[3 * e], a1 = S[3 * e + 1], a2 = S[3 * e + 2];
+        long long lo, hi;
+        bin_index((const float *)b3.buf, n_single, a0, a1, a2, nb, idx, frac, &lo, &hi);
+        Py_ssize_t nbin = hi >= lo ? (Py_ssize_t)(hi - lo) + 2 : 0;   /* plus the upper neighbour of the last */
+        if (nbin + 1 > capA) {
+            free(A); free(used);
+            capA = 2 * (nbin + 1);
+            A = (double *)malloc(capA * 8 * sizeof(double));
+            used = (char *)malloc(capA);
+            if (A == NULL || used == NULL) { nomem = 1; break; }
+        }
+        memset(A, 0, (nbin + 1) * 8 * sizeof(double));
+        memset(used, 0, nbin + 1);
+        bin_scatter((const float *)c8.buf, n_single, idx, frac, lo, nbin, A, used);
+        if (nrows + nbin + 1 > capR) {
+            capR = 2 * (nrows + nbin + 1);
+            double *r = (double *)realloc(rows, capR * NSTRIDE * sizeof(double));
+            if (r == NULL) { nomem = 1; break; }
+            rows = r;
+        }
+        off[e] = nrows;
+        for (Py_ssize_t b = 0; b <= nbin; b++) {
+            if (!used[b]) continue;
+            double *w = rows + NSTRIDE * nrows;
+            w[0] = b < nbin ? octave_kappa(lo + b, nb) / a0 : 0.0;
+            w[1] = w[2] = 0.0;
+            for (int t = 0; t < 7; t++) w[3 + t] = A[8 * b + t];
+            w[10] = w[11] = 0.0;
+            nrows++;
+        }
+    }
+    off[n_e] = nrows;
+    Py_END_ALLOW_THREADS
+
+    PyObject *res = NULL;
+    if (!nomem) {
+        PyObject *r = PyBytes_FromStringAndSize((const char *)rows, nrows * NSTRIDE * sizeof(double));
+        PyObject *o = PyBytes_FromStringAndSize((const char *)off, (n_e + 1) * sizeof(long long));
+        if (r && o) res = PyTuple_Pack(2, r, o);
+        Py_XDECREF(r);
+        Py_XDECREF(o);
+    }
+    free(idx); free(frac); free(off); free(A); free(rows); free(used);
+    PyBuffer_Release(&shape); PyBuffer_Release(&b3); PyBuffer_Release(&c8);
+    if (nomem) return PyErr_NoMemory();
+    return res;
+}
+
+/*
+ * binned_sums(shape, r2, e_index, rows, offsets, modes, table, c, inv_du, ratio2, n_single, out): the
+ * sums of models (r2 and the ellipticity e_index each, into shape and make_bins' rows and offsets),
+ * from the bins of their ellipticity plus the folded modes (modes[n_single:]), summed exactly.
+ */
+static PyObject *binned_sums(PyObject *self, PyObject *args)
+{
+    Py_buffer shape, r2b, eidx, rowsb, offb, modes, tab, out;
+    double c, inv_du, ratio2;
+    Py_ssize_t n_single;
+    if (!PyArg_ParseTuple(args, "y*y*y*y*y*y*y*dddnw*", &shape, &r2b, &eidx, &rowsb, &offb, &modes, &tab, &c,
+                          &inv_du, &ratio2, &n_single, &out))
+        return NULL;
+    Py_ssize_t n_models = r2b.len / (Py_ssize_t)sizeof(double);
+    Py_ssize_t n_e = shape.len / (3 * (Py_ssize_t)sizeof(double));
+    Py_ssize_t n_modes = modes.len / (NSTRIDE * (Py_ssize_t)sizeof(double));
+    Py_ssize_t n_rows = rowsb.len / (NSTRIDE * (Py_ssize_t)sizeof(double));
+    Py_ssize_t n_tab = tab.len / (4 * (Py_ssize_t)sizeof(float));
+    const long long *E = (const long long *)eidx.buf, *OFF = (const long long *)offb.buf;
+    int bad = out.len < n_models * NOUT * (Py_ssize_t)sizeof(double) || n_single > n_modes
+              || eidx.len != n_models * (Py_ssize_t)sizeof(long long)
+              || offb.len != (n_e + 1) * (Py_ssize_t)sizeof(long long) || OFF[n_e] != n_rows;
+    for (Py_ssize_t m = 0; !bad && m < n_models; m++)
+        bad = E[m] < 0 || E[m] >= n_e;
+    for (Py_ssize_t e = 0; !bad && e < n_e; e++)
+        bad = OFF[e] < 0 || OFF[e] > OFF[e + 1];
+    if (bad) {
+        PyBuffer_Release(&shape); PyBuffer_Release(&r2b); PyBuffer_Release(&eidx); PyBuffer_Release(&rowsb);
+        PyBuffer_Release(&offb); PyBuffer_Release(&modes); PyBuffer_Release(&tab); PyBuffer_Release(&out);
+        PyErr_SetString(PyExc_ValueError, "binned_sums: inconsistent buffers");
+        return NULL;
+    }
+    const double *S = (const double *)shape.buf;
+    const double *R2 = (const double *)r2b.buf;
+    const double *M = (const double *)modes.buf;
+    const double *ROWS = (const double *)rowsb.buf;
+    const float *T = (const float *)tab.buf;
+    double *O = (double *)out.buf;
+    const double nmax = (double)(n_tab - 1);
+    const int same = (ratio2 == 1.0);
+    const Py_ssize_t n_multi = n_modes - n_single;
+
+    Py_BEGIN_ALLOW_THREADS
+    Py_ssize_t m0 = 0;
+    while (m0 < n_models) {
+        Py_ssize_t m1 = m0;
+        while (m1 < n_models && E[m1] == E[m0]) m1++;
+        const long long e = E[m0];
+        const double a0 = S[3 * e], a1 = S[3 * e + 1], a2 = S[3 * e + 2];
+        const double *W = ROWS + NSTRIDE * OFF[e];
+        const Py_ssize_t nbins = (Py_ssize_t)(OFF[e + 1] - OFF[e]);
+        for (Py_ssize_t b0 = m0; b0 < m1; b0 += NB) {
+            double c0[NB], c1[NB], c2[NB], ob[NB * NOUT], om[NB * NOUT];
+            for (int k = 0; k < NB; k++) {
+                Py_ssize_t m = b0 + k < m1 ? b0 + k : m1 - 1;
+                c0[k] = a0 * R2[m]; c1[k] = a1 * R2[m]; c2[k] = a2 * R2[m];
+            }
+            block_sums(c0, c1, c2, W, nbins, nbins, T, nmax, c, inv_du, ratio2, same, ob);
+            if (n_multi > 0) {
+                block_sums(c0, c1, c2, M + NSTRIDE * n_single, 0, n_multi, T, nmax, c, inv_du, ratio2, same, om);
+                for (int t = 0; t < NB * NOUT; t++) ob[t] += om[t];
+            }
+            for (int k = 0; k < NB && b0 + k < m1; k++)
+                for (int t = 0; t < NOUT; t++) O[NOUT * (b0 + k) + t] = ob[NOUT * k + t];
+        }
+        m0 = m1;
+    }
+    Py_END_ALLOW_THREADS
+
+    PyBuffer_Release(&shape); PyBuffer_Release(&r2b); PyBuffer_Release(&eidx); PyBuffer_Release(&rowsb);
+    PyBuffer_Release(&offb); PyBuffer_Release(&modes); PyBuffer_Release(&tab); PyBuffer_Release(&out);
+    Py_RETURN_NONE;
+}
+
+/*
+ * The marginalisation of each model over bulge fraction, position and flux (likelihood.py's
+ * flux_position_marginal, which stays as the reference: a test checks they agree). erfcx and expi
+ * are scipy.special's own (cython_special), whose C entry points the module is given once
+ * (set_special); erf, exp and log are the C library's.
+ */
+typedef double (*special_fn)(double, int);
+static special_fn sp_erfcx = NULL, sp_expi = NULL;
+static const char *SPECIAL_SIG = "double (double, int __pyx_skip_dispatch)";
+/* log Ei and its derivative e^x / (x Ei(x)) at x = ei_x0 + i ei_dx, from scipy's expi (likelihood.py):
+   cubic Hermite interpolation between them is good to 1e-11, and 50 times faster than expi itself */
+static double *ei_tab = NULL;
+static Py_ssize_t ei_n = 0;
+static double ei_x0 = 0.0, ei_dx = 1.0;
+
+static PyObject *set_special(PyObject *self, PyObject *args)
+{
+    PyObject *c1, *c2;
+    Py_buffer tab;
+    double x0, dx;
+    if (!PyArg_ParseTuple(args, "OOy*dd", &c1, &c2, &tab, &x0, &dx)) return NULL;
+    if (!PyCapsule_IsValid(c1, SPECIAL_SIG) || !PyCapsule_IsValid(c2, SPECIAL_SIG) || !(dx > 0)
+        || tab.len < 4 * (Py_ssize_t)sizeof(double) || tab.len % (2 * sizeof(double))) {
+        PyBuffer_Release(&tab);
+        PyErr_SetString(PyExc_ValueError, "set_special: capsules of signature 'double (double, int)' and a table needed");
+        return NULL;
+    }
+    double *t = (double *)malloc(tab.len);
+    if (t == NULL) { PyBuffer_Release(&tab); return PyErr_NoMemory(); }
+    memcpy(t, tab.buf, tab.len);
+    free(ei_tab);
+    ei_tab = t;
+    ei_n = tab.len / (2 * (Py_ssize_t)sizeof(double));
+    ei_x0 = x0;
+    ei_dx = dx;
+    PyBuffer_Release(&tab);
+    sp_erfcx = (special_fn)PyCapsule_GetPointer(c1, SPECIAL_SIG);
+    sp_expi = (special_fn)PyCapsule_GetPointer(c2, SPECIAL_SIG);
+    Py_RETURN_NONE;
+}
+
+#define LOG_2PI 1.8378770664093453
+#define EI_SERIES_FROM 40.0
+
+static double log_ei(double x)
+{
+    if (x < EI_SERIES_FROM) {
+        double t = (x - ei_x0) / ei_dx;
+        if (t >= 0 && t < (double)(ei_n - 1)) {
+            Py_ssize_t i = (Py_ssize_t)t;
+            double s = t - (double)i, s1 = 1.0 - s;
+            const double *a = ei_tab + 2 * i;
+            return (1 + 2 * s) * s1 * s1 * a[0] + s * s1 * s1 * ei_dx * a[1]
+                   + s * s * (3 - 2 * s) * a[2] - s * s * s1 * ei_dx * a[3];
+        }
+        return log(sp_expi(x, 0));
+    }
+    /* asymptotic series, the same 13 terms k! / x^k as likelihood._log_ei */
+    double inv = 1.0 / x, series = 0.0, fact[13];
+    fact[0] = 1.0;
+    for (int k = 1; k < 13; k++) fact[k] = fact[k - 1] * k;
+    for (int k = 12; k >= 0; k--) series = series * inv + fact[k];
+    return x - log(x) + log(series);
+}
+
+static double log_erf_diff_c(double a, double b)
+{
+    if (b >= 0) {
+        /* erfcx(a) <= erfcx(b): below e^-745 relative the second term cannot change the double */
+        double d = b * b - a * a;
+        return -b * b + log(sp_erfcx(b, 0) - (d > -745.0 ? sp_erfcx(a, 0) * exp(d) : 0.0));
+    }
+    if (a <= 0) {
+        double al = -b, bl = -a;
+        return -bl * bl + log(sp_erfcx(bl, 0) - sp_erfcx(al, 0) * exp(bl * bl - al * al));
+    }
+    return log(erf(a) - erf(b));
+}
+
+typedef struct {
+    double sb2, b0, log_zb, tcrit, log_ei_tcrit, mu_min, max_step, slope, halfwidth;
+    int bounded;
+} MargPar;
+
+static void disk_logp_c(double S, double ff, double gg, double fg, double hf, double hg, const MargPar *P,
+                        double *logp, double *meanb)
+{
+    double two_theta2 = S * S * (ff + gg - 2 * fg) + 1.0 / P->sb2;
+    double theta = sqrt(0.5 * two_theta2);
+    double r0 = S * (hf - hg) + S * S * (fg - ff) - P->b0 / P->sb2;
+    double a = theta + r0 / (2 * theta), b = r0 / (2 * theta);
+    double lediff = log_erf_diff_c(a, b);
+    *logp = (S * hf - 0.5 * S * S * ff - 0.5 * P->b0 * P->b0 / P->sb2 + r0 * r0 / (4 * theta * theta)
+             + log(sqrt(M_PI) / 2) - log(theta) + lediff - P->log_zb);
+    if (meanb) {
+        double mu = -r0 / (2 * theta * theta);
+        double num = exp(-b * b - lediff) - exp(-a * a - lediff);
+        double m = mu + num / (theta * sqrt(M_PI));
+        if (m < 0) m = 0;
+        if (m > 1) m = 1;
+        *meanb = m;
+    }
+}
+
+/* likelihood._position_integral for one element: returns the log integral, and corr */
+static double position_c(double lp_ref, double lp0, double g1, double g2, const double *H, const MargPar *P,
+                         double *corr_out)
+{
+    double h11 = -H[0], h12 = -H[1], h22 = -H[2];
+    double logdet, gqg, step;
+    int ok;
+    if (P->bounded) {
+        double half_tr = 0.5 * (h11 + h22);
+        double rad = sqrt(0.25 * (h11 - h22) * (h11 - h22) + h12 * h12);
+        double lam1 = fmax(half_tr + rad, P->mu_min), lam2 = fmax(half_tr - rad, P->mu_min);
+        if (isnan(half_tr + rad)) lam1 = NAN;     /* np.maximum propagates NaN */
+        if (isnan(half_tr - rad)) lam2 = NAN;
+        double gg = g1 * g1 + g2 * g2;
+        double gmg = h11 * g1 * g1 + 2 * h12 * g1 * g2 + h22 * g2 * g2;
+        double p1sq = rad > 1e-9 * fabs(half_tr) ? (gmg - (half_tr - rad) * gg) / (2 * rad) : gg;
+        p1sq = p1sq < 0 ? 0 : (p1sq > gg ? gg : p1sq);
+        double p2sq = gg - p1sq;
+        ok = isfinite(lam1) && isfinite(lam2);
+        logdet = log(lam1 * lam2);
+        gqg = p1sq / lam1 + p2sq / lam2;
+        step = sqrt(p1sq / (lam1 * lam1) + p2sq / (lam2 * lam2));
+    } else {
+        double det = h11 * h22 - h12 * h12;
+        ok = (h11 > 0) && (det > 0);
+        logdet = ok ? log(det) : 0.0;
+        gqg = (g1 * g1 * h22 - 2 * g1 * g2 * h12 + g2 * g2 * h11) / det;
+        step = 0.0;
+    }
+    double t = step > P->max_step ? P->max_step / (step > 0 ? step : 1.0) : 1.0;
+    double corr = (t - 0.5 * t * t) * gqg;
+    corr = ok ? (corr > 0 ? corr : (isnan(corr) ? NAN : 0.0)) : 0.0;
+    *corr_out = corr;
+    if (!ok) return -INFINITY;
+    double A = lp_ref + corr - lp0;
+    double lei;
+    if (A > P->tcrit) {
+        double la = log_ei(A);
+        lei = la + log1p(-exp(P->log_ei_tcrit - la));
+    } else {
+        lei = -INFINITY;
+    }
+    return lp0 + LOG_2PI - 0.5 * logdet + log(A > 0 ? A : 1.0) + lei;
+}
+
+#define MAXF 64
+
+static PyObject *marginal(PyObject *self, PyObject *args)
+{
+    Py_buffer sums, ub, ufb, spl, itp, par, out;
+    if (!PyArg_ParseTuple(args, "y*y*y*y*y*y*w*", &sums, &ub, &ufb, &spl, &itp, &par, &out)) return NULL;
+    Py_ssize_t n = sums.len / (15 * (Py_ssize_t)sizeof(double));
+    Py_ssize_t nf = ub.len / (Py_ssize_t)sizeof(double), nfine = ufb.len / (Py_ssize_t)sizeof(double);
+    int bad = sp_erfcx == NULL || nf < 2 || nf > MAXF || nfine < 2 || nfine > 4 * MAXF
+              || spl.len != nf * nfine * (Py_ssize_t)sizeof(double) || itp.len != spl.len
+              || par.len != 10 * (Py_ssize_t)sizeof(double) || out.len < 9 * n * (Py_ssize_t)sizeof(double);
+    if (bad) {
+        PyBuffer_Release(&sums); PyBuffer_Release(&ub); PyBuffer_Release(&ufb); PyBuffer_Release(&spl);
+        PyBuffer_Release(&itp); PyBuffer_Release(&par); PyBuffer_Release(&out);
+        PyErr_SetString(PyExc_ValueError, sp_erfcx == NULL ? "marginal: set_special first"
+                                                           : "marginal: inconsistent buffers");
+        return NULL;
+    }
+    const double *X = (const double *)sums.buf, *u = (const double *)ub.buf, *uf = (const double *)ufb.buf;
+    const double *SPL = (const double *)spl.buf, *ITP = (const double *)itp.buf, *pp = (const double *)par.buf;
+    double *O = (double *)out.buf;
+    MargPar P = {pp[0], pp[1], pp[2], pp[3], 0.0, pp[4], pp[5], pp[6], pp[7], pp[8] != 0.0};
+    Py_BEGIN_ALLOW_THREADS
+    P.log_ei_tcrit = log_ei(P.tcrit);
+    for (Py_ssize_t i = 0; i < n; i++) {
+        const double *x = X + 15 * i;
+        /* kernel layout: hf, grad_f (2), hess_f (3), hg, grad_g (2), hess_g (3), ff, gg, fg */
+        const double ff = x[12], gg = x[13], fg = x[14];
+        double *o = O + 9 * i;   /* logl_d, logl_b, flux_d, flux_b, meanb_d, chi2_d, chi2_b, snr_d, snr_b */
+        for (int pop = 0; pop < 2; pop++) {
+            const double *L = x + 6 * pop;   /* h, grad, hess of this population */
+            double h = L[0], hh = pop == 0 ? ff : gg;
+            int good = (hh > 0) && (h > 0);
+            double hh_s = good ? hh : 1.0, s_ml = good ? h / hh_s : 1.0, sig = 1.0 / sqrt(hh_s);
+            double lo = fmax(s_ml - P.halfwidth * sig, 0.02 * s_ml), hi = s_ml + P.halfwidth * sig;
+            double lp[MAXF], mb[MAXF];
+            for (Py_ssize_t k = 0; k < nf; k++) {
+                double S = lo + (hi - lo) * u[k], logp, logp0, meanb, g[2], H[3], corr;
+                if (pop == 0) {
+                    disk_logp_c(S, ff, gg, fg, x[0], x[6], &P, &logp, &meanb);
+                    disk_logp_c(S, ff, gg, fg, 0.0, 0.0, &P, &logp0, NULL);
+                    for (int t = 0; t < 2; t++) g[t] = S * ((1 - meanb) * x[1 + t] + meanb * x[7 + t]);
+                    for (int t = 0; t < 3; t++) H[t] = S * ((1 - meanb) * x[3 + t] + meanb * x[9 + t]);
+                } else {
+                    logp = S * x[6] - 0.5 * S * S * gg;
+                    logp0 = -0.5 * S * S * gg;
+                    for (int t = 0; t < 2; t++) g[t] = S * x[7 + t];
+                    for (int t = 0; t < 3; t++) H[t] = S * x[9 + t];
+                    meanb = 1.0;
+                }
+                double v = position_c(logp, logp0, g[0], g[1], H, &P, &corr) - P.slope * log(S);
+                lp[k] = good ? v : -INFINITY;
+                mb[k] = meanb;
+            }
+            /* the cubic spline of log P over the flux nodes, integrated on the fine grid (_spline_logint) */
+            double rowmax = -INFINITY;
+            for (Py_ssize_t k = 0; k < nf; k++) if (isfinite(lp[k]) && lp[k] > rowmax) rowmax = lp[k];
+            int good_row = isfinite(rowmax);
+            double floor_ = good_row ? rowmax - 40.0 : 0.0;
+            double lv[MAXF];
+            for (Py_ssize_t k = 0; k < nf; k++) lv[k] = isfinite(lp[k]) ? fmax(lp[k], floor_) : floor_;
+            double vf[4 * MAXF], m = -INFINITY;
+            for (Py_ssize_t q = 0; q < nfine; q++) {
+                double acc = 0.0;
+                for (Py_ssize_t k = 0; k < nf; k++) acc += lv[k] * SPL[k * nfine + q];
+                vf[q] = acc;
+                if (acc > m) m = acc;
+            }
+            double integral = 0.0, wsum = 0.0, ws = 0.0, wb = 0.0, wprev = 0.0;
+            for (Py_ssize_t q = 0; q < nfine; q++) {
+                double w = exp(vf[q] - m);
+                if (q > 0) integral += 0.5 * (w + wprev) * (uf[q] - uf[q - 1]);
+                wprev = w;
+                wsum += w;
+                ws += w * (lo + (hi - lo) * uf[q]);
+                if (pop == 0) {
+                    double bf = 0.0;
+                    for (Py_ssize_t k = 0; k < nf; k++) bf += mb[k] * ITP[k * nfine + q];
+                    wb += w * bf;
+                } else {
+                    wb += w;
+                }
+            }
+            if (!(wsum > 0)) wsum = 1.0;
+            double logint = good_row ? m + log(integral) : -INFINITY;
+            logint += log(hi - lo);
+            /* best-fit chi^2 of the single-component model at its best flux and position */
+            double gpos[2] = {L[1] * s_ml, L[2] * s_ml}, Hpos[3] = {L[3] * s_ml, L[4] * s_ml, L[5] * s_ml}, cml;
+            position_c(0.0, -1.0, gpos[0], gpos[1], Hpos, &P, &cml);
+            double chi2 = good ? -(h * h / hh_s) - 2 * cml : 0.0;
+            o[pop] = good ? logint : -INFINITY;
+            o[2 + pop] = ws / wsum;
+            if (pop == 0) o[4] = wb / wsum;
+            o[5 + pop] = chi2;
+            o[7 + pop] = good ? h / sqrt(hh_s) : 0.0;
+        }
+    }
+    Py_END_ALLOW_THREADS
+    PyBuffer_Release(&sums); PyBuffer_Release(&ub); PyBuffer_Release(&ufb); PyBuffer_Release(&spl);
+    PyBuffer_Release(&itp); PyBuffer_Release(&par); PyBuffer_Release(&out);
+    Py_RETURN_NONE;
+}
+
 static PyMethodDef methods[] = {
     {"model_sums", model_sums, METH_VARARGS,
      "model_sums(coef, modes, table, c, inv_du, ratio2, n_single, out)"},
+    {"set_special", set_special, METH_VARARGS, "set_special(erfcx_capsule, expi_capsule)"},
+    {"marginal", marginal, METH_VARARGS, "marginal(sums, u, u_fine, spline, interp, params, out)"},
+    {"make_bins", make_bins, METH_VARARGS, "make_bins(shape, basis32, channels32, bins_per_octave) -> (rows, offsets)"},
+    {"binned_sums", binned_sums, METH_VARARGS,
+     "binned_sums(shape, r2, e_index, rows, offsets, modes, table, c, inv_du, ratio2, n_single, out)"},
     {NULL, NULL, 0, NULL}};
 
 static struct PyModuleDef module = {PyModuleDef_HEAD_INIT, "_kernels",

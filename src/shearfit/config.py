@@ -69,7 +69,8 @@ class FitConfig:
     max_centroid_shift: float = _opt(4.0, "largest accepted position offset of the fitted centre, pixels", "sec. 3.6")
 
     # --- flux and size marginalisation (sec. 3.2) -------------------------------
-    n_flux: int = _opt(11, "flux values per (e, r) for the spline integral", "sec. 3.2")
+    n_flux: int = _opt(7, "flux values per (e, r) for the spline integral (over +-flux_halfwidth sigma; 11 "
+                       "moves e by at most 1.5e-5 from 7 at SNR 7-15, benchmarks/speed.py --check)", "sec. 3.2")
     flux_halfwidth: float = _opt(5.0, "half-width of the flux samples in units of the flux error", "sec. 3.2")
     n_size: int = _opt(7, "scalelengths r > 0 sampled for the size spline (r = 0 is added)", "sec. 3.2")
     size_reuse_distance: float = _opt(
@@ -83,6 +84,11 @@ class FitConfig:
     mode_chi2_tolerance: float = _opt(
         0.01, "Fourier modes are dropped, weakest first, while the chi^2 they could contribute for the brightest "
         "model the data allow (a point source at 3x the fitted flux plus 5 sigma) stays below this in total", "DESIGN: speed")
+    mode_bins_per_octave: int = _opt(
+        64, "the Fourier modes of a fit are summed, per ellipticity, in bins of K^T C K, this many per factor of 2 "
+        "(the model transform depends on a mode only through r^2 K^T C K; cloud-in-cell, errors scale as the "
+        "inverse square: 64 moves log L by 1e-5 of itself and e by 1e-5, benchmarks/speed.py --check); 0 evaluates "
+        "every mode (also what the numpy path without the compiled kernel does)", "DESIGN: speed")
     alias_correction: str = _opt(
         "moffat",
         "high frequencies of a native-sampled PSF: 'moffat' models them with an elliptical Moffat fitted to the PSF "
@@ -141,6 +147,8 @@ class FitConfig:
             raise ShearfitValueError("settings n_flux >= 5 and n_size >= 3 are needed for the spline integrals")
         if not 0 < self.model_e_limit < 1:
             raise ShearfitValueError("setting model_e_limit must lie in (0, 1)")
+        if not 0 <= self.mode_bins_per_octave <= 4096:
+            raise ShearfitValueError(f"setting mode_bins_per_octave={self.mode_bins_per_octave!r} must lie in [0, 4096]")
 
     def replace(self, **changes) -> "FitConfig":
         return fit_config_from_mapping({**self.to_dict(), **changes})

@@ -92,6 +92,21 @@ class JointModes:
         return cache
 
 
+def _packed_bins(jm):
+    """The modes alone on their sampled mode, compact for binning (cached): their basis [kx^2, 2 kx ky,
+    ky^2, 0] and their weights [lin0..lin5, q, 0], in float32 (the bins sum them in float64; 6e-8 relative
+    per mode is far below the binning's own error)."""
+    cache = getattr(jm, "_bins32", None)
+    if cache is None:
+        packed, n_single = jm.packed()
+        b3 = np.zeros((n_single, 4), np.float32)
+        b3[:, :3] = packed[:n_single, :3]
+        c8 = np.zeros((n_single, 8), np.float32)
+        c8[:, :7] = packed[:n_single, 3:10]
+        cache = jm._bins32 = (b3, c8)
+    return cache
+
+
 def _noise_aware_cut(exposures, chi2_tolerance):
     """Per exposure, the modes to keep so that the dropped ones matter less than ``chi2_tolerance``.
 
@@ -216,6 +231,22 @@ class ModelSums:
     gg: np.ndarray
     fg: np.ndarray
 
+    @classmethod
+    def from_kernel(cls, out):
+        """Views into the kernels' (n, 15) output [hf, grad_f, hess_f, hg, grad_g, hess_g, ff, gg, fg]."""
+        s = cls(hf=out[:, 0], hg=out[:, 6], grad_f=out[:, 1:3], grad_g=out[:, 7:9], hess_f=out[:, 3:6],
+                hess_g=out[:, 9:12], ff=out[:, 12], gg=out[:, 13], fg=out[:, 14])
+        s._packed = out
+        return s
+
+    def packed(self):
+        """The sums as one C-contiguous (n, 15) array in the kernels' layout."""
+        out = getattr(self, "_packed", None)
+        if out is None:
+            out = np.column_stack([self.hf, self.grad_f, self.hess_f, self.hg, self.grad_g, self.hess_g,
+                                   self.ff, self.gg, self.fg])
+        return np.ascontiguousarray(out, dtype=float)
+
 
 def _linear_vectors(jm: JointModes):
     zr, zi = jm.z.real, jm.z.imag
@@ -229,21 +260,66 @@ def _model_sums_kernel(jm, coef, fast, ratio):
     packed, n_single = jm.packed()
     _kernels.model_sums(np.ascontiguousarray(coef), packed, fast.packed32, fast.C, 1.0 / fast.du,
                         float(ratio) ** 2, n_single, out)
-    return ModelSums(hf=out[:, 0], hg=out[:, 6], grad_f=out[:, 1:3], grad_g=out[:, 7:9],
-                     hess_f=out[:, 3:6], hess_g=out[:, 9:12], ff=out[:, 12], gg=out[:, 13], fg=out[:, 14])
+    return ModelSums.from_kernel(out)
 
 
-def model_sums(jm: JointModes, e1, e2, r, fast, bulge_size_ratio=1.0, lin=None, use_kernel=True) -> ModelSums:
+@dataclass
+class ModeBins:
+    """An object's modes summed in bins of K^T C K, per ellipticity (see :func:`mode_bins`)."""
+
+    shape: np.ndarray      # (n_e, 3): c11, c12, c22 of each ellipticity
+    rows: np.ndarray       # the bins of all ellipticities, as kernel modes
+    offsets: np.ndarray    # rows of ellipticity i: offsets[i]:offsets[i + 1]
+
+
+def mode_bins(jm: JointModes, e1, e2, bins_per_octave) -> ModeBins:
+    """Bin the modes alone on their sampled mode, for each ellipticity (e1[i], e2[i]), in K^T C K,
+    ``bins_per_octave`` bins per factor of 2 (cloud-in-cell). Models of any size at one of these
+    ellipticities then cost one evaluation per bin instead of per mode (:func:`model_sums`, ``bins``)."""
+    shape = np.ascontiguousarray(np.stack(shape_matrix(np.atleast_1d(np.asarray(e1, float)),
+                                                       np.atleast_1d(np.asarray(e2, float))), axis=1))
+    b3, c8 = _packed_bins(jm)
+    rows, offsets = _kernels.make_bins(shape, b3, c8, int(bins_per_octave))
+    return ModeBins(shape=shape, rows=np.frombuffer(rows, dtype=np.float64).reshape(-1, 12),
+                    offsets=np.frombuffer(offsets, dtype=np.int64))
+
+
+def _model_sums_binned(jm, bins, e_index, r2, fast, ratio):
+    out = np.empty((r2.size, 15))
+    packed, n_single = jm.packed()
+    _kernels.binned_sums(bins.shape, np.ascontiguousarray(r2), np.ascontiguousarray(e_index, dtype=np.int64),
+                         bins.rows, bins.offsets, packed, fast.packed32, fast.C, 1.0 / fast.du, float(ratio) ** 2,
+                         n_single, out)
+    return ModelSums.from_kernel(out)
+
+
+def model_sums(jm: JointModes, e1, e2, r, fast, bulge_size_ratio=1.0, lin=None, use_kernel=True,
+               bins_per_octave=0, bins=None, bin_index=None) -> ModelSums:
     """Pixel sums for models (e1, e2, r) (1D arrays of equal length).
 
     ``fast`` is a :class:`shearfit.profiles.FastRadial` holding the disk (0)
-    and bulge (1) transforms.
+    and bulge (1) transforms. With ``bins_per_octave`` > 0 (and the
+    compiled kernel), the modes alone on their sampled mode are summed in
+    bins of K^T C K, that many per factor of 2, once per run of consecutive
+    models with one ellipticity (see ``FitConfig.mode_bins_per_octave``);
+    0 evaluates every mode. ``bins`` (from :func:`mode_bins`) and
+    ``bin_index`` (per model, its ellipticity's index in ``bins``) reuse
+    bins already made.
     """
     e1 = np.atleast_1d(np.asarray(e1, float))
     e2 = np.atleast_1d(np.asarray(e2, float))
     r = np.broadcast_to(np.atleast_1d(np.asarray(r, float)), e1.shape)
-    c11, c12, c22 = shape_matrix(e1, e2)
     r2 = r * r
+    if USE_KERNEL and use_kernel and bins is not None:
+        return _model_sums_binned(jm, bins, bin_index, r2, fast, bulge_size_ratio)
+    if USE_KERNEL and use_kernel and bins_per_octave > 0:
+        # runs of consecutive models with one ellipticity share their bins
+        new = np.ones(e1.size, bool)
+        new[1:] = (e1[1:] != e1[:-1]) | (e2[1:] != e2[:-1])
+        starts = np.nonzero(new)[0]
+        bins = mode_bins(jm, e1[starts], e2[starts], bins_per_octave)
+        return _model_sums_binned(jm, bins, np.cumsum(new) - 1, r2, fast, bulge_size_ratio)
+    c11, c12, c22 = shape_matrix(e1, e2)
     coef = np.stack([c11 * r2, c12 * r2, c22 * r2], axis=1)
     if USE_KERNEL and use_kernel:
         return _model_sums_kernel(jm, coef, fast, bulge_size_ratio)
@@ -386,14 +462,18 @@ def _position_integral(logp_ref, logp0, g, H, tcrit, mu_min=0.0, max_step=np.inf
             rad = np.sqrt(0.25 * (h11 - h22) ** 2 + h12 * h12)
             lam1 = np.maximum(half_tr + rad, mu_min)
             lam2 = np.maximum(half_tr - rad, mu_min)
-            th = 0.5 * np.arctan2(2 * h12, h11 - h22)
-            c, s = np.cos(th), np.sin(th)
-            p1 = c * g1 + s * g2
-            p2 = -s * g1 + c * g2
+            # squared projections of g on the eigenvectors, from the projector (M - l2 I) / (l1 - l2)
+            # (no angles); with the eigenvalues (nearly) equal the split does not matter
+            gg = g1 * g1 + g2 * g2
+            gmg = h11 * g1 * g1 + 2 * h12 * g1 * g2 + h22 * g2 * g2
+            distinct = rad > 1e-9 * np.abs(half_tr)
+            p1sq = np.where(distinct, (gmg - (half_tr - rad) * gg) / np.where(distinct, 2 * rad, 1.0), gg)
+            p1sq = np.clip(p1sq, 0.0, gg)
+            p2sq = gg - p1sq
             ok = np.isfinite(lam1) & np.isfinite(lam2)
             logdet = np.log(lam1 * lam2)
-            gqg = p1 * p1 / lam1 + p2 * p2 / lam2            # g^T M^-1 g
-            step = np.sqrt((p1 / lam1) ** 2 + (p2 / lam2) ** 2)
+            gqg = p1sq / lam1 + p2sq / lam2            # g^T M^-1 g
+            step = np.sqrt(p1sq / lam1 ** 2 + p2sq / lam2 ** 2)
         else:
             det = h11 * h22 - h12 * h12
             ok = (h11 > 0) & (det > 0)
@@ -423,7 +503,10 @@ class Marginal:
     snr_bulge: np.ndarray
 
 
-def _spline_logint(u, logv, n_fine=61):
+SPLINE_FINE = 31   # points of the fine flux grid the spline of log P is integrated on
+
+
+def _spline_logint(u, logv, n_fine=SPLINE_FINE):
     """log of the integral over u in [0, 1] of exp(cubic spline of logv(u)), per row; and the spline's argmax grid."""
     finite = np.isfinite(logv)
     rowmax = np.max(np.where(finite, logv, -np.inf), axis=1, keepdims=True)
@@ -472,13 +555,84 @@ def spline_matrix(x, xf):
     return w
 
 
-def flux_position_marginal(sums: ModelSums, cfg: FitConfig, pixel_scale=None) -> Marginal:
+_EI_TABLE_FROM = 1.0
+_EI_TABLE_STEP = 0.005
+
+
+def _load_special():
+    """Give the compiled marginalisation scipy.special's erfcx and expi (their cython_special C entry
+    points, double versions); False where they cannot be found (the numpy path is used then)."""
+    if _kernels is None:
+        return False
+    try:
+        from scipy.special import cython_special
+        caps = cython_special.__pyx_capi__
+    except (ImportError, AttributeError):   # pragma: no cover - depends on scipy's build
+        return False
+
+    def candidates(name):
+        return [c for k, c in caps.items() if k == name or (k.endswith(name) and k.startswith("__pyx_fuse_")
+                                                              and k[len("__pyx_fuse_"):-len(name)].isdigit())]
+    # log Ei on a grid, with its derivative, for cubic interpolation (from 1, clear of Ei's root at 0.37,
+    # to the asymptotic series' start)
+    x = np.arange(_EI_TABLE_FROM, _EI_SERIES_FROM + 2 * _EI_TABLE_STEP, _EI_TABLE_STEP)
+    ei = special.expi(x)
+    table = np.ascontiguousarray(np.stack([np.log(ei), np.exp(x) / (x * ei)], axis=1))
+    for c1 in candidates("erfcx"):
+        for c2 in candidates("expi"):
+            try:
+                _kernels.set_special(c1, c2, table, float(x[0]), _EI_TABLE_STEP)
+                return True
+            except ValueError:
+                continue
+    return False   # pragma: no cover
+
+
+USE_KERNEL_MARGINAL = USE_KERNEL and _load_special()
+
+
+def flux_position_marginal(sums: ModelSums, cfg: FitConfig, pixel_scale=None, use_kernel=True) -> Marginal:
     """Marginalise each model over B (disk population), position and flux.
 
     With ``pixel_scale`` (arcsec), the position integral is held to the
     position prior's radius, ``max_centroid_shift`` pixels (see
     :func:`_position_integral`); without it, the bare second-order integral.
+    The compiled kernel computes the same numbers as the numpy code below
+    (``use_kernel=False``), which stays as the reference.
     """
+    if USE_KERNEL_MARGINAL and use_kernel and 2 <= cfg.n_flux <= 64:
+        return _marginal_kernel(sums, cfg, pixel_scale)
+    return _marginal_numpy(sums, cfg, pixel_scale)
+
+
+def _log_zb(cfg):
+    """log of the normalisation of the truncated-Gaussian B prior on [0, 1]."""
+    sb = cfg.bulge_fraction_sigma
+    b0 = cfg.bulge_fraction_mean
+    return float(np.log(np.sqrt(np.pi / 2) * sb * (special.erf((1 - b0) / (np.sqrt(2) * sb))
+                                                    - special.erf(-b0 / (np.sqrt(2) * sb)))))
+
+
+def _marginal_kernel(sums, cfg, pixel_scale):
+    u = np.linspace(0.0, 1.0, cfg.n_flux)
+    uf = np.linspace(0.0, 1.0, SPLINE_FINE)
+    if pixel_scale is not None:
+        radius = cfg.max_centroid_shift * float(pixel_scale)
+        mu_min, max_step, bounded = 1.0 / radius ** 2, radius, 1.0
+    else:
+        mu_min, max_step, bounded = 0.0, np.inf, 0.0
+    par = np.array([cfg.bulge_fraction_sigma ** 2, cfg.bulge_fraction_mean, _log_zb(cfg), 0.5 * cfg.delta_chi2_crit,
+                    mu_min, max_step, cfg.flux_prior_slope, cfg.flux_halfwidth, bounded, 0.0])
+    x = sums.packed()
+    out = np.empty((x.shape[0], 9))
+    _kernels.marginal(x, u, uf, np.ascontiguousarray(spline_matrix(u, uf)),
+                      np.ascontiguousarray(_interp_matrix(u, uf)), par, out)
+    return Marginal(logl_disk=out[:, 0], logl_bulge=out[:, 1], mean_flux_disk=out[:, 2], mean_flux_bulge=out[:, 3],
+                    mean_b_disk=out[:, 4], chi2_disk=out[:, 5], chi2_bulge=out[:, 6], snr_disk=out[:, 7],
+                    snr_bulge=out[:, 8])
+
+
+def _marginal_numpy(sums, cfg, pixel_scale):
     nflux = cfg.n_flux
     u = np.linspace(0.0, 1.0, nflux)
     tcrit = 0.5 * cfg.delta_chi2_crit
@@ -487,11 +641,7 @@ def flux_position_marginal(sums: ModelSums, cfg: FitConfig, pixel_scale=None) ->
         bounds = dict(mu_min=1.0 / radius ** 2, max_step=radius)
     else:
         bounds = {}
-    sb = cfg.bulge_fraction_sigma
-    b0 = cfg.bulge_fraction_mean
-    # normalisation of the truncated-Gaussian B prior on [0, 1]
-    log_zb = np.log(np.sqrt(np.pi / 2) * sb * (special.erf((1 - b0) / (np.sqrt(2) * sb))
-                                                - special.erf(-b0 / (np.sqrt(2) * sb))))
+    log_zb = _log_zb(cfg)
     out = {}
     for pop in ("disk", "bulge"):
         if pop == "disk":

@@ -48,7 +48,8 @@ def _size_range(jm, cfg, mag, fast):
     pix = jm.pixel_scale
     r = np.geomspace(0.01 * min(a, pix), 12.0 * max(a, pix), 64)
     z = np.zeros_like(r)
-    mg = flux_position_marginal(model_sums(jm, z, z, r, fast, cfg.bulge_size_ratio), cfg, jm.pixel_scale)
+    mg = flux_position_marginal(model_sums(jm, z, z, r, fast, cfg.bulge_size_ratio, bins_per_octave=cfg.mode_bins_per_octave),
+                                cfg, jm.pixel_scale)
     fB = cfg.bulge_population_fraction
     logl = np.logaddexp(np.log(max(1 - fB, 1e-300)) + mg.logl_disk, np.log(max(fB, 1e-300)) + mg.logl_bulge)
     # posterior density in ln r: likelihood x prior x r

@@ -24,7 +24,8 @@ import numpy as np
 
 from . import priors
 from .config import FitConfig
-from .likelihood import _interp_matrix, _linear_vectors, flux_position_marginal, model_sums, spline_matrix
+from .likelihood import (USE_KERNEL, _interp_matrix, _linear_vectors, flux_position_marginal, mode_bins, model_sums,
+                         spline_matrix)
 
 __all__ = ["EllipticityLikelihood", "Samples", "adaptive_samples", "two_pass_samples", "replay_samples",
            "estimate", "lensing_weight"]
@@ -83,7 +84,8 @@ class EllipticityLikelihood:
         self.chunk = chunk
         # r = 0, the point source: one model shared by every ellipticity; the size integral runs
         # from it to the first node (sec. 3.2: "the set of r values included a point source")
-        s0 = model_sums(jm, [0.0], [0.0], [0.0], fast, cfg.bulge_size_ratio, lin=self.lin)
+        s0 = model_sums(jm, [0.0], [0.0], [0.0], fast, cfg.bulge_size_ratio, lin=self.lin,
+                          bins_per_octave=cfg.mode_bins_per_octave)
         self.zero = flux_position_marginal(s0, cfg, jm.pixel_scale)
         self.n_models = 1
         self.chi2_star = None
@@ -107,7 +109,7 @@ class EllipticityLikelihood:
         q = (1 - e) / (1 + e)
         return self.r_center * q ** (-1.0 / 3.0)
 
-    def _located_centres(self, e1, e2, rc):
+    def _located_centres(self, e1, e2, rc, bins=None):
         """Size peaks at each e, located by the passes of ``locate_widths``.
 
         A sample within ``FitConfig.size_reuse_distance`` of one already
@@ -127,19 +129,24 @@ class EllipticityLikelihood:
         for k, width in enumerate(widths):
             sel = np.ones(e1.size, bool) if k == len(widths) - 1 else ~near
             if np.any(sel):
-                r[sel] = self._locate(e1[sel], e2[sel], r[sel], width)
+                r[sel] = self._locate(e1[sel], e2[sel], r[sel], width, bins, np.nonzero(sel)[0])
         self._loc_e = np.concatenate([self._loc_e, np.stack([e1, e2], axis=1)])
         self._loc_x = np.concatenate([self._loc_x, np.log(r / rc)])
         return r
 
-    def _locate(self, e1, e2, rc, half_width):
+    def _sums(self, e1, e2, r, bins, index):
+        """Model sums of (e1, e2, r); with ``bins`` (the chunk's), ``index`` is each model's e in them."""
+        return model_sums(self.jm, e1, e2, r, self.fast, self.cfg.bulge_size_ratio, lin=self.lin,
+                          bins_per_octave=self.cfg.mode_bins_per_octave, bins=bins, bin_index=index)
+
+    def _locate(self, e1, e2, rc, half_width, bins=None, index=None):
         """Peak of the size posterior at each e: 5 nodes and a parabola through the best three."""
         cfg = self.cfg
         xs = np.linspace(-half_width, half_width, 5)
         R = rc[:, None] * np.exp(xs)[None, :]
         n = xs.size
-        sums = model_sums(self.jm, np.repeat(e1, n), np.repeat(e2, n), R.ravel(), self.fast,
-                          cfg.bulge_size_ratio, lin=self.lin)
+        sums = self._sums(np.repeat(e1, n), np.repeat(e2, n), R.ravel(), bins,
+                          None if index is None else np.repeat(index, n))
         self.n_models += R.size
         mg = flux_position_marginal(sums, cfg, self.jm.pixel_scale)
         fB = cfg.bulge_population_fraction
@@ -169,17 +176,20 @@ class EllipticityLikelihood:
         ne = e1.size
         nr = self.x.size
         keys = e_key(e1, e2)
+        # the chunk's modes binned once per ellipticity, for the size-locating passes and the nodes
+        bins = mode_bins(self.jm, e1, e2, cfg.mode_bins_per_octave) if (
+            USE_KERNEL and cfg.mode_bins_per_octave > 0) else None
         if self.fixed_centres is not None:
             rc = np.array([self.fixed_centres[k] for k in keys])
         else:
             rc = self.centre(e1, e2)
             if self.locate_widths is not None:
-                rc = self._located_centres(e1, e2, rc)
+                rc = self._located_centres(e1, e2, rc, bins)
         self.centres.update(zip(keys, rc.tolist()))
         R = rc[:, None] * np.exp(self.x)[None, :]
         E1 = np.repeat(e1, nr)
         E2 = np.repeat(e2, nr)
-        sums = model_sums(self.jm, E1, E2, R.ravel(), self.fast, cfg.bulge_size_ratio, lin=self.lin)
+        sums = self._sums(E1, E2, R.ravel(), bins, np.repeat(np.arange(ne), nr))
         self.n_models += E1.size
         mg = flux_position_marginal(sums, cfg, self.jm.pixel_scale)
         # best single-component fit among galaxies (r > 0), for the star/galaxy test
