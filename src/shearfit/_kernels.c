@@ -201,25 +201,34 @@ static inline double octave_kappa(long long idx, int nb)
     return ldexp(1.0 + (double)i / nb, (int)(e - 1023));
 }
 
-/* pass 1 of the binning: each mode's bin and cloud-in-cell fraction; returns the lowest and highest bin */
+/* pass 1 of the binning: each mode's bin and cloud-in-cell fraction (in two loops that vectorise);
+   returns the lowest and highest bin; the DC mode (kappa = 0) gets the bin LLONG_MIN */
 MULTIVERSION
 static void bin_index(const float *B3, Py_ssize_t n_single, double a0, double a1, double a2, int nb,
                       long long *idx, double *frac, long long *lo_out, long long *hi_out)
 {
-    long long lo = LLONG_MAX, hi = LLONG_MIN;
     for (Py_ssize_t j = 0; j < n_single; j++) {
         const float *p = B3 + 4 * j;
         double k = a0 * p[0] + a1 * p[1] + a2 * p[2];
-        long long i;
-        double f;
-        octave_bin(k > 0 ? k : 1.0, nb, &i, &f);
-        i = k > 0 ? i : LLONG_MIN;
-        idx[j] = i;
-        frac[j] = f;
-        if (k > 0) {
-            lo = i < lo ? i : lo;
-            hi = i > hi ? i : hi;
-        }
+        int pos = k > 0;
+        uint64_t bits;
+        double kk = pos ? k : 1.0;
+        memcpy(&bits, &kk, sizeof bits);
+        long long e = (long long)((bits >> 52) & 0x7ff);
+        uint64_t mb = (bits & 0xfffffffffffffULL) | 0x3ff0000000000000ULL;  /* mantissa, a double in [1, 2) */
+        double m;
+        memcpy(&m, &mb, sizeof m);
+        double x = (m - 1.0) * nb;
+        long long i = (long long)x;
+        frac[j] = x - (double)i;
+        idx[j] = pos ? e * nb + i : LLONG_MIN;
+    }
+    long long lo = LLONG_MAX, hi = LLONG_MIN;
+    for (Py_ssize_t j = 0; j < n_single; j++) {
+        long long i = idx[j];
+        long long v = i == LLONG_MIN ? LLONG_MAX : i;
+        lo = v < lo ? v : lo;
+        hi = i > hi ? i : hi;
     }
     *lo_out = lo;
     *hi_out = hi;
