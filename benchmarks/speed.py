@@ -35,6 +35,7 @@ from shearfit.simulate.stamps import ring_set  # noqa: E402
 
 STAGES = {
     "model sums (compiled kernel or numpy)": ("likelihood.py", "model_sums"),
+    "mode binning per ellipticity (compiled)": ("likelihood.py", "mode_bins"),
     "flux/position marginalisation": ("likelihood.py", "flux_position_marginal"),
     "size marginalisation (splines)": ("sampling.py", "_size_marginal"),
     "exposure preparation (FFTs, PSF, alias)": ("model.py", "prepare_exposure"),
