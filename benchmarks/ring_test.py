@@ -315,6 +315,9 @@ def parse_args(argv=None):
     p.add_argument("--metacal", action="store_true",
                    help="measure the five metacal versions of every object and report the metacal shear bias")
     p.add_argument("--quiet", action="store_true")
+    p.add_argument("--reference-tables", nargs="+", metavar="TABLE",
+                   help="with --from-tables: a simulation calibration, the m of these ring tables (plain lensfit, "
+                        "same SNR range, e.g. the paper's population) applied as (1 + m) / (1 + m_ref) - 1")
     p.add_argument("--from-tables", nargs="+", metavar="TABLE",
                    help="report on per-object tables written by earlier runs (--out) instead of simulating: "
                         "runs of different --seed add up (their galaxies are renumbered); give the shear, SNR "
@@ -365,27 +368,43 @@ def _to_array(records):
     return arr
 
 
-def report_tables(args):
-    """The reports of several earlier runs' per-object tables, as one run."""
+def read_tables(paths):
+    """Several runs' per-object tables as one (galaxies renumbered 0..n-1): (array, n_galaxies)."""
     from astropy.table import Table, vstack
 
     parts, offset = [], 0
-    for path in args.from_tables:
-        try:
-            t = Table.read(path)
-        except (OSError, ValueError) as exc:
-            print(f"ring_test.py: error: {path}: {exc}", file=sys.stderr)
-            return 2
+    for path in paths:
+        t = Table.read(path)
         t["galaxy"] = np.asarray(t["galaxy"]) + offset
         offset = int(np.max(t["galaxy"])) + 1
         parts.append(t)
-    t = vstack(parts)
-    tab = np.asarray(t.as_array())
-    # renumber the galaxies 0..n-1 (the reports index rings by galaxy number)
+    tab = np.asarray(vstack(parts).as_array())
+    # the reports index rings by galaxy number
     _, tab["galaxy"] = np.unique(tab["galaxy"], return_inverse=True)
-    n_gal = int(tab["galaxy"].max()) + 1
-    print(f"ring test from {len(parts)} table(s): {n_gal} galaxies, {len(tab)} objects")
+    return tab, int(tab["galaxy"].max()) + 1
+
+
+def report_tables(args):
+    """The reports of several earlier runs' per-object tables, as one run."""
+    try:
+        tab, n_gal = read_tables(args.from_tables)
+        ref = read_tables(args.reference_tables) if args.reference_tables else None
+    except (OSError, ValueError, KeyError) as exc:
+        print(f"ring_test.py: error: {exc}", file=sys.stderr)
+        return 2
+    print(f"ring test from {len(args.from_tables)} table(s): {n_gal} galaxies, {len(tab)} objects")
     report_bias(tab, args, n_gal)
+    if ref is not None:
+        g = np.array(args.shear, dtype=float)
+        rng = np.random.default_rng([args.seed, 777])
+        weighted = not args.unweighted
+        est, err = shear_bias(ring_sums(tab, n_gal, weighted), g, args.n_bootstrap, rng)
+        est_r, err_r = shear_bias(ring_sums(ref[0], ref[1], weighted), g, args.n_bootstrap, rng)
+        cal = (1 + est[:2]) / (1 + est_r[:2]) - 1
+        cal_err = np.hypot(err[:2], (1 + est[:2]) * err_r[:2] / (1 + est_r[:2])) / (1 + est_r[:2])
+        print(f"  calibrated by the simulations of {len(args.reference_tables)} reference table(s) ({ref[1]} galaxies, "
+              f"m_ref = {est_r[0]:+.5f} / {est_r[1]:+.5f}): m1 = {format_with_error(cal[0], cal_err[0])}, "
+              f"m2 = {format_with_error(cal[1], cal_err[1])}")
     if args.metacal:
         report_metacal(tab, args, n_gal)
     return 0
