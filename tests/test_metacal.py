@@ -301,3 +301,18 @@ def test_replay_needs_the_same_psfs():
                                           offset=o.offset))
     with pytest.raises(ShearfitValueError, match="same PSFs"):
         measure_versions([obs, other], 23.0)
+
+
+def test_a_version_reuses_the_modes_of_the_first():
+    """prepare_exposure(like=...) transforms only the pixels: the same ExposureModes as a fresh preparation."""
+    from shearfit.model import prepare_exposure
+
+    a = _obs(0.3, (0.2, 0.1), snr=20, seed=4)[0]
+    b = _obs(0.3, (0.2, 0.1), snr=20, seed=4, g=(0.01, 0.0))[0]
+    cfg = shearfit.FitConfig()
+    fresh = prepare_exposure(b, cfg)
+    reused = prepare_exposure(b, cfg, like=prepare_exposure(a, cfg))
+    for f in ("kx", "ky", "transfer", "coarse", "cweight", "data_ft"):
+        assert np.array_equal(getattr(fresh, f), getattr(reused, f)), f
+    assert (fresh.sigma2, fresh.yy, fresh.npix, fresh.shape) == (reused.sigma2, reused.yy, reused.npix, reused.shape)
+    assert not np.array_equal(fresh.data_ft, prepare_exposure(a, cfg).data_ft)

@@ -112,7 +112,10 @@ class FitPlan:
     ``shift``: the sky offset (du, dv) of the cross-correlation peak;
     ``size_nodes`` and ``r_center``: the ln r spline nodes and the round
     model's size; ``centres``: the size centre used at each ellipticity
-    sample; ``samples``: the ellipticity samples, their cells and posterior.
+    sample; ``samples``: the ellipticity samples, their cells and posterior;
+    ``observations`` and ``exposures``: the fitted observations and their
+    Fourier modes, which a version with the same PSFs, Jacobians and offsets
+    reuses (only its pixels are transformed).
     """
 
     keep: list
@@ -121,6 +124,15 @@ class FitPlan:
     r_center: float
     centres: dict
     samples: Samples
+    observations: list = None   # the fitted observations and their ExposureModes, whose modes a version
+    exposures: list = None      # with the same PSFs, Jacobians and offsets reuses
+
+
+def _same_modes(o: Observation, ref: Observation) -> bool:
+    """Whether two observations reduce to the same Fourier modes (all but the pixel data equal)."""
+    return (o.shape == ref.shape and o.psf_oversampling == ref.psf_oversampling and o.psf_moffat == ref.psf_moffat
+            and o.flux_scale == ref.flux_scale and np.array_equal(o.offset, ref.offset)
+            and np.array_equal(o.jacobian, ref.jacobian) and (o.psf is ref.psf or np.array_equal(o.psf, ref.psf)))
 
 
 def _measure(obs, mag, cfg, return_samples, plan=None, margin=np.inf):
@@ -130,7 +142,11 @@ def _measure(obs, mag, cfg, return_samples, plan=None, margin=np.inf):
     ellipticity samples within ``margin`` nats of its posterior cut) instead of making its own.
     """
     fast = fast_pair(cfg.truncation)
-    exposures = [prepare_exposure(o, cfg) for o in obs]
+    if plan is not None and plan.exposures is not None and len(plan.observations) == len(obs):
+        exposures = [prepare_exposure(o, cfg, like=ex if _same_modes(o, r) else None)
+                     for o, r, ex in zip(obs, plan.observations, plan.exposures)]
+    else:
+        exposures = [prepare_exposure(o, cfg) for o in obs]
     if plan is None:
         disk = exponential_disk(cfg.truncation)
         jm = join_exposures(exposures, cfg.mode_chi2_tolerance)
@@ -161,7 +177,7 @@ def _measure(obs, mag, cfg, return_samples, plan=None, margin=np.inf):
         samples = adaptive_samples(like, cfg) if cfg.sampling == "adaptive" else two_pass_samples(like, cfg)
         n_samples = samples.e1.size
         plan = FitPlan(keep=jm.keep, shift=(du, dv), size_nodes=x, r_center=like.r_center, centres=like.centres,
-                       samples=samples)
+                       samples=samples, observations=list(obs), exposures=exposures)
     else:
         if plan.keep is not None and [k.size for k in plan.keep] != [e.kx.size for e in exposures]:
             raise ShearfitValueError("a replayed fit needs the same PSFs (Fourier modes) as the fit it replays")

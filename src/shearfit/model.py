@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import functools
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy import special
@@ -267,13 +267,31 @@ def noise_variance(weight):
     return 1.0 / float(np.median(weight[good]))
 
 
-def prepare_exposure(obs: Observation, cfg: FitConfig, grid_shape=None, with_data=True) -> ExposureModes:
+def _data_modes(obs, ny, nx):
+    """The stamp's noise variance, rfft (masked, centred on the grid), sum y^2 / sigma^2 and used pixels."""
+    sigma2 = noise_variance(obs.weight)
+    y = np.where(obs.weight > 0, obs.image, 0.0)
+    if y.shape != (ny, nx):
+        y = _pad_center(y, (ny, nx))
+    data_ft = np.fft.rfft2(np.fft.ifftshift(y)).ravel()
+    return sigma2, data_ft, float(np.sum(y * y) / sigma2), int(np.count_nonzero(obs.weight > 0))
+
+
+def prepare_exposure(obs: Observation, cfg: FitConfig, grid_shape=None, with_data=True, like=None) -> ExposureModes:
     """Reduce one observation to its Fourier modes.
 
     ``grid_shape`` (default: the stamp's) is the periodic grid the model
-    lives on; rendering pads it to avoid wrap-around.
+    lives on; rendering pads it to avoid wrap-around. ``like``: the
+    ExposureModes of an observation with the same PSF, Moffat, Jacobian,
+    offset, flux scale and shape (another version of the same stamp, as
+    metacalibration's): its modes are reused and only the data transformed.
     """
     ny, nx = grid_shape if grid_shape is not None else obs.shape
+    if like is not None:
+        if like.shape != (ny, nx):
+            raise ShearfitValueError(f"prepare_exposure: like= has shape {like.shape}, the stamp {(ny, nx)}")
+        sigma2, data_ft, yy, npix = _data_modes(obs, ny, nx)
+        return replace(like, data_ft=data_ft, sigma2=sigma2, yy=yy, npix=npix)
     s = obs.psf_oversampling
     if s == 1 and cfg.alias_correction == "moffat":
         ky, kx, T, coarse = _fine_modes_moffat(obs.psf, ny, nx, cfg.alias_oversampling, obs.psf_moffat)
@@ -290,16 +308,7 @@ def prepare_exposure(obs: Observation, cfg: FitConfig, grid_shape=None, with_dat
     Kx = Jinv_T[0, 0] * kx + Jinv_T[0, 1] * ky
     Ky = Jinv_T[1, 0] * kx + Jinv_T[1, 1] * ky
     cweight = _rfft_weights(ny, nx).ravel()
-    if with_data:
-        sigma2 = noise_variance(obs.weight)
-        y = np.where(obs.weight > 0, obs.image, 0.0)
-        if y.shape != (ny, nx):
-            y = _pad_center(y, (ny, nx))
-        data_ft = np.fft.rfft2(np.fft.ifftshift(y)).ravel()
-        yy = float(np.sum(y * y) / sigma2)
-        npix = int(np.count_nonzero(obs.weight > 0))
-    else:
-        sigma2, data_ft, yy, npix = 1.0, None, 0.0, 0
+    sigma2, data_ft, yy, npix = _data_modes(obs, ny, nx) if with_data else (1.0, None, 0.0, 0)
     return ExposureModes(shape=(ny, nx), kx=Kx, ky=Ky, transfer=T, coarse=coarse, cweight=cweight,
                          data_ft=data_ft, sigma2=sigma2, yy=yy, npix=npix, pixel_scale=obs.pixel_scale)
 
