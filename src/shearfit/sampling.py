@@ -209,60 +209,53 @@ class EllipticityLikelihood:
         return xf, _interp_matrix(self.x, xf)   # (n_nodes, n_fine)
 
     def _size_marginal(self, rnodes, ld, lb, fd, fb, bd):
-        """Spline log L over ln r and integrate against the size prior (dr = r d ln r)."""
+        """Spline log L over ln r and integrate against the size prior (dr = r d ln r).
+
+        The disk (index 0) and bulge (1) populations are done together, stacked on a first axis.
+        """
         cfg = self.cfg
         x = self.x
         xf, interp_w = self._fine_grid()
         rf = (rnodes[:, :1] / np.exp(x[0])) * np.exp(xf)[None, :]
         logprior = np.log(np.maximum(priors.size_prior_pdf(rf, self.mag, cfg), 1e-300)) + np.log(rf)
-        res = {}
-        for name, logl in (("disk", ld), ("bulge", lb)):
-            finite = np.isfinite(logl)
-            rowmax = np.max(np.where(finite, logl, -np.inf), axis=1, keepdims=True)
-            good = np.isfinite(rowmax[:, 0])
-            floor = np.where(good[:, None], rowmax - 40.0, 0.0)
-            lv = np.where(finite, np.maximum(logl, floor), floor)
-            vf = lv @ spline_matrix(x, xf) + logprior
-            # from r = 0 to the first node: log L linear in r^2 between the point source and the node
-            l0 = float((self.zero.logl_disk if name == "disk" else self.zero.logl_bulge)[0])
-            l0 = l0 if np.isfinite(l0) else -np.inf
-            u = np.linspace(0.0, 1.0, 9)                          # r = r_min sqrt(u)
-            r0 = np.maximum(rf[:, :1] * np.sqrt(u)[None, :], 1e-12)
-            with np.errstate(invalid="ignore"):
-                lseg = np.where(np.isfinite(l0), (1 - u)[None, :] * max(l0, -1e300) + u[None, :] * lv[:, :1],
-                                lv[:, :1] - 1e3 * (1 - u)[None, :])
-            # p(r) dr = [p(r)/r] (r_min^2 / 2) du: smooth down to r = 0, where p(r) ~ r
-            lseg = lseg + np.log(np.maximum(priors.size_prior_pdf(r0, self.mag, cfg) / r0, 1e-300))
-            m = np.maximum(np.max(vf, axis=1, keepdims=True), np.max(lseg, axis=1, keepdims=True))
-            w = np.exp(vf - m)
-            integ = np.trapezoid(w, xf, axis=1)
-            seg_int = np.trapezoid(np.exp(lseg - m), u, axis=1) * 0.5 * rf[:, 0] ** 2
-            integ = integ + seg_int
-            res[name] = (np.where(good, m[:, 0] + np.log(integ), -np.inf), w)
-        ldm, wd = res["disk"]
-        lbm, wb = res["bulge"]
-        # posterior means over r, with flux and B interpolated from the nodes
-        wsum_d = np.maximum(wd.sum(axis=1), 1e-300)
-        wsum_b = np.maximum(wb.sum(axis=1), 1e-300)
-        mean_r_d = np.sum(wd * rf, axis=1) / wsum_d
-        mean_r_b = np.sum(wb * rf, axis=1) / wsum_b
-        # linear interpolation from the nodes to the fine grid, as one matrix product
-        interp = lambda vals: vals @ interp_w  # noqa: E731
-        mean_f_d = np.sum(wd * interp(fd), axis=1) / wsum_d
-        mean_f_b = np.sum(wb * interp(fb), axis=1) / wsum_b
-        mean_b_d = np.sum(wd * interp(bd), axis=1) / wsum_d
+        logl = np.stack([ld, lb])                                  # (2, n_e, n_nodes)
+        finite = np.isfinite(logl)
+        rowmax = np.max(np.where(finite, logl, -np.inf), axis=2, keepdims=True)
+        good = np.isfinite(rowmax[..., 0])
+        floor = np.where(good[..., None], rowmax - 40.0, 0.0)
+        lv = np.where(finite, np.maximum(logl, floor), floor)
+        vf = lv @ spline_matrix(x, xf) + logprior[None]
+        # from r = 0 to the first node: log L linear in r^2 between the point source and the node
+        l0 = np.array([float(self.zero.logl_disk[0]), float(self.zero.logl_bulge[0])])
+        l0 = np.where(np.isfinite(l0), l0, -np.inf)[:, None, None]
+        u = np.linspace(0.0, 1.0, 9)                               # r = r_min sqrt(u)
+        r0 = np.maximum(rf[:, :1] * np.sqrt(u)[None, :], 1e-12)
+        with np.errstate(invalid="ignore"):
+            lseg = np.where(np.isfinite(l0), (1 - u) * np.maximum(l0, -1e300) + u * lv[..., :1],
+                            lv[..., :1] - 1e3 * (1 - u))
+        # p(r) dr = [p(r)/r] (r_min^2 / 2) du: smooth down to r = 0, where p(r) ~ r
+        lseg = lseg + np.log(np.maximum(priors.size_prior_pdf(r0, self.mag, cfg) / r0, 1e-300))[None]
+        m = np.maximum(np.max(vf, axis=2, keepdims=True), np.max(lseg, axis=2, keepdims=True))
+        w = np.exp(vf - m)
+        integ = np.trapezoid(w, xf, axis=2) + np.trapezoid(np.exp(lseg - m), u, axis=2) * 0.5 * rf[:, 0] ** 2
+        lm = np.where(good, m[..., 0] + np.log(integ), -np.inf)
+        # posterior means over r, with flux and B interpolated from the nodes (one matrix product)
+        wsum = np.maximum(w.sum(axis=2), 1e-300)
+        mean_r = np.sum(w * rf, axis=2) / wsum
+        mean_f = np.sum(w * (np.stack([fd, fb]) @ interp_w), axis=2) / wsum
+        mean_b_d = np.sum(w[0] * (bd @ interp_w), axis=1) / wsum[0]
         # mix the two populations by their marginal likelihoods
         fB = cfg.bulge_population_fraction
-        la = np.log(max(1 - fB, 1e-300)) + ldm
-        lbb = np.log(max(fB, 1e-300)) + lbm
+        la = np.log(max(1 - fB, 1e-300)) + lm[0]
+        lbb = np.log(max(fB, 1e-300)) + lm[1]
         mx = np.maximum(la, lbb)
         mx = np.where(np.isfinite(mx), mx, 0.0)
         pa, pb = np.exp(la - mx), np.exp(lbb - mx)
         tot = np.maximum(pa + pb, 1e-300)
-        return EPoint(logl_disk=ldm, logl_bulge=lbm,
-                      mean_r=(pa * mean_r_d + pb * mean_r_b) / tot,
+        return EPoint(logl_disk=lm[0], logl_bulge=lm[1],
+                      mean_r=(pa * mean_r[0] + pb * mean_r[1]) / tot,
                       mean_b=(pa * mean_b_d + pb * 1.0) / tot,
-                      mean_flux=(pa * mean_f_d + pb * mean_f_b) / tot)
+                      mean_flux=(pa * mean_f[0] + pb * mean_f[1]) / tot)
 
 
 @dataclass
