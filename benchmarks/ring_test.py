@@ -52,6 +52,7 @@ import numpy as np  # noqa: E402
 
 import shearfit  # noqa: E402
 from shearfit.simulate import ring_set  # noqa: E402
+from shearfit.simulate.stamps import NegatedNormal  # noqa: E402
 from shearfit.simulate.shear_bias import (format_with_error, galaxy_column, ring_sums, shear_bias,  # noqa: E402
                                           shear_bias_by_snr)
 
@@ -77,16 +78,21 @@ def _work(task):
     records = []
     t_sim = t_meas = 0.0
     metacal = opts.get("metacal", False)
-    for sign in (+1, -1):
+    n_rot = opts["ring_kwargs"]["n_rotations"]
+    twins = (+1, -1) if opts.get("antithetic") else (+1,)
+    for sign, noise_sign in [(s, n) for s in (+1, -1) for n in twins]:
         # The same seed for both signs: nothing ring_set draws depends on the shear, so the
         # galaxy, PSFs, dithers and noise are identical and cancel in the +g / -g difference.
+        # The antithetic twin (noise_sign -1) has the same galaxies and minus the noise.
         rng = np.random.default_rng(seed)
         t0 = time.perf_counter()
-        rings = ring_set(1, tuple(sign * g), rng, cfg=cfg, **opts["ring_kwargs"])
+        rings = ring_set(1, tuple(sign * g), rng, cfg=cfg, noise_sign=noise_sign, **opts["ring_kwargs"])
         t_sim += time.perf_counter() - t0
         for obs, truth in rings:
             rec = {
-                "galaxy": index, "sign": sign, "rotation": truth["rotation"],
+                "galaxy": index, "sign": sign,
+                # the twin's objects are more members of the same ring (rotation numbers after the first's)
+                "rotation": truth["rotation"] + (n_rot if noise_sign < 0 else 0),
                 "g1": truth["g1"], "g2": truth["g2"], "e1_int": truth["e1_int"], "e2_int": truth["e2_int"],
                 "true_scalelength": truth["scalelength"], "true_bulge_fraction": truth["bulge_fraction"],
                 "is_bulge": truth["is_bulge"], "mag": truth["mag"], "flux": truth["flux"],
@@ -104,6 +110,8 @@ def _work(task):
 
                 t0 = time.perf_counter()
                 mrng = np.random.default_rng([int(seed.generate_state(1)[0]), truth["rotation"]])
+                if noise_sign < 0:   # the twin's symmetrising noise is minus the first's too
+                    mrng = NegatedNormal(mrng)
                 mc = measure_metacal(obs, truth["mag"], cfg, rng=mrng)
                 res = mc.noshear
                 rec["fitclass"] = int(res.fitclass)
@@ -312,6 +320,9 @@ def parse_args(argv=None):
                         "e rms 0.3)")
     p.add_argument("--calibration", default=None,
                    help="calibration YAML for the calibrated m line (default: the paper's alpha, beta)")
+    p.add_argument("--antithetic", action="store_true",
+                   help="also measure every object's antithetic twin (the same galaxy, minus the noise, and minus "
+                        "metacal's symmetrising noise): the terms odd in the noise cancel within each ring")
     p.add_argument("--metacal", action="store_true",
                    help="measure the five metacal versions of every object and report the metacal shear bias")
     p.add_argument("--quiet", action="store_true")
@@ -427,6 +438,7 @@ def main(argv=None):
         return report_tables(args)
     opts = {
         "shear": tuple(args.shear), "dry_run": args.dry_run, "config": cfg, "metacal": args.metacal,
+        "antithetic": args.antithetic,
         "ring_kwargs": dict(n_rotations=args.n_rotations, n_exposures=args.n_exposures,
                             snr_range=(args.snr_min, args.snr_max), mag_range=(args.mag_min, args.mag_max),
                             stamp_size=args.stamp_size, psf_oversampling=args.psf_oversampling,

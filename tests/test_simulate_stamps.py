@@ -264,3 +264,21 @@ def test_sersic_galaxy_outside_the_models():
     im = p.drawImage(nx=64, ny=64, scale=0.05, method="no_pixel").array
     im_ref = ref.withFlux(7.0).drawImage(nx=64, ny=64, scale=0.05, method="no_pixel").array
     assert np.allclose(im, im_ref, atol=1e-6 * im_ref.max())
+
+
+def test_ring_set_antithetic_twin_negates_only_the_noise():
+    """noise_sign=-1: the same galaxies, PSFs and dithers, and noise exactly minus the +1 run's (with the
+    noise drawn from the main generator or from noise_seed): the twins average to the noise-free stamps."""
+    for kw in ({}, {"noise_seed": 5}):
+        a = ring_set(3, (0.02, 0.0), np.random.default_rng(3), n_rotations=2, n_exposures=2, **kw)
+        b = ring_set(3, (0.02, 0.0), np.random.default_rng(3), n_rotations=2, n_exposures=2, noise_sign=-1, **kw)
+        for (oa, ta), (ob, tb) in zip(a, b):
+            assert ta["e1_int"] == tb["e1_int"] and ta["scalelength"] == tb["scalelength"]
+            assert ta["sigma"] == tb["sigma"]
+            for x, y in zip(oa, ob):
+                assert np.std(x.image - y.image) > ta["sigma"]     # the noise differs ...
+    clean = ring_set(3, (0.02, 0.0), np.random.default_rng(3), n_rotations=2, n_exposures=2, noise_seed=5,
+                     add_noise=False)
+    for (oa, _), (ob, _), (oc, _) in zip(a, b, clean):
+        for x, y, z in zip(oa, ob, oc):
+            assert np.max(np.abs(x.image + y.image - 2 * z.image)) < 1e-10 * np.max(z.image)   # ... by its sign

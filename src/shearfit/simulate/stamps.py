@@ -337,10 +337,24 @@ def mag_to_flux(mag, zero_point=ZERO_POINT):
 # ring tests
 # ----------------------------------------------------------------------------
 
+class NegatedNormal:
+    """A numpy Generator whose ``normal`` draws come out negated (the same state consumed): the noise of
+    an antithetic twin, which leaves every other draw, and so the galaxies, unchanged."""
+
+    def __init__(self, rng):
+        self.rng = rng
+
+    def normal(self, *args, **kwargs):
+        return -self.rng.normal(*args, **kwargs)
+
+    def __getattr__(self, name):
+        return getattr(self.rng, name)
+
+
 def ring_set(n_galaxies, shear, rng, n_rotations=4, n_exposures=7, snr_range=(100, 200), mag_range=(21, 24.5),
              psf_fwhm_range=(0.5, 0.8), psf_beta_range=(2.5, 4.5), psf_e_max=0.1, pixel_scale=0.187,
              stamp_size=48, psf_oversampling=1, max_dither=0.5, cfg=None, noise_seed=None,
-             rotate_exposures=False, gsparams=None, population=None, add_noise=True):
+             rotate_exposures=False, gsparams=None, population=None, add_noise=True, noise_sign=1):
     """Ring sets of GalSim-simulated galaxies, all with one applied shear.
 
     Every galaxy is drawn from the paper's population at a magnitude uniform in
@@ -391,6 +405,9 @@ def ring_set(n_galaxies, shear, rng, n_rotations=4, n_exposures=7, snr_range=(10
     gsparams : galsim.GSParams, optional
     population : callable, optional
         ``population(mags, rng, cfg)`` replacing the default population sampler.
+    noise_sign : +1 or -1
+        -1 negates every noise draw (the antithetic twin of the same
+        galaxies, PSFs and dithers: its noise is exactly minus the +1 run's).
 
     Returns
     -------
@@ -437,6 +454,8 @@ def ring_set(n_galaxies, shear, rng, n_rotations=4, n_exposures=7, snr_range=(10
             ej = e_int * np.exp(2j * np.pi * j / n_rotations)
             m = stamps(ej.real, ej.imag, g1, g2)
             noise_rng = rng if seed_prefix is None else np.random.default_rng(seed_prefix + [i, j])
+            if noise_sign < 0:
+                noise_rng = NegatedNormal(noise_rng)
             obs = make_observations(None, psfs, Js, gal["offsets"], sigma, noise_rng, stamp_size=stamp_size,
                                     psf_oversampling=psf_oversampling, gsparams=gsparams, noise_free=m,
                                     psf_images=psf_images, add_noise=add_noise)
