@@ -466,9 +466,9 @@ static double log_ei(double x)
         return log(sp_expi(x, 0));
     }
     /* asymptotic series, the same 13 terms k! / x^k as likelihood._log_ei */
-    double inv = 1.0 / x, series = 0.0, fact[13];
-    fact[0] = 1.0;
-    for (int k = 1; k < 13; k++) fact[k] = fact[k - 1] * k;
+    static const double fact[13] = {1.0, 1.0, 2.0, 6.0, 24.0, 120.0, 720.0, 5040.0, 40320.0, 362880.0,
+                                    3628800.0, 39916800.0, 479001600.0};
+    double inv = 1.0 / x, series = 0.0;
     for (int k = 12; k >= 0; k--) series = series * inv + fact[k];
     return x - log(x) + log(series);
 }

@@ -23,6 +23,7 @@ integral), the flux numerically with the S^-alpha prior (cubic spline).
 
 from __future__ import annotations
 
+import functools
 import os
 from dataclasses import dataclass
 
@@ -613,20 +614,31 @@ def _log_zb(cfg):
                                                     - special.erf(-b0 / (np.sqrt(2) * sb)))))
 
 
-def _marginal_kernel(sums, cfg, pixel_scale):
+def _position_bounds(cfg, pixel_scale):
+    """The position integral's bounds (see :func:`_position_integral`): none without a pixel scale."""
+    if pixel_scale is None:
+        return {}
+    radius = cfg.max_centroid_shift * float(pixel_scale)
+    return dict(mu_min=1.0 / radius ** 2, max_step=radius)
+
+
+@functools.lru_cache(maxsize=32)
+def _marginal_setup(cfg, pixel_scale):
+    """The compiled marginalisation's grids, spline matrices and parameters for a configuration."""
     u = np.linspace(0.0, 1.0, cfg.n_flux)
     uf = np.linspace(0.0, 1.0, SPLINE_FINE)
-    if pixel_scale is not None:
-        radius = cfg.max_centroid_shift * float(pixel_scale)
-        mu_min, max_step, bounded = 1.0 / radius ** 2, radius, 1.0
-    else:
-        mu_min, max_step, bounded = 0.0, np.inf, 0.0
+    bounds = _position_bounds(cfg, pixel_scale)
     par = np.array([cfg.bulge_fraction_sigma ** 2, cfg.bulge_fraction_mean, _log_zb(cfg), 0.5 * cfg.delta_chi2_crit,
-                    mu_min, max_step, cfg.flux_prior_slope, cfg.flux_halfwidth, bounded, 0.0])
+                    bounds.get("mu_min", 0.0), bounds.get("max_step", np.inf), cfg.flux_prior_slope,
+                    cfg.flux_halfwidth, 1.0 if bounds else 0.0, 0.0])
+    return u, uf, np.ascontiguousarray(spline_matrix(u, uf)), np.ascontiguousarray(_interp_matrix(u, uf)), par
+
+
+def _marginal_kernel(sums, cfg, pixel_scale):
+    u, uf, spl, itp, par = _marginal_setup(cfg, None if pixel_scale is None else float(pixel_scale))
     x = sums.packed()
     out = np.empty((x.shape[0], 9))
-    _kernels.marginal(x, u, uf, np.ascontiguousarray(spline_matrix(u, uf)),
-                      np.ascontiguousarray(_interp_matrix(u, uf)), par, out)
+    _kernels.marginal(x, u, uf, spl, itp, par, out)
     return Marginal(logl_disk=out[:, 0], logl_bulge=out[:, 1], mean_flux_disk=out[:, 2], mean_flux_bulge=out[:, 3],
                     mean_b_disk=out[:, 4], chi2_disk=out[:, 5], chi2_bulge=out[:, 6], snr_disk=out[:, 7],
                     snr_bulge=out[:, 8])
@@ -636,11 +648,7 @@ def _marginal_numpy(sums, cfg, pixel_scale):
     nflux = cfg.n_flux
     u = np.linspace(0.0, 1.0, nflux)
     tcrit = 0.5 * cfg.delta_chi2_crit
-    if pixel_scale is not None:
-        radius = cfg.max_centroid_shift * float(pixel_scale)
-        bounds = dict(mu_min=1.0 / radius ** 2, max_step=radius)
-    else:
-        bounds = {}
+    bounds = _position_bounds(cfg, pixel_scale)
     log_zb = _log_zb(cfg)
     out = {}
     for pop in ("disk", "bulge"):
