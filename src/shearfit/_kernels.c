@@ -45,6 +45,13 @@
 #define MULTIVERSION
 #endif
 
+/* release the buffers of a call (a NULL-terminated list) */
+static void release_buffers(Py_buffer **b)
+{
+    for (; *b != NULL; b++) PyBuffer_Release(*b);
+}
+#define RELEASE(...) release_buffers((Py_buffer *[]){__VA_ARGS__, NULL})
+
 typedef double vnb __attribute__((vector_size(NB * sizeof(double))));
 
 /* transforms of the NB models at one mode: u clamped to the last table row, which is zero */
@@ -141,7 +148,7 @@ static PyObject *model_sums(PyObject *self, PyObject *args)
     Py_ssize_t n_modes = modes.len / (NSTRIDE * (Py_ssize_t)sizeof(double));
     Py_ssize_t n_tab = tab.len / (4 * (Py_ssize_t)sizeof(float));
     if (out.len < n_models * NOUT * (Py_ssize_t)sizeof(double) || n_single > n_modes) {
-        PyBuffer_Release(&coef); PyBuffer_Release(&modes); PyBuffer_Release(&tab); PyBuffer_Release(&out);
+        RELEASE(&coef, &modes, &tab, &out);
         PyErr_SetString(PyExc_ValueError, "model_sums: inconsistent buffer sizes");
         return NULL;
     }
@@ -166,7 +173,7 @@ static PyObject *model_sums(PyObject *self, PyObject *args)
     }
     Py_END_ALLOW_THREADS
 
-    PyBuffer_Release(&coef); PyBuffer_Release(&modes); PyBuffer_Release(&tab); PyBuffer_Release(&out);
+    RELEASE(&coef, &modes, &tab, &out);
     Py_RETURN_NONE;
 }
 
@@ -270,7 +277,7 @@ static PyObject *make_bins(PyObject *self, PyObject *args)
     Py_ssize_t n_e = shape.len / (3 * (Py_ssize_t)sizeof(double));
     Py_ssize_t n_single = b3.len / (4 * (Py_ssize_t)sizeof(float));
     if (c8.len != 8 * n_single * (Py_ssize_t)sizeof(float) || nb < 1 || nb > 4096) {
-        PyBuffer_Release(&shape); PyBuffer_Release(&b3); PyBuffer_Release(&c8);
+        RELEASE(&shape, &b3, &c8);
         PyErr_SetString(PyExc_ValueError, "make_bins: inconsistent buffers");
         return NULL;
     }
@@ -329,7 +336,7 @@ static PyObject *make_bins(PyObject *self, PyObject *args)
         Py_XDECREF(o);
     }
     free(idx); free(frac); free(off); free(A); free(rows); free(used);
-    PyBuffer_Release(&shape); PyBuffer_Release(&b3); PyBuffer_Release(&c8);
+    RELEASE(&shape, &b3, &c8);
     if (nomem) return PyErr_NoMemory();
     return res;
 }
@@ -361,8 +368,7 @@ static PyObject *binned_sums(PyObject *self, PyObject *args)
     for (Py_ssize_t e = 0; !bad && e < n_e; e++)
         bad = OFF[e] < 0 || OFF[e] > OFF[e + 1];
     if (bad) {
-        PyBuffer_Release(&shape); PyBuffer_Release(&r2b); PyBuffer_Release(&eidx); PyBuffer_Release(&rowsb);
-        PyBuffer_Release(&offb); PyBuffer_Release(&modes); PyBuffer_Release(&tab); PyBuffer_Release(&out);
+        RELEASE(&shape, &r2b, &eidx, &rowsb, &offb, &modes, &tab, &out);
         PyErr_SetString(PyExc_ValueError, "binned_sums: inconsistent buffers");
         return NULL;
     }
@@ -403,8 +409,7 @@ static PyObject *binned_sums(PyObject *self, PyObject *args)
     }
     Py_END_ALLOW_THREADS
 
-    PyBuffer_Release(&shape); PyBuffer_Release(&r2b); PyBuffer_Release(&eidx); PyBuffer_Release(&rowsb);
-    PyBuffer_Release(&offb); PyBuffer_Release(&modes); PyBuffer_Release(&tab); PyBuffer_Release(&out);
+    RELEASE(&shape, &r2b, &eidx, &rowsb, &offb, &modes, &tab, &out);
     Py_RETURN_NONE;
 }
 
@@ -569,8 +574,7 @@ static PyObject *marginal(PyObject *self, PyObject *args)
               || spl.len != nf * nfine * (Py_ssize_t)sizeof(double) || itp.len != spl.len
               || par.len != 10 * (Py_ssize_t)sizeof(double) || out.len < 9 * n * (Py_ssize_t)sizeof(double);
     if (bad) {
-        PyBuffer_Release(&sums); PyBuffer_Release(&ub); PyBuffer_Release(&ufb); PyBuffer_Release(&spl);
-        PyBuffer_Release(&itp); PyBuffer_Release(&par); PyBuffer_Release(&out);
+        RELEASE(&sums, &ub, &ufb, &spl, &itp, &par, &out);
         PyErr_SetString(PyExc_ValueError, sp_erfcx == NULL ? "marginal: set_special first"
                                                            : "marginal: inconsistent buffers");
         return NULL;
@@ -655,8 +659,7 @@ static PyObject *marginal(PyObject *self, PyObject *args)
         }
     }
     Py_END_ALLOW_THREADS
-    PyBuffer_Release(&sums); PyBuffer_Release(&ub); PyBuffer_Release(&ufb); PyBuffer_Release(&spl);
-    PyBuffer_Release(&itp); PyBuffer_Release(&par); PyBuffer_Release(&out);
+    RELEASE(&sums, &ub, &ufb, &spl, &itp, &par, &out);
     Py_RETURN_NONE;
 }
 

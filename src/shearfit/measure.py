@@ -187,7 +187,7 @@ def _measure(obs, mag, cfg, return_samples, plan=None, margin=np.inf):
         like = EllipticityLikelihood(jm, cfg, mag, fast, plan.size_nodes, plan.r_center)
         like.fixed_centres = plan.centres
         samples = replay_samples(like, plan.samples, cfg, margin)
-        n_samples = int(np.count_nonzero(~np.isnan(samples.point.mean_r)))
+        n_samples = int(np.count_nonzero(samples.evaluated))
     return _result(obs, cfg, mag, jm, like, samples, n_samples, shift / pix, return_samples), plan
 
 

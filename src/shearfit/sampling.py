@@ -268,6 +268,7 @@ class Samples:
     logl: np.ndarray        # log likelihood (populations mixed, no ellipticity prior)
     logpost: np.ndarray     # log posterior (likelihood x ellipticity prior, per population)
     point: EPoint = field(repr=False)
+    evaluated: np.ndarray = field(default=None, repr=False)   # replays only: the samples evaluated
 
 
 def _mix(point: EPoint, e1, e2, cfg):
@@ -452,13 +453,15 @@ def replay_samples(like: EllipticityLikelihood, ref: Samples, cfg: FitConfig, ma
     logpost = np.full(n, -np.inf)
     fields_ = ("logl_disk", "logl_bulge", "mean_r", "mean_b", "mean_flux")
     cols = {f: np.full(n, np.nan) for f in fields_}
+    sel = np.zeros(n, bool)
     if np.any(ok):
         sel = ok & (ref.logpost > np.max(ref.logpost[ok]) + np.log(cfg.posterior_cut) - margin)
         pt = like(ref.e1[sel], ref.e2[sel])
         logl[sel], logpost[sel] = _mix(pt, ref.e1[sel], ref.e2[sel], cfg)
         for f in fields_:
             cols[f][sel] = getattr(pt, f)
-    return Samples(e1=ref.e1, e2=ref.e2, area=ref.area, logl=logl, logpost=logpost, point=EPoint(**cols))
+    return Samples(e1=ref.e1, e2=ref.e2, area=ref.area, logl=logl, logpost=logpost, point=EPoint(**cols),
+                   evaluated=sel)
 
 
 @dataclass
