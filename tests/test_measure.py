@@ -135,6 +135,36 @@ def test_kernel_matches_numpy():
             assert np.max(np.abs(x - y)) <= 1e-6 * np.max(np.abs(x)), f
 
 
+def test_merged_exposures_give_each_exposures_sums():
+    """Exposures with equal Jacobians sample the same K: join_exposures merges their modes (alias fold
+    groups included), and the joint sums are the sums of each exposure alone, added up."""
+    from shearfit.likelihood import join_exposures, model_sums, shift_joint
+    from shearfit.model import prepare_exposure
+    from shearfit.profiles import fast_pair
+
+    cfg = shearfit.FitConfig(mode_chi2_tolerance=0.0)
+    rot = PIX * np.array([[np.cos(0.3), -np.sin(0.3)], [np.sin(0.3), np.cos(0.3)]])
+    rng = np.random.default_rng(4)
+    e1, e2 = rng.uniform(-0.7, 0.7, (2, 37))
+    r = rng.uniform(0.0, 1.5, 37)
+    for jac, merges in (([PIX * np.eye(2)] * 4, True), ([PIX * np.eye(2), rot, PIX * np.eye(2), rot], True),
+                        ([PIX * np.eye(2), rot, 1.01 * PIX * np.eye(2), 0.99 * rot], False)):
+        exps = [prepare_exposure(o, cfg) for o in _observations(0.3, (0.2, 0.1), n_exp=4, jacobians=jac, noise=True,
+                                                                snr=40)]
+        jm = shift_joint(join_exposures(exps), 0.03, -0.05)
+        n_each = sum(e.kx.size for e in exps)
+        assert (jm.n_modes < 0.6 * n_each) == merges
+        assert jm.multi.size > 0 and np.any(jm.msizes > 1)
+        for use_kernel in (True, False):
+            joint = model_sums(jm, e1, e2, r, fast_pair(), 0.8, use_kernel=use_kernel)
+            parts = [model_sums(shift_joint(join_exposures([e]), 0.03, -0.05), e1, e2, r, fast_pair(), 0.8,
+                                use_kernel=use_kernel) for e in exps]
+            for f in ("hf", "hg", "grad_f", "grad_g", "hess_f", "hess_g", "ff", "gg", "fg"):
+                x = getattr(joint, f)
+                y = sum(getattr(p, f) for p in parts)
+                assert np.max(np.abs(x - y)) <= 1e-12 * np.max(np.abs(y)), (f, use_kernel)
+
+
 def test_binned_modes_match_every_mode():
     """The modes summed in bins of K^T C K (mode_bins_per_octave) give the sums of every mode to the
     order of the bins' width squared, for models of several ellipticities and sizes in one call, the

@@ -84,19 +84,18 @@ static inline __attribute__((always_inline)) void eval_block(
 
 static inline __attribute__((always_inline)) void block_body(
     const double *a0p, const double *a1p, const double *a2p, const double *M, Py_ssize_t n_single,
-    Py_ssize_t n_modes, const float *T, double nmax, double c, double inv_du, double ratio2, int same,
-    double *o)
+    Py_ssize_t n_groups, const long long *gsz, const double *quad, vnb *scratch, const float *T, double nmax,
+    double c, double inv_du, double ratio2, int same, double *o)
 {
     vnb a[3];
     for (int k = 0; k < NB; k++) { a[0][k] = a0p[k]; a[1][k] = a1p[k]; a[2][k] = a2p[k]; }
     const vnb zero = {0};
     vnb lf[6], lg[6];
     for (int t = 0; t < 6; t++) lf[t] = lg[t] = zero;
-    vnb ff = zero, gg = zero, fg = zero, mfr = zero, mfi = zero, mgr = zero, mgi = zero;
+    vnb ff = zero, gg = zero, fg = zero;
     const double c2 = c * c;
     const double *p = M;
-    Py_ssize_t j = 0;
-    for (; j < n_single; j++, p += NSTRIDE) {
+    for (Py_ssize_t j = 0; j < n_single; j++, p += NSTRIDE) {
         vnb rf, rg;
         eval_block(p, a, c, c2, inv_du, ratio2, same, T, nmax, &rf, &rg);
         for (int t = 0; t < 6; t++) { lf[t] += rf * p[3 + t]; lg[t] += rg * p[3 + t]; }
@@ -105,17 +104,31 @@ static inline __attribute__((always_inline)) void block_body(
         fg += qf * rg;
         gg += rg * rg * p[9];
     }
-    for (; j < n_modes; j++, p += NSTRIDE) {
-        vnb rf, rg;
-        eval_block(p, a, c, c2, inv_du, ratio2, same, T, nmax, &rf, &rg);
-        for (int t = 0; t < 6; t++) { lf[t] += rf * p[3 + t]; lg[t] += rg * p[3 + t]; }
-        mfr += rf * p[9]; mfi += rf * p[10];
-        mgr += rg * p[9]; mgi += rg * p[10];
-        if (p[11] != 0.0) {
-            ff += mfr * mfr + mfi * mfi;
-            gg += mgr * mgr + mgi * mgi;
-            fg += mfr * mgr + mfi * mgi;
-            mfr = mfi = mgr = mgi = zero;
+    /* the fold groups: transforms at the group's modes, then R^T Re(H) R from its upper triangle */
+    const double *h = quad;
+    for (Py_ssize_t g = 0; g < n_groups; g++) {
+        const Py_ssize_t np_ = (Py_ssize_t)gsz[g];
+        vnb *rfs = scratch, *rgs = scratch + np_;
+        for (Py_ssize_t n = 0; n < np_; n++, p += NSTRIDE) {
+            eval_block(p, a, c, c2, inv_du, ratio2, same, T, nmax, rfs + n, rgs + n);
+            for (int t = 0; t < 6; t++) { lf[t] += rfs[n] * p[3 + t]; lg[t] += rgs[n] * p[3 + t]; }
+        }
+        for (Py_ssize_t n = 0; n < np_; n++) {
+            /* x_n^2 H_nn + 2 x_n sum_{m>n} H_nm x_m, and for fg x_n sum H_nm y_m + y_n sum H_nm x_m */
+            const vnb x = rfs[n], y = rgs[n];
+            const vnb hx = x * h[0];
+            ff += hx * x;
+            gg += y * y * h[0];
+            fg += hx * y;
+            h++;
+            vnb sx = zero, sy = zero;
+            for (Py_ssize_t m = n + 1; m < np_; m++, h++) {
+                sx += rfs[m] * h[0];
+                sy += rgs[m] * h[0];
+            }
+            ff += 2.0 * x * sx;
+            gg += 2.0 * y * sy;
+            fg += x * sy + y * sx;
         }
     }
     for (int k = 0; k < NB; k++) {
@@ -127,34 +140,67 @@ static inline __attribute__((always_inline)) void block_body(
 
 MULTIVERSION
 static void block_sums(const double *a0, const double *a1, const double *a2, const double *M,
-                       Py_ssize_t n_single, Py_ssize_t n_modes, const float *T, double nmax, double c,
-                       double inv_du, double ratio2, int same, double *o)
+                       Py_ssize_t n_single, Py_ssize_t n_groups, const long long *gsz, const double *quad,
+                       vnb *scratch, const float *T, double nmax, double c, double inv_du, double ratio2, int same,
+                       double *o)
 {
     /* two copies of the loop, so that the common case (bulge and disk on one table row) has no branch */
     if (same)
-        block_body(a0, a1, a2, M, n_single, n_modes, T, nmax, c, inv_du, ratio2, 1, o);
+        block_body(a0, a1, a2, M, n_single, n_groups, gsz, quad, scratch, T, nmax, c, inv_du, ratio2, 1, o);
     else
-        block_body(a0, a1, a2, M, n_single, n_modes, T, nmax, c, inv_du, ratio2, 0, o);
+        block_body(a0, a1, a2, M, n_single, n_groups, gsz, quad, scratch, T, nmax, c, inv_du, ratio2, 0, o);
+}
+
+/* checks the group sizes against the modes and weights; returns the largest group (-1: inconsistent) */
+static Py_ssize_t check_groups(const long long *gsz, Py_ssize_t n_groups, Py_ssize_t n_multi, Py_ssize_t n_quad)
+{
+    Py_ssize_t tot = 0, totq = 0, mx = 0;
+    for (Py_ssize_t g = 0; g < n_groups; g++) {
+        if (gsz[g] < 1) return -1;
+        tot += (Py_ssize_t)gsz[g];
+        totq += (Py_ssize_t)(gsz[g] * (gsz[g] + 1) / 2);
+        if (gsz[g] > mx) mx = (Py_ssize_t)gsz[g];
+    }
+    return (tot == n_multi && totq == n_quad) ? mx : -1;
+}
+
+static vnb *alloc_scratch(Py_ssize_t max_group)
+{
+    void *ptr = NULL;
+    size_t n = (size_t)(2 * (max_group > 0 ? max_group : 1)) * sizeof(vnb);
+    if (posix_memalign(&ptr, 64, n) != 0) return NULL;
+    return (vnb *)ptr;
 }
 
 static PyObject *model_sums(PyObject *self, PyObject *args)
 {
-    Py_buffer coef, modes, tab, out;
+    Py_buffer coef, modes, tab, gszb, quadb, out;
     double c, inv_du, ratio2;
     Py_ssize_t n_single;
-    if (!PyArg_ParseTuple(args, "y*y*y*dddnw*", &coef, &modes, &tab, &c, &inv_du, &ratio2, &n_single, &out))
+    if (!PyArg_ParseTuple(args, "y*y*y*dddny*y*w*", &coef, &modes, &tab, &c, &inv_du, &ratio2, &n_single, &gszb,
+                          &quadb, &out))
         return NULL;
     Py_ssize_t n_models = coef.len / (3 * (Py_ssize_t)sizeof(double));
     Py_ssize_t n_modes = modes.len / (NSTRIDE * (Py_ssize_t)sizeof(double));
     Py_ssize_t n_tab = tab.len / (4 * (Py_ssize_t)sizeof(float));
-    if (out.len < n_models * NOUT * (Py_ssize_t)sizeof(double) || n_single > n_modes) {
-        RELEASE(&coef, &modes, &tab, &out);
+    Py_ssize_t n_groups = gszb.len / (Py_ssize_t)sizeof(long long);
+    const long long *GS = (const long long *)gszb.buf;
+    Py_ssize_t max_group = n_single <= n_modes
+        ? check_groups(GS, n_groups, n_modes - n_single, quadb.len / (Py_ssize_t)sizeof(double)) : -1;
+    if (out.len < n_models * NOUT * (Py_ssize_t)sizeof(double) || max_group < 0) {
+        RELEASE(&coef, &modes, &tab, &gszb, &quadb, &out);
         PyErr_SetString(PyExc_ValueError, "model_sums: inconsistent buffer sizes");
         return NULL;
+    }
+    vnb *scratch = alloc_scratch(max_group);
+    if (scratch == NULL) {
+        RELEASE(&coef, &modes, &tab, &gszb, &quadb, &out);
+        return PyErr_NoMemory();
     }
     const double *C = (const double *)coef.buf;
     const double *M = (const double *)modes.buf;
     const float *T = (const float *)tab.buf;
+    const double *Q = (const double *)quadb.buf;
     double *O = (double *)out.buf;
     const double nmax = (double)(n_tab - 1);
     const int same = (ratio2 == 1.0);
@@ -167,13 +213,14 @@ static PyObject *model_sums(PyObject *self, PyObject *args)
             Py_ssize_t m = m0 + k < n_models ? m0 + k : n_models - 1;
             a0[k] = C[3 * m]; a1[k] = C[3 * m + 1]; a2[k] = C[3 * m + 2];
         }
-        block_sums(a0, a1, a2, M, n_single, n_modes, T, nmax, c, inv_du, ratio2, same, ob);
+        block_sums(a0, a1, a2, M, n_single, n_groups, GS, Q, scratch, T, nmax, c, inv_du, ratio2, same, ob);
         for (int k = 0; k < NB && m0 + k < n_models; k++)
             for (int t = 0; t < NOUT; t++) O[NOUT * (m0 + k) + t] = ob[NOUT * k + t];
     }
     Py_END_ALLOW_THREADS
 
-    RELEASE(&coef, &modes, &tab, &out);
+    free(scratch);
+    RELEASE(&coef, &modes, &tab, &gszb, &quadb, &out);
     Py_RETURN_NONE;
 }
 
@@ -348,19 +395,23 @@ static PyObject *make_bins(PyObject *self, PyObject *args)
  */
 static PyObject *binned_sums(PyObject *self, PyObject *args)
 {
-    Py_buffer shape, r2b, eidx, rowsb, offb, modes, tab, out;
+    Py_buffer shape, r2b, eidx, rowsb, offb, modes, tab, gszb, quadb, out;
     double c, inv_du, ratio2;
     Py_ssize_t n_single;
-    if (!PyArg_ParseTuple(args, "y*y*y*y*y*y*y*dddnw*", &shape, &r2b, &eidx, &rowsb, &offb, &modes, &tab, &c,
-                          &inv_du, &ratio2, &n_single, &out))
+    if (!PyArg_ParseTuple(args, "y*y*y*y*y*y*y*dddny*y*w*", &shape, &r2b, &eidx, &rowsb, &offb, &modes, &tab, &c,
+                          &inv_du, &ratio2, &n_single, &gszb, &quadb, &out))
         return NULL;
     Py_ssize_t n_models = r2b.len / (Py_ssize_t)sizeof(double);
     Py_ssize_t n_e = shape.len / (3 * (Py_ssize_t)sizeof(double));
     Py_ssize_t n_modes = modes.len / (NSTRIDE * (Py_ssize_t)sizeof(double));
     Py_ssize_t n_rows = rowsb.len / (NSTRIDE * (Py_ssize_t)sizeof(double));
     Py_ssize_t n_tab = tab.len / (4 * (Py_ssize_t)sizeof(float));
+    Py_ssize_t n_groups = gszb.len / (Py_ssize_t)sizeof(long long);
     const long long *E = (const long long *)eidx.buf, *OFF = (const long long *)offb.buf;
-    int bad = out.len < n_models * NOUT * (Py_ssize_t)sizeof(double) || n_single > n_modes
+    const long long *GS = (const long long *)gszb.buf;
+    Py_ssize_t max_group = n_single <= n_modes
+        ? check_groups(GS, n_groups, n_modes - n_single, quadb.len / (Py_ssize_t)sizeof(double)) : -1;
+    int bad = out.len < n_models * NOUT * (Py_ssize_t)sizeof(double) || max_group < 0
               || eidx.len != n_models * (Py_ssize_t)sizeof(long long)
               || offb.len != (n_e + 1) * (Py_ssize_t)sizeof(long long) || OFF[n_e] != n_rows;
     for (Py_ssize_t m = 0; !bad && m < n_models; m++)
@@ -368,21 +419,27 @@ static PyObject *binned_sums(PyObject *self, PyObject *args)
     for (Py_ssize_t e = 0; !bad && e < n_e; e++)
         bad = OFF[e] < 0 || OFF[e] > OFF[e + 1];
     if (bad) {
-        RELEASE(&shape, &r2b, &eidx, &rowsb, &offb, &modes, &tab, &out);
+        RELEASE(&shape, &r2b, &eidx, &rowsb, &offb, &modes, &tab, &gszb, &quadb, &out);
         PyErr_SetString(PyExc_ValueError, "binned_sums: inconsistent buffers");
         return NULL;
+    }
+    vnb *scratch = alloc_scratch(max_group);
+    if (scratch == NULL) {
+        RELEASE(&shape, &r2b, &eidx, &rowsb, &offb, &modes, &tab, &gszb, &quadb, &out);
+        return PyErr_NoMemory();
     }
     const double *S = (const double *)shape.buf;
     const double *R2 = (const double *)r2b.buf;
     const double *M = (const double *)modes.buf;
     const double *ROWS = (const double *)rowsb.buf;
     const float *T = (const float *)tab.buf;
+    const double *Q = (const double *)quadb.buf;
     double *O = (double *)out.buf;
     const double nmax = (double)(n_tab - 1);
     const int same = (ratio2 == 1.0);
-    const Py_ssize_t n_multi = n_modes - n_single;
 
     Py_BEGIN_ALLOW_THREADS
+    /* the bins, per run of models with one ellipticity */
     Py_ssize_t m0 = 0;
     while (m0 < n_models) {
         Py_ssize_t m1 = m0;
@@ -392,24 +449,36 @@ static PyObject *binned_sums(PyObject *self, PyObject *args)
         const double *W = ROWS + NSTRIDE * OFF[e];
         const Py_ssize_t nbins = (Py_ssize_t)(OFF[e + 1] - OFF[e]);
         for (Py_ssize_t b0 = m0; b0 < m1; b0 += NB) {
-            double c0[NB], c1[NB], c2[NB], ob[NB * NOUT], om[NB * NOUT];
+            double c0[NB], c1[NB], c2[NB], ob[NB * NOUT];
             for (int k = 0; k < NB; k++) {
                 Py_ssize_t m = b0 + k < m1 ? b0 + k : m1 - 1;
                 c0[k] = a0 * R2[m]; c1[k] = a1 * R2[m]; c2[k] = a2 * R2[m];
             }
-            block_sums(c0, c1, c2, W, nbins, nbins, T, nmax, c, inv_du, ratio2, same, ob);
-            if (n_multi > 0) {
-                block_sums(c0, c1, c2, M + NSTRIDE * n_single, 0, n_multi, T, nmax, c, inv_du, ratio2, same, om);
-                for (int t = 0; t < NB * NOUT; t++) ob[t] += om[t];
-            }
+            block_sums(c0, c1, c2, W, nbins, 0, GS, Q, scratch, T, nmax, c, inv_du, ratio2, same, ob);
             for (int k = 0; k < NB && b0 + k < m1; k++)
                 for (int t = 0; t < NOUT; t++) O[NOUT * (b0 + k) + t] = ob[NOUT * k + t];
         }
         m0 = m1;
     }
+    /* the fold groups, summed exactly, in full blocks whatever the models' ellipticities */
+    if (n_groups > 0) {
+        const double *MG = M + NSTRIDE * n_single;
+        for (Py_ssize_t b0 = 0; b0 < n_models; b0 += NB) {
+            double c0[NB], c1[NB], c2[NB], om[NB * NOUT];
+            for (int k = 0; k < NB; k++) {
+                Py_ssize_t m = b0 + k < n_models ? b0 + k : n_models - 1;
+                const long long e = E[m];
+                c0[k] = S[3 * e] * R2[m]; c1[k] = S[3 * e + 1] * R2[m]; c2[k] = S[3 * e + 2] * R2[m];
+            }
+            block_sums(c0, c1, c2, MG, 0, n_groups, GS, Q, scratch, T, nmax, c, inv_du, ratio2, same, om);
+            for (int k = 0; k < NB && b0 + k < n_models; k++)
+                for (int t = 0; t < NOUT; t++) O[NOUT * (b0 + k) + t] += om[NOUT * k + t];
+        }
+    }
     Py_END_ALLOW_THREADS
 
-    RELEASE(&shape, &r2b, &eidx, &rowsb, &offb, &modes, &tab, &out);
+    free(scratch);
+    RELEASE(&shape, &r2b, &eidx, &rowsb, &offb, &modes, &tab, &gszb, &quadb, &out);
     Py_RETURN_NONE;
 }
 
@@ -665,12 +734,13 @@ static PyObject *marginal(PyObject *self, PyObject *args)
 
 static PyMethodDef methods[] = {
     {"model_sums", model_sums, METH_VARARGS,
-     "model_sums(coef, modes, table, c, inv_du, ratio2, n_single, out)"},
+     "model_sums(coef, modes, table, c, inv_du, ratio2, n_single, group_sizes, group_weights, out)"},
     {"set_special", set_special, METH_VARARGS, "set_special(erfcx_capsule, expi_capsule)"},
     {"marginal", marginal, METH_VARARGS, "marginal(sums, u, u_fine, spline, interp, params, out)"},
     {"make_bins", make_bins, METH_VARARGS, "make_bins(shape, basis32, channels32, bins_per_octave) -> (rows, offsets)"},
     {"binned_sums", binned_sums, METH_VARARGS,
-     "binned_sums(shape, r2, e_index, rows, offsets, modes, table, c, inv_du, ratio2, n_single, out)"},
+     "binned_sums(shape, r2, e_index, rows, offsets, modes, table, c, inv_du, ratio2, n_single, group_sizes, "
+     "group_weights, out)"},
     {NULL, NULL, 0, NULL}};
 
 static struct PyModuleDef module = {PyModuleDef_HEAD_INIT, "_kernels",

@@ -29,6 +29,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy import sparse, special
+from scipy.sparse.csgraph import connected_components
 from scipy.interpolate import CubicSpline
 
 from .config import FitConfig
@@ -49,17 +50,31 @@ LOG_2PI = np.log(2 * np.pi)
 
 @dataclass
 class JointModes:
-    """All exposures' Fourier modes of one object, concatenated."""
+    """All exposures' Fourier modes of one object, merged where they coincide.
+
+    A mode is a sky wavevector K. Exposures whose Jacobians are equal sample
+    the same K (dithers only change phases), so their modes are merged into
+    one: the model's transform is evaluated once per K for all of them.
+    The likelihood's sums are then, for the transform R(K) of a model::
+
+        h = sum_K R(K) Re(z(K) ...),  ff = sum_K q(K) R(K)^2 + R_m^T Re(H) R_m
+
+    where z adds the exposures' cross-correlation weights at K, q their
+    Parseval weights for modes alone on their sampled mode, and H (over the
+    modes ``multi``, whose sampled modes also hold alias images above
+    Nyquist, sec. 6 / App. A) is ``F^H F`` for F the matrix taking the
+    transforms at those K to every exposure's sampled modes: block diagonal,
+    one block of ``msizes[g]`` modes per group of modes linked by a fold.
+    """
 
     kx: np.ndarray
     ky: np.ndarray
-    z: np.ndarray          # conj(Y_c) T_j w_c / (N sigma^2): cross-correlation weight per mode
-    q: np.ndarray          # w_c |T_j|^2/(N sigma^2) for modes alone on their sampled mode, else 0
-    multi: np.ndarray      # indices of modes that share a sampled mode with others
-    fold: object           # sparse (n_multi_sampled x n_multi) matrix of T_j sqrt(w_c/(N sigma^2))
+    z: np.ndarray          # sum over exposures of conj(Y_c) T w_c / (N sigma^2): cross-correlation weight
+    q: np.ndarray          # sum over exposures of w_c |T|^2 / (N sigma^2) for modes in no fold group, else 0
+    multi: np.ndarray      # the modes in fold groups, group after group
+    msizes: np.ndarray     # the number of modes of each group (summing to multi.size)
+    H: object              # sparse complex Hermitian (multi.size x multi.size), F^H F, block diagonal
     basis: np.ndarray      # (3, n) [kx^2, 2 kx ky, ky^2]
-    group: np.ndarray      # global index of the sampled mode each mode folds onto
-    tscaled: np.ndarray    # T_j sqrt(w_c / (N sigma^2))
     yy: float
     npix: int
     n_exposures: int
@@ -71,26 +86,44 @@ class JointModes:
         return self.kx.size
 
     def packed(self):
-        """All modes, grouped by the sampled mode they fold onto, interleaved for the kernel (cached)."""
+        """The modes interleaved for the kernel (cached): (rows, n_single, group sizes, group weights).
+
+        Rows are 12 doubles, [kx^2, 2 kx ky, ky^2, lin0..lin5, q, 0, 0]: the modes in no group first,
+        then those of ``multi`` in its order. The group weights are, group after group, the upper
+        triangle of Re H's block, row by row.
+        """
         cache = getattr(self, "_packed", None)
         if cache is None:
-            counts = np.bincount(self.group)
-            single = counts[self.group] == 1
-            # singletons first (they carry q = |T|^2), then the groups that fold, contiguous
-            order = np.concatenate([np.nonzero(single)[0],
-                                    np.nonzero(~single)[0][np.argsort(self.group[~single], kind="stable")]])
-            g = self.group[order]
-            last = np.ones(g.size)
-            last[:-1] = (g[1:] != g[:-1])
+            single = np.ones(self.n_modes, bool)
+            single[self.multi] = False
+            order = np.concatenate([np.nonzero(single)[0], self.multi])
             lin = _linear_vectors(self)
-            ts = self.tscaled[order]
             n_single = int(single.sum())
-            re = ts.real.copy()
-            re[:n_single] = np.abs(ts[:n_single]) ** 2
-            cache = (np.ascontiguousarray(np.concatenate(
-                [self.basis[:, order], lin[:, order], re[None], ts.imag[None], last[None]]).T), n_single)
+            rows = np.zeros((order.size, 12))
+            rows[:, :3] = self.basis[:, order].T
+            rows[:, 3:9] = lin[:, order].T
+            rows[:n_single, 9] = self.q[order[:n_single]]
+            quad = _upper_blocks(sparse.csr_matrix(self.H.real), self.msizes)
+            cache = (np.ascontiguousarray(rows), n_single, np.ascontiguousarray(self.msizes, dtype=np.int64),
+                     np.ascontiguousarray(quad, dtype=float))
             self._packed = cache
         return cache
+
+
+def _upper_blocks(A, sizes):
+    """The upper triangles of A's diagonal blocks (of ``sizes``), block after block, row by row."""
+    sizes = np.asarray(sizes, np.int64)
+    starts = np.cumsum(sizes) - sizes
+    n_up = sizes * (sizes + 1) // 2
+    out_start = np.cumsum(n_up) - n_up
+    out = np.zeros(int(n_up.sum()))
+    for p in np.unique(sizes).tolist():
+        g = np.nonzero(sizes == p)[0]
+        i, j = np.triu_indices(p)
+        rows = (starts[g][:, None] + i[None]).ravel()
+        cols = (starts[g][:, None] + j[None]).ravel()
+        out[(out_start[g][:, None] + np.arange(i.size)[None]).ravel()] = np.asarray(A[rows, cols]).ravel()
+    return out
 
 
 def _packed_bins(jm):
@@ -99,7 +132,7 @@ def _packed_bins(jm):
     per mode is far below the binning's own error)."""
     cache = getattr(jm, "_bins32", None)
     if cache is None:
-        packed, n_single = jm.packed()
+        packed, n_single = jm.packed()[:2]
         b3 = np.zeros((n_single, 4), np.float32)
         b3[:, :3] = packed[:n_single, :3]
         c8 = np.zeros((n_single, 8), np.float32)
@@ -159,11 +192,8 @@ def join_exposures(exposures: list[ExposureModes], chi2_tolerance: float = 0.0, 
         keep = _noise_aware_cut(exposures, chi2_tolerance)
     if keep is not None:
         exposures = [_select(ex, k) for ex, k in zip(exposures, keep)]
-    kx, ky, z, q, T_multi, c_multi, idx_multi = [], [], [], [], [], [], []
-    group, tscaled = [], []
+    kx, ky, z, tscaled, group = [], [], [], [], []
     goffset = 0
-    offset = 0
-    coffset = 0
     yy = 0.0
     npix = 0
     for ex in exposures:
@@ -171,51 +201,57 @@ def join_exposures(exposures: list[ExposureModes], chi2_tolerance: float = 0.0, 
         norm = 1.0 / (ny * nx * ex.sigma2)
         w = ex.cweight[ex.coarse]
         z.append(np.conj(ex.data_ft[ex.coarse]) * ex.transfer * w * norm)
+        tscaled.append(ex.transfer * np.sqrt(w * norm))
         group.append(ex.coarse + goffset)
         goffset += ex.cweight.size
-        tscaled.append(ex.transfer * np.sqrt(w * norm))
-        counts = np.bincount(ex.coarse, minlength=ex.cweight.size)
-        single = counts[ex.coarse] == 1
-        q.append(np.where(single, w * np.abs(ex.transfer) ** 2 * norm, 0.0))
-        m = np.nonzero(~single)[0]
-        if m.size:
-            # renumber the shared sampled modes of this exposure compactly
-            uniq, inv = np.unique(ex.coarse[m], return_inverse=True)
-            T_multi.append(ex.transfer[m] * np.sqrt(w[m] * norm))
-            c_multi.append(inv + coffset)
-            idx_multi.append(m + offset)
-            coffset += uniq.size
         kx.append(ex.kx)
         ky.append(ex.ky)
-        offset += ex.kx.size
         yy += ex.yy
         npix += ex.npix
     kx = np.concatenate(kx)
     ky = np.concatenate(ky)
-    if idx_multi:
-        multi = np.concatenate(idx_multi)
-        fold = sparse.csr_matrix((np.concatenate(T_multi), (np.concatenate(c_multi), np.arange(multi.size))),
-                                 shape=(coffset, multi.size))
-    else:
-        multi = np.zeros(0, dtype=int)
-        fold = None
-    basis = np.stack([kx * kx, 2 * kx * ky, ky * ky])
-    return JointModes(kx=kx, ky=ky, z=np.concatenate(z), q=np.concatenate(q), multi=multi, fold=fold,
-                      basis=basis, group=np.concatenate(group), tscaled=np.concatenate(tscaled),
-                      yy=yy, npix=npix, n_exposures=len(exposures),
-                      pixel_scale=float(np.mean([e.pixel_scale for e in exposures])), keep=keep)
+    z = np.concatenate(z)
+    tscaled = np.concatenate(tscaled)
+    group = np.concatenate(group)
+    # one mode per distinct K (exactly equal: exposures with equal Jacobians)
+    uk, first, inv = np.unique(kx + 1j * ky, return_index=True, return_inverse=True)
+    inv = inv.ravel()
+    n = uk.size
+    zu = np.bincount(inv, z.real, n) + 1j * np.bincount(inv, z.imag, n)
+    # F: the exposures' sampled modes (rows) from the transforms at the distinct K (columns)
+    rows_used, grow = np.unique(group, return_inverse=True)
+    F = sparse.csr_matrix((tscaled, (grow.ravel(), inv)), shape=(rows_used.size, n))
+    H = (F.conj().T @ F).tocsr()
+    # groups: the modes linked through a sampled mode (components of H's pattern)
+    n_comp, label = connected_components(sparse.csr_matrix((np.ones(H.nnz), H.indices, H.indptr), shape=H.shape),
+                                         directed=False)
+    sizes = np.bincount(label, minlength=n_comp)
+    single = sizes[label] == 1
+    q = np.where(single, H.diagonal().real, 0.0)
+    m = np.nonzero(~single)[0]
+    multi = m[np.argsort(label[m], kind="stable")]
+    lab = label[multi]
+    starts = np.ones(lab.size, bool)
+    starts[1:] = lab[1:] != lab[:-1]
+    msizes = sizes[lab[starts]].astype(np.int64)
+    Hm = H[multi][:, multi].tocsr()
+    kxu, kyu = kx[first], ky[first]
+    return JointModes(kx=kxu, ky=kyu, z=zu, q=q, multi=multi, msizes=msizes, H=Hm,
+                      basis=np.stack([kxu * kxu, 2 * kxu * kyu, kyu * kyu]), yy=yy, npix=npix,
+                      n_exposures=len(exposures), pixel_scale=float(np.mean([e.pixel_scale for e in exposures])),
+                      keep=keep)
 
 
 def shift_joint(jm: JointModes, du, dv) -> JointModes:
     """The same modes with the model origin moved by (du, dv) arcsec on the sky."""
     phase = np.exp(-1j * (jm.kx * du + jm.ky * dv))
-    fold = None
-    if jm.fold is not None:
-        fold = jm.fold @ sparse.diags(phase[jm.multi])
-        fold = sparse.csr_matrix(fold)
-    return JointModes(kx=jm.kx, ky=jm.ky, z=jm.z * phase, q=jm.q, multi=jm.multi, fold=fold,
-                      basis=jm.basis, group=jm.group, tscaled=jm.tscaled * phase, yy=jm.yy, npix=jm.npix,
-                      n_exposures=jm.n_exposures, pixel_scale=jm.pixel_scale, keep=jm.keep)
+    H = jm.H
+    if jm.multi.size:
+        ph = phase[jm.multi]
+        H = sparse.csr_matrix(sparse.diags(np.conj(ph)) @ jm.H @ sparse.diags(ph))
+    return JointModes(kx=jm.kx, ky=jm.ky, z=jm.z * phase, q=jm.q, multi=jm.multi, msizes=jm.msizes, H=H,
+                      basis=jm.basis, yy=jm.yy, npix=jm.npix, n_exposures=jm.n_exposures,
+                      pixel_scale=jm.pixel_scale, keep=jm.keep)
 
 
 @dataclass
@@ -258,9 +294,9 @@ def _linear_vectors(jm: JointModes):
 
 def _model_sums_kernel(jm, coef, fast, ratio):
     out = np.empty((coef.shape[0], 15))
-    packed, n_single = jm.packed()
+    packed, n_single, gsizes, quad = jm.packed()
     _kernels.model_sums(np.ascontiguousarray(coef), packed, fast.packed32, fast.C, 1.0 / fast.du,
-                        float(ratio) ** 2, n_single, out)
+                        float(ratio) ** 2, n_single, gsizes, quad, out)
     return ModelSums.from_kernel(out)
 
 
@@ -287,10 +323,10 @@ def mode_bins(jm: JointModes, e1, e2, bins_per_octave) -> ModeBins:
 
 def _model_sums_binned(jm, bins, e_index, r2, fast, ratio):
     out = np.empty((r2.size, 15))
-    packed, n_single = jm.packed()
+    packed, n_single, gsizes, quad = jm.packed()
     _kernels.binned_sums(bins.shape, np.ascontiguousarray(r2), np.ascontiguousarray(e_index, dtype=np.int64),
                          bins.rows, bins.offsets, packed, fast.packed32, fast.C, 1.0 / fast.du, float(ratio) ** 2,
-                         n_single, out)
+                         n_single, gsizes, quad, out)
     return ModelSums.from_kernel(out)
 
 
@@ -337,12 +373,14 @@ def model_sums(jm: JointModes, e1, e2, r, fast, bulge_size_ratio=1.0, lin=None, 
     ff = (Rf * Rf) @ jm.q
     gg = (Rg * Rg) @ jm.q
     fg = (Rf * Rg) @ jm.q
-    if jm.fold is not None:
-        Mf = (jm.fold @ Rf[:, jm.multi].T)
-        Mg = (jm.fold @ Rg[:, jm.multi].T)
-        ff = ff + np.sum(np.abs(Mf) ** 2, axis=0)
-        gg = gg + np.sum(np.abs(Mg) ** 2, axis=0)
-        fg = fg + np.sum((Mf * np.conj(Mg)).real, axis=0)
+    if jm.multi.size:
+        # the fold groups: R_m^T Re(H) R_m
+        Hr = sparse.csr_matrix(jm.H.real)
+        Rfm, Rgm = Rf[:, jm.multi], Rg[:, jm.multi]
+        HRf = (Hr @ Rfm.T).T
+        ff = ff + np.sum(HRf * Rfm, axis=1)
+        gg = gg + np.sum((Hr @ Rgm.T).T * Rgm, axis=1)
+        fg = fg + np.sum(HRf * Rgm, axis=1)
     return ModelSums(hf=Lf[:, 0], hg=Lg[:, 0], grad_f=Lf[:, 1:3], grad_g=Lg[:, 1:3],
                      hess_f=Lf[:, 3:6], hess_g=Lg[:, 3:6], ff=ff, gg=gg, fg=fg)
 
