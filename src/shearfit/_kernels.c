@@ -7,18 +7,19 @@
  * accumulates, without temporaries:
  *   L_f[t] = sum_j R_f(j) lin[t](j), L_g[t] likewise   (t = 0..5)
  *   ff = sum_j q(j) R_f^2, gg = sum_j q(j) R_g^2, fg = sum_j q(j) R_f R_g
+ * for the modes in no fold group (q = the exposures' summed w |T|^2 / (N sigma^2)),
+ * and for the fold groups (modes above Nyquist folding onto sampled modes,
+ * merged over the exposures that share them, likelihood.JointModes) the
+ * quadratic form R^T Re(H) R of each group, as sum_j (u_j . R)^2 over the
+ * factors u_j of its block of Re H (as many as the block's rank).
  * This is the same arithmetic as likelihood.model_sums' numpy path, which
  * stays as the reference and the fallback; a test checks they agree.
  *
- * and the Parseval sums through the fold onto the sampled grid: modes that
- * fold onto the same sampled mode are contiguous, each carries its complex
- * transfer T (scaled by sqrt(w / (N sigma^2))) and a flag marking the last
- * of its group; per group M = sum T R, and ff += |M_f|^2, fg += Re(M_f M_g*).
  * Modes are passed interleaved, 12 doubles each:
- *   [kx^2, 2 kx ky, ky^2, lin0..lin5, Re T, Im T, last-of-group]
- * The first n_single modes are alone on their sampled mode: for them
- * |M|^2 = |T|^2 R^2, so they carry q = |T|^2 in place of Re T and the loop
- * over them has no branch.
+ *   [kx^2, 2 kx ky, ky^2, lin0..lin5, q, 0, 0]
+ * the n_single modes in no group first (their loop has no branch), then the
+ * groups' modes group after group, with each group's size, rank and factors
+ * in three more buffers.
  * Only the buffer protocol is used, so no numpy headers are needed to build.
  */
 #define PY_SSIZE_T_CLEAN
@@ -84,8 +85,8 @@ static inline __attribute__((always_inline)) void eval_block(
 
 static inline __attribute__((always_inline)) void block_body(
     const double *a0p, const double *a1p, const double *a2p, const double *M, Py_ssize_t n_single,
-    Py_ssize_t n_groups, const long long *gsz, const double *quad, vnb *scratch, const float *T, double nmax,
-    double c, double inv_du, double ratio2, int same, double *o)
+    Py_ssize_t n_groups, const long long *gsz, const long long *grank, const double *fac, vnb *scratch,
+    const float *T, double nmax, double c, double inv_du, double ratio2, int same, double *o)
 {
     vnb a[3];
     for (int k = 0; k < NB; k++) { a[0][k] = a0p[k]; a[1][k] = a1p[k]; a[2][k] = a2p[k]; }
@@ -104,31 +105,22 @@ static inline __attribute__((always_inline)) void block_body(
         fg += qf * rg;
         gg += rg * rg * p[9];
     }
-    /* the fold groups: transforms at the group's modes, then R^T Re(H) R from its upper triangle */
-    const double *h = quad;
+    /* the fold groups: the transforms at the group's modes, then R^T Re(H) R = sum_j (u_j . R)^2 from the
+       factors u_j of Re(H) (its eigenvectors times the root of their eigenvalues, as many as its rank) */
+    const double *u = fac;
     for (Py_ssize_t g = 0; g < n_groups; g++) {
-        const Py_ssize_t np_ = (Py_ssize_t)gsz[g];
+        const Py_ssize_t np_ = (Py_ssize_t)gsz[g], nr = (Py_ssize_t)grank[g];
         vnb *rfs = scratch, *rgs = scratch + np_;
         for (Py_ssize_t n = 0; n < np_; n++, p += NSTRIDE) {
             eval_block(p, a, c, c2, inv_du, ratio2, same, T, nmax, rfs + n, rgs + n);
             for (int t = 0; t < 6; t++) { lf[t] += rfs[n] * p[3 + t]; lg[t] += rgs[n] * p[3 + t]; }
         }
-        for (Py_ssize_t n = 0; n < np_; n++) {
-            /* x_n^2 H_nn + 2 x_n sum_{m>n} H_nm x_m, and for fg x_n sum H_nm y_m + y_n sum H_nm x_m */
-            const vnb x = rfs[n], y = rgs[n];
-            const vnb hx = x * h[0];
-            ff += hx * x;
-            gg += y * y * h[0];
-            fg += hx * y;
-            h++;
-            vnb sx = zero, sy = zero;
-            for (Py_ssize_t m = n + 1; m < np_; m++, h++) {
-                sx += rfs[m] * h[0];
-                sy += rgs[m] * h[0];
-            }
-            ff += 2.0 * x * sx;
-            gg += 2.0 * y * sy;
-            fg += x * sy + y * sx;
+        for (Py_ssize_t j = 0; j < nr; j++, u += np_) {
+            vnb sf = zero, sg = zero;
+            for (Py_ssize_t n = 0; n < np_; n++) { sf += rfs[n] * u[n]; sg += rgs[n] * u[n]; }
+            ff += sf * sf;
+            gg += sg * sg;
+            fg += sf * sg;
         }
     }
     for (int k = 0; k < NB; k++) {
@@ -140,28 +132,29 @@ static inline __attribute__((always_inline)) void block_body(
 
 MULTIVERSION
 static void block_sums(const double *a0, const double *a1, const double *a2, const double *M,
-                       Py_ssize_t n_single, Py_ssize_t n_groups, const long long *gsz, const double *quad,
-                       vnb *scratch, const float *T, double nmax, double c, double inv_du, double ratio2, int same,
+                       Py_ssize_t n_single, Py_ssize_t n_groups, const long long *gsz, const long long *grank,
+                       const double *fac, vnb *scratch, const float *T, double nmax, double c, double inv_du, double ratio2, int same,
                        double *o)
 {
     /* two copies of the loop, so that the common case (bulge and disk on one table row) has no branch */
     if (same)
-        block_body(a0, a1, a2, M, n_single, n_groups, gsz, quad, scratch, T, nmax, c, inv_du, ratio2, 1, o);
+        block_body(a0, a1, a2, M, n_single, n_groups, gsz, grank, fac, scratch, T, nmax, c, inv_du, ratio2, 1, o);
     else
-        block_body(a0, a1, a2, M, n_single, n_groups, gsz, quad, scratch, T, nmax, c, inv_du, ratio2, 0, o);
+        block_body(a0, a1, a2, M, n_single, n_groups, gsz, grank, fac, scratch, T, nmax, c, inv_du, ratio2, 0, o);
 }
 
-/* checks the group sizes against the modes and weights; returns the largest group (-1: inconsistent) */
-static Py_ssize_t check_groups(const long long *gsz, Py_ssize_t n_groups, Py_ssize_t n_multi, Py_ssize_t n_quad)
+/* checks the group sizes and ranks against the modes and factors; returns the largest group (-1: inconsistent) */
+static Py_ssize_t check_groups(const long long *gsz, const long long *grank, Py_ssize_t n_groups, Py_ssize_t n_multi,
+                               Py_ssize_t n_fac)
 {
-    Py_ssize_t tot = 0, totq = 0, mx = 0;
+    Py_ssize_t tot = 0, totf = 0, mx = 0;
     for (Py_ssize_t g = 0; g < n_groups; g++) {
-        if (gsz[g] < 1) return -1;
+        if (gsz[g] < 1 || grank[g] < 0 || grank[g] > gsz[g]) return -1;
         tot += (Py_ssize_t)gsz[g];
-        totq += (Py_ssize_t)(gsz[g] * (gsz[g] + 1) / 2);
+        totf += (Py_ssize_t)(gsz[g] * grank[g]);
         if (gsz[g] > mx) mx = (Py_ssize_t)gsz[g];
     }
-    return (tot == n_multi && totq == n_quad) ? mx : -1;
+    return (tot == n_multi && totf == n_fac) ? mx : -1;
 }
 
 static vnb *alloc_scratch(Py_ssize_t max_group)
@@ -174,33 +167,33 @@ static vnb *alloc_scratch(Py_ssize_t max_group)
 
 static PyObject *model_sums(PyObject *self, PyObject *args)
 {
-    Py_buffer coef, modes, tab, gszb, quadb, out;
+    Py_buffer coef, modes, tab, gszb, grkb, facb, out;
     double c, inv_du, ratio2;
     Py_ssize_t n_single;
-    if (!PyArg_ParseTuple(args, "y*y*y*dddny*y*w*", &coef, &modes, &tab, &c, &inv_du, &ratio2, &n_single, &gszb,
-                          &quadb, &out))
+    if (!PyArg_ParseTuple(args, "y*y*y*dddny*y*y*w*", &coef, &modes, &tab, &c, &inv_du, &ratio2, &n_single, &gszb,
+                          &grkb, &facb, &out))
         return NULL;
     Py_ssize_t n_models = coef.len / (3 * (Py_ssize_t)sizeof(double));
     Py_ssize_t n_modes = modes.len / (NSTRIDE * (Py_ssize_t)sizeof(double));
     Py_ssize_t n_tab = tab.len / (4 * (Py_ssize_t)sizeof(float));
     Py_ssize_t n_groups = gszb.len / (Py_ssize_t)sizeof(long long);
-    const long long *GS = (const long long *)gszb.buf;
-    Py_ssize_t max_group = n_single <= n_modes
-        ? check_groups(GS, n_groups, n_modes - n_single, quadb.len / (Py_ssize_t)sizeof(double)) : -1;
+    const long long *GS = (const long long *)gszb.buf, *GR = (const long long *)grkb.buf;
+    Py_ssize_t max_group = n_single <= n_modes && grkb.len == gszb.len
+        ? check_groups(GS, GR, n_groups, n_modes - n_single, facb.len / (Py_ssize_t)sizeof(double)) : -1;
     if (out.len < n_models * NOUT * (Py_ssize_t)sizeof(double) || max_group < 0) {
-        RELEASE(&coef, &modes, &tab, &gszb, &quadb, &out);
+        RELEASE(&coef, &modes, &tab, &gszb, &grkb, &facb, &out);
         PyErr_SetString(PyExc_ValueError, "model_sums: inconsistent buffer sizes");
         return NULL;
     }
     vnb *scratch = alloc_scratch(max_group);
     if (scratch == NULL) {
-        RELEASE(&coef, &modes, &tab, &gszb, &quadb, &out);
+        RELEASE(&coef, &modes, &tab, &gszb, &grkb, &facb, &out);
         return PyErr_NoMemory();
     }
     const double *C = (const double *)coef.buf;
     const double *M = (const double *)modes.buf;
     const float *T = (const float *)tab.buf;
-    const double *Q = (const double *)quadb.buf;
+    const double *U = (const double *)facb.buf;
     double *O = (double *)out.buf;
     const double nmax = (double)(n_tab - 1);
     const int same = (ratio2 == 1.0);
@@ -213,14 +206,14 @@ static PyObject *model_sums(PyObject *self, PyObject *args)
             Py_ssize_t m = m0 + k < n_models ? m0 + k : n_models - 1;
             a0[k] = C[3 * m]; a1[k] = C[3 * m + 1]; a2[k] = C[3 * m + 2];
         }
-        block_sums(a0, a1, a2, M, n_single, n_groups, GS, Q, scratch, T, nmax, c, inv_du, ratio2, same, ob);
+        block_sums(a0, a1, a2, M, n_single, n_groups, GS, GR, U, scratch, T, nmax, c, inv_du, ratio2, same, ob);
         for (int k = 0; k < NB && m0 + k < n_models; k++)
             for (int t = 0; t < NOUT; t++) O[NOUT * (m0 + k) + t] = ob[NOUT * k + t];
     }
     Py_END_ALLOW_THREADS
 
     free(scratch);
-    RELEASE(&coef, &modes, &tab, &gszb, &quadb, &out);
+    RELEASE(&coef, &modes, &tab, &gszb, &grkb, &facb, &out);
     Py_RETURN_NONE;
 }
 
@@ -395,11 +388,11 @@ static PyObject *make_bins(PyObject *self, PyObject *args)
  */
 static PyObject *binned_sums(PyObject *self, PyObject *args)
 {
-    Py_buffer shape, r2b, eidx, rowsb, offb, modes, tab, gszb, quadb, out;
+    Py_buffer shape, r2b, eidx, rowsb, offb, modes, tab, gszb, grkb, facb, out;
     double c, inv_du, ratio2;
     Py_ssize_t n_single;
-    if (!PyArg_ParseTuple(args, "y*y*y*y*y*y*y*dddny*y*w*", &shape, &r2b, &eidx, &rowsb, &offb, &modes, &tab, &c,
-                          &inv_du, &ratio2, &n_single, &gszb, &quadb, &out))
+    if (!PyArg_ParseTuple(args, "y*y*y*y*y*y*y*dddny*y*y*w*", &shape, &r2b, &eidx, &rowsb, &offb, &modes, &tab, &c,
+                          &inv_du, &ratio2, &n_single, &gszb, &grkb, &facb, &out))
         return NULL;
     Py_ssize_t n_models = r2b.len / (Py_ssize_t)sizeof(double);
     Py_ssize_t n_e = shape.len / (3 * (Py_ssize_t)sizeof(double));
@@ -408,9 +401,9 @@ static PyObject *binned_sums(PyObject *self, PyObject *args)
     Py_ssize_t n_tab = tab.len / (4 * (Py_ssize_t)sizeof(float));
     Py_ssize_t n_groups = gszb.len / (Py_ssize_t)sizeof(long long);
     const long long *E = (const long long *)eidx.buf, *OFF = (const long long *)offb.buf;
-    const long long *GS = (const long long *)gszb.buf;
-    Py_ssize_t max_group = n_single <= n_modes
-        ? check_groups(GS, n_groups, n_modes - n_single, quadb.len / (Py_ssize_t)sizeof(double)) : -1;
+    const long long *GS = (const long long *)gszb.buf, *GR = (const long long *)grkb.buf;
+    Py_ssize_t max_group = n_single <= n_modes && grkb.len == gszb.len
+        ? check_groups(GS, GR, n_groups, n_modes - n_single, facb.len / (Py_ssize_t)sizeof(double)) : -1;
     int bad = out.len < n_models * NOUT * (Py_ssize_t)sizeof(double) || max_group < 0
               || eidx.len != n_models * (Py_ssize_t)sizeof(long long)
               || offb.len != (n_e + 1) * (Py_ssize_t)sizeof(long long) || OFF[n_e] != n_rows;
@@ -419,13 +412,13 @@ static PyObject *binned_sums(PyObject *self, PyObject *args)
     for (Py_ssize_t e = 0; !bad && e < n_e; e++)
         bad = OFF[e] < 0 || OFF[e] > OFF[e + 1];
     if (bad) {
-        RELEASE(&shape, &r2b, &eidx, &rowsb, &offb, &modes, &tab, &gszb, &quadb, &out);
+        RELEASE(&shape, &r2b, &eidx, &rowsb, &offb, &modes, &tab, &gszb, &grkb, &facb, &out);
         PyErr_SetString(PyExc_ValueError, "binned_sums: inconsistent buffers");
         return NULL;
     }
     vnb *scratch = alloc_scratch(max_group);
     if (scratch == NULL) {
-        RELEASE(&shape, &r2b, &eidx, &rowsb, &offb, &modes, &tab, &gszb, &quadb, &out);
+        RELEASE(&shape, &r2b, &eidx, &rowsb, &offb, &modes, &tab, &gszb, &grkb, &facb, &out);
         return PyErr_NoMemory();
     }
     const double *S = (const double *)shape.buf;
@@ -433,7 +426,7 @@ static PyObject *binned_sums(PyObject *self, PyObject *args)
     const double *M = (const double *)modes.buf;
     const double *ROWS = (const double *)rowsb.buf;
     const float *T = (const float *)tab.buf;
-    const double *Q = (const double *)quadb.buf;
+    const double *U = (const double *)facb.buf;
     double *O = (double *)out.buf;
     const double nmax = (double)(n_tab - 1);
     const int same = (ratio2 == 1.0);
@@ -454,7 +447,7 @@ static PyObject *binned_sums(PyObject *self, PyObject *args)
                 Py_ssize_t m = b0 + k < m1 ? b0 + k : m1 - 1;
                 c0[k] = a0 * R2[m]; c1[k] = a1 * R2[m]; c2[k] = a2 * R2[m];
             }
-            block_sums(c0, c1, c2, W, nbins, 0, GS, Q, scratch, T, nmax, c, inv_du, ratio2, same, ob);
+            block_sums(c0, c1, c2, W, nbins, 0, GS, GR, U, scratch, T, nmax, c, inv_du, ratio2, same, ob);
             for (int k = 0; k < NB && b0 + k < m1; k++)
                 for (int t = 0; t < NOUT; t++) O[NOUT * (b0 + k) + t] = ob[NOUT * k + t];
         }
@@ -470,7 +463,7 @@ static PyObject *binned_sums(PyObject *self, PyObject *args)
                 const long long e = E[m];
                 c0[k] = S[3 * e] * R2[m]; c1[k] = S[3 * e + 1] * R2[m]; c2[k] = S[3 * e + 2] * R2[m];
             }
-            block_sums(c0, c1, c2, MG, 0, n_groups, GS, Q, scratch, T, nmax, c, inv_du, ratio2, same, om);
+            block_sums(c0, c1, c2, MG, 0, n_groups, GS, GR, U, scratch, T, nmax, c, inv_du, ratio2, same, om);
             for (int k = 0; k < NB && b0 + k < n_models; k++)
                 for (int t = 0; t < NOUT; t++) O[NOUT * (b0 + k) + t] += om[NOUT * k + t];
         }
@@ -478,7 +471,7 @@ static PyObject *binned_sums(PyObject *self, PyObject *args)
     Py_END_ALLOW_THREADS
 
     free(scratch);
-    RELEASE(&shape, &r2b, &eidx, &rowsb, &offb, &modes, &tab, &gszb, &quadb, &out);
+    RELEASE(&shape, &r2b, &eidx, &rowsb, &offb, &modes, &tab, &gszb, &grkb, &facb, &out);
     Py_RETURN_NONE;
 }
 
@@ -734,13 +727,13 @@ static PyObject *marginal(PyObject *self, PyObject *args)
 
 static PyMethodDef methods[] = {
     {"model_sums", model_sums, METH_VARARGS,
-     "model_sums(coef, modes, table, c, inv_du, ratio2, n_single, group_sizes, group_weights, out)"},
+     "model_sums(coef, modes, table, c, inv_du, ratio2, n_single, group_sizes, group_ranks, group_factors, out)"},
     {"set_special", set_special, METH_VARARGS, "set_special(erfcx_capsule, expi_capsule)"},
     {"marginal", marginal, METH_VARARGS, "marginal(sums, u, u_fine, spline, interp, params, out)"},
     {"make_bins", make_bins, METH_VARARGS, "make_bins(shape, basis32, channels32, bins_per_octave) -> (rows, offsets)"},
     {"binned_sums", binned_sums, METH_VARARGS,
      "binned_sums(shape, r2, e_index, rows, offsets, modes, table, c, inv_du, ratio2, n_single, group_sizes, "
-     "group_weights, out)"},
+     "group_ranks, group_factors, out)"},
     {NULL, NULL, 0, NULL}};
 
 static struct PyModuleDef module = {PyModuleDef_HEAD_INIT, "_kernels",

@@ -89,8 +89,8 @@ class JointModes:
         """The modes interleaved for the kernel (cached): (rows, n_single, group sizes, group weights).
 
         Rows are 12 doubles, [kx^2, 2 kx ky, ky^2, lin0..lin5, q, 0, 0]: the modes in no group first,
-        then those of ``multi`` in its order. The group weights are, group after group, the upper
-        triangle of Re H's block, row by row.
+        then those of ``multi`` in its order. Each group's block of Re H is passed as its rank and
+        factors (``_block_factors``).
         """
         cache = getattr(self, "_packed", None)
         if cache is None:
@@ -103,27 +103,39 @@ class JointModes:
             rows[:, :3] = self.basis[:, order].T
             rows[:, 3:9] = lin[:, order].T
             rows[:n_single, 9] = self.q[order[:n_single]]
-            quad = _upper_blocks(sparse.csr_matrix(self.H.real), self.msizes)
+            ranks, factors = _block_factors(sparse.csr_matrix(self.H.real), self.msizes)
             cache = (np.ascontiguousarray(rows), n_single, np.ascontiguousarray(self.msizes, dtype=np.int64),
-                     np.ascontiguousarray(quad, dtype=float))
+                     ranks, np.ascontiguousarray(factors, dtype=float))
             self._packed = cache
         return cache
 
 
-def _upper_blocks(A, sizes):
-    """The upper triangles of A's diagonal blocks (of ``sizes``), block after block, row by row."""
+def _block_factors(A, sizes):
+    """Factors of A's diagonal blocks (of ``sizes``; symmetric, positive semi-definite): per block of size p,
+    vectors u_j with block = sum_j u_j u_j^T (eigenvectors times the root of their eigenvalues, those
+    above 1e-13 of the largest), as (ranks, the u_j of every block one after the other)."""
     sizes = np.asarray(sizes, np.int64)
     starts = np.cumsum(sizes) - sizes
-    n_up = sizes * (sizes + 1) // 2
-    out_start = np.cumsum(n_up) - n_up
-    out = np.zeros(int(n_up.sum()))
+    ranks = np.zeros(sizes.size, np.int64)
+    pieces = {}
     for p in np.unique(sizes).tolist():
         g = np.nonzero(sizes == p)[0]
-        i, j = np.triu_indices(p)
-        rows = (starts[g][:, None] + i[None]).ravel()
-        cols = (starts[g][:, None] + j[None]).ravel()
-        out[(out_start[g][:, None] + np.arange(i.size)[None]).ravel()] = np.asarray(A[rows, cols]).ravel()
-    return out
+        idx = starts[g][:, None] + np.arange(p)[None]
+        blocks = np.asarray(A[np.repeat(idx, p, axis=1).ravel(), np.tile(idx, (1, p)).ravel()]).reshape(g.size, p, p)
+        w, v = np.linalg.eigh(blocks)                       # ascending eigenvalues
+        w, v = w[:, ::-1], v[:, :, ::-1]
+        keep = w > 1e-13 * np.maximum(w[:, :1], 1e-300)
+        ranks[g] = keep.sum(axis=1)
+        u = np.transpose(v * np.sqrt(np.maximum(w, 0.0))[:, None, :], (0, 2, 1))   # (block, j, n)
+        pieces[p] = (g, u[keep].reshape(-1, p))               # the kept u_j, block after block
+    n_fac = sizes * ranks
+    fac_start = np.cumsum(n_fac) - n_fac
+    out = np.zeros(int(n_fac.sum()))
+    for p, (g, u) in pieces.items():
+        lens = ranks[g] * p
+        pos = np.repeat(fac_start[g] - (np.cumsum(lens) - lens), lens) + np.arange(int(lens.sum()))
+        out[pos] = u.ravel()
+    return ranks, out
 
 
 def _packed_bins(jm):
@@ -294,9 +306,9 @@ def _linear_vectors(jm: JointModes):
 
 def _model_sums_kernel(jm, coef, fast, ratio):
     out = np.empty((coef.shape[0], 15))
-    packed, n_single, gsizes, quad = jm.packed()
+    packed, n_single, gsizes, granks, factors = jm.packed()
     _kernels.model_sums(np.ascontiguousarray(coef), packed, fast.packed32, fast.C, 1.0 / fast.du,
-                        float(ratio) ** 2, n_single, gsizes, quad, out)
+                        float(ratio) ** 2, n_single, gsizes, granks, factors, out)
     return ModelSums.from_kernel(out)
 
 
@@ -323,10 +335,10 @@ def mode_bins(jm: JointModes, e1, e2, bins_per_octave) -> ModeBins:
 
 def _model_sums_binned(jm, bins, e_index, r2, fast, ratio):
     out = np.empty((r2.size, 15))
-    packed, n_single, gsizes, quad = jm.packed()
+    packed, n_single, gsizes, granks, factors = jm.packed()
     _kernels.binned_sums(bins.shape, np.ascontiguousarray(r2), np.ascontiguousarray(e_index, dtype=np.int64),
                          bins.rows, bins.offsets, packed, fast.packed32, fast.C, 1.0 / fast.du, float(ratio) ** 2,
-                         n_single, gsizes, quad, out)
+                         n_single, gsizes, granks, factors, out)
     return ModelSums.from_kernel(out)
 
 

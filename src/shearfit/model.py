@@ -236,7 +236,7 @@ def _moffat_aliases(rs, beta, ny, nx, s):
     return A, Gs, KYf, KXf, cs
 
 
-def _fine_modes_moffat(psf, ny, nx, s, moffat=None):
+def _fine_modes_moffat(psf, ny, nx, s, moffat=None, tolerance=0.0):
     """Native PSF with the App. A alias correction, generalised (see fit_moffat).
 
     Above Nyquist the PSF is taken to be a circular Moffat times the pixel
@@ -256,7 +256,10 @@ def _fine_modes_moffat(psf, ny, nx, s, moffat=None):
         rs, beta = moffat
     A, Gs, KYf, KXf, cs = _moffat_aliases(float(rs), float(beta), ny, nx, int(s))
     ratio = np.where(np.abs(A) > 1e-12, Ps / np.where(np.abs(A) > 1e-12, A, 1.0), 0.0)
-    return KYf, KXf, (Gs * ratio[None, None]).ravel(), cs
+    # only the modes above ``tolerance`` of the largest |T| (G is real: |T| = |G| |ratio|)
+    mag = (np.abs(Gs) * np.abs(ratio)[None, None]).ravel()
+    idx = np.nonzero(mag > tolerance * mag.max())[0]
+    return KYf[idx], KXf[idx], Gs.ravel()[idx] * ratio.ravel()[cs[idx]], cs[idx]
 
 
 def noise_variance(weight):
@@ -294,15 +297,17 @@ def prepare_exposure(obs: Observation, cfg: FitConfig, grid_shape=None, with_dat
         return replace(like, data_ft=data_ft, sigma2=sigma2, yy=yy, npix=npix)
     s = obs.psf_oversampling
     if s == 1 and cfg.alias_correction == "moffat":
-        ky, kx, T, coarse = _fine_modes_moffat(obs.psf, ny, nx, cfg.alias_oversampling, obs.psf_moffat)
+        # the modes below the tolerance are dropped as they are made
+        ky, kx, T, coarse = _fine_modes_moffat(obs.psf, ny, nx, cfg.alias_oversampling, obs.psf_moffat,
+                                               cfg.psf_mode_tolerance)
     else:
         ky, kx, T, coarse = _fine_modes_from_psf(obs.psf, s, ny, nx)
+        aT = np.abs(T)
+        keep = aT > cfg.psf_mode_tolerance * aT.max()
+        ky, kx, T, coarse = ky[keep], kx[keep], T[keep], coarse[keep]
     # the object's nominal position sits at (stamp centre + offset)
     dx, dy = obs.offset
     T = T * np.exp(-1j * (kx * dx + ky * dy)) * obs.flux_scale
-    tol = cfg.psf_mode_tolerance * np.abs(T).max()
-    keep = np.abs(T) > tol
-    ky, kx, T, coarse = ky[keep], kx[keep], T[keep], coarse[keep]
     # sky wavevector K = J^-T k
     Jinv_T = np.linalg.inv(obs.jacobian).T
     Kx = Jinv_T[0, 0] * kx + Jinv_T[0, 1] * ky
