@@ -165,6 +165,31 @@ def test_merged_exposures_give_each_exposures_sums():
                 assert np.max(np.abs(x - y)) <= 1e-12 * np.max(np.abs(y)), (f, use_kernel)
 
 
+def test_joint_modes_with_other_data():
+    """A fit's merged, shifted modes given another version's data (same PSFs, Jacobians, offsets, noise)
+    equal the modes joined and shifted afresh from that version; a mismatch is refused."""
+    from dataclasses import replace
+
+    from shearfit.likelihood import join_exposures, shift_joint
+    from shearfit.model import prepare_exposure
+
+    cfg = shearfit.FitConfig()
+    obs = _observations(0.3, (0.2, 0.1), n_exp=3, noise=True, snr=40, seed=1)
+    other = _observations(0.5, (-0.1, 0.3), n_exp=3, noise=True, snr=40, seed=1)
+    exps = [prepare_exposure(o, cfg) for o in obs]
+    jm = shift_joint(join_exposures(exps, cfg.mode_chi2_tolerance), 0.02, 0.04)
+    exps2 = [prepare_exposure(shearfit.Observation(image=o2.image, weight=o.weight, psf=o.psf, jacobian=o.jacobian,
+                                                   offset=o.offset), cfg, like=e)
+             for o, o2, e in zip(obs, other, exps)]
+    fresh = shift_joint(join_exposures(exps2, keep=jm.keep), 0.02, 0.04)
+    reused = jm.with_data(exps2)
+    assert np.max(np.abs(reused.z - fresh.z)) <= 1e-12 * np.max(np.abs(fresh.z))
+    assert reused.yy == pytest.approx(fresh.yy, rel=1e-12) and reused.npix == fresh.npix
+    assert np.max(np.abs(reused.z - jm.z)) > 1e-3 * np.max(np.abs(jm.z))   # the data did change
+    noisier = [replace(e, sigma2=2 * e.sigma2) for e in exps2]
+    assert jm.with_data(noisier) is None
+
+
 def test_binned_modes_match_every_mode():
     """The modes summed in bins of K^T C K (mode_bins_per_octave) give the sums of every mode to the
     order of the bins' width squared, for models of several ellipticities and sizes in one call, the

@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import functools
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy import sparse, special
@@ -80,10 +80,39 @@ class JointModes:
     n_exposures: int
     pixel_scale: float
     keep: list = None      # per exposure, the modes the noise-aware cut kept (None: all)
+    data_map: object = field(default=None, repr=False)   # how z was made from the exposures' data (_DataMap)
 
     @property
     def n_modes(self):
         return self.kx.size
+
+    def with_data(self, exposures):
+        """The same modes with z and yy from other data on the same exposures (another version of the
+        object's stamps with the same PSFs, Jacobians, offsets and noise: metacal's); None where the
+        exposures do not match those these modes were made from."""
+        dm = self.data_map
+        if dm is None or len(exposures) != len(dm.sigma2) or any(
+                ex.sigma2 != s or ex.data_ft is None or ex.data_ft.size != n
+                for ex, s, n in zip(exposures, dm.sigma2, dm.sizes)):
+            return None
+        data = np.concatenate([ex.data_ft for ex in exposures])[dm.index]
+        zm = np.conj(data) * dm.zf
+        n = self.n_modes
+        z = (np.bincount(dm.inv, zm.real, n) + 1j * np.bincount(dm.inv, zm.imag, n)) * dm.phase
+        out = replace(self, z=z, yy=float(sum(ex.yy for ex in exposures)),
+                      npix=int(sum(ex.npix for ex in exposures)))
+        factors = getattr(self, "_factors", None)
+        if factors is not None:
+            out._factors = factors
+        return out
+
+    def group_factors(self):
+        """(ranks, factors) of the fold groups' blocks of Re H (``_block_factors``), cached."""
+        cache = getattr(self, "_factors", None)
+        if cache is None:
+            ranks, factors = _block_factors(sparse.csr_matrix(self.H.real), self.msizes)
+            cache = self._factors = (ranks, np.ascontiguousarray(factors, dtype=float))
+        return cache
 
     def packed(self):
         """The modes interleaved for the kernel (cached): (rows, n_single, group sizes, group weights).
@@ -103,11 +132,24 @@ class JointModes:
             rows[:, :3] = self.basis[:, order].T
             rows[:, 3:9] = lin[:, order].T
             rows[:n_single, 9] = self.q[order[:n_single]]
-            ranks, factors = _block_factors(sparse.csr_matrix(self.H.real), self.msizes)
+            ranks, factors = self.group_factors()
             cache = (np.ascontiguousarray(rows), n_single, np.ascontiguousarray(self.msizes, dtype=np.int64),
-                     ranks, np.ascontiguousarray(factors, dtype=float))
+                     ranks, factors)
             self._packed = cache
         return cache
+
+
+@dataclass
+class _DataMap:
+    """How join_exposures made z from the exposures' data: z = bincount(inv, conj(data[index]) zf) phase,
+    data the exposures' rfft modes one after the other; for the exposures' noise variances and sizes."""
+
+    zf: np.ndarray       # per joined mode, T w / (N sigma^2)
+    index: np.ndarray    # per joined mode, its sampled mode in the concatenated data
+    inv: np.ndarray      # per joined mode, the merged mode it went into
+    sigma2: list
+    sizes: list
+    phase: np.ndarray    # per merged mode, the phase of the shifts applied since (shift_joint)
 
 
 def _block_factors(A, sizes):
@@ -204,7 +246,7 @@ def join_exposures(exposures: list[ExposureModes], chi2_tolerance: float = 0.0, 
         keep = _noise_aware_cut(exposures, chi2_tolerance)
     if keep is not None:
         exposures = [_select(ex, k) for ex, k in zip(exposures, keep)]
-    kx, ky, z, tscaled, group = [], [], [], [], []
+    kx, ky, zf, tscaled, group = [], [], [], [], []
     goffset = 0
     yy = 0.0
     npix = 0
@@ -212,7 +254,7 @@ def join_exposures(exposures: list[ExposureModes], chi2_tolerance: float = 0.0, 
         ny, nx = ex.shape
         norm = 1.0 / (ny * nx * ex.sigma2)
         w = ex.cweight[ex.coarse]
-        z.append(np.conj(ex.data_ft[ex.coarse]) * ex.transfer * w * norm)
+        zf.append(ex.transfer * w * norm)
         tscaled.append(ex.transfer * np.sqrt(w * norm))
         group.append(ex.coarse + goffset)
         goffset += ex.cweight.size
@@ -222,9 +264,10 @@ def join_exposures(exposures: list[ExposureModes], chi2_tolerance: float = 0.0, 
         npix += ex.npix
     kx = np.concatenate(kx)
     ky = np.concatenate(ky)
-    z = np.concatenate(z)
+    zf = np.concatenate(zf)
     tscaled = np.concatenate(tscaled)
     group = np.concatenate(group)
+    z = np.conj(np.concatenate([ex.data_ft for ex in exposures])[group]) * zf
     # one mode per distinct K (exactly equal: exposures with equal Jacobians)
     uk, first, inv = np.unique(kx + 1j * ky, return_index=True, return_inverse=True)
     inv = inv.ravel()
@@ -248,10 +291,12 @@ def join_exposures(exposures: list[ExposureModes], chi2_tolerance: float = 0.0, 
     msizes = sizes[lab[starts]].astype(np.int64)
     Hm = H[multi][:, multi].tocsr()
     kxu, kyu = kx[first], ky[first]
+    dmap = _DataMap(zf=zf, index=group, inv=inv, sigma2=[ex.sigma2 for ex in exposures],
+                    sizes=[ex.cweight.size for ex in exposures], phase=np.ones(n, complex))
     return JointModes(kx=kxu, ky=kyu, z=zu, q=q, multi=multi, msizes=msizes, H=Hm,
                       basis=np.stack([kxu * kxu, 2 * kxu * kyu, kyu * kyu]), yy=yy, npix=npix,
                       n_exposures=len(exposures), pixel_scale=float(np.mean([e.pixel_scale for e in exposures])),
-                      keep=keep)
+                      keep=keep, data_map=dmap)
 
 
 def shift_joint(jm: JointModes, du, dv) -> JointModes:
@@ -261,9 +306,12 @@ def shift_joint(jm: JointModes, du, dv) -> JointModes:
     if jm.multi.size:
         ph = phase[jm.multi]
         H = sparse.csr_matrix(sparse.diags(np.conj(ph)) @ jm.H @ sparse.diags(ph))
+    dm = jm.data_map
+    if dm is not None:
+        dm = replace(dm, phase=dm.phase * phase)
     return JointModes(kx=jm.kx, ky=jm.ky, z=jm.z * phase, q=jm.q, multi=jm.multi, msizes=jm.msizes, H=H,
                       basis=jm.basis, yy=jm.yy, npix=jm.npix, n_exposures=jm.n_exposures,
-                      pixel_scale=jm.pixel_scale, keep=jm.keep)
+                      pixel_scale=jm.pixel_scale, keep=jm.keep, data_map=dm)
 
 
 @dataclass

@@ -126,6 +126,7 @@ class FitPlan:
     samples: Samples
     observations: list = None   # the fitted observations and their ExposureModes, whose modes a version
     exposures: list = None      # with the same PSFs, Jacobians and offsets reuses
+    joint: object = None        # the fit's JointModes (merged, shifted), whose structure such a version reuses
 
 
 def _same_modes(o: Observation, ref: Observation) -> bool:
@@ -177,11 +178,16 @@ def _measure(obs, mag, cfg, return_samples, plan=None, margin=np.inf):
         samples = adaptive_samples(like, cfg) if cfg.sampling == "adaptive" else two_pass_samples(like, cfg)
         n_samples = samples.e1.size
         plan = FitPlan(keep=jm.keep, shift=(du, dv), size_nodes=x, r_center=like.r_center, centres=like.centres,
-                       samples=samples, observations=list(obs), exposures=exposures)
+                       samples=samples, observations=list(obs), exposures=exposures, joint=jm)
     else:
         if plan.keep is not None and [k.size for k in plan.keep] != [e.kx.size for e in exposures]:
             raise ShearfitValueError("a replayed fit needs the same PSFs (Fourier modes) as the fit it replays")
-        jm = shift_joint(join_exposures(exposures, keep=plan.keep), *plan.shift)
+        # the same modes (PSFs, Jacobians, offsets and noise): only the data's weights z change
+        same = plan.joint is not None and plan.exposures is not None and len(plan.exposures) == len(exposures) \
+            and all(e.kx is r.kx for e, r in zip(exposures, plan.exposures))
+        jm = plan.joint.with_data(exposures) if same else None
+        if jm is None:
+            jm = shift_joint(join_exposures(exposures, keep=plan.keep), *plan.shift)
         pix = jm.pixel_scale
         shift = float(np.hypot(*plan.shift))
         like = EllipticityLikelihood(jm, cfg, mag, fast, plan.size_nodes, plan.r_center)
