@@ -559,23 +559,30 @@ typedef struct {
     int bounded;
 } MargPar;
 
+/* log P_disk and <B> at (hf, hg), and log P_disk at h = 0 (the pedestal), which shares theta */
 static void disk_logp_c(double S, double ff, double gg, double fg, double hf, double hg, const MargPar *P,
-                        double *logp, double *meanb)
+                        double *logp, double *meanb, double *logp0)
 {
     double two_theta2 = S * S * (ff + gg - 2 * fg) + 1.0 / P->sb2;
-    double theta = sqrt(0.5 * two_theta2);
-    double r0 = S * (hf - hg) + S * S * (fg - ff) - P->b0 / P->sb2;
-    double a = theta + r0 / (2 * theta), b = r0 / (2 * theta);
-    double lediff = log_erf_diff_c(a, b);
-    *logp = (S * hf - 0.5 * S * S * ff - 0.5 * P->b0 * P->b0 / P->sb2 + r0 * r0 / (4 * theta * theta)
-             + log(sqrt(M_PI) / 2) - log(theta) + lediff - P->log_zb);
-    if (meanb) {
-        double mu = -r0 / (2 * theta * theta);
-        double num = exp(-b * b - lediff) - exp(-a * a - lediff);
-        double m = mu + num / (theta * sqrt(M_PI));
-        if (m < 0) m = 0;
-        if (m > 1) m = 1;
-        *meanb = m;
+    double theta = sqrt(0.5 * two_theta2), log_theta = log(theta);
+    for (int zero = 0; zero < 2; zero++) {
+        double h_f = zero ? 0.0 : hf, h_g = zero ? 0.0 : hg;
+        double r0 = S * (h_f - h_g) + S * S * (fg - ff) - P->b0 / P->sb2;
+        double a = theta + r0 / (2 * theta), b = r0 / (2 * theta);
+        double lediff = log_erf_diff_c(a, b);
+        double v = (S * h_f - 0.5 * S * S * ff - 0.5 * P->b0 * P->b0 / P->sb2 + r0 * r0 / (4 * theta * theta)
+                    + log(sqrt(M_PI) / 2) - log_theta + lediff - P->log_zb);
+        if (zero) {
+            *logp0 = v;
+        } else {
+            *logp = v;
+            double mu = -r0 / (2 * theta * theta);
+            double num = exp(-b * b - lediff) - exp(-a * a - lediff);
+            double m = mu + num / (theta * sqrt(M_PI));
+            if (m < 0) m = 0;
+            if (m > 1) m = 1;
+            *meanb = m;
+        }
     }
 }
 
@@ -617,7 +624,9 @@ static double position_c(double lp_ref, double lp0, double g1, double g2, const 
     double lei;
     if (A > P->tcrit) {
         double la = log_ei(A);
-        lei = la + log1p(-exp(P->log_ei_tcrit - la));
+        /* log1p(-e^-d) ~ -e^-d is below half a unit in the last place of la once d > 37 and |la| >= 1:
+           the sum is la itself */
+        lei = (la - P->log_ei_tcrit > 37.0 && fabs(la) >= 1.0) ? la : la + log1p(-exp(P->log_ei_tcrit - la));
     } else {
         lei = -INFINITY;
     }
@@ -662,8 +671,7 @@ static PyObject *marginal(PyObject *self, PyObject *args)
             for (Py_ssize_t k = 0; k < nf; k++) {
                 double S = lo + (hi - lo) * u[k], logp, logp0, meanb, g[2], H[3], corr;
                 if (pop == 0) {
-                    disk_logp_c(S, ff, gg, fg, x[0], x[6], &P, &logp, &meanb);
-                    disk_logp_c(S, ff, gg, fg, 0.0, 0.0, &P, &logp0, NULL);
+                    disk_logp_c(S, ff, gg, fg, x[0], x[6], &P, &logp, &meanb, &logp0);
                     for (int t = 0; t < 2; t++) g[t] = S * ((1 - meanb) * x[1 + t] + meanb * x[7 + t]);
                     for (int t = 0; t < 3; t++) H[t] = S * ((1 - meanb) * x[3 + t] + meanb * x[9 + t]);
                 } else {
