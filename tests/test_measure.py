@@ -252,6 +252,40 @@ def test_compiled_marginal_matches_numpy():
                 assert np.allclose(x[fin], y[fin], rtol=1e-9, atol=1e-9), f
 
 
+def test_compiled_size_marginal_matches_numpy():
+    """The compiled size integral (spline over ln r, the segment down to the point source, posterior means,
+    the populations mixed) gives the numpy path's numbers, non-finite nodes included."""
+    from shearfit import likelihood
+    from shearfit.likelihood import join_exposures
+    from shearfit.model import prepare_exposure
+    from shearfit.profiles import fast_pair
+    from shearfit.sampling import EllipticityLikelihood
+
+    if not likelihood.USE_KERNEL:
+        pytest.skip("compiled kernel not built")
+    cfg = shearfit.FitConfig()
+    obs = _observations(0.3, (0.2, 0.1), noise=True, snr=30)
+    jm = join_exposures([prepare_exposure(o, cfg) for o in obs], cfg.mode_chi2_tolerance)
+    like = EllipticityLikelihood(jm, cfg, 22.0, fast_pair(), np.linspace(-1.2, 0.9, 7), 0.3)
+    rng = np.random.default_rng(7)
+    ne = 40
+    rn = 0.3 * np.exp(rng.normal(0, 0.3, ne))[:, None] * np.exp(like.x)[None, :]
+    ld = rng.normal(-50, 5, (ne, 7)) - 20 * (like.x[None, :] - 0.2) ** 2
+    lb = ld + rng.normal(0, 2, (ne, 7))
+    ld[3, 2] = -np.inf
+    lb[5, :] = -np.inf
+    ld[6, 0] = np.nan
+    fd, fb = rng.uniform(50, 150, (2, ne, 7))
+    bd = rng.uniform(0, 1, (ne, 7))
+    a = like._size_marginal(rn, ld, lb, fd, fb, bd, use_kernel=False)
+    b = like._size_marginal(rn, ld, lb, fd, fb, bd)
+    for f in ("logl_disk", "logl_bulge", "mean_r", "mean_b", "mean_flux"):
+        x, y = getattr(a, f), getattr(b, f)
+        assert np.array_equal(np.isfinite(x), np.isfinite(y)), f
+        fin = np.isfinite(x)
+        assert np.allclose(x[fin], y[fin], rtol=1e-12, atol=1e-12), f
+
+
 def test_size_peak_reuse_saves_models_without_moving_the_estimate():
     # bright and compact: the size posterior is narrow, so every sample's size peak is located
     obs = _observations(0.25, (0.45, -0.3), snr=400)

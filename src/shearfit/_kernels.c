@@ -733,11 +733,116 @@ static PyObject *marginal(PyObject *self, PyObject *args)
     Py_RETURN_NONE;
 }
 
+/*
+ * size_marginal(ld, lb, fd, fb, bd, logprior, lsegprior, spline, interp, xf, u, rf, l0, logmix, out): the size
+ * integral of sampling.EllipticityLikelihood._size_marginal (which stays as the reference: a test checks they
+ * agree). Per ellipticity e and population (disk, bulge): log L at the n_r nodes (ld, lb; floored 40 below
+ * their maximum), splined onto the fine ln r grid xf (spline: n_r x n_f), plus the log prior there
+ * (logprior: n_e x n_f); from r = 0 to the first node, log L linear in r^2 between the point source (l0)
+ * and the first node, on u in [0, 1] (lsegprior: n_e x n_u); trapezoid sums; posterior means of r and of
+ * the flux and B (fd, fb, bd linearly interpolated from the nodes, interp: n_r x n_f); the populations
+ * mixed by logmix (log(1 - f_B), log f_B). out (5 x n_e): log L disk, log L bulge, mean r, mean B, mean flux.
+ */
+#define MAXN 512
+static PyObject *size_marginal(PyObject *self, PyObject *args)
+{
+    Py_buffer b[15];
+    if (!PyArg_ParseTuple(args, "y*y*y*y*y*y*y*y*y*y*y*y*y*y*w*", &b[0], &b[1], &b[2], &b[3], &b[4], &b[5], &b[6],
+                          &b[7], &b[8], &b[9], &b[10], &b[11], &b[12], &b[13], &b[14]))
+        return NULL;
+    const Py_ssize_t D = (Py_ssize_t)sizeof(double);
+    Py_ssize_t nf = b[9].len / D, nu = b[10].len / D, nr = nf > 0 ? b[7].len / D / nf : 0;
+    Py_ssize_t ne = nr > 0 ? b[0].len / D / nr : 0;
+    int bad = nf < 2 || nu < 2 || nr < 2 || nf > MAXN || nu > MAXN || nr > MAXN
+              || b[8].len != nr * nf * D || b[7].len != nr * nf * D || b[12].len != 2 * D || b[13].len != 2 * D
+              || b[14].len < 5 * ne * D || b[5].len != ne * nf * D || b[11].len != ne * nf * D
+              || b[6].len != ne * nu * D;
+    for (int i = 1; i < 5 && !bad; i++) bad = b[i].len != ne * nr * D;
+    if (bad) {
+        RELEASE(&b[0], &b[1], &b[2], &b[3], &b[4], &b[5], &b[6], &b[7], &b[8], &b[9], &b[10], &b[11], &b[12],
+                &b[13], &b[14]);
+        PyErr_SetString(PyExc_ValueError, "size_marginal: inconsistent buffers");
+        return NULL;
+    }
+    const double *LD = b[0].buf, *LB = b[1].buf, *FD = b[2].buf, *FB = b[3].buf, *BD = b[4].buf;
+    const double *LP = b[5].buf, *LS = b[6].buf, *SPL = b[7].buf, *ITP = b[8].buf, *XF = b[9].buf, *U = b[10].buf;
+    const double *RF = b[11].buf, *L0 = b[12].buf, *LM = b[13].buf;
+    double *O = b[14].buf;
+    Py_BEGIN_ALLOW_THREADS
+    for (Py_ssize_t e = 0; e < ne; e++) {
+        const double *rf = RF + e * nf;
+        double lm[2], mr[2], mf[2], mb = 0.0;
+        for (int pop = 0; pop < 2; pop++) {
+            const double *L = (pop == 0 ? LD : LB) + e * nr, *F = (pop == 0 ? FD : FB) + e * nr;
+            double rowmax = -INFINITY, lv[MAXN], vf[MAXN], w[MAXN];
+            for (Py_ssize_t n = 0; n < nr; n++) if (isfinite(L[n]) && L[n] > rowmax) rowmax = L[n];
+            int good = isfinite(rowmax);
+            double floor_ = good ? rowmax - 40.0 : 0.0;
+            for (Py_ssize_t n = 0; n < nr; n++) lv[n] = isfinite(L[n]) ? (L[n] > floor_ ? L[n] : floor_) : floor_;
+            double m = -INFINITY;
+            for (Py_ssize_t q = 0; q < nf; q++) {
+                double acc = 0.0;
+                for (Py_ssize_t n = 0; n < nr; n++) acc += lv[n] * SPL[n * nf + q];
+                vf[q] = acc + LP[e * nf + q];
+                if (vf[q] > m) m = vf[q];
+            }
+            double l0 = isfinite(L0[pop]) ? L0[pop] : -INFINITY, lseg[MAXN];
+            for (Py_ssize_t j = 0; j < nu; j++) {
+                lseg[j] = (isfinite(l0) ? (1 - U[j]) * (l0 > -1e300 ? l0 : -1e300) + U[j] * lv[0]
+                                        : lv[0] - 1e3 * (1 - U[j])) + LS[e * nu + j];
+                if (lseg[j] > m) m = lseg[j];
+            }
+            double integ = 0.0, seg = 0.0, wsum = 0.0, wr = 0.0, wf = 0.0, wb = 0.0;
+            for (Py_ssize_t q = 0; q < nf; q++) {
+                w[q] = exp(vf[q] - m);
+                if (q > 0) integ += (XF[q] - XF[q - 1]) * (w[q] + w[q - 1]) * 0.5;
+                wsum += w[q];
+                wr += w[q] * rf[q];
+                double fi = 0.0, bi = 0.0;
+                for (Py_ssize_t n = 0; n < nr; n++) fi += F[n] * ITP[n * nf + q];
+                wf += w[q] * fi;
+                if (pop == 0) {
+                    for (Py_ssize_t n = 0; n < nr; n++) bi += BD[e * nr + n] * ITP[n * nf + q];
+                    wb += w[q] * bi;
+                }
+            }
+            double eprev = exp(lseg[0] - m);
+            for (Py_ssize_t j = 1; j < nu; j++) {
+                double ej = exp(lseg[j] - m);
+                seg += (U[j] - U[j - 1]) * (ej + eprev) * 0.5;
+                eprev = ej;
+            }
+            integ += seg * 0.5 * rf[0] * rf[0];
+            lm[pop] = good ? m + log(integ) : -INFINITY;
+            if (!(wsum > 1e-300)) wsum = 1e-300;
+            mr[pop] = wr / wsum;
+            mf[pop] = wf / wsum;
+            if (pop == 0) mb = wb / wsum;
+        }
+        double la = LM[0] + lm[0], lbb = LM[1] + lm[1];
+        double mx = la > lbb ? la : lbb;
+        if (!isfinite(mx)) mx = 0.0;
+        double pa = exp(la - mx), pb = exp(lbb - mx), tot = pa + pb;
+        if (!(tot > 1e-300)) tot = 1e-300;
+        O[e] = lm[0];
+        O[ne + e] = lm[1];
+        O[2 * ne + e] = (pa * mr[0] + pb * mr[1]) / tot;
+        O[3 * ne + e] = (pa * mb + pb * 1.0) / tot;
+        O[4 * ne + e] = (pa * mf[0] + pb * mf[1]) / tot;
+    }
+    Py_END_ALLOW_THREADS
+    RELEASE(&b[0], &b[1], &b[2], &b[3], &b[4], &b[5], &b[6], &b[7], &b[8], &b[9], &b[10], &b[11], &b[12], &b[13],
+            &b[14]);
+    Py_RETURN_NONE;
+}
+
 static PyMethodDef methods[] = {
     {"model_sums", model_sums, METH_VARARGS,
      "model_sums(coef, modes, table, c, inv_du, ratio2, n_single, group_sizes, group_ranks, group_factors, out)"},
     {"set_special", set_special, METH_VARARGS, "set_special(erfcx_capsule, expi_capsule)"},
     {"marginal", marginal, METH_VARARGS, "marginal(sums, u, u_fine, spline, interp, params, out)"},
+    {"size_marginal", size_marginal, METH_VARARGS,
+     "size_marginal(ld, lb, fd, fb, bd, logprior, lsegprior, spline, interp, xf, u, rf, l0, logmix, out)"},
     {"make_bins", make_bins, METH_VARARGS, "make_bins(shape, basis32, channels32, bins_per_octave) -> (rows, offsets)"},
     {"binned_sums", binned_sums, METH_VARARGS,
      "binned_sums(shape, r2, e_index, rows, offsets, modes, table, c, inv_du, ratio2, n_single, group_sizes, "

@@ -24,8 +24,8 @@ import numpy as np
 
 from . import priors
 from .config import FitConfig
-from .likelihood import (USE_KERNEL, _interp_matrix, _linear_vectors, flux_position_marginal, mode_bins, model_sums,
-                         spline_matrix)
+from .likelihood import (USE_KERNEL, _interp_matrix, _kernels, _linear_vectors, flux_position_marginal, mode_bins,
+                         model_sums, spline_matrix)
 
 __all__ = ["EllipticityLikelihood", "Samples", "adaptive_samples", "two_pass_samples", "replay_samples",
            "estimate", "lensing_weight"]
@@ -208,16 +208,31 @@ class EllipticityLikelihood:
         xf = np.linspace(self.x[0], self.x[-1], self.N_FINE)
         return xf, _interp_matrix(self.x, xf)   # (n_nodes, n_fine)
 
-    def _size_marginal(self, rnodes, ld, lb, fd, fb, bd):
+    def _size_marginal(self, rnodes, ld, lb, fd, fb, bd, use_kernel=True):
         """Spline log L over ln r and integrate against the size prior (dr = r d ln r).
 
-        The disk (index 0) and bulge (1) populations are done together, stacked on a first axis.
+        The disk (index 0) and bulge (1) populations are done together, stacked on a first axis. The
+        compiled kernel (``_kernels.size_marginal``) does the same arithmetic as the numpy path here.
         """
         cfg = self.cfg
         x = self.x
         xf, interp_w = self._fine_grid()
         rf = (rnodes[:, :1] / np.exp(x[0])) * np.exp(xf)[None, :]
         logprior = np.log(np.maximum(priors.size_prior_pdf(rf, self.mag, cfg), 1e-300)) + np.log(rf)
+        if USE_KERNEL and use_kernel and _kernels is not None and x.size <= 512:
+            u = np.linspace(0.0, 1.0, 9)
+            r0 = np.maximum(rf[:, :1] * np.sqrt(u)[None, :], 1e-12)
+            lsegprior = np.log(np.maximum(priors.size_prior_pdf(r0, self.mag, cfg) / r0, 1e-300))
+            fB = cfg.bulge_population_fraction
+            ne = rf.shape[0]
+            out = np.empty((5, ne))
+            c = np.ascontiguousarray
+            _kernels.size_marginal(c(ld, dtype=float), c(lb, dtype=float), c(fd, dtype=float), c(fb, dtype=float),
+                                   c(bd, dtype=float), c(logprior), c(lsegprior), c(spline_matrix(x, xf)),
+                                   c(interp_w), c(xf), u, c(rf),
+                                   np.array([float(self.zero.logl_disk[0]), float(self.zero.logl_bulge[0])]),
+                                   np.array([np.log(max(1 - fB, 1e-300)), np.log(max(fB, 1e-300))]), out)
+            return EPoint(logl_disk=out[0], logl_bulge=out[1], mean_r=out[2], mean_b=out[3], mean_flux=out[4])
         logl = np.stack([ld, lb])                                  # (2, n_e, n_nodes)
         finite = np.isfinite(logl)
         rowmax = np.max(np.where(finite, logl, -np.inf), axis=2, keepdims=True)
