@@ -814,9 +814,9 @@ def coarse_peak(exposures, jacobians, disk, r_ref, half_width, step):
     for ex, J in zip(exposures, jacobians):
         ny, nx = ex.shape
         R = disk.ft_rho2(r_ref * r_ref * (ex.kx ** 2 + ex.ky ** 2))
-        C = np.zeros(ny * (nx // 2 + 1), dtype=complex)
-        np.add.at(C, ex.coarse, ex.transfer * R)
-        C = np.conj(ex.data_ft) * C
+        M = ex.transfer * R
+        n = ny * (nx // 2 + 1)
+        C = np.conj(ex.data_ft) * (np.bincount(ex.coarse, M.real, n) + 1j * np.bincount(ex.coarse, M.imag, n))
         # h(s) = sum_k conj(Y) M exp(-i k.s): the inverse DFT of conj(conj(Y) M), conjugated back
         h = np.fft.irfft2(np.conj(C.reshape(ny, nx // 2 + 1)), s=(ny, nx)) / ex.sigma2
         Jinv = np.linalg.inv(J)
