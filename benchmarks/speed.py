@@ -11,6 +11,7 @@ sizes. Prints a profile grouped by stage and the process's peak memory.
     python benchmarks/speed.py --scaling       # growth with exposures and stamp size
     python benchmarks/speed.py --check         # how far the speed settings move the estimates
     python benchmarks/speed.py --rotate-exposures   # exposures whose Fourier modes cannot merge
+    python benchmarks/speed.py --jacobian-jitter 1e-3   # Jacobians as a camera's distortion makes them
 """
 
 from __future__ import annotations
@@ -46,10 +47,10 @@ STAGES = {
 }
 
 
-def simulate(n, n_exp, stamp, seed, rotate=False):
+def simulate(n, n_exp, stamp, seed, rotate=False, jitter=0.0):
     rng = np.random.default_rng(seed)
     return ring_set(n, (0.0, 0.0), rng, n_rotations=1, n_exposures=n_exp, snr_range=(10, 60),
-                    mag_range=(21.0, 24.7), stamp_size=stamp, rotate_exposures=rotate)
+                    mag_range=(21.0, 24.7), stamp_size=stamp, rotate_exposures=rotate, jacobian_jitter=jitter)
 
 
 def one_moffat_per_exposure(objs):
@@ -136,6 +137,9 @@ def main(argv=None):
                     help="give every exposure's pixel grid its own random rotation, so that no two exposures sample "
                          "the same sky wavevectors and none of their Fourier modes merge (the default exposures "
                          "share one Jacobian, as dithered exposures of one camera orientation nearly do)")
+    ap.add_argument("--jacobian-jitter", type=float, default=0.0, metavar="RMS",
+                    help="multiply each exposure's Jacobian by 1 + A, A of normal deviates of this rms (a camera's "
+                         "distortion differs by about 1e-4 to 1e-3 between the dithered positions of one object)")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="engine setting")
     ap.add_argument("--metacal", action="store_true",
                     help="also time the metacal measurement (five versions per object) against the plain one")
@@ -157,7 +161,7 @@ def main(argv=None):
     cfg = shearfit.fit_config_from_mapping(cfg)
     print(f"shearfit {shearfit.__version__}; compiled kernel: {'yes' if likelihood.USE_KERNEL else 'NO (numpy)'}; "
           f"sampling={cfg.sampling}, alias_correction={cfg.alias_correction}")
-    objs = simulate(args.n_galaxies, 7, 48, args.seed, args.rotate_exposures)
+    objs = simulate(args.n_galaxies, 7, 48, args.seed, args.rotate_exposures, args.jacobian_jitter)
     if args.moffat_per_exposure:
         objs = one_moffat_per_exposure(objs)
     timed(objs[:2], cfg)   # build the profile tables once, outside the timing
@@ -169,7 +173,8 @@ def main(argv=None):
     n_samp = np.mean([r.n_samples for r in res])
     # the profiler slows Python-level code; time again without it
     dt, res = timed(objs, cfg)
-    jacobians = "each its own rotation" if args.rotate_exposures else "one Jacobian"
+    jacobians = ("each its own rotation" if args.rotate_exposures else
+                 f"Jacobians differing by {args.jacobian_jitter:g} rms" if args.jacobian_jitter > 0 else "one Jacobian")
     print(f"\n7 exposures ({jacobians}), 48-pixel stamps, {len(objs)} galaxies (SNR 10-60, mag 21-24.7):")
     print(f"  {len(objs) / dt:.2f} galaxies / s / core   ({1e3 * dt / len(objs):.1f} ms per galaxy; "
           f"{n_samp:.0f} ellipticity samples and {n_models:.0f} (e, r) models per galaxy on average)")
@@ -184,14 +189,16 @@ def main(argv=None):
         print("growth with the number of exposures (48-pixel stamps):")
         base = None
         for n_exp in (1, 2, 4, 7, 14):
-            o = simulate(max(args.n_galaxies // 2, 6), n_exp, 48, args.seed + n_exp, args.rotate_exposures)
+            o = simulate(max(args.n_galaxies // 2, 6), n_exp, 48, args.seed + n_exp, args.rotate_exposures,
+                         args.jacobian_jitter)
             d, _ = timed(o, cfg)
             per = d / len(o)
             base = base or per
             print(f"  {n_exp:3d} exposures: {1 / per:7.2f} galaxies/s/core  ({1e3 * per:7.1f} ms, x{per / base:.2f})")
         print("growth with the stamp size (7 exposures):")
         for stamp in (32, 48, 64):
-            o = simulate(max(args.n_galaxies // 2, 6), 7, stamp, args.seed + stamp, args.rotate_exposures)
+            o = simulate(max(args.n_galaxies // 2, 6), 7, stamp, args.seed + stamp, args.rotate_exposures,
+                         args.jacobian_jitter)
             d, _ = timed(o, cfg)
             print(f"  {stamp:3d} pixels: {len(o) / d:7.2f} galaxies/s/core ({1e3 * d / len(o):7.1f} ms)")
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0

@@ -282,3 +282,19 @@ def test_ring_set_antithetic_twin_negates_only_the_noise():
     for (oa, _), (ob, _), (oc, _) in zip(a, b, clean):
         for x, y, z in zip(oa, ob, oc):
             assert np.max(np.abs(x.image + y.image - 2 * z.image)) < 1e-10 * np.max(z.image)   # ... by its sign
+
+
+def test_ring_set_jacobian_jitter():
+    """jacobian_jitter: each exposure's Jacobian is J (1 + A), A of the given rms; the +g and -g runs see the
+    same ones, and the truth records them."""
+    kw = dict(n_rotations=1, n_exposures=6, jacobian_jitter=1e-3, noise_seed=5)
+    a = ring_set(2, (0.02, 0.0), np.random.default_rng(4), **kw)
+    b = ring_set(2, (-0.02, 0.0), np.random.default_rng(4), **kw)
+    for (oa, ta), (ob, _) in zip(a, b):
+        Js = np.array([o.jacobian for o in oa])
+        assert np.array_equal(Js, np.array([o.jacobian for o in ob]))
+        assert np.array_equal(Js, ta["jacobians"])
+        dev = Js / PIX - np.eye(2)
+        assert 2e-4 < np.std(dev) < 3e-3
+    plain = ring_set(2, (0.02, 0.0), np.random.default_rng(4), n_rotations=1, n_exposures=6, noise_seed=5)
+    assert all(np.array_equal(o.jacobian, PIX * np.eye(2)) for o in plain[0][0])

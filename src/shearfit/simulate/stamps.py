@@ -354,7 +354,8 @@ class NegatedNormal:
 def ring_set(n_galaxies, shear, rng, n_rotations=4, n_exposures=7, snr_range=(100, 200), mag_range=(21, 24.5),
              psf_fwhm_range=(0.5, 0.8), psf_beta_range=(2.5, 4.5), psf_e_max=0.1, pixel_scale=0.187,
              stamp_size=48, psf_oversampling=1, max_dither=0.5, cfg=None, noise_seed=None,
-             rotate_exposures=False, gsparams=None, population=None, add_noise=True, noise_sign=1):
+             rotate_exposures=False, gsparams=None, population=None, add_noise=True, noise_sign=1,
+             jacobian_jitter=0.0):
     """Ring sets of GalSim-simulated galaxies, all with one applied shear.
 
     Every galaxy is drawn from the paper's population at a magnitude uniform in
@@ -408,6 +409,10 @@ def ring_set(n_galaxies, shear, rng, n_rotations=4, n_exposures=7, snr_range=(10
     noise_sign : +1 or -1
         -1 negates every noise draw (the antithetic twin of the same
         galaxies, PSFs and dithers: its noise is exactly minus the +1 run's).
+    jacobian_jitter : float
+        Multiply each exposure's Jacobian by ``1 + A``, A a 2x2 matrix of
+        normal deviates of this rms (a camera's distortion at the dithered
+        positions of one object: about 1e-4 to 1e-3); 0 leaves them equal.
 
     Returns
     -------
@@ -417,7 +422,7 @@ def ring_set(n_galaxies, shear, rng, n_rotations=4, n_exposures=7, snr_range=(10
         ``g1``, ``g2``, ``scalelength``, ``bulge_fraction``, ``is_bulge``,
         ``mag``, ``flux``, ``snr`` (target), ``snr_true`` (of this orientation's
         noise-free stamps), ``sigma``, ``psf_fwhm``, ``psf_beta``, ``psf_e1``,
-        ``psf_e2``, ``offsets``, ``jacobian_angles`` and ``n_redraws``.
+        ``psf_e2``, ``offsets``, ``jacobian_angles``, ``jacobians`` and ``n_redraws``.
     """
     g1, g2 = (float(s) for s in shear)
     if math.hypot(g1, g2) >= 1:
@@ -437,6 +442,8 @@ def ring_set(n_galaxies, shear, rng, n_rotations=4, n_exposures=7, snr_range=(10
         psfs = [moffat_psf(f, b, pe1, pe2, gsparams=gsparams)
                 for f, b, pe1, pe2 in zip(gal["psf_fwhm"], gal["psf_beta"], gal["psf_e1"], gal["psf_e2"])]
         Js = [pixel_scale * _rotation(a) for a in gal["jacobian_angles"]]
+        if jacobian_jitter > 0:
+            Js = [J @ (np.eye(2) + rng.normal(0.0, jacobian_jitter, (2, 2))) for J in Js]
         psf_images = [draw_psf_image(p, J, oversampling=psf_oversampling, gsparams=gsparams)
                       for p, J in zip(psfs, Js)]
 
@@ -467,6 +474,7 @@ def ring_set(n_galaxies, shear, rng, n_rotations=4, n_exposures=7, snr_range=(10
                 "psf_fwhm": gal["psf_fwhm"].copy(), "psf_beta": gal["psf_beta"].copy(),
                 "psf_e1": gal["psf_e1"].copy(), "psf_e2": gal["psf_e2"].copy(), "offsets": gal["offsets"].copy(),
                 "jacobian_angles": gal["jacobian_angles"].copy(), "n_redraws": gal["n_redraws"],
+                "jacobians": np.array(Js),
             }
             out.append((obs, truth))
     return out
