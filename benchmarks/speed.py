@@ -191,6 +191,8 @@ def main(argv=None):
         for n_exp in (1, 2, 4, 7, 14):
             o = simulate(max(args.n_galaxies // 2, 6), n_exp, 48, args.seed + n_exp, args.rotate_exposures,
                          args.jacobian_jitter)
+            if args.moffat_per_exposure:
+                o = one_moffat_per_exposure(o)
             d, _ = timed(o, cfg)
             per = d / len(o)
             base = base or per
@@ -199,6 +201,8 @@ def main(argv=None):
         for stamp in (32, 48, 64):
             o = simulate(max(args.n_galaxies // 2, 6), 7, stamp, args.seed + stamp, args.rotate_exposures,
                          args.jacobian_jitter)
+            if args.moffat_per_exposure:
+                o = one_moffat_per_exposure(o)
             d, _ = timed(o, cfg)
             print(f"  {stamp:3d} pixels: {len(o) / d:7.2f} galaxies/s/core ({1e3 * d / len(o):7.1f} ms)")
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
