@@ -24,6 +24,7 @@ class OptionalBuildExt(build_ext):
 
 
 setup(
-    ext_modules=[Extension("shearfit._kernels", ["src/shearfit/_kernels.c"], extra_compile_args=["-O3", "-fno-math-errno"])],
+    ext_modules=[Extension("shearfit._kernels", ["src/shearfit/_kernels.c"], extra_compile_args=["-O3", "-fno-math-errno"],
+                           libraries=["m"])],
     cmdclass={"build_ext": OptionalBuildExt},
 )
