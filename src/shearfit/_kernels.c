@@ -164,10 +164,14 @@ static void block_sums(const double *a0, const double *a1, const double *a2, con
         block_body(a0, a1, a2, M, n_single, n_groups, gsz, grank, fac, scratch, T, nmax, c, inv_du, ratio2, 0, o);
 }
 
-/* checks the group sizes and ranks against the modes and factors; returns the largest group (-1: inconsistent) */
-static Py_ssize_t check_groups(const long long *gsz, const long long *grank, Py_ssize_t n_groups, Py_ssize_t n_multi,
-                               Py_ssize_t n_fac)
+/* checks the fold groups' buffers (sizes and ranks, int64; factors, float64) against the modes, of which the
+   first n_single are in no group; returns the largest group (-1: inconsistent) */
+static Py_ssize_t check_groups(const Py_buffer *gszb, const Py_buffer *grkb, const Py_buffer *facb,
+                               Py_ssize_t n_single, Py_ssize_t n_modes)
 {
+    const long long *gsz = (const long long *)gszb->buf, *grank = (const long long *)grkb->buf;
+    Py_ssize_t n_groups = gszb->len / (Py_ssize_t)sizeof(long long);
+    if (n_single > n_modes || grkb->len != gszb->len) return -1;
     Py_ssize_t tot = 0, totf = 0, mx = 0;
     for (Py_ssize_t g = 0; g < n_groups; g++) {
         if (gsz[g] < 1 || grank[g] < 0 || grank[g] > gsz[g]) return -1;
@@ -175,7 +179,7 @@ static Py_ssize_t check_groups(const long long *gsz, const long long *grank, Py_
         totf += (Py_ssize_t)(gsz[g] * grank[g]);
         if (gsz[g] > mx) mx = (Py_ssize_t)gsz[g];
     }
-    return (tot == n_multi && totf == n_fac) ? mx : -1;
+    return (tot == n_modes - n_single && totf == facb->len / (Py_ssize_t)sizeof(double)) ? mx : -1;
 }
 
 static vnb *alloc_scratch(Py_ssize_t max_group)
@@ -199,8 +203,7 @@ static PyObject *model_sums(PyObject *self, PyObject *args)
     Py_ssize_t n_tab = tab.len / (4 * (Py_ssize_t)sizeof(float));
     Py_ssize_t n_groups = gszb.len / (Py_ssize_t)sizeof(long long);
     const long long *GS = (const long long *)gszb.buf, *GR = (const long long *)grkb.buf;
-    Py_ssize_t max_group = n_single <= n_modes && grkb.len == gszb.len
-        ? check_groups(GS, GR, n_groups, n_modes - n_single, facb.len / (Py_ssize_t)sizeof(double)) : -1;
+    Py_ssize_t max_group = check_groups(&gszb, &grkb, &facb, n_single, n_modes);
     if (out.len < n_models * NOUT * (Py_ssize_t)sizeof(double) || max_group < 0) {
         RELEASE(&coef, &modes, &tab, &gszb, &grkb, &facb, &out);
         PyErr_SetString(PyExc_ValueError, "model_sums: inconsistent buffer sizes");
@@ -423,8 +426,7 @@ static PyObject *binned_sums(PyObject *self, PyObject *args)
     Py_ssize_t n_groups = gszb.len / (Py_ssize_t)sizeof(long long);
     const long long *E = (const long long *)eidx.buf, *OFF = (const long long *)offb.buf;
     const long long *GS = (const long long *)gszb.buf, *GR = (const long long *)grkb.buf;
-    Py_ssize_t max_group = n_single <= n_modes && grkb.len == gszb.len
-        ? check_groups(GS, GR, n_groups, n_modes - n_single, facb.len / (Py_ssize_t)sizeof(double)) : -1;
+    Py_ssize_t max_group = check_groups(&gszb, &grkb, &facb, n_single, n_modes);
     int bad = out.len < n_models * NOUT * (Py_ssize_t)sizeof(double) || max_group < 0
               || eidx.len != n_models * (Py_ssize_t)sizeof(long long)
               || offb.len != (n_e + 1) * (Py_ssize_t)sizeof(long long) || OFF[n_e] != n_rows;

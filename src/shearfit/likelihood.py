@@ -95,11 +95,7 @@ class JointModes:
                 ex.sigma2 != s or ex.data_ft is None or ex.data_ft.size != n
                 for ex, s, n in zip(exposures, dm.sigma2, dm.sizes)):
             return None
-        data = np.concatenate([ex.data_ft for ex in exposures])[dm.index]
-        zm = np.conj(data) * dm.zf
-        n = self.n_modes
-        z = (np.bincount(dm.inv, zm.real, n) + 1j * np.bincount(dm.inv, zm.imag, n)) * dm.phase
-        out = replace(self, z=z, yy=float(sum(ex.yy for ex in exposures)),
+        out = replace(self, z=dm.merged_z(exposures) * dm.phase, yy=float(sum(ex.yy for ex in exposures)),
                       npix=int(sum(ex.npix for ex in exposures)))
         factors = getattr(self, "_factors", None)
         if factors is not None:
@@ -139,6 +135,11 @@ class JointModes:
         return cache
 
 
+def _complex_bincount(index, values, n):
+    """sum of complex ``values`` into ``n`` bins by ``index`` (numpy's bincount takes real weights)."""
+    return np.bincount(index, values.real, n) + 1j * np.bincount(index, values.imag, n)
+
+
 @dataclass
 class _DataMap:
     """How join_exposures made z from the exposures' data: z = bincount(inv, conj(data[index]) zf) phase,
@@ -150,6 +151,11 @@ class _DataMap:
     sigma2: list
     sizes: list
     phase: np.ndarray    # per merged mode, the phase of the shifts applied since (shift_joint)
+
+    def merged_z(self, exposures):
+        """The exposures' cross-correlation weights, summed per merged mode (before the shifts' phase)."""
+        data = np.concatenate([ex.data_ft for ex in exposures])[self.index]
+        return _complex_bincount(self.inv, np.conj(data) * self.zf, self.phase.size)
 
 
 def _block_factors(A, sizes):
@@ -267,12 +273,13 @@ def join_exposures(exposures: list[ExposureModes], chi2_tolerance: float = 0.0, 
     zf = np.concatenate(zf)
     tscaled = np.concatenate(tscaled)
     group = np.concatenate(group)
-    z = np.conj(np.concatenate([ex.data_ft for ex in exposures])[group]) * zf
     # one mode per distinct K (exactly equal: exposures with equal Jacobians)
     uk, first, inv = np.unique(kx + 1j * ky, return_index=True, return_inverse=True)
     inv = inv.ravel()
     n = uk.size
-    zu = np.bincount(inv, z.real, n) + 1j * np.bincount(inv, z.imag, n)
+    dmap = _DataMap(zf=zf, index=group, inv=inv, sigma2=[ex.sigma2 for ex in exposures],
+                    sizes=[ex.cweight.size for ex in exposures], phase=np.ones(n, complex))
+    zu = dmap.merged_z(exposures)
     # F: the exposures' sampled modes (rows) from the transforms at the distinct K (columns)
     rows_used, grow = np.unique(group, return_inverse=True)
     F = sparse.csr_matrix((tscaled, (grow.ravel(), inv)), shape=(rows_used.size, n))
@@ -291,8 +298,6 @@ def join_exposures(exposures: list[ExposureModes], chi2_tolerance: float = 0.0, 
     msizes = sizes[lab[starts]].astype(np.int64)
     Hm = H[multi][:, multi].tocsr()
     kxu, kyu = kx[first], ky[first]
-    dmap = _DataMap(zf=zf, index=group, inv=inv, sigma2=[ex.sigma2 for ex in exposures],
-                    sizes=[ex.cweight.size for ex in exposures], phase=np.ones(n, complex))
     return JointModes(kx=kxu, ky=kyu, z=zu, q=q, multi=multi, msizes=msizes, H=Hm,
                       basis=np.stack([kxu * kxu, 2 * kxu * kyu, kyu * kyu]), yy=yy, npix=npix,
                       n_exposures=len(exposures), pixel_scale=float(np.mean([e.pixel_scale for e in exposures])),
@@ -814,9 +819,7 @@ def coarse_peak(exposures, jacobians, disk, r_ref, half_width, step):
     for ex, J in zip(exposures, jacobians):
         ny, nx = ex.shape
         R = disk.ft_rho2(r_ref * r_ref * (ex.kx ** 2 + ex.ky ** 2))
-        M = ex.transfer * R
-        n = ny * (nx // 2 + 1)
-        C = np.conj(ex.data_ft) * (np.bincount(ex.coarse, M.real, n) + 1j * np.bincount(ex.coarse, M.imag, n))
+        C = np.conj(ex.data_ft) * _complex_bincount(ex.coarse, ex.transfer * R, ny * (nx // 2 + 1))
         # h(s) = sum_k conj(Y) M exp(-i k.s): the inverse DFT of conj(conj(Y) M), conjugated back
         h = np.fft.irfft2(np.conj(C.reshape(ny, nx // 2 + 1)), s=(ny, nx)) / ex.sigma2
         Jinv = np.linalg.inv(J)

@@ -219,19 +219,20 @@ class EllipticityLikelihood:
         xf, interp_w = self._fine_grid()
         rf = (rnodes[:, :1] / np.exp(x[0])) * np.exp(xf)[None, :]
         logprior = np.log(np.maximum(priors.size_prior_pdf(rf, self.mag, cfg), 1e-300)) + np.log(rf)
+        # from r = 0 to the first node (r = r_min sqrt(u)): p(r) dr = [p(r)/r] (r_min^2 / 2) du, smooth
+        # down to r = 0, where p(r) ~ r; log L there is linear in r^2 between the point source and the node
+        u = np.linspace(0.0, 1.0, 9)
+        r0 = np.maximum(rf[:, :1] * np.sqrt(u)[None, :], 1e-12)
+        lsegprior = np.log(np.maximum(priors.size_prior_pdf(r0, self.mag, cfg) / r0, 1e-300))
+        l0 = np.array([float(self.zero.logl_disk[0]), float(self.zero.logl_bulge[0])])
+        fB = cfg.bulge_population_fraction
+        logmix = np.array([np.log(max(1 - fB, 1e-300)), np.log(max(fB, 1e-300))])
         if USE_KERNEL and use_kernel and _kernels is not None and x.size <= 512:
-            u = np.linspace(0.0, 1.0, 9)
-            r0 = np.maximum(rf[:, :1] * np.sqrt(u)[None, :], 1e-12)
-            lsegprior = np.log(np.maximum(priors.size_prior_pdf(r0, self.mag, cfg) / r0, 1e-300))
-            fB = cfg.bulge_population_fraction
-            ne = rf.shape[0]
-            out = np.empty((5, ne))
+            out = np.empty((5, rf.shape[0]))
             c = np.ascontiguousarray
             _kernels.size_marginal(c(ld, dtype=float), c(lb, dtype=float), c(fd, dtype=float), c(fb, dtype=float),
                                    c(bd, dtype=float), c(logprior), c(lsegprior), c(spline_matrix(x, xf)),
-                                   c(interp_w), c(xf), u, c(rf),
-                                   np.array([float(self.zero.logl_disk[0]), float(self.zero.logl_bulge[0])]),
-                                   np.array([np.log(max(1 - fB, 1e-300)), np.log(max(fB, 1e-300))]), out)
+                                   c(interp_w), c(xf), u, c(rf), l0, logmix, out)
             return EPoint(logl_disk=out[0], logl_bulge=out[1], mean_r=out[2], mean_b=out[3], mean_flux=out[4])
         logl = np.stack([ld, lb])                                  # (2, n_e, n_nodes)
         finite = np.isfinite(logl)
@@ -240,16 +241,11 @@ class EllipticityLikelihood:
         floor = np.where(good[..., None], rowmax - 40.0, 0.0)
         lv = np.where(finite, np.maximum(logl, floor), floor)
         vf = lv @ spline_matrix(x, xf) + logprior[None]
-        # from r = 0 to the first node: log L linear in r^2 between the point source and the node
-        l0 = np.array([float(self.zero.logl_disk[0]), float(self.zero.logl_bulge[0])])
         l0 = np.where(np.isfinite(l0), l0, -np.inf)[:, None, None]
-        u = np.linspace(0.0, 1.0, 9)                               # r = r_min sqrt(u)
-        r0 = np.maximum(rf[:, :1] * np.sqrt(u)[None, :], 1e-12)
         with np.errstate(invalid="ignore"):
             lseg = np.where(np.isfinite(l0), (1 - u) * np.maximum(l0, -1e300) + u * lv[..., :1],
                             lv[..., :1] - 1e3 * (1 - u))
-        # p(r) dr = [p(r)/r] (r_min^2 / 2) du: smooth down to r = 0, where p(r) ~ r
-        lseg = lseg + np.log(np.maximum(priors.size_prior_pdf(r0, self.mag, cfg) / r0, 1e-300))[None]
+        lseg = lseg + lsegprior[None]
         m = np.maximum(np.max(vf, axis=2, keepdims=True), np.max(lseg, axis=2, keepdims=True))
         w = np.exp(vf - m)
         integ = np.trapezoid(w, xf, axis=2) + np.trapezoid(np.exp(lseg - m), u, axis=2) * 0.5 * rf[:, 0] ** 2
@@ -260,9 +256,8 @@ class EllipticityLikelihood:
         mean_f = np.sum(w * (np.stack([fd, fb]) @ interp_w), axis=2) / wsum
         mean_b_d = np.sum(w[0] * (bd @ interp_w), axis=1) / wsum[0]
         # mix the two populations by their marginal likelihoods
-        fB = cfg.bulge_population_fraction
-        la = np.log(max(1 - fB, 1e-300)) + lm[0]
-        lbb = np.log(max(fB, 1e-300)) + lm[1]
+        la = logmix[0] + lm[0]
+        lbb = logmix[1] + lm[1]
         mx = np.maximum(la, lbb)
         mx = np.where(np.isfinite(mx), mx, 0.0)
         pa, pb = np.exp(la - mx), np.exp(lbb - mx)
