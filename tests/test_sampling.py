@@ -80,3 +80,20 @@ def test_posterior_cut_rejects_low_prior_tail():
     assert est.n_used == keep.sum() < s.e1.size
     # the disk prior vanishes at e_max = 0.804: nothing beyond it survives except through the bulge prior
     assert np.all(np.hypot(s.e1[keep], s.e2[keep]) < 0.98)
+
+
+def test_refinement_follows_the_posterior_not_its_bounding_box():
+    """Each halving samples only the lattice within one old step of the samples above the posterior
+    cut: no finest-level sample lies farther than that from them (a bounding box of a round posterior
+    would add its corners, far below the cut), and the estimate is the Gaussian's mean."""
+    cfg = FitConfig()
+    s = adaptive_samples(Gaussian((0.1, 0.05), 0.04), cfg)
+    fine = np.isclose(s.area, 0.02 ** 2)
+    assert fine.sum() > 30
+    lp = s.logpost - s.logpost.max()
+    top = lp > np.log(cfg.posterior_cut) - 1.0
+    cheb = np.max(np.abs(np.stack([s.e1[fine][:, None] - s.e1[top][None, :],
+                                   s.e2[fine][:, None] - s.e2[top][None, :]])), axis=0).min(axis=1)
+    assert cheb.max() <= 0.04 + 1e-9
+    est = estimate(s, cfg)
+    assert abs(est.e1 - 0.1) < 0.01 and abs(est.e2 - 0.05) < 0.01

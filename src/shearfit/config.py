@@ -85,9 +85,10 @@ class FitConfig:
         0.01, "Fourier modes are dropped, weakest first, while the chi^2 they could contribute for the brightest "
         "model the data allow (a point source at 3x the fitted flux plus 5 sigma) stays below this in total", "DESIGN: speed")
     mode_bins_per_octave: int = _opt(
-        64, "the Fourier modes of a fit are summed, per ellipticity, in bins of K^T C K, this many per factor of 2 "
-        "(the model transform depends on a mode only through r^2 K^T C K; cloud-in-cell, errors scale as the "
-        "inverse square: 64 moves log L by 1e-5 of itself and e by 1e-5, benchmarks/speed.py --check); 0 evaluates "
+        16, "the Fourier modes of a fit are summed, per ellipticity, in bins uniform in log K^T C K, this many per "
+        "factor of 2 (the model transform depends on a mode only through r^2 K^T C K; each mode is shared among four "
+        "bins by cubic interpolation, so errors scale as the inverse fourth power: 16 gives sums within 1e-5 of "
+        "every mode's, benchmarks/speed.py --check); 0 evaluates "
         "every mode (also what the numpy path without the compiled kernel does)", "DESIGN: speed")
     alias_correction: str = _opt(
         "moffat",

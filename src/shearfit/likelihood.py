@@ -376,7 +376,8 @@ class ModeBins:
 
 def mode_bins(jm: JointModes, e1, e2, bins_per_octave) -> ModeBins:
     """Bin the modes alone on their sampled mode, for each ellipticity (e1[i], e2[i]), in K^T C K,
-    ``bins_per_octave`` bins per factor of 2 (cloud-in-cell). Models of any size at one of these
+    ``bins_per_octave`` bins per factor of 2, uniform in log K^T C K (each mode shared among four bins by
+    cubic interpolation). Models of any size at one of these
     ellipticities then cost one evaluation per bin instead of per mode (:func:`model_sums`, ``bins``)."""
     shape = np.ascontiguousarray(np.stack(shape_matrix(np.atleast_1d(np.asarray(e1, float)),
                                                        np.atleast_1d(np.asarray(e2, float))), axis=1))

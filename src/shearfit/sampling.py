@@ -204,9 +204,12 @@ class EllipticityLikelihood:
                                    mg.mean_b_disk.reshape(shape))
 
     def _fine_grid(self):
-        """The fine ln r grid of the size integral and the node->grid interpolation matrix (cached)."""
-        xf = np.linspace(self.x[0], self.x[-1], self.N_FINE)
-        return xf, _interp_matrix(self.x, xf)   # (n_nodes, n_fine)
+        """The fine ln r grid of the size integral, the node->grid interpolation matrix and the spline
+        matrix (made once per object: the nodes x are fixed)."""
+        if getattr(self, "_fine", None) is None:
+            xf = np.linspace(self.x[0], self.x[-1], self.N_FINE)
+            self._fine = (xf, _interp_matrix(self.x, xf), np.ascontiguousarray(spline_matrix(self.x, xf)))
+        return self._fine   # xf, (n_nodes, n_fine), (n_nodes, n_fine)
 
     def _size_marginal(self, rnodes, ld, lb, fd, fb, bd, use_kernel=True):
         """Spline log L over ln r and integrate against the size prior (dr = r d ln r).
@@ -216,7 +219,7 @@ class EllipticityLikelihood:
         """
         cfg = self.cfg
         x = self.x
-        xf, interp_w = self._fine_grid()
+        xf, interp_w, spl = self._fine_grid()
         rf = (rnodes[:, :1] / np.exp(x[0])) * np.exp(xf)[None, :]
         logprior = np.log(np.maximum(priors.size_prior_pdf(rf, self.mag, cfg), 1e-300)) + np.log(rf)
         # from r = 0 to the first node (r = r_min sqrt(u)): p(r) dr = [p(r)/r] (r_min^2 / 2) du, smooth
@@ -231,7 +234,7 @@ class EllipticityLikelihood:
             out = np.empty((5, rf.shape[0]))
             c = np.ascontiguousarray
             _kernels.size_marginal(c(ld, dtype=float), c(lb, dtype=float), c(fd, dtype=float), c(fb, dtype=float),
-                                   c(bd, dtype=float), c(logprior), c(lsegprior), c(spline_matrix(x, xf)),
+                                   c(bd, dtype=float), c(logprior), c(lsegprior), spl,
                                    c(interp_w), c(xf), u, c(rf), l0, logmix, out)
             return EPoint(logl_disk=out[0], logl_bulge=out[1], mean_r=out[2], mean_b=out[3], mean_flux=out[4])
         logl = np.stack([ld, lb])                                  # (2, n_e, n_nodes)
@@ -240,7 +243,7 @@ class EllipticityLikelihood:
         good = np.isfinite(rowmax[..., 0])
         floor = np.where(good[..., None], rowmax - 40.0, 0.0)
         lv = np.where(finite, np.maximum(logl, floor), floor)
-        vf = lv @ spline_matrix(x, xf) + logprior[None]
+        vf = lv @ spl + logprior[None]
         l0 = np.where(np.isfinite(l0), l0, -np.inf)[:, None, None]
         with np.errstate(invalid="ignore"):
             lseg = np.where(np.isfinite(l0), (1 - u) * np.maximum(l0, -1e300) + u * lv[..., :1],
@@ -294,7 +297,11 @@ def _mix(point: EPoint, e1, e2, cfg):
 
 
 class _Store:
-    """Samples on the integer lattice of the finest step (0.02 by default)."""
+    """Samples on the integer lattice of the finest step (0.02 by default).
+
+    Each sampled region is kept as its step and a mask over the lattice (``regions``): a sample stands
+    for a cell of the finest region that contains it.
+    """
 
     def __init__(self, like, cfg):
         self.like = like
@@ -302,7 +309,9 @@ class _Store:
         self.unit = cfg.e_grid_min
         self.keys = {}
         self.e1, self.e2, self.logl, self.logpost, self.points = [], [], [], [], []
-        self.boxes = []   # (step, imin, imax, jmin, jmax)
+        # the lattice's half-width: every |e| < 1, and the coarsest boxes' margins
+        self.half = int(np.ceil(1.0 / self.unit)) + 4 * int(round(cfg.e_grid_start / self.unit)) + 2
+        self.regions = []   # (step, mask over the lattice (2 half + 1)^2)
 
     def add(self, ij):
         new = [k for k in ij if k not in self.keys]
@@ -320,29 +329,42 @@ class _Store:
         self.logpost.extend(logpost)
         self.points.append(pt)
 
-    def lattice_box(self, step, imin, imax, jmin, jmax):
+    def _points(self, step, mask):
+        """The points of the step's lattice in mask with |e| below the model limit; records the region."""
+        h = self.half
         limit = self.cfg.model_e_limit / self.unit
-        i0 = int(np.ceil(imin / step)) * step
-        j0 = int(np.ceil(jmin / step)) * step
-        out = []
-        for i in range(i0, imax + 1, step):
-            for j in range(j0, jmax + 1, step):
-                if i * i + j * j < limit * limit:
-                    out.append((i, j))
-        self.boxes.append((step, imin, imax, jmin, jmax))
-        return out
+        idx = np.arange(-h, h + 1)
+        on = (idx % step == 0)
+        I, J = np.meshgrid(idx, idx, indexing="ij")
+        sel = mask & on[:, None] & on[None, :] & (I * I + J * J < limit * limit)
+        self.regions.append((step, mask))
+        return list(zip(I[sel].tolist(), J[sel].tolist()))
+
+    def lattice_box(self, step, imin, imax, jmin, jmax):
+        h = self.half
+        idx = np.arange(-h, h + 1)
+        mask = ((idx >= imin) & (idx <= imax))[:, None] & ((idx >= jmin) & (idx <= jmax))[None, :]
+        return self._points(step, mask)
+
+    def lattice_around(self, step, i, j, reach):
+        """The step's lattice points within ``reach`` (Chebyshev, lattice units) of the points (i, j)."""
+        h = self.half
+        mask = np.zeros((2 * h + 1, 2 * h + 1), bool)
+        for a, b in zip(np.asarray(i).tolist(), np.asarray(j).tolist()):
+            mask[max(a - reach + h, 0):a + reach + h + 1, max(b - reach + h, 0):b + reach + h + 1] = True
+        return self._points(step, mask)
 
     def result(self) -> Samples:
         e1 = np.array(self.e1)
         e2 = np.array(self.e2)
         i = np.rint(e1 / self.unit).astype(int)
         j = np.rint(e2 / self.unit).astype(int)
-        # the finest box whose region contains a sample tiles the plane there: the sample stands for
-        # one of its cells if it lies on that box's lattice, and for nothing otherwise (a two-pass
-        # first-pass point, or a coarser-lattice point inside a finer box)
+        # the finest region containing a sample tiles the plane there: the sample stands for one of its
+        # cells if it lies on that region's lattice, and for nothing otherwise (a two-pass first-pass
+        # point, or a coarser-lattice point inside a finer region)
         step = np.full(e1.size, np.iinfo(np.int64).max)
-        for (s, imin, imax, jmin, jmax) in self.boxes:
-            inside = (i >= imin) & (i <= imax) & (j >= jmin) & (j <= jmax)
+        for (s, mask) in self.regions:
+            inside = mask[i + self.half, j + self.half]
             step = np.where(inside, np.minimum(step, s), step)
         covered = step < np.iinfo(np.int64).max
         st = np.where(covered, step, 1)
@@ -366,7 +388,9 @@ def adaptive_samples(like: EllipticityLikelihood, cfg: FitConfig) -> Samples:
 
     Start on a 0.16 grid; while fewer than 30 samples lie above 5 % of the
     maximum posterior and the step is above 0.02, halve the step over the
-    bounding box (plus one old step) of the samples above the posterior cut.
+    region within one old step (in e1 and in e2) of the samples above the
+    posterior cut. (Until session 10 the region was their bounding box plus
+    one old step: its corners, far below the cut, changed no estimate.)
     """
     st = _Store(like, cfg)
     step = int(round(cfg.e_grid_start / cfg.e_grid_min))
@@ -378,14 +402,14 @@ def adaptive_samples(like: EllipticityLikelihood, cfg: FitConfig) -> Samples:
             break
         # refine over every sample the estimator will use (posterior above the cut), not only
         # those above the counting threshold: otherwise high-likelihood, low-prior samples near
-        # the cut keep coarse cells and the estimate jumps when the box edge moves
+        # the cut keep coarse cells and the estimate jumps when the region's edge moves
         sel = st.above(min(cfg.posterior_cut, cfg.above_fraction))
         e1 = np.array(st.e1)[sel]
         e2 = np.array(st.e2)[sel]
         i = np.rint(e1 / cfg.e_grid_min).astype(int)
         j = np.rint(e2 / cfg.e_grid_min).astype(int)
         new = max(step // 2, 1)
-        st.add(st.lattice_box(new, i.min() - step, i.max() + step, j.min() - step, j.max() + step))
+        st.add(st.lattice_around(new, i, j, step))
         step = new
     return st.result()
 
@@ -415,7 +439,7 @@ def two_pass_samples(like: EllipticityLikelihood, cfg: FitConfig) -> Samples:
         st.add(st.lattice_box(step, i0 - 2 * step, i0 + 2 * step, j0 - 2 * step, j0 + 2 * step))
     # pass 2's grid defines the cells near the maximum, pass 1's coarse grid the rest; pass 1's
     # refinements only guided the search
-    st.boxes = st.boxes[:1]
+    st.regions = st.regions[:1]
     e1 = np.array(st.e1)
     e2 = np.array(st.e2)
     lp = np.array(st.logpost)
