@@ -291,8 +291,8 @@ def test_compiled_size_marginal_matches_numpy():
 def test_size_peak_reuse_saves_models_without_moving_the_estimate():
     # bright and compact: the size posterior is narrow, so every sample's size peak is located
     obs = _observations(0.25, (0.45, -0.3), snr=400)
-    fresh = shearfit.measure_object(obs, mag=22.0, config={"size_reuse_distance": 0.0})
-    reuse = shearfit.measure_object(obs, mag=22.0)
+    fresh = shearfit.measure_object(obs, mag=22.0, config={"size_reuse_distance": 0.0, "tail_skip": 0.0})
+    reuse = shearfit.measure_object(obs, mag=22.0, config={"tail_skip": 0.0})
     assert reuse.n_models < 0.95 * fresh.n_models
     sig = np.sqrt(fresh.e_var)
     assert abs(reuse.e1 - fresh.e1) < 0.1 * sig
@@ -357,3 +357,24 @@ def test_faint_galaxies_have_sane_likelihood_surfaces():
         spread = np.nanmax(logl) - np.nanmedian(logl)
         assert spread < 40, (seed, spread)          # a few chi^2 units at this SNR, never 1e2-1e5
         assert res.e_var > 1e-3, (seed, res.e_var)
+
+
+def test_tail_samples_skip_their_size_nodes_without_changing_the_estimate():
+    """Samples whose first size-locating pass peaks tail_skip nats below the best are left with that
+    pass's crude size integral: far below the posterior cut, they change no estimate and no other
+    sample, and a bright galaxy's fit evaluates far fewer models. The crude values stay far below the
+    cut."""
+    obs = _observations(0.25, (0.45, -0.3), snr=400)
+    full = shearfit.measure_object(obs, mag=22.0, config={"tail_skip": 0.0}, return_samples=True)
+    skip = shearfit.measure_object(obs, mag=22.0, return_samples=True)
+    assert skip.n_models < 0.8 * full.n_models
+    for f in ("e1", "e2", "e_var", "weight", "scalelength", "bulge_fraction", "model_flux", "snr"):
+        assert getattr(skip, f) == pytest.approx(getattr(full, f), rel=1e-12, abs=1e-15), f
+    assert skip.fitclass == full.fitclass
+    # the same samples and size peaks: only the crude ones (the tail) differ, all far below the cut
+    assert np.array_equal(skip.samples["e1"], full.samples["e1"])
+    a, b = full.samples["logpost"], skip.samples["logpost"]
+    top = a.max()
+    crude = b != a
+    assert crude.sum() > 10
+    assert np.all(a[crude] < top - 20) and np.all(b[crude] < top - 20)

@@ -353,7 +353,9 @@ static PyObject *make_bins(PyObject *self, PyObject *args)
         if (nbin + 1 > capA) {
             free(A); free(used);
             capA = 2 * (nbin + 1);
-            A = (double *)malloc(capA * 8 * sizeof(double));
+            /* rows of 8 doubles on 64-byte boundaries: each row's update is one aligned vector */
+            void *pa = NULL;
+            A = posix_memalign(&pa, 64, capA * 8 * sizeof(double)) == 0 ? (double *)pa : NULL;
             used = (char *)malloc(capA);
             if (A == NULL || used == NULL) { nomem = 1; break; }
         }

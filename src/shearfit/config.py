@@ -73,6 +73,10 @@ class FitConfig:
                        "moves e by at most 1.5e-5 from 7 at SNR 7-15, benchmarks/speed.py --check)", "sec. 3.2")
     flux_halfwidth: float = _opt(5.0, "half-width of the flux samples in units of the flux error", "sec. 3.2")
     n_size: int = _opt(7, "scalelengths r > 0 sampled for the size spline (r = 0 is added)", "sec. 3.2")
+    tail_skip: float = _opt(
+        40.0, "a sample whose first size-locating pass peaks this far (nats) below the highest so far is far "
+        "beyond the posterior cut (-4.6): its size integral is that pass's 5 nodes' instead of its size nodes' spline "
+        "(0: evaluate every sample fully)", "implementation")
     size_reuse_distance: float = _opt(
         0.12, "a sample this close in e to one whose size peak was located reuses it (0: locate every sample)",
         "implementation")

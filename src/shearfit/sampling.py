@@ -52,6 +52,12 @@ def e_key(e1, e2):
                     np.rint(np.asarray(e2) * 1e9).astype(np.int64).tolist()))
 
 
+def _logsumexp_rows(a):
+    m = np.max(a, axis=1)
+    m = np.where(np.isfinite(m), m, 0.0)
+    return m + np.log(np.sum(np.exp(a - m[:, None]), axis=1))
+
+
 @dataclass
 class EPoint:
     """Per-ellipticity results, arrays over the sampled points."""
@@ -80,6 +86,7 @@ class EllipticityLikelihood:
         # located size peaks so far, as ln(peak / centre(e)), for neighbours to reuse
         self._loc_e = np.zeros((0, 2))
         self._loc_x = np.zeros(0)
+        self._peak_max = -np.inf   # the highest first-pass peak so far (see _located_centres)
         self.lin = _linear_vectors(jm)
         self.chunk = chunk
         # r = 0, the point source: one model shared by every ellipticity; the size integral runs
@@ -116,6 +123,14 @@ class EllipticityLikelihood:
         located starts from that neighbour's offset from the predicted centre
         (the peak moves smoothly with e) and needs only the last, narrowest
         pass; the others run every pass.
+
+        Returns the centres, and which samples are far in the tail with their
+        crude values (an EPoint over them, or None): a sample that runs every
+        pass and whose first pass peaks more than ``FitConfig.tail_skip`` below
+        the highest first-pass peak so far gets the first pass's size integral
+        (``_locate``, ``detail``) instead of its size nodes'. It is still
+        located by every pass, so that the samples that reuse its size peak
+        are the same with and without the shortcut.
         """
         x = np.zeros(e1.size)
         near = np.zeros(e1.size, bool)
@@ -125,22 +140,38 @@ class EllipticityLikelihood:
             near = d2[np.arange(e1.size), nn] <= self.cfg.size_reuse_distance ** 2
             x[near] = self._loc_x[nn[near]]
         r = rc * np.exp(x)
+        tail = np.zeros(e1.size, bool)
+        tail_point = None
         widths = list(self.locate_widths)
         for k, width in enumerate(widths):
             sel = np.ones(e1.size, bool) if k == len(widths) - 1 else ~near
-            if np.any(sel):
-                r[sel] = self._locate(e1[sel], e2[sel], r[sel], width, bins, np.nonzero(sel)[0])
+            if not np.any(sel):
+                continue
+            if k == 0 and self.cfg.tail_skip > 0:
+                r[sel], peak, point = self._locate(e1[sel], e2[sel], r[sel], width, bins, np.nonzero(sel)[0],
+                                                   detail=True)
+                self._peak_max = max(self._peak_max, float(np.max(peak)))
+                far = peak < self._peak_max - self.cfg.tail_skip
+                if np.any(far):
+                    where = np.nonzero(sel)[0][far]
+                    tail[where] = True
+                    tail_point = (where, EPoint(*[getattr(point, f)[far] for f in EPoint.__dataclass_fields__]))
+                continue
+            r[sel] = self._locate(e1[sel], e2[sel], r[sel], width, bins, np.nonzero(sel)[0])
         self._loc_e = np.concatenate([self._loc_e, np.stack([e1, e2], axis=1)])
         self._loc_x = np.concatenate([self._loc_x, np.log(r / rc)])
-        return r
+        return r, tail, tail_point
 
     def _sums(self, e1, e2, r, bins, index):
         """Model sums of (e1, e2, r); with ``bins`` (the chunk's), ``index`` is each model's e in them."""
         return model_sums(self.jm, e1, e2, r, self.fast, self.cfg.bulge_size_ratio, lin=self.lin,
                           bins_per_octave=self.cfg.mode_bins_per_octave, bins=bins, bin_index=index)
 
-    def _locate(self, e1, e2, rc, half_width, bins=None, index=None):
-        """Peak of the size posterior at each e: 5 nodes and a parabola through the best three."""
+    def _locate(self, e1, e2, rc, half_width, bins=None, index=None, detail=False):
+        """Peak of the size posterior at each e: 5 nodes and a parabola through the best three.
+
+        With ``detail``: also the parabola's peak value (log L + log p(r) r, populations mixed) and an
+        EPoint of the crude size integral over the 5 nodes."""
         cfg = self.cfg
         xs = np.linspace(-half_width, half_width, 5)
         R = rc[:, None] * np.exp(xs)[None, :]
@@ -162,7 +193,22 @@ class EllipticityLikelihood:
         with np.errstate(invalid="ignore", divide="ignore"):
             d = np.where(den < 0, 0.5 * h * (ym - yp) / den, 0.0)
         d = np.clip(np.nan_to_num(d), -h, h)
-        return rc * np.exp(xs[k] + d)
+        r_peak = rc * np.exp(xs[k] + d)
+        if not detail:
+            return r_peak
+        # the parabola's value at the peak, and a crude size integral over the 5 nodes (trapezoid in ln r)
+        # with posterior means over them, for samples far below the others (``_TailPass``)
+        peak = np.maximum(y0, y0 + 0.5 * (yp - ym) / h * d + 0.5 * den / h ** 2 * d * d)
+        lpr = np.log(np.maximum(priors.size_prior_pdf(R, self.mag, cfg), 1e-300)) + np.log(R) + np.log(h)
+        ld = np.where(np.isfinite(mg.logl_disk), mg.logl_disk, -1e300).reshape(R.shape) + lpr
+        lb = np.where(np.isfinite(mg.logl_bulge), mg.logl_bulge, -1e300).reshape(R.shape) + lpr
+        w = np.exp(y - np.max(y, axis=1, keepdims=True))
+        w /= np.sum(w, axis=1, keepdims=True)
+        point = EPoint(logl_disk=_logsumexp_rows(ld), logl_bulge=_logsumexp_rows(lb),
+                       mean_r=np.sum(w * R, axis=1),
+                       mean_b=np.sum(w * np.nan_to_num(mg.mean_b_disk.reshape(R.shape)), axis=1),
+                       mean_flux=np.sum(w * np.nan_to_num(mg.mean_flux_disk.reshape(R.shape)), axis=1))
+        return r_peak, peak, point
 
     def __call__(self, e1, e2) -> EPoint:
         e1 = np.atleast_1d(np.asarray(e1, float))
@@ -174,22 +220,41 @@ class EllipticityLikelihood:
     def _chunk(self, e1, e2) -> EPoint:
         cfg = self.cfg
         ne = e1.size
-        nr = self.x.size
         keys = e_key(e1, e2)
         # the chunk's modes binned once per ellipticity, for the size-locating passes and the nodes
         bins = mode_bins(self.jm, e1, e2, cfg.mode_bins_per_octave) if (
             USE_KERNEL and cfg.mode_bins_per_octave > 0) else None
+        tail, tail_point = np.zeros(ne, bool), None
         if self.fixed_centres is not None:
             rc = np.array([self.fixed_centres[k] for k in keys])
         else:
             rc = self.centre(e1, e2)
             if self.locate_widths is not None:
-                rc = self._located_centres(e1, e2, rc, bins)
+                rc, tail, tail_point = self._located_centres(e1, e2, rc, bins)
         self.centres.update(zip(keys, rc.tolist()))
+        if np.any(tail):
+            # the size nodes of the samples far in the tail are not evaluated: their crude values stand
+            full = np.nonzero(~tail)[0]
+            out = EPoint(*[np.empty(ne) for _ in EPoint.__dataclass_fields__])
+            where, pt = tail_point
+            for f in EPoint.__dataclass_fields__:
+                getattr(out, f)[where] = getattr(pt, f)
+            if full.size:
+                rest = self._nodes(e1[full], e2[full], rc[full], bins, full)
+                for f in EPoint.__dataclass_fields__:
+                    getattr(out, f)[full] = getattr(rest, f)
+            return out
+        return self._nodes(e1, e2, rc, bins, np.arange(ne))
+
+    def _nodes(self, e1, e2, rc, bins, index):
+        """The size nodes of the samples (their bins at ``index``), marginalised, and the size integral."""
+        cfg = self.cfg
+        ne = e1.size
+        nr = self.x.size
         R = rc[:, None] * np.exp(self.x)[None, :]
         E1 = np.repeat(e1, nr)
         E2 = np.repeat(e2, nr)
-        sums = self._sums(E1, E2, R.ravel(), bins, np.repeat(np.arange(ne), nr))
+        sums = self._sums(E1, E2, R.ravel(), bins, np.repeat(index, nr))
         self.n_models += E1.size
         mg = flux_position_marginal(sums, cfg, self.jm.pixel_scale)
         # best single-component fit among galaxies (r > 0), for the star/galaxy test
