@@ -224,10 +224,15 @@ def _noise_aware_cut(exposures, chi2_tolerance):
         return [np.ones(b.size, bool) for b in bounds]
     s_bound = 3.0 * abs(h) / ff + 5.0 / np.sqrt(ff)
     allb = np.concatenate(bounds) * s_bound ** 2
-    order = np.argsort(allb)
-    csum = np.cumsum(allb[order])
-    drop = np.zeros(allb.size, bool)
-    drop[order[csum <= chi2_tolerance]] = True
+    # the weakest modes, whole sets of equal bounds at a time (so that the cut does not depend on how
+    # a sort orders ties): every mode whose bound is at most t, for the largest t that keeps their sum
+    # within the tolerance (only bounds within the tolerance can be dropped: sort those alone)
+    v = np.sort(allb[allb <= chi2_tolerance])
+    csum = np.cumsum(v)
+    last = np.ones(v.size, bool)
+    last[:-1] = v[1:] != v[:-1]
+    ok = last & (csum <= chi2_tolerance)
+    drop = allb <= v[ok][-1] if np.any(ok) else np.zeros(allb.size, bool)
     keep, start = [], 0
     for b in bounds:
         keep.append(~drop[start:start + b.size])

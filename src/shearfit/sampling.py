@@ -73,6 +73,7 @@ class EllipticityLikelihood:
     """log L(e1, e2) of one object, marginalised over everything else."""
 
     N_FINE = 49   # points of the fine ln r grid the spline is integrated on
+    _SEG_U = np.linspace(0.0, 1.0, 9)   # u = (r / r_min)^2 of the segment from r = 0 to the first node
 
     def __init__(self, jm, cfg: FitConfig, mag, fast, size_grid_x, r_center, chunk=64, locate_widths=None):
         self.jm = jm
@@ -183,7 +184,8 @@ class EllipticityLikelihood:
         fB = cfg.bulge_population_fraction
         y = np.logaddexp(np.log(max(1 - fB, 1e-300)) + mg.logl_disk,
                          np.log(max(fB, 1e-300)) + mg.logl_bulge).reshape(R.shape)
-        y = y + np.log(np.maximum(priors.size_prior_pdf(R, self.mag, cfg), 1e-300)) + np.log(R)
+        lpr = priors.log_size_prior_per_lnr(np.log(R), self.mag, cfg)
+        y = y + lpr
         y = np.where(np.isfinite(y), y, -1e300)
         k = np.clip(np.argmax(y, axis=1), 1, n - 2)
         rows = np.arange(y.shape[0])
@@ -199,9 +201,8 @@ class EllipticityLikelihood:
         # the parabola's value at the peak, and a crude size integral over the 5 nodes (trapezoid in ln r)
         # with posterior means over them, for samples far below the others (``_TailPass``)
         peak = np.maximum(y0, y0 + 0.5 * (yp - ym) / h * d + 0.5 * den / h ** 2 * d * d)
-        lpr = np.log(np.maximum(priors.size_prior_pdf(R, self.mag, cfg), 1e-300)) + np.log(R) + np.log(h)
-        ld = np.where(np.isfinite(mg.logl_disk), mg.logl_disk, -1e300).reshape(R.shape) + lpr
-        lb = np.where(np.isfinite(mg.logl_bulge), mg.logl_bulge, -1e300).reshape(R.shape) + lpr
+        ld = np.where(np.isfinite(mg.logl_disk), mg.logl_disk, -1e300).reshape(R.shape) + lpr + np.log(h)
+        lb = np.where(np.isfinite(mg.logl_bulge), mg.logl_bulge, -1e300).reshape(R.shape) + lpr + np.log(h)
         w = np.exp(y - np.max(y, axis=1, keepdims=True))
         w /= np.sum(w, axis=1, keepdims=True)
         point = EPoint(logl_disk=_logsumexp_rows(ld), logl_bulge=_logsumexp_rows(lb),
@@ -285,13 +286,14 @@ class EllipticityLikelihood:
         cfg = self.cfg
         x = self.x
         xf, interp_w, spl = self._fine_grid()
-        rf = (rnodes[:, :1] / np.exp(x[0])) * np.exp(xf)[None, :]
-        logprior = np.log(np.maximum(priors.size_prior_pdf(rf, self.mag, cfg), 1e-300)) + np.log(rf)
+        lnrf = (np.log(rnodes[:, :1]) - x[0]) + xf[None, :]
+        rf = np.exp(lnrf)
+        logprior = priors.log_size_prior_per_lnr(lnrf, self.mag, cfg)
         # from r = 0 to the first node (r = r_min sqrt(u)): p(r) dr = [p(r)/r] (r_min^2 / 2) du, smooth
         # down to r = 0, where p(r) ~ r; log L there is linear in r^2 between the point source and the node
-        u = np.linspace(0.0, 1.0, 9)
-        r0 = np.maximum(rf[:, :1] * np.sqrt(u)[None, :], 1e-12)
-        lsegprior = np.log(np.maximum(priors.size_prior_pdf(r0, self.mag, cfg) / r0, 1e-300))
+        u = self._SEG_U
+        lnr0 = np.maximum(lnrf[:, :1] + 0.5 * np.log(np.maximum(u, 1e-300))[None, :], np.log(1e-12))
+        lsegprior = priors.log_size_prior_per_lnr(lnr0, self.mag, cfg) - 2 * lnr0
         l0 = np.array([float(self.zero.logl_disk[0]), float(self.zero.logl_bulge[0])])
         fB = cfg.bulge_population_fraction
         logmix = np.array([np.log(max(1 - fB, 1e-300)), np.log(max(fB, 1e-300))])
