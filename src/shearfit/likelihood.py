@@ -314,8 +314,12 @@ def shift_joint(jm: JointModes, du, dv) -> JointModes:
     phase = np.exp(-1j * (jm.kx * du + jm.ky * dv))
     H = jm.H
     if jm.multi.size:
+        # diag(conj(ph)) H diag(ph), on H's own pattern
         ph = phase[jm.multi]
-        H = sparse.csr_matrix(sparse.diags(np.conj(ph)) @ jm.H @ sparse.diags(ph))
+        Hc = sparse.csr_matrix(jm.H)
+        rows = np.repeat(np.arange(Hc.shape[0]), np.diff(Hc.indptr))
+        H = sparse.csr_matrix(((np.conj(ph[rows]) * Hc.data) * ph[Hc.indices], Hc.indices.copy(), Hc.indptr.copy()),
+                              shape=Hc.shape)
     dm = jm.data_map
     if dm is not None:
         dm = replace(dm, phase=dm.phase * phase)
