@@ -765,7 +765,7 @@ static PyObject *marginal(PyObject *self, PyObject *args)
     int bad = sp_erfcx == NULL || nf < 2 || nf > MAXF || nfine < 2 || nfine > 4 * MAXF
               || spl.len != nf * nfine * (Py_ssize_t)sizeof(double) || itp.len != spl.len
               || par.len != 10 * (Py_ssize_t)sizeof(double) || out.len < 9 * n * (Py_ssize_t)sizeof(double);
-    double *work = bad ? NULL : (double *)malloc(40 * MB_L * sizeof(double));
+    double *work = bad ? NULL : (double *)malloc(28 * MB_L * sizeof(double));
     const double **xp = bad ? NULL : (const double **)malloc(MB_L * sizeof(double *));
     if (bad || work == NULL || xp == NULL) {
         free(work);
@@ -783,6 +783,8 @@ static PyObject *marginal(PyObject *self, PyObject *args)
     /* per element: S, log S, log P, log P at h = 0, <B>, gradient and Hessian (5), log integral (val) */
     double *Sk = work, *logS = work + MB_L, *lp = work + 2 * MB_L, *lp0 = work + 3 * MB_L, *mbe = work + 4 * MB_L;
     double *g = work + 5 * MB_L, *val = work + 10 * MB_L, *scratch = work + 11 * MB_L;   /* scratch: 14 */
+    /* per model of the batch: the flux range [lo, hi] and whether the model correlates with the data */
+    double *lo_m = work + 25 * MB_L, *hi_m = work + 26 * MB_L, *good_m = work + 27 * MB_L;
     const Py_ssize_t per = MB_L / nf;   /* models per batch */
     Py_BEGIN_ALLOW_THREADS
     P.log_ei_tcrit = log_ei(P.tcrit);
@@ -799,6 +801,9 @@ static PyObject *marginal(PyObject *self, PyObject *args)
                     Sk[j * nf + k] = lo + (hi - lo) * u[k];
                     xp[j * nf + k] = x;
                 }
+                lo_m[j] = lo;
+                hi_m[j] = hi;
+                good_m[j] = good;
             }
             vlog(Sk, logS, ne);
             if (pop == 0)
@@ -811,9 +816,9 @@ static PyObject *marginal(PyObject *self, PyObject *args)
                 const double *L = x + 6 * pop;   /* h, grad, hess of this population */
                 double *o = O + 9 * (i0 + j);    /* logl_d, logl_b, flux_d, flux_b, meanb_d, chi2_d, chi2_b, snr_d, snr_b */
                 double h = L[0], hh = x[12 + pop];
-                int good = (hh > 0) && (h > 0);
-                double hh_s = good ? hh : 1.0, s_ml = good ? h / hh_s : 1.0, sig = 1.0 / sqrt(hh_s);
-                double lo = fmax(s_ml - P.halfwidth * sig, 0.02 * s_ml), hi = s_ml + P.halfwidth * sig;
+                const int good = good_m[j] != 0;
+                const double lo = lo_m[j], hi = hi_m[j];
+                double hh_s = good ? hh : 1.0, s_ml = good ? h / hh_s : 1.0;
                 double lpk[MAXF];
                 for (Py_ssize_t k = 0; k < nf; k++)
                     lpk[k] = good ? val[j * nf + k] - P.slope * logS[j * nf + k] : -INFINITY;

@@ -17,7 +17,8 @@ from .likelihood import coarse_peak, find_position, flux_position_marginal, join
 from .model import prepare_exposure
 from .observation import FitResult, Observation
 from .profiles import exponential_disk, fast_pair
-from .sampling import EllipticityLikelihood, Samples, adaptive_samples, estimate, replay_samples, two_pass_samples
+from .sampling import (EllipticityLikelihood, Samples, adaptive_samples, estimate, log_population_weights,
+                       replay_samples, two_pass_samples)
 
 __all__ = ["measure_object", "measure_objects", "measure_versions", "FitPlan", "as_config"]
 
@@ -50,8 +51,8 @@ def _size_range(jm, cfg, mag, fast):
     z = np.zeros_like(r)
     mg = flux_position_marginal(model_sums(jm, z, z, r, fast, cfg.bulge_size_ratio, bins_per_octave=cfg.mode_bins_per_octave),
                                 cfg, jm.pixel_scale)
-    fB = cfg.bulge_population_fraction
-    logl = np.logaddexp(np.log(max(1 - fB, 1e-300)) + mg.logl_disk, np.log(max(fB, 1e-300)) + mg.logl_bulge)
+    ld0, lb0 = log_population_weights(cfg)
+    logl = np.logaddexp(ld0 + mg.logl_disk, lb0 + mg.logl_bulge)
     # posterior density in ln r: likelihood x prior x r
     lp = logl + np.log(np.maximum(priors.size_prior_pdf(r, mag, cfg), 1e-300)) + np.log(r)
     if not np.any(np.isfinite(lp)):

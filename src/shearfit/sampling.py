@@ -52,6 +52,12 @@ def e_key(e1, e2):
                     np.rint(np.asarray(e2) * 1e9).astype(np.int64).tolist()))
 
 
+def log_population_weights(cfg: FitConfig):
+    """log(1 - f_B) and log f_B: the disk and bulge populations' weights (sec. 3.1)."""
+    fB = cfg.bulge_population_fraction
+    return np.log(max(1 - fB, 1e-300)), np.log(max(fB, 1e-300))
+
+
 def _logsumexp_rows(a):
     m = np.max(a, axis=1)
     m = np.where(np.isfinite(m), m, 0.0)
@@ -74,6 +80,7 @@ class EllipticityLikelihood:
 
     N_FINE = 49   # points of the fine ln r grid the spline is integrated on
     _SEG_U = np.linspace(0.0, 1.0, 9)   # u = (r / r_min)^2 of the segment from r = 0 to the first node
+    _SEG_HALF_LOG_U = 0.5 * np.log(np.maximum(_SEG_U, 1e-300))   # ln(r / r_min) there
 
     def __init__(self, jm, cfg: FitConfig, mag, fast, size_grid_x, r_center, chunk=64, locate_widths=None):
         self.jm = jm
@@ -125,8 +132,8 @@ class EllipticityLikelihood:
         (the peak moves smoothly with e) and needs only the last, narrowest
         pass; the others run every pass.
 
-        Returns the centres, and which samples are far in the tail with their
-        crude values (an EPoint over them, or None): a sample that runs every
+        Returns the centres, which samples are far in the tail, and their
+        crude values (an EPoint over them in order, or None): a sample that runs every
         pass and whose first pass peaks more than ``FitConfig.tail_skip`` below
         the highest first-pass peak so far gets the first pass's size integral
         (``_locate``, ``detail``) instead of its size nodes'. It is still
@@ -154,9 +161,8 @@ class EllipticityLikelihood:
                 self._peak_max = max(self._peak_max, float(np.max(peak)))
                 far = peak < self._peak_max - self.cfg.tail_skip
                 if np.any(far):
-                    where = np.nonzero(sel)[0][far]
-                    tail[where] = True
-                    tail_point = (where, EPoint(*[getattr(point, f)[far] for f in EPoint.__dataclass_fields__]))
+                    tail[np.nonzero(sel)[0][far]] = True
+                    tail_point = EPoint(*[getattr(point, f)[far] for f in EPoint.__dataclass_fields__])
                 continue
             r[sel] = self._locate(e1[sel], e2[sel], r[sel], width, bins, np.nonzero(sel)[0])
         self._loc_e = np.concatenate([self._loc_e, np.stack([e1, e2], axis=1)])
@@ -181,9 +187,8 @@ class EllipticityLikelihood:
                           None if index is None else np.repeat(index, n))
         self.n_models += R.size
         mg = flux_position_marginal(sums, cfg, self.jm.pixel_scale)
-        fB = cfg.bulge_population_fraction
-        y = np.logaddexp(np.log(max(1 - fB, 1e-300)) + mg.logl_disk,
-                         np.log(max(fB, 1e-300)) + mg.logl_bulge).reshape(R.shape)
+        ld0, lb0 = log_population_weights(cfg)
+        y = np.logaddexp(ld0 + mg.logl_disk, lb0 + mg.logl_bulge).reshape(R.shape)
         lpr = priors.log_size_prior_per_lnr(np.log(R), self.mag, cfg)
         y = y + lpr
         y = np.where(np.isfinite(y), y, -1e300)
@@ -199,7 +204,7 @@ class EllipticityLikelihood:
         if not detail:
             return r_peak
         # the parabola's value at the peak, and a crude size integral over the 5 nodes (trapezoid in ln r)
-        # with posterior means over them, for samples far below the others (``_TailPass``)
+        # with posterior means over them, for samples far below the others (see _located_centres)
         peak = np.maximum(y0, y0 + 0.5 * (yp - ym) / h * d + 0.5 * den / h ** 2 * d * d)
         ld = np.where(np.isfinite(mg.logl_disk), mg.logl_disk, -1e300).reshape(R.shape) + lpr + np.log(h)
         lb = np.where(np.isfinite(mg.logl_bulge), mg.logl_bulge, -1e300).reshape(R.shape) + lpr + np.log(h)
@@ -237,9 +242,8 @@ class EllipticityLikelihood:
             # the size nodes of the samples far in the tail are not evaluated: their crude values stand
             full = np.nonzero(~tail)[0]
             out = EPoint(*[np.empty(ne) for _ in EPoint.__dataclass_fields__])
-            where, pt = tail_point
             for f in EPoint.__dataclass_fields__:
-                getattr(out, f)[where] = getattr(pt, f)
+                getattr(out, f)[tail] = getattr(tail_point, f)
             if full.size:
                 rest = self._nodes(e1[full], e2[full], rc[full], bins, full)
                 for f in EPoint.__dataclass_fields__:
@@ -292,11 +296,10 @@ class EllipticityLikelihood:
         # from r = 0 to the first node (r = r_min sqrt(u)): p(r) dr = [p(r)/r] (r_min^2 / 2) du, smooth
         # down to r = 0, where p(r) ~ r; log L there is linear in r^2 between the point source and the node
         u = self._SEG_U
-        lnr0 = np.maximum(lnrf[:, :1] + 0.5 * np.log(np.maximum(u, 1e-300))[None, :], np.log(1e-12))
+        lnr0 = np.maximum(lnrf[:, :1] + self._SEG_HALF_LOG_U[None, :], np.log(1e-12))
         lsegprior = priors.log_size_prior_per_lnr(lnr0, self.mag, cfg) - 2 * lnr0
         l0 = np.array([float(self.zero.logl_disk[0]), float(self.zero.logl_bulge[0])])
-        fB = cfg.bulge_population_fraction
-        logmix = np.array([np.log(max(1 - fB, 1e-300)), np.log(max(fB, 1e-300))])
+        logmix = np.array(log_population_weights(cfg))
         if USE_KERNEL and use_kernel and _kernels is not None and x.size <= 512:
             out = np.empty((5, rf.shape[0]))
             c = np.ascontiguousarray
@@ -352,9 +355,9 @@ class Samples:
 
 
 def _mix(point: EPoint, e1, e2, cfg):
-    fB = cfg.bulge_population_fraction
-    la = np.log(max(1 - fB, 1e-300)) + point.logl_disk
-    lb = np.log(max(fB, 1e-300)) + point.logl_bulge
+    ld0, lb0 = log_population_weights(cfg)
+    la = ld0 + point.logl_disk
+    lb = lb0 + point.logl_bulge
     logl = np.logaddexp(la, lb)
     with np.errstate(divide="ignore"):
         pd = np.log(priors.disk_e_density(e1, e2, cfg))
