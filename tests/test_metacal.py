@@ -340,3 +340,39 @@ def test_cubic_psf_k_interpolation_keeps_the_versions():
     d_fast = fast["1p"].image - fast["1m"].image
     assert np.abs(d_fast - d_ref).max() < 1e-4 * np.abs(d_ref).max()
     assert np.abs(d_ref).max() > 1e-3 * peak    # the shear did change the images
+
+
+@pytest.mark.parametrize("J", [None, PIX * np.array([[0.3, -0.95], [0.94, 0.31]])])
+def test_band_limited_shared_factor_draw_is_galsims_own(J):
+    """The versions' images are drawn by a convolution that evaluates its factors only within the
+    deconvolution's band and shares the PSF factors between the versions and the noise: every image
+    equals GalSim's plain ``Convolve(...).drawImage`` of the same profiles (to 1e-7 of the peak), also on
+    a rotated, sheared pixel grid, and the band holds fewer k pixels than the grid."""
+    import galsim
+
+    from shearfit import metacal
+
+    obs = _obs(0.3, (0.2, -0.1), snr=40, n_exp=1, seed=4, J=J)[0]
+    counted = []
+    orig_draw = metacal._KProduct._drawKImage
+
+    def counting(self, image, jac=None):
+        orig_draw(self, image, jac)
+        counted.append((np.count_nonzero(image.array), image.array.size))
+
+    cls_draw = metacal._draw
+    plain = {}
+    try:
+        metacal._KProduct._drawKImage = counting
+        fast = metacal_observations(obs, rng=np.random.default_rng(5))
+        # the same, with each product drawn by GalSim's own Convolution
+        metacal._draw = lambda prof, shape, wcs: cls_draw(
+            galsim.Convolution(prof.obj_list) if isinstance(prof, metacal._KProduct) else prof, shape, wcs)
+        plain = metacal_observations(obs, rng=np.random.default_rng(5))
+    finally:
+        metacal._KProduct._drawKImage = orig_draw
+        metacal._draw = cls_draw
+    peak = np.abs(plain["noshear"].image).max()
+    for name in plain:
+        assert np.abs(fast[name].image - plain[name].image).max() < 1e-7 * peak, name
+    assert len(counted) == 10 and all(0 < n < 0.8 * size for n, size in counted)
