@@ -24,7 +24,8 @@ class OptionalBuildExt(build_ext):
 
 
 setup(
-    ext_modules=[Extension("shearfit._kernels", ["src/shearfit/_kernels.c"], extra_compile_args=["-O3", "-fno-math-errno"],
-                           libraries=["m"])],
+    # -fno-trapping-math: loops holding float-to-integer conversions and selects vectorise (the binning's)
+    ext_modules=[Extension("shearfit._kernels", ["src/shearfit/_kernels.c"],
+                           extra_compile_args=["-O3", "-fno-math-errno", "-fno-trapping-math"], libraries=["m"])],
     cmdclass={"build_ext": OptionalBuildExt},
 )

@@ -273,25 +273,32 @@ static void bin_index(const float *B3, Py_ssize_t n_single, double a0, double a1
         double lg = log2(k > 0 ? k : 1.0) * nb;
         xs[j] = k > 0 ? lg : INFINITY;   /* +inf: the DC mode */
     }
-    double lo = INFINITY, hi = -INFINITY;
+    /* the weights and bins: a loop of selects that vectorises (a floating-point min/max in it would not) */
     for (Py_ssize_t j = 0; j < n_single; j++) {
-        double x = xs[j] < INFINITY ? xs[j] : 0.0;
+        int dc = !(xs[j] < INFINITY);
+        double x = dc ? 0.0 : xs[j];
         double f = floor(x), t = x - f;
         double tp = t + 1.0, tm = t - 1.0, tm2 = t - 2.0;
         w4[j] = -t * tm * tm2 / 6.0;
         w4[n_single + j] = tp * tm * tm2 / 2.0;
         w4[2 * n_single + j] = -tp * t * tm2 / 2.0;
         w4[3 * n_single + j] = tp * t * tm / 6.0;
-        double fl = xs[j] < INFINITY ? f : INFINITY;
-        xs[j] = fl;
-        lo = fl < lo ? fl : lo;
-        double fh = xs[j] < INFINITY ? f : -INFINITY;
-        hi = fh > hi ? fh : hi;
+        idx[j] = dc ? LLONG_MIN : (long long)f - 1;
     }
+    /* the lowest and highest bin reached, the DC mode left out, as plain minimum and maximum loops that
+       vectorise: for the minimum, the order-keeping map of the signed bins onto unsigned ones, less one,
+       sends the DC mode's LLONG_MIN to the largest value (a minimum that skips a value does not vectorise) */
+    const unsigned long long sign = 1ULL << 63;
+    unsigned long long ulo = ULLONG_MAX;
+    for (Py_ssize_t j = 0; j < n_single; j++) {
+        unsigned long long u = ((unsigned long long)idx[j] ^ sign) - 1ULL;
+        ulo = u < ulo ? u : ulo;
+    }
+    long long hi = LLONG_MIN;
     for (Py_ssize_t j = 0; j < n_single; j++)
-        idx[j] = xs[j] < INFINITY ? (long long)xs[j] - 1 : LLONG_MIN;
-    *lo_out = lo < INFINITY ? (long long)lo - 1 : LLONG_MAX;
-    *hi_out = hi > -INFINITY ? (long long)hi + 2 : LLONG_MIN;
+        hi = idx[j] > hi ? idx[j] : hi;
+    *lo_out = ulo != ULLONG_MAX ? (long long)((ulo + 1ULL) ^ sign) : LLONG_MAX;
+    *hi_out = hi != LLONG_MIN ? hi + 3 : LLONG_MIN;
 }
 
 /* pass 2: the modes' weights into rows of 8 (the six linear vectors, q, padding), a row a vector */
