@@ -360,18 +360,17 @@ def test_band_limited_shared_factor_draw_is_galsims_own(J):
         orig_draw(self, image, jac)
         counted.append((np.count_nonzero(image.array), image.array.size))
 
-    cls_draw = metacal._draw
-    plain = {}
+    gs_draw = metacal._draw
     try:
         metacal._KProduct._drawKImage = counting
         fast = metacal_observations(obs, rng=np.random.default_rng(5))
         # the same, with each product drawn by GalSim's own Convolution
-        metacal._draw = lambda prof, shape, wcs: cls_draw(
+        metacal._draw = lambda prof, shape, wcs: gs_draw(
             galsim.Convolution(prof.obj_list) if isinstance(prof, metacal._KProduct) else prof, shape, wcs)
         plain = metacal_observations(obs, rng=np.random.default_rng(5))
     finally:
         metacal._KProduct._drawKImage = orig_draw
-        metacal._draw = cls_draw
+        metacal._draw = gs_draw
     peak = np.abs(plain["noshear"].image).max()
     for name in plain:
         assert np.abs(fast[name].image - plain[name].image).max() < 1e-7 * peak, name

@@ -129,7 +129,7 @@ class _KProduct(galsim.Convolution):
                 arr = part.array
                 if id(obj) in self._shared:
                     self._cache[key] = (obj, arr)
-            out = arr.copy() if out is None else out * arr
+            out = arr if out is None else out * arr   # a new array: the cached factors stay as they are
         view.array[:, :] = out
 
 
@@ -183,12 +183,11 @@ def metacal_observations(obs: Observation, delta=0.01, rng=None, versions=tuple(
         s1, s2 = VERSIONS[name]
         g1, g2 = s1 * delta, s2 * delta
         # the shear of (stamp / PSF) is the product of the sheared factors (a shear keeps areas)
-        sheared = [(p.shear(g1=g1, g2=g2) if (g1 or g2) else p) for p in (gal, nint, inv_psf)]
-        inv = sheared[2]
-        im = _draw(_KProduct([sheared[0], inv, new_psf], inv.maxk, (inv, new_psf), cache), w.shape, wcs)
+        gal_g, noise_g, inv = [(p.shear(g1=g1, g2=g2) if (g1 or g2) else p) for p in (gal, nint, inv_psf)]
+        im = _draw(_KProduct([gal_g, inv, new_psf], inv.maxk, (inv, new_psf), cache), w.shape, wcs)
         # the same operations on the rotated noise; rotated back, its correlation is the processed
         # noise's turned by 90 degrees (as if sheared by -g), so the sum's is symmetric
-        nim = _draw(_KProduct([sheared[1], inv, new_psf], inv.maxk, (inv, new_psf), cache), w.shape, wcs)
+        nim = _draw(_KProduct([noise_g, inv, new_psf], inv.maxk, (inv, new_psf), cache), w.shape, wcs)
         if square:
             nim = np.rot90(nim, -1)
         if scale is None:
