@@ -7,7 +7,8 @@ times ``shearfit.measure_object`` on one core (BLAS limited to one thread),
 for 7 exposures and, with --scaling, for 1-14 exposures and several stamp
 sizes. Prints a profile grouped by stage and the process's peak memory.
 
-    python benchmarks/speed.py                 # 7 exposures, profile
+    python benchmarks/speed.py                 # 7 exposures, profile (a Moffat fitted to every PSF)
+    python benchmarks/speed.py --moffat-per-exposure   # one App. A Moffat per exposure, as the pipeline
     python benchmarks/speed.py --scaling       # growth with exposures and stamp size
     python benchmarks/speed.py --check         # how far the speed settings move the estimates
     python benchmarks/speed.py --rotate-exposures   # exposures whose Fourier modes cannot merge

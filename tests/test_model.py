@@ -183,3 +183,40 @@ def test_render_conserves_flux_and_scale():
                                jacobian=PIX * np.eye(2), flux_scale=2.5)
     mod = shearfit.render_object(obs, 0.3, 0.1, 0.3, 0.1, 100.0)
     assert mod.sum() == pytest.approx(250.0, rel=2e-3)
+
+
+@pytest.mark.parametrize("beta,rs,tol", [(2.5, 2.0, 2e-3), (3.5, 3.0, 1e-2)])
+def test_psf_moffat_recovers_galsims_moffat(beta, rs, tol):
+    """The App. A fit (Levenberg-Marquardt on ring averages inside the band) finds the Moffat GalSim drew."""
+    im = galsim.Convolve(galsim.Moffat(beta=beta, scale_radius=rs), galsim.Pixel(1.0)).drawImage(
+        nx=48, ny=48, scale=1.0, method="no_pixel").array
+    got_rs, got_beta = psf_moffat(im)
+    assert got_rs == pytest.approx(rs, rel=tol) and got_beta == pytest.approx(beta, rel=tol)
+
+
+@pytest.mark.parametrize("sigma", [0.8, 2.0])
+def test_psf_moffat_of_a_gaussian_keeps_its_width(sigma):
+    """A PSF with no Moffat wings (a Gaussian: beta -> infinity) gets beta at its bound and the size refitted
+    for it: the Moffat's transform still follows the Gaussian's inside the band."""
+    from shearfit.model import _moffat_ft
+
+    im = galsim.Convolve(galsim.Gaussian(sigma=sigma), galsim.Pixel(1.0)).drawImage(
+        nx=48, ny=48, scale=1.0, method="no_pixel").array
+    rs, beta = psf_moffat(im)
+    assert beta == pytest.approx(21.0)
+    k = np.linspace(0.0, 0.7 * np.pi, 50)
+    assert np.abs(_moffat_ft(k, rs, beta) - np.exp(-0.5 * (k * sigma) ** 2)).max() < 0.02
+
+
+@pytest.mark.parametrize("rs", [0.3, 1.0, 3.0, 4.5, 8.0, 40.0])
+@pytest.mark.parametrize("beta", [1.3, 2.0, 3.0, 4.0, 15.0])
+def test_moffat_table_is_the_exact_transform(rs, beta):
+    """The alias tables' Moffat (exact near k = 0, a spline of its logarithm beyond, zero below 1e-30)
+    is the Bessel-function transform to 1e-7, far below the error of the linear interpolation in the table."""
+    from shearfit.model import _alias_geometry, _moffat_ft, _moffat_table
+
+    k = _alias_geometry(48, 48, 3)[0]
+    exact = _moffat_ft(k, rs, beta)
+    got = _moffat_table(k, rs, beta)
+    assert np.abs(got - exact).max() < 1e-7
+    assert np.all(got[exact < 1e-31] == 0.0)

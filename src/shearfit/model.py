@@ -29,7 +29,7 @@ import functools
 from dataclasses import dataclass, replace
 
 import numpy as np
-from scipy import special
+from scipy import interpolate, special
 
 from .config import FitConfig
 from .errors import ShearfitValueError
@@ -89,39 +89,99 @@ def _moffat_ft(k, rs, beta):
     return out
 
 
-def fit_moffat(psf_ft_coarse, ky, kx):
+def _moffat_ft_dlogs(x, nu):
+    """The circular Moffat's transform f(x) = c x^nu K_nu(x), x = k rs, and its derivatives in log rs and log nu.
+
+    ``df/dlog rs = x f'(x) = -c x^(nu+1) K_(nu-1)(x)`` (the Bessel recurrence);
+    the derivative in ``log nu`` by a forward difference.
+    """
+    def f(n):
+        return (2.0 ** (1.0 - n) / special.gamma(n)) * x ** n * special.kv(n, x)
+
+    h = 1e-7
+    f0 = f(nu)
+    d_rs = -(2.0 ** (1.0 - nu) / special.gamma(nu)) * x ** (nu + 1.0) * special.kv(nu - 1.0, x)
+    d_nu = (f(nu * np.exp(h)) - f0) / h
+    return f0, d_rs, d_nu
+
+
+def fit_moffat(psf_ft_coarse, ky, kx, max_iter=100, ftol=1e-10, xtol=1e-8):
     """Fit a circular Moffat (times the pixel response) to a native PSF's transform.
 
     Only modes well inside the band (|k| < 0.7 pi) enter, where aliasing is
     negligible, so the fitted profile can stand for the PSF above Nyquist. The
     paper fits a circular Moffat near the field centre (App. A); here one is
-    fitted per exposure.
+    fitted per exposure (the pipeline: per CCD).
+
+    The transform is averaged in 14 rings and fitted in (log rs, log(beta-1))
+    by Levenberg-Marquardt with the size derivative in closed form; the
+    solution is clipped to rs in [0.05, 50] pixels and beta in [1.2, 21].
 
     Returns (rs, beta) in pixels.
     """
-    from scipy.optimize import least_squares
-
     kk = np.hypot(ky[:, None], kx[None, :])
     pix = np.sinc(ky[:, None] / (2 * np.pi)) * np.sinc(kx[None, :] / (2 * np.pi))
     sel = (kk > 0) & (kk < 0.7 * np.pi)
     # azimuthal average in narrow rings keeps the fit cheap and makes it circular
     edges = np.linspace(0, 0.7 * np.pi, 15)
     idx = np.digitize(kk[sel], edges)
-    val = (np.abs(psf_ft_coarse)[sel] / pix[sel])
-    kr = np.array([kk[sel][idx == i].mean() for i in range(1, len(edges)) if np.any(idx == i)])
-    vr = np.array([val[idx == i].mean() for i in range(1, len(edges)) if np.any(idx == i)])
-
-    def resid(p):
-        return _moffat_ft(kr, np.exp(p[0]), 1.0 + np.exp(p[1])) - vr
+    count = np.bincount(idx, minlength=edges.size)[1:]
+    used = count > 0
+    kr = (np.bincount(idx, weights=kk[sel], minlength=edges.size)[1:] / np.maximum(count, 1))[used]
+    vr = (np.bincount(idx, weights=np.abs(psf_ft_coarse)[sel] / pix[sel], minlength=edges.size)[1:]
+          / np.maximum(count, 1))[used]
 
     # starting size from the half-power wavenumber of a Gaussian of similar width
     khalf = kr[np.argmin(np.abs(vr - 0.5))] if np.any(vr < 0.5) else 0.5
-    # unbounded Levenberg-Marquardt (the log parameters keep rs > 0, beta > 1), then clipped to a
-    # sane range: a few times cheaper than a bounded solver for these two parameters
-    sol = least_squares(resid, x0=[np.log(1.2 / khalf), np.log(2.0)], method="lm")
-    lrs = float(np.clip(sol.x[0], np.log(0.05), np.log(50.0)))
-    lb = float(np.clip(sol.x[1], np.log(0.2), np.log(20.0)))
+    p = _levenberg_marquardt(kr, vr, np.array([np.log(1.2 / khalf), np.log(2.0)]), (True, True),
+                             max_iter, ftol, xtol)
+    lb = float(np.clip(p[1], np.log(0.2), np.log(20.0)))
+    if lb != p[1]:
+        # beta at a bound (a PSF without Moffat wings, e.g. a Gaussian: beta -> infinity): the size refitted
+        # for the bound, so that the pair still matches the PSF's width
+        p = _levenberg_marquardt(kr, vr, np.array([p[0], lb]), (True, False), max_iter, ftol, xtol)
+    lrs = float(np.clip(p[0], np.log(0.05), np.log(50.0)))
     return float(np.exp(lrs)), float(1.0 + np.exp(lb))
+
+
+def _levenberg_marquardt(kr, vr, p, free, max_iter, ftol, xtol):
+    """Least squares of the Moffat transform at kr against vr in p = (log rs, log(beta - 1)), the
+    parameters marked ``free`` varied (the others held)."""
+    free = np.asarray(free)
+    lam = 1e-3
+
+    def evaluate(q):
+        # a trial step can reach orders where gamma and x^nu overflow: its cost is then not finite and the
+        # step is refused
+        with np.errstate(over="ignore", invalid="ignore"):
+            f0, d_rs, d_nu = _moffat_ft_dlogs(kr * np.exp(q[0]), np.exp(q[1]))
+        r = f0 - vr
+        return r, float(r @ r), np.stack([d_rs, d_nu], axis=1)[:, free]
+
+    r, cost, J = evaluate(p)
+    for _ in range(max_iter):
+        JtJ = J.T @ J
+        g = J.T @ r
+        A = JtJ + lam * np.diag(np.diag(JtJ) + 1e-30)
+        try:
+            step = -np.linalg.solve(A, g)
+        except np.linalg.LinAlgError:
+            break
+        q = p.copy()
+        q[free] += np.clip(step, -2.0, 2.0)
+        rq, cq, Jq = evaluate(q)
+        if np.isfinite(cq) and cq <= cost:
+            converged = (cost - cq <= ftol * cost
+                         or np.all(np.abs(q - p) <= xtol * (np.abs(p) + xtol)))
+            p, r, cost, J = q, rq, cq, Jq
+            lam = max(lam / 3.0, 1e-12)
+            if converged:
+                break
+        else:
+            lam *= 4.0
+            if lam > 1e12:
+                break
+    return p
 
 
 # --------------------------------------------------------------------------
@@ -197,6 +257,77 @@ def psf_moffat(psf):
     return fit_moffat(Ps, 2 * np.pi * np.fft.fftfreq(ny), 2 * np.pi * np.fft.rfftfreq(nx))
 
 
+#: aliases of the stamp's modes the Moffat is summed over, each way (beyond +-2 it is below 1e-8)
+_N_ALIAS = 2
+#: points of the Moffat's |k| table
+_N_KTAB = 4001
+
+
+@functools.lru_cache(maxsize=8)
+def _alias_geometry(ny, nx, s):
+    """What the alias tables of a (ny, nx) stamp share whatever the Moffat: |k| and the pixel response of
+    every alias k + 2 pi n, n in [-2, 2]^2, and the wavevectors and folded mode of the s x s kept ones."""
+    kyc = 2 * np.pi * np.fft.fftfreq(ny)
+    kxc = 2 * np.pi * np.fft.rfftfreq(nx)
+    na = _N_ALIAS
+    offs = 2 * np.pi * np.arange(-na, na + 1)
+    kmax = np.hypot(np.pi + offs[-1], np.pi + offs[-1]) + 1.0
+    KYa = kyc[None, :] + offs[:, None]                     # (5, ny)
+    KXa = kxc[None, :] + offs[:, None]                     # (5, nxh)
+    sy = np.sinc(KYa / (2 * np.pi))
+    sx = np.sinc(KXa / (2 * np.pi))
+    kk = np.hypot(KYa[:, None, :, None], KXa[None, :, None, :])          # (5, 5, ny, nxh)
+    pix = sy[:, None, :, None] * sx[None, :, None, :]
+    # linear interpolation on the uniform |k| table, weights with the pixel response folded in
+    ktab = np.linspace(0.0, kmax, _N_KTAB)
+    u = kk * ((_N_KTAB - 1) / kmax)
+    i0 = np.minimum(u.astype(np.intp), _N_KTAB - 2)
+    t = u - i0
+    w0, w1 = (1.0 - t) * pix, t * pix
+    half = s // 2
+    sel = slice(na - half, na + half + 1)
+    shape = kk[sel, sel].shape
+    nxh = kxc.size
+    KYf = np.broadcast_to(KYa[sel][:, None, :, None], shape).ravel()
+    KXf = np.broadcast_to(KXa[sel][None, :, None, :], shape).ravel()
+    coarse_index = (np.arange(ny)[:, None] * nxh + np.arange(nxh)[None, :])
+    cs = np.broadcast_to(coarse_index, shape).ravel()
+    for arr in (ktab, i0, w0, w1, KYf, KXf, cs):
+        arr.setflags(write=False)
+    return ktab, i0, w0, w1, sel, KYf, KXf, cs
+
+
+def _moffat_table(k, rs, beta, x_exact=4.0, x_step=0.2, floor=1e-30):
+    """_moffat_ft on a uniform grid k, set to zero where it falls below ``floor``.
+
+    Exact up to x = k rs = ``x_exact``; beyond, a cubic spline of its
+    logarithm through exact nodes ``x_step`` apart (within 1e-7 of the exact
+    values: the logarithm of this exponentially falling function is smooth
+    there, where the transform itself has a cusp at x = 0 for beta < 3). The
+    transform decreases monotonically (its derivative is -c x^nu K_(nu-1)(x)),
+    so it is zero beyond the last node above the floor.
+    """
+    n = k.size
+    dx = (k[1] - k[0]) * rs
+    j = int(np.ceil(x_exact / dx))
+    step = int(x_step / dx)
+    if step >= 3 and n - j >= 4 * step:
+        nodes = np.append(np.arange(j, n - 1, step), n - 1)
+        v = _moffat_ft(k[nodes], rs, beta)
+        m = int(np.count_nonzero(v >= floor))
+        if m >= 4:
+            out = np.zeros_like(k)
+            out[:j] = _moffat_ft(k[:j], rs, beta)
+            nodes, v = nodes[:m], v[:m]
+            last = nodes[-1] + 1
+            out[j:last] = np.exp(interpolate.CubicSpline(k[nodes], np.log(v))(k[j:last]))
+            out[nodes] = v
+            return out
+    out = _moffat_ft(k, rs, beta)
+    out[out < floor] = 0.0
+    return out
+
+
 @functools.lru_cache(maxsize=64)
 def _moffat_aliases(rs, beta, ny, nx, s):
     """The Moffat (times the pixel response) at every alias of the stamp's rfft modes.
@@ -207,32 +338,14 @@ def _moffat_aliases(rs, beta, ny, nx, s):
     onto. Cached: one exposure's CCD shares one Moffat (App. A fits one
     near the field centre), so its objects reuse these tables.
     """
-    kyc = 2 * np.pi * np.fft.fftfreq(ny)
-    kxc = 2 * np.pi * np.fft.rfftfreq(nx)
-    # the Moffat's transform is radial: tabulate it once on |k| and interpolate; the pixel response is
-    # separable
-    na = 2
-    offs = 2 * np.pi * np.arange(-na, na + 1)
-    kmax = np.hypot(np.pi + offs[-1], np.pi + offs[-1]) + 1.0
-    ktab = np.linspace(0.0, kmax, 4001)
-    mtab = _moffat_ft(ktab, rs, beta)
-    KYa = kyc[None, :] + offs[:, None]                     # (5, ny)
-    KXa = kxc[None, :] + offs[:, None]                     # (5, nxh)
-    sy = np.sinc(KYa / (2 * np.pi))
-    sx = np.sinc(KXa / (2 * np.pi))
-    kk = np.hypot(KYa[:, None, :, None], KXa[None, :, None, :])          # (5, 5, ny, nxh)
-    G = np.interp(kk, ktab, mtab, right=0.0) * sy[:, None, :, None] * sx[None, :, None, :]
+    ktab, i0, w0, w1, sel, KYf, KXf, cs = _alias_geometry(ny, nx, s)
+    # the Moffat's transform is radial: tabulate it once on |k| and interpolate linearly
+    mtab = _moffat_table(ktab, rs, beta)
+    G = mtab[i0] * w0 + mtab[i0 + 1] * w1
     A = G.sum(axis=(0, 1))
-    half = s // 2
-    sel = slice(na - half, na + half + 1)
     Gs = G[sel, sel]
-    nxh = kxc.size
-    KYf = np.broadcast_to(KYa[sel][:, None, :, None], Gs.shape).ravel()
-    KXf = np.broadcast_to(KXa[sel][None, :, None, :], Gs.shape).ravel()
-    coarse_index = (np.arange(ny)[:, None] * nxh + np.arange(nxh)[None, :])
-    cs = np.broadcast_to(coarse_index, Gs.shape).ravel()
-    for a in (A, Gs, KYf, KXf, cs):
-        a.setflags(write=False)
+    for arr in (A, Gs):
+        arr.setflags(write=False)
     return A, Gs, KYf, KXf, cs
 
 
