@@ -220,3 +220,27 @@ def test_moffat_table_is_the_exact_transform(rs, beta):
     got = _moffat_table(k, rs, beta)
     assert np.abs(got - exact).max() < 1e-7
     assert np.all(got[exact < 1e-31] == 0.0)
+
+
+def test_own_moffat_is_remembered_by_the_psfs_contents():
+    """Observations without a Moffat that share a PSF image fit it once; the remembered fit is the fresh
+    one bit for bit, and a PSF differing in one pixel gets its own."""
+    from shearfit import model
+    from shearfit.config import FitConfig
+
+    J = PIX * np.eye(2)
+    pim = draw_psf_image(moffat_psf(0.6, 3.0, 0.03, 0.02), J, size=48, oversampling=1)
+    obs = shearfit.Observation(image=np.zeros((48, 48)), weight=np.ones((48, 48)), psf=pim, jacobian=J)
+    model._OWN_MOFFAT.clear()
+    first = model.prepare_exposure(obs, FitConfig())
+    assert len(model._OWN_MOFFAT) == 1
+    again = model.prepare_exposure(obs, FitConfig())
+    assert len(model._OWN_MOFFAT) == 1 and np.array_equal(first.transfer, again.transfer)
+    other = pim.copy()
+    other[30, 30] += 1e-3
+    model.prepare_exposure(shearfit.Observation(image=np.zeros((48, 48)), weight=np.ones((48, 48)), psf=other,
+                                                jacobian=J), FitConfig())
+    assert len(model._OWN_MOFFAT) == 2
+    Ps = np.fft.rfft2(np.fft.ifftshift(other))
+    assert list(model._OWN_MOFFAT.values())[1] == model.fit_moffat(Ps, 2 * np.pi * np.fft.fftfreq(48),
+                                                                   2 * np.pi * np.fft.rfftfreq(48))

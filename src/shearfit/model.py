@@ -25,6 +25,7 @@ is exact.
 from __future__ import annotations
 
 import functools
+import hashlib
 
 from dataclasses import dataclass, replace
 
@@ -257,6 +258,26 @@ def psf_moffat(psf):
     return fit_moffat(Ps, 2 * np.pi * np.fft.fftfreq(ny), 2 * np.pi * np.fft.rfftfreq(nx))
 
 
+#: Moffats fitted to observations' own PSFs, by the PSF's bytes and the grid (see _own_moffat)
+_OWN_MOFFAT: dict = {}
+_OWN_MOFFAT_SIZE = 512
+
+
+def _own_moffat(psf, Ps, ny, nx):
+    """fit_moffat of a PSF without a given Moffat, remembered by the PSF's contents: objects handed the
+    same PSF image (a constant PSF per exposure, as in the GREAT challenges) fit it once and share its
+    alias tables. The same fit, bit for bit, as without the memory."""
+    a = np.ascontiguousarray(psf)
+    key = (a.shape, a.dtype.str, ny, nx, hashlib.blake2b(a.view(np.uint8), digest_size=16).digest())
+    got = _OWN_MOFFAT.get(key)
+    if got is None:
+        got = fit_moffat(Ps, 2 * np.pi * np.fft.fftfreq(ny), 2 * np.pi * np.fft.rfftfreq(nx))
+        if len(_OWN_MOFFAT) >= _OWN_MOFFAT_SIZE:
+            _OWN_MOFFAT.clear()
+        _OWN_MOFFAT[key] = got
+    return got
+
+
 #: aliases of the stamp's modes the Moffat is summed over, each way (beyond +-2 it is below 1e-8)
 _N_ALIAS = 2
 #: points of the Moffat's |k| table
@@ -364,7 +385,7 @@ def _fine_modes_moffat(psf, ny, nx, s, moffat=None, tolerance=0.0):
     p = _pad_center(psf, (ny, nx))
     Ps = np.fft.rfft2(np.fft.ifftshift(p))
     if moffat is None:
-        rs, beta = fit_moffat(Ps, 2 * np.pi * np.fft.fftfreq(ny), 2 * np.pi * np.fft.rfftfreq(nx))
+        rs, beta = _own_moffat(psf, Ps, ny, nx)
     else:
         rs, beta = moffat
     A, Gs, KYf, KXf, cs = _moffat_aliases(float(rs), float(beta), ny, nx, int(s))
