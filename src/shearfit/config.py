@@ -96,8 +96,9 @@ class FitConfig:
         "every mode (also what the numpy path without the compiled kernel does)", "DESIGN: speed")
     alias_correction: str = _opt(
         "moffat",
-        "high frequencies of a native-sampled PSF: 'moffat' models them with an elliptical Moffat fitted to the PSF "
-        "(the paper's App. A correction, generalised to elliptical); 'none' assumes a band-limited PSF",
+        "high frequencies of a native-sampled PSF: 'moffat' models them with a circular Moffat fitted to the PSF "
+        "(the paper's App. A correction), scaled mode by mode so that its aliased sum is the sampled PSF; 'none' "
+        "assumes a band-limited PSF",
         "App. A", ("moffat", "none"))
     alias_oversampling: int = _opt(3, "sub-sampling of the galaxy model before the alias fold", "App. A")
 

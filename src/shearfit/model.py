@@ -17,7 +17,7 @@ each with its sky wavevector ``K_j``, its complex transfer ``T_j`` (PSF, pixel,
 shift, photometric scale) and the sampled-grid mode ``c(j)`` it folds onto:
 ``M_c = sum_{j -> c} T_j R(rho_j)`` is the model's DFT on the stamp. With a
 native-sampled PSF the fine grid is the stamp's own (the band-limited
-assumption) unless the elliptical-Moffat alias correction is switched on;
+assumption) unless the Moffat alias correction (App. A) is switched on;
 with a PSF oversampled k times, the fine grid is k times wider and the fold
 is exact.
 """
@@ -76,7 +76,7 @@ def _pad_center(a, shape):
 
 
 # --------------------------------------------------------------------------
-# elliptical Moffat, used only to model a native PSF above Nyquist (App. A)
+# circular Moffat, used only to model a native PSF above Nyquist (App. A)
 # --------------------------------------------------------------------------
 
 def _moffat_ft(k, rs, beta):
