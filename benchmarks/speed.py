@@ -9,6 +9,7 @@ sizes. Prints a profile grouped by stage and the process's peak memory.
 
     python benchmarks/speed.py                 # 7 exposures, profile (a Moffat fitted to every PSF)
     python benchmarks/speed.py --moffat-per-exposure   # one App. A Moffat per exposure, as the pipeline
+    python benchmarks/speed.py --constant-psf  # one PSF image for all (a Moffat fitted once, remembered)
     python benchmarks/speed.py --scaling       # growth with exposures and stamp size
     python benchmarks/speed.py --check         # how far the speed settings move the estimates
     python benchmarks/speed.py --rotate-exposures   # exposures whose Fourier modes cannot merge
@@ -48,10 +49,12 @@ STAGES = {
 }
 
 
-def simulate(n, n_exp, stamp, seed, rotate=False, jitter=0.0):
+def simulate(n, n_exp, stamp, seed, rotate=False, jitter=0.0, constant_psf=False):
     rng = np.random.default_rng(seed)
+    # a constant PSF: one round Moffat (FWHM 0.65", beta 3) for every exposure of every galaxy
+    psf = dict(psf_fwhm_range=(0.65, 0.65), psf_beta_range=(3.0, 3.0), psf_e_max=0.0) if constant_psf else {}
     return ring_set(n, (0.0, 0.0), rng, n_rotations=1, n_exposures=n_exp, snr_range=(10, 60),
-                    mag_range=(21.0, 24.7), stamp_size=stamp, rotate_exposures=rotate, jacobian_jitter=jitter)
+                    mag_range=(21.0, 24.7), stamp_size=stamp, rotate_exposures=rotate, jacobian_jitter=jitter, **psf)
 
 
 def one_moffat_per_exposure(objs):
@@ -141,6 +144,9 @@ def main(argv=None):
     ap.add_argument("--jacobian-jitter", type=float, default=0.0, metavar="RMS",
                     help="multiply each exposure's Jacobian by 1 + A, A of normal deviates of this rms (a camera's "
                          "distortion differs by about 1e-4 to 1e-3 between the dithered positions of one object)")
+    ap.add_argument("--constant-psf", action="store_true",
+                    help="one PSF image for every exposure of every galaxy (as the GREAT challenges' constant-PSF "
+                         "branches): the App. A Moffat is fitted once and remembered")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="engine setting")
     ap.add_argument("--metacal", action="store_true",
                     help="also time the metacal measurement (five versions per object) against the plain one")
@@ -162,7 +168,8 @@ def main(argv=None):
     cfg = shearfit.fit_config_from_mapping(cfg)
     print(f"shearfit {shearfit.__version__}; compiled kernel: {'yes' if likelihood.USE_KERNEL else 'NO (numpy)'}; "
           f"sampling={cfg.sampling}, alias_correction={cfg.alias_correction}")
-    objs = simulate(args.n_galaxies, 7, 48, args.seed, args.rotate_exposures, args.jacobian_jitter)
+    objs = simulate(args.n_galaxies, 7, 48, args.seed, args.rotate_exposures, args.jacobian_jitter,
+                    args.constant_psf)
     if args.moffat_per_exposure:
         objs = one_moffat_per_exposure(objs)
     timed(objs[:2], cfg)   # build the profile tables once, outside the timing
