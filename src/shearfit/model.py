@@ -79,30 +79,37 @@ def _pad_center(a, shape):
 # circular Moffat, used only to model a native PSF above Nyquist (App. A)
 # --------------------------------------------------------------------------
 
+def _moffat_norm(nu):
+    """c(nu) = 2^(1 - nu) / Gamma(nu), the normalisation of the Moffat's transform c x^nu K_nu(x)."""
+    return 2.0 ** (1.0 - nu) / special.gamma(nu)
+
+
+def _moffat_ft_x(x, nu):
+    """The unit-flux circular Moffat's transform c x^nu K_nu(x) at x = k rs > 0, nu = beta - 1."""
+    return _moffat_norm(nu) * x ** nu * special.kv(nu, x)
+
+
 def _moffat_ft(k, rs, beta):
     """Transform of a unit-flux circular Moffat (1+(r/rs)^2)^-beta at |k| (beta > 1)."""
     nu = beta - 1.0
     x = np.asarray(k, dtype=float) * rs
     out = np.ones_like(x)
     pos = x > 1e-8
-    xp = x[pos]
-    out[pos] = (2.0 ** (1.0 - nu) / special.gamma(nu)) * xp ** nu * special.kv(nu, xp)
+    out[pos] = _moffat_ft_x(x[pos], nu)
     return out
 
 
 def _moffat_ft_dlogs(x, nu):
-    """The circular Moffat's transform f(x) = c x^nu K_nu(x), x = k rs, and its derivatives in log rs and log nu.
+    """The circular Moffat's transform f(x) = c x^nu K_nu(x), x = k rs > 0, and its derivatives in log rs
+    and log nu.
 
     ``df/dlog rs = x f'(x) = -c x^(nu+1) K_(nu-1)(x)`` (the Bessel recurrence);
     the derivative in ``log nu`` by a forward difference.
     """
-    def f(n):
-        return (2.0 ** (1.0 - n) / special.gamma(n)) * x ** n * special.kv(n, x)
-
     h = 1e-7
-    f0 = f(nu)
-    d_rs = -(2.0 ** (1.0 - nu) / special.gamma(nu)) * x ** (nu + 1.0) * special.kv(nu - 1.0, x)
-    d_nu = (f(nu * np.exp(h)) - f0) / h
+    f0 = _moffat_ft_x(x, nu)
+    d_rs = -_moffat_norm(nu) * x ** (nu + 1.0) * special.kv(nu - 1.0, x)
+    d_nu = (_moffat_ft_x(x, nu * np.exp(h)) - f0) / h
     return f0, d_rs, d_nu
 
 
@@ -125,10 +132,11 @@ def fit_moffat(psf_ft_coarse, ky, kx, max_iter=100, ftol=1e-10, xtol=1e-8):
     sel = (kk > 0) & (kk < 0.7 * np.pi)
     # azimuthal average in narrow rings keeps the fit cheap and makes it circular
     edges = np.linspace(0, 0.7 * np.pi, 15)
-    idx = np.digitize(kk[sel], edges)
+    ks = kk[sel]
+    idx = np.digitize(ks, edges)
     count = np.bincount(idx, minlength=edges.size)[1:]
     used = count > 0
-    kr = (np.bincount(idx, weights=kk[sel], minlength=edges.size)[1:] / np.maximum(count, 1))[used]
+    kr = (np.bincount(idx, weights=ks, minlength=edges.size)[1:] / np.maximum(count, 1))[used]
     vr = (np.bincount(idx, weights=np.abs(psf_ft_coarse)[sel] / pix[sel], minlength=edges.size)[1:]
           / np.maximum(count, 1))[used]
 
@@ -252,9 +260,12 @@ def _fine_modes_from_psf(psf, s, ny, nx):
 
 def psf_moffat(psf):
     """(rs, beta) of the circular Moffat that stands for a native PSF above Nyquist (see fit_moffat)."""
-    ny, nx = psf.shape
-    Ps = np.fft.rfft2(np.fft.ifftshift(_pad_center(psf, (ny + ny % 2, nx + nx % 2))))
-    ny, nx = ny + ny % 2, nx + nx % 2
+    ny, nx = (n + n % 2 for n in psf.shape)
+    return _fit_moffat_rfft(np.fft.rfft2(np.fft.ifftshift(_pad_center(psf, (ny, nx)))), ny, nx)
+
+
+def _fit_moffat_rfft(Ps, ny, nx):
+    """fit_moffat of the rfft ``Ps`` of a PSF on a (ny, nx) grid."""
     return fit_moffat(Ps, 2 * np.pi * np.fft.fftfreq(ny), 2 * np.pi * np.fft.rfftfreq(nx))
 
 
@@ -271,7 +282,7 @@ def _own_moffat(psf, Ps, ny, nx):
     key = (a.shape, a.dtype.str, ny, nx, hashlib.blake2b(a.view(np.uint8), digest_size=16).digest())
     got = _OWN_MOFFAT.get(key)
     if got is None:
-        got = fit_moffat(Ps, 2 * np.pi * np.fft.fftfreq(ny), 2 * np.pi * np.fft.rfftfreq(nx))
+        got = _fit_moffat_rfft(Ps, ny, nx)
         if len(_OWN_MOFFAT) >= _OWN_MOFFAT_SIZE:
             _OWN_MOFFAT.clear()
         _OWN_MOFFAT[key] = got
