@@ -165,6 +165,72 @@ def test_merged_exposures_give_each_exposures_sums():
                 assert np.max(np.abs(x - y)) <= 1e-12 * np.max(np.abs(y)), (f, use_kernel)
 
 
+def test_drop_threshold_is_the_sorted_sums_one():
+    """The noise-aware cut's threshold from bucketed sums is the one of sorting every bound and summing in
+    order (the largest value whose run of equal values keeps the sum within the tolerance), ties, zeros,
+    bounds above the tolerance and nothing droppable included."""
+    from shearfit.likelihood import _drop_threshold
+
+    def by_sorting(b, tol):
+        v = np.sort(b[b <= tol])
+        csum = np.cumsum(v)
+        last = np.ones(v.size, bool)
+        last[:-1] = v[1:] != v[:-1]
+        ok = last & (csum <= tol)
+        return float(v[ok][-1]) if np.any(ok) else None
+
+    rng = np.random.default_rng(1)
+    seen = set()
+    for i in range(1500):
+        n = int(rng.integers(0, 3000))
+        b = rng.random(n) ** rng.uniform(1, 30) * rng.uniform(1e-4, 10)
+        if i % 3 == 0 and n:
+            b[rng.integers(0, n, n // 3)] = b[rng.integers(0, n)]   # long runs of ties
+        if i % 5 == 0 and n:
+            b[: n // 10] = 0.0
+        tol = 10 ** rng.uniform(-3, 1)
+        got, want = _drop_threshold(b, tol), by_sorting(b, tol)
+        assert got == want, i
+        seen.add(want is None)
+    assert seen == {False}
+    # nothing droppable: every bound above the tolerance, or the smallest ones tied and summing above it
+    for b in (np.array([2.0, 3.0]), np.full(3, 0.4), np.zeros(0)):
+        assert _drop_threshold(b, 1.0) is None and by_sorting(b, 1.0) is None
+    assert _drop_threshold(np.array([0.4, 0.4, 0.1]), 1.0) == 0.4
+
+
+def test_prepare_exposures_is_prepare_exposure_of_each():
+    """The batched preparation (the stamps' and PSFs' transforms in one call per shape) gives every
+    observation's ExposureModes bit for bit, with and without the modes of another version (like=), for
+    stamps of two shapes and a PSF oversampled."""
+    from dataclasses import fields
+
+    from shearfit.model import prepare_exposure, prepare_exposures
+
+    cfg = shearfit.FitConfig()
+    obs = _observations(0.3, (0.2, 0.1), n_exp=4, noise=True, snr=40, seed=2)
+    small = _observations(0.3, (0.2, 0.1), n_exp=2, noise=True, snr=40, seed=3)
+    obs += [shearfit.Observation(image=o.image[4:-4, 2:-2], weight=o.weight[4:-4, 2:-2], psf=o.psf,
+                                 jacobian=o.jacobian, offset=o.offset) for o in small]
+    obs.append(shearfit.Observation(image=obs[0].image, weight=obs[0].weight, psf=np.kron(obs[0].psf, np.ones((3, 3))) / 9,
+                                    psf_oversampling=3, jacobian=obs[0].jacobian, offset=obs[0].offset))
+
+    def same(a, b):
+        for f in fields(a):
+            x, y = getattr(a, f.name), getattr(b, f.name)
+            assert (np.array_equal(x, y) if isinstance(x, np.ndarray) else x == y), f.name
+
+    one = [prepare_exposure(o, cfg) for o in obs]
+    for a, b in zip(prepare_exposures(obs, cfg), one):
+        same(a, b)
+    others = _observations(0.5, (-0.1, 0.3), n_exp=len(obs), noise=True, snr=40, seed=4)
+    again = [shearfit.Observation(image=x.image[:o.shape[0], :o.shape[1]], weight=o.weight, psf=o.psf,
+                                  psf_oversampling=o.psf_oversampling, jacobian=o.jacobian, offset=o.offset)
+             for o, x in zip(obs, others)]
+    for a, b in zip(prepare_exposures(again, cfg, likes=one), [prepare_exposure(o, cfg, like=e) for o, e in zip(again, one)]):
+        same(a, b)
+
+
 def test_joint_modes_with_other_data():
     """A fit's merged, shifted modes given another version's data (same PSFs, Jacobians, offsets, noise)
     equal the modes joined and shifted afresh from that version; a mismatch is refused."""
@@ -252,6 +318,51 @@ def test_compiled_marginal_matches_numpy():
                 assert np.array_equal(np.isfinite(x), np.isfinite(y)), f
                 fin = np.isfinite(x)
                 assert np.allclose(x[fin], y[fin], rtol=1e-9, atol=1e-9), f
+
+
+def test_compiled_marginal_matches_numpy_in_the_bulge_fraction_tails():
+    """Data whose bulge fraction lies far outside [0, 1] put the B integral's erf arguments deep in both
+    tails, where erfc(u) would underflow (u > 25, the kernel's erfcx branch), and in the middle: the
+    compiled marginalisation still gives the numpy reference's numbers."""
+    from shearfit import likelihood
+    from shearfit.likelihood import ModelSums, flux_position_marginal
+
+    if not likelihood.USE_KERNEL_MARGINAL:
+        pytest.skip("compiled kernel not built")
+    cfg = shearfit.FitConfig()
+    rng = np.random.default_rng(3)
+    n = 600
+    ff = 10 ** rng.uniform(1, 6, n)
+    gg = ff * 10 ** rng.uniform(-0.5, 0.5, n)
+    fg = rng.uniform(0.3, 0.95, n) * np.sqrt(ff * gg)
+    B = rng.choice([-6.0, -1.0, 0.3, 2.0, 8.0], n)
+    S = rng.uniform(0.5, 2.0, n)
+    hf = S * ((1 - B) * ff + B * fg)
+    hg = S * ((1 - B) * fg + B * gg)
+    keep = (hf > 0) & (hg > 0)
+    c = rng.uniform(0.5, 3.0, n)[:, None] * np.array([1.0, 0.0, 1.0])[None]
+    z2 = np.zeros((n, 2))
+    sums = ModelSums(hf=hf[keep], hg=hg[keep], grad_f=z2[keep], grad_g=z2[keep], hess_f=-(c * hf[:, None])[keep],
+                     hess_g=-(c * hg[:, None])[keep], ff=ff[keep], gg=gg[keep], fg=fg[keep])
+    # the erf arguments at the best flux: b = r / (2 t), a = t + b (likelihood._disk_logp)
+    s = sums.hf / sums.ff
+    sb2 = cfg.bulge_fraction_sigma ** 2
+    t = np.sqrt(0.5 * (s * s * (sums.ff + sums.gg - 2 * sums.fg) + 1 / sb2))
+    b = (s * (sums.hf - sums.hg) + s * s * (sums.fg - sums.ff) - cfg.bulge_fraction_mean / sb2) / (2 * t)
+    a = t + b
+    assert np.any(b > 30) and np.any(a < -30) and np.any((b < 0) & (a > 0))
+    for ps in (0.187, None):
+        x_ref = flux_position_marginal(sums, cfg, ps, use_kernel=False)
+        x_c = flux_position_marginal(sums, cfg, ps)
+        for f in ("logl_disk", "logl_bulge", "mean_flux_disk", "mean_b_disk", "chi2_disk"):
+            x, y = getattr(x_ref, f), getattr(x_c, f)
+            assert np.array_equal(np.isfinite(x), np.isfinite(y)), f
+            fin = np.isfinite(x)
+            assert fin.sum() > 0.9 * fin.size, f
+            # <B> of a likelihood piled against B = 1 (data with B = 8 at SNR ~1000): 1e-8 apart, from
+            # its difference of exponentials evaluated in another order
+            tol = 1e-7 if f == "mean_b_disk" else 1e-9
+            assert np.allclose(x[fin], y[fin], rtol=1e-9, atol=tol), f
 
 
 def test_compiled_size_marginal_matches_numpy():

@@ -54,6 +54,7 @@ double exp(double) __attribute__((simd("notinbranch")));
 double log(double) __attribute__((simd("notinbranch")));
 #if __GLIBC__ > 2 || (__GLIBC__ == 2 && __GLIBC_MINOR__ >= 35)
 double log2(double) __attribute__((simd("notinbranch")));
+double erfc(double) __attribute__((simd("notinbranch")));
 #endif
 #endif
 
@@ -663,32 +664,39 @@ static void position_vec(Py_ssize_t n, const double *restrict lpr, const double 
     }
 }
 
-/* log(erf(a) - erf(b)) for a > b (likelihood.log_erf_diff) of n pairs, without cancellation in the tails:
-   erfcx one at a time, the exponential and logarithm vectorised; w: scratch of 4 x MB_L */
+/* log(erf(a) - erf(b)) for a > b (likelihood.log_erf_diff) of n pairs, without cancellation in the tails.
+   erf(a) - erf(b) = erfc(u) - erfc(v) with u = b, v = a, or, in the lower tail (a <= 0), u = -a, v = -b:
+   u < v and u is never in the lower tail, so erfc(u) is accurate and the difference cancels no more than
+   the erf form (a - b >= 1/(sqrt(2) sigma_B) here). Both erfc in a loop that vectorises (glibc's vector
+   erfc where it exists); where erfc(u) would underflow (u >= ERFC_SAFE), e^-u^2 comes out and scipy's
+   erfcx is used, one element at a time: -u^2 + log(erfcx(u) - erfcx(v) e^(u^2 - v^2)).
+   w: scratch of 4 x MB_L */
+#define ERFC_SAFE 25.0
 MULTIVERSION
 static void log_erf_diff_vec(Py_ssize_t n, const double *restrict a, const double *restrict b,
                              double *restrict out, double *restrict w)
 {
-    double *p = w, *q = w + MB_L, *dd = w + 2 * MB_L, *pre = w + 3 * MB_L;
+    double *p = w, *us = w + MB_L;
+    int far = 0;
     for (Py_ssize_t e = 0; e < n; e++) {
         double ae = a[e], be = b[e];
-        if (be >= 0 || ae <= 0) {
-            /* upper tail: erfc(b) - erfc(a) = e^-b^2 [erfcx(b) - erfcx(a) e^(b^2 - a^2)]; the lower by symmetry;
-               below e^-745 relative the second term cannot change the double */
-            double hi = be >= 0 ? be : -ae, lo = be >= 0 ? ae : -be;
-            double d = hi * hi - lo * lo;
-            p[e] = sp_erfcx(hi, 0);
-            q[e] = d > -745.0 ? sp_erfcx(lo, 0) : 0.0;
-            dd[e] = d > -745.0 ? d : 0.0;
-            pre[e] = -hi * hi;
-        } else {
-            p[e] = erf(ae) - erf(be);
-            q[e] = 0.0;
-            dd[e] = 0.0;
-            pre[e] = 0.0;
-        }
+        int lower = ae <= 0 && be < 0;
+        double u = lower ? -ae : be, v = lower ? -be : ae;
+        double uc = u < ERFC_SAFE ? u : 0.0;   /* the far ones are redone below */
+        p[e] = erfc(uc) - erfc(uc < u ? uc : v);
+        us[e] = u;
+        far |= !(u < ERFC_SAFE);
     }
-    for (Py_ssize_t e = 0; e < n; e++) out[e] = pre[e] + log(p[e] - q[e] * exp(dd[e]));
+    for (Py_ssize_t e = 0; e < n; e++) out[e] = log(p[e]);
+    if (!far) return;
+    for (Py_ssize_t e = 0; e < n; e++) {
+        double u = us[e];
+        if (u < ERFC_SAFE) continue;
+        double v = a[e] <= 0 && b[e] < 0 ? -b[e] : a[e];
+        double d = u * u - v * v;
+        double q = d > -745.0 ? sp_erfcx(v, 0) * exp(d) : 0.0;
+        out[e] = -u * u + log(sp_erfcx(u, 0) - q);
+    }
 }
 
 /* the disk population (bulge fraction marginalised analytically, likelihood._disk_logp) of n elements:

@@ -28,6 +28,7 @@ import os
 from dataclasses import dataclass, field, replace
 
 import numpy as np
+from scipy import fft as sfft
 from scipy import sparse, special
 from scipy.sparse.csgraph import connected_components
 from scipy.interpolate import CubicSpline
@@ -166,6 +167,9 @@ def _block_factors(A, sizes):
     starts = np.cumsum(sizes) - sizes
     ranks = np.zeros(sizes.size, np.int64)
     pieces = {}
+    # the blocks' elements picked from a dense copy where it is small (sparse fancy indexing is slow)
+    if sparse.issparse(A) and A.shape[0] <= 2048:
+        A = A.toarray()
     for p in np.unique(sizes).tolist():
         g = np.nonzero(sizes == p)[0]
         idx = starts[g][:, None] + np.arange(p)[None]
@@ -201,6 +205,42 @@ def _packed_bins(jm):
     return cache
 
 
+#: bits of a positive double's pattern below the bucket index of ``_drop_threshold`` (the exponent and the
+#: top 5 bits of the mantissa stay: buckets 3 % wide)
+_BUCKET_SHIFT = 47
+
+
+def _drop_threshold(b, tolerance):
+    """The largest t among the values of ``b`` (>= 0) such that the sum of every b_j <= t is at most
+    ``tolerance`` (None where even the smallest exceeds it): the weakest modes are dropped whole sets of
+    equal bounds at a time, so that the cut does not depend on how a sort orders ties.
+
+    The same t as sorting the values and summing them in order, without sorting them all: the values
+    are summed in buckets of their bit patterns (monotonic in the value), and only the bucket where the
+    sum crosses the tolerance is sorted (sums in another order than the sorted one's: the same t unless
+    a sum lies within rounding of the tolerance).
+    """
+    v = b[b <= tolerance] + 0.0
+    if v.size == 0:
+        return None
+    key = v.view(np.int64) >> _BUCKET_SHIFT
+    k0 = int(key.min())
+    key = key - k0
+    csum = np.cumsum(np.bincount(key, weights=v))
+    j = int(np.searchsorted(csum, tolerance, side="right"))   # first bucket whose cumulative sum exceeds it
+    below = float(csum[j - 1]) if j > 0 else 0.0
+    best = float(np.max(v[key < j])) if j > 0 else None
+    if j < csum.size:
+        w = np.sort(v[key == j])
+        c = below + np.cumsum(w)
+        last = np.ones(w.size, bool)
+        last[:-1] = w[1:] != w[:-1]
+        ok = last & (c <= tolerance)
+        if np.any(ok):
+            best = float(w[ok][-1])
+    return best
+
+
 def _noise_aware_cut(exposures, chi2_tolerance):
     """Per exposure, the modes to keep so that the dropped ones matter less than ``chi2_tolerance``.
 
@@ -224,15 +264,8 @@ def _noise_aware_cut(exposures, chi2_tolerance):
         return [np.ones(b.size, bool) for b in bounds]
     s_bound = 3.0 * abs(h) / ff + 5.0 / np.sqrt(ff)
     allb = np.concatenate(bounds) * s_bound ** 2
-    # the weakest modes, whole sets of equal bounds at a time (so that the cut does not depend on how
-    # a sort orders ties): every mode whose bound is at most t, for the largest t that keeps their sum
-    # within the tolerance (only bounds within the tolerance can be dropped: sort those alone)
-    v = np.sort(allb[allb <= chi2_tolerance])
-    csum = np.cumsum(v)
-    last = np.ones(v.size, bool)
-    last[:-1] = v[1:] != v[:-1]
-    ok = last & (csum <= chi2_tolerance)
-    drop = allb <= v[ok][-1] if np.any(ok) else np.zeros(allb.size, bool)
+    t = _drop_threshold(allb, chi2_tolerance)
+    drop = allb <= t if t is not None else np.zeros(allb.size, bool)
     keep, start = [], 0
     for b in bounds:
         keep.append(~drop[start:start + b.size])
@@ -286,8 +319,11 @@ def join_exposures(exposures: list[ExposureModes], chi2_tolerance: float = 0.0, 
                     sizes=[ex.cweight.size for ex in exposures], phase=np.ones(n, complex))
     zu = dmap.merged_z(exposures)
     # F: the exposures' sampled modes (rows) from the transforms at the distinct K (columns)
-    rows_used, grow = np.unique(group, return_inverse=True)
-    F = sparse.csr_matrix((tscaled, (grow.ravel(), inv)), shape=(rows_used.size, n))
+    # the sampled modes used, numbered in order (np.unique's, without a sort)
+    present = np.zeros(goffset, bool)
+    present[group] = True
+    grow = (np.cumsum(present) - 1)[group]
+    F = sparse.csr_matrix((tscaled, (grow, inv)), shape=(int(np.count_nonzero(present)), n))
     H = (F.conj().T @ F).tocsr()
     # groups: the modes linked through a sampled mode (components of H's pattern)
     n_comp, label = connected_components(sparse.csr_matrix((np.ones(H.nnz), H.indices, H.indptr), shape=H.shape),
@@ -826,12 +862,23 @@ def coarse_peak(exposures, jacobians, disk, r_ref, half_width, step):
     grid = np.arange(-half_width, half_width + 0.5 * step, step)
     GU, GV = np.meshgrid(grid, grid, indexing="ij")
     total = np.zeros(GU.shape)
-    for ex, J in zip(exposures, jacobians):
+    # h(s) = sum_k conj(Y) M exp(-i k.s): the inverse DFT of conj(conj(Y) M), conjugated back; the
+    # exposures of one stamp shape in one inverse FFT
+    hs = [None] * len(exposures)
+    by_shape = {}
+    for i, ex in enumerate(exposures):
+        by_shape.setdefault(ex.shape, []).append(i)
+    for (ny, nx), idx in by_shape.items():
+        Cs = []
+        for i in idx:
+            ex = exposures[i]
+            R = disk.ft_rho2(r_ref * r_ref * (ex.kx ** 2 + ex.ky ** 2))
+            C = np.conj(ex.data_ft) * _complex_bincount(ex.coarse, ex.transfer * R, ny * (nx // 2 + 1))
+            Cs.append(np.conj(C.reshape(ny, nx // 2 + 1)))
+        for i, h in zip(idx, sfft.irfft2(np.stack(Cs), s=(ny, nx))):
+            hs[i] = h / exposures[i].sigma2
+    for ex, J, h in zip(exposures, jacobians, hs):
         ny, nx = ex.shape
-        R = disk.ft_rho2(r_ref * r_ref * (ex.kx ** 2 + ex.ky ** 2))
-        C = np.conj(ex.data_ft) * _complex_bincount(ex.coarse, ex.transfer * R, ny * (nx // 2 + 1))
-        # h(s) = sum_k conj(Y) M exp(-i k.s): the inverse DFT of conj(conj(Y) M), conjugated back
-        h = np.fft.irfft2(np.conj(C.reshape(ny, nx // 2 + 1)), s=(ny, nx)) / ex.sigma2
         Jinv = np.linalg.inv(J)
         sx = np.rint(Jinv[0, 0] * GU + Jinv[0, 1] * GV).astype(int) % nx
         sy = np.rint(Jinv[1, 0] * GU + Jinv[1, 1] * GV).astype(int) % ny

@@ -14,7 +14,7 @@ from .config import FitConfig, fit_config_from_mapping
 from .errors import (FITCLASS_CENTROID, FITCLASS_FEW_EXPOSURES, FITCLASS_FIT_FAILED, FITCLASS_GALAXY,
                      FITCLASS_STAR, FITCLASS_TOO_LARGE, ShearfitValueError)
 from .likelihood import coarse_peak, find_position, flux_position_marginal, join_exposures, model_sums, shift_joint
-from .model import prepare_exposure
+from .model import prepare_exposures
 from .observation import FitResult, Observation
 from .profiles import exponential_disk, fast_pair
 from .sampling import (EllipticityLikelihood, Samples, adaptive_samples, estimate, log_population_weights,
@@ -145,10 +145,10 @@ def _measure(obs, mag, cfg, return_samples, plan=None, margin=np.inf):
     """
     fast = fast_pair(cfg.truncation)
     if plan is not None and plan.exposures is not None and len(plan.observations) == len(obs):
-        exposures = [prepare_exposure(o, cfg, like=ex if _same_modes(o, r) else None)
-                     for o, r, ex in zip(obs, plan.observations, plan.exposures)]
+        exposures = prepare_exposures(obs, cfg, likes=[ex if _same_modes(o, r) else None
+                                                       for o, r, ex in zip(obs, plan.observations, plan.exposures)])
     else:
-        exposures = [prepare_exposure(o, cfg) for o in obs]
+        exposures = prepare_exposures(obs, cfg)
     if plan is None:
         disk = exponential_disk(cfg.truncation)
         jm = join_exposures(exposures, cfg.mode_chi2_tolerance)

@@ -30,13 +30,14 @@ import hashlib
 from dataclasses import dataclass, replace
 
 import numpy as np
+from scipy import fft as sfft
 from scipy import interpolate, special
 
 from .config import FitConfig
 from .errors import ShearfitValueError
 from .observation import Observation
 
-__all__ = ["ExposureModes", "prepare_exposure", "shape_matrix", "render_object", "fit_moffat"]
+__all__ = ["ExposureModes", "prepare_exposure", "prepare_exposures", "shape_matrix", "render_object", "fit_moffat"]
 
 
 def shape_matrix(e1, e2):
@@ -261,7 +262,7 @@ def _fine_modes_from_psf(psf, s, ny, nx):
 def psf_moffat(psf):
     """(rs, beta) of the circular Moffat that stands for a native PSF above Nyquist (see fit_moffat)."""
     ny, nx = (n + n % 2 for n in psf.shape)
-    return _fit_moffat_rfft(np.fft.rfft2(np.fft.ifftshift(_pad_center(psf, (ny, nx)))), ny, nx)
+    return _fit_moffat_rfft(_centred_rfft2(_pad_center(psf, (ny, nx))), ny, nx)
 
 
 def _fit_moffat_rfft(Ps, ny, nx):
@@ -381,7 +382,13 @@ def _moffat_aliases(rs, beta, ny, nx, s):
     return A, Gs, KYf, KXf, cs
 
 
-def _fine_modes_moffat(psf, ny, nx, s, moffat=None, tolerance=0.0):
+def _centred_rfft2(a):
+    """rfft2 of arrays (the last two axes) whose centre pixel (n//2) is the origin (scipy's FFT: the
+    same numbers as numpy's, with less overhead per call on stamps this small)."""
+    return sfft.rfft2(np.fft.ifftshift(a, axes=(-2, -1)))
+
+
+def _fine_modes_moffat(psf, ny, nx, s, moffat=None, tolerance=0.0, Ps=None):
     """Native PSF with the App. A alias correction, generalised (see fit_moffat).
 
     Above Nyquist the PSF is taken to be a circular Moffat times the pixel
@@ -391,10 +398,10 @@ def _fine_modes_moffat(psf, ny, nx, s, moffat=None, tolerance=0.0):
     band-limited PSF this is the exact convolution; for a Moffat-like PSF it
     models the modes a native image cannot hold. ``moffat`` = (rs, beta)
     gives the Moffat (one per CCD, as the pipeline does); by default it is
-    fitted to this PSF.
+    fitted to this PSF. ``Ps``: the PSF's rfft on the grid, if already made.
     """
-    p = _pad_center(psf, (ny, nx))
-    Ps = np.fft.rfft2(np.fft.ifftshift(p))
+    if Ps is None:
+        Ps = _centred_rfft2(_pad_center(psf, (ny, nx)))
     if moffat is None:
         rs, beta = _own_moffat(psf, Ps, ny, nx)
     else:
@@ -415,17 +422,50 @@ def noise_variance(weight):
     return 1.0 / float(np.median(weight[good]))
 
 
-def _data_modes(obs, ny, nx):
-    """The stamp's noise variance, rfft (masked, centred on the grid), sum y^2 / sigma^2 and used pixels."""
-    sigma2 = noise_variance(obs.weight)
+def _masked_stamp(obs, ny, nx):
     y = np.where(obs.weight > 0, obs.image, 0.0)
-    if y.shape != (ny, nx):
-        y = _pad_center(y, (ny, nx))
-    data_ft = np.fft.rfft2(np.fft.ifftshift(y)).ravel()
-    return sigma2, data_ft, float(np.sum(y * y) / sigma2), int(np.count_nonzero(obs.weight > 0))
+    return y if y.shape == (ny, nx) else _pad_center(y, (ny, nx))
 
 
-def prepare_exposure(obs: Observation, cfg: FitConfig, grid_shape=None, with_data=True, like=None) -> ExposureModes:
+def _data_modes(obs, ny, nx, y=None, data_ft=None):
+    """The stamp's noise variance, rfft (masked, centred on the grid), sum y^2 / sigma^2 and used pixels
+    (``y``, ``data_ft``: the masked stamp on the grid and its rfft, if already made)."""
+    sigma2 = noise_variance(obs.weight)
+    if y is None:
+        y = _masked_stamp(obs, ny, nx)
+    if data_ft is None:
+        data_ft = _centred_rfft2(y)
+    return sigma2, data_ft.ravel(), float(np.sum(y * y) / sigma2), int(np.count_nonzero(obs.weight > 0))
+
+
+def prepare_exposures(observations, cfg: FitConfig, likes=None) -> list:
+    """:func:`prepare_exposure` of each observation (``likes``: its ``like`` each, or None), the same
+    numbers; the stamps' and native PSFs' transforms of equal shapes are made in one call each."""
+    observations = list(observations)
+    likes = [None] * len(observations) if likes is None else list(likes)
+    if len(likes) != len(observations):
+        raise ShearfitValueError("prepare_exposures: one like= per observation is needed")
+    alias = cfg.alias_correction == "moffat"
+    pre = [{} for _ in observations]
+    by_shape = {}
+    for i, o in enumerate(observations):
+        by_shape.setdefault(o.shape, []).append(i)
+    for (ny, nx), idx in by_shape.items():
+        if len(idx) < 2:
+            continue
+        ys = [_masked_stamp(observations[i], ny, nx) for i in idx]
+        for i, y, f in zip(idx, ys, _centred_rfft2(np.stack(ys))):
+            pre[i]["y"], pre[i]["data_ft"] = y, f
+        native = [i for i in idx if likes[i] is None and alias and observations[i].psf_oversampling == 1]
+        if len(native) >= 2:
+            P = _centred_rfft2(np.stack([_pad_center(observations[i].psf, (ny, nx)) for i in native]))
+            for i, Ps in zip(native, P):
+                pre[i]["Ps"] = Ps
+    return [prepare_exposure(o, cfg, like=lk, _pre=p) for o, lk, p in zip(observations, likes, pre)]
+
+
+def prepare_exposure(obs: Observation, cfg: FitConfig, grid_shape=None, with_data=True, like=None,
+                     _pre=None) -> ExposureModes:
     """Reduce one observation to its Fourier modes.
 
     ``grid_shape`` (default: the stamp's) is the periodic grid the model
@@ -433,18 +473,20 @@ def prepare_exposure(obs: Observation, cfg: FitConfig, grid_shape=None, with_dat
     ExposureModes of an observation with the same PSF, Moffat, Jacobian,
     offset, flux scale and shape (another version of the same stamp, as
     metacalibration's): its modes are reused and only the data transformed.
+    (``_pre``: transforms :func:`prepare_exposures` made for it.)
     """
     ny, nx = grid_shape if grid_shape is not None else obs.shape
+    pre = _pre or {}
     if like is not None:
         if like.shape != (ny, nx):
             raise ShearfitValueError(f"prepare_exposure: like= has shape {like.shape}, the stamp {(ny, nx)}")
-        sigma2, data_ft, yy, npix = _data_modes(obs, ny, nx)
+        sigma2, data_ft, yy, npix = _data_modes(obs, ny, nx, pre.get("y"), pre.get("data_ft"))
         return replace(like, data_ft=data_ft, sigma2=sigma2, yy=yy, npix=npix)
     s = obs.psf_oversampling
     if s == 1 and cfg.alias_correction == "moffat":
         # the modes below the tolerance are dropped as they are made
         ky, kx, T, coarse = _fine_modes_moffat(obs.psf, ny, nx, cfg.alias_oversampling, obs.psf_moffat,
-                                               cfg.psf_mode_tolerance)
+                                               cfg.psf_mode_tolerance, Ps=pre.get("Ps"))
     else:
         ky, kx, T, coarse = _fine_modes_from_psf(obs.psf, s, ny, nx)
         aT = np.abs(T)
@@ -458,7 +500,8 @@ def prepare_exposure(obs: Observation, cfg: FitConfig, grid_shape=None, with_dat
     Kx = Jinv_T[0, 0] * kx + Jinv_T[0, 1] * ky
     Ky = Jinv_T[1, 0] * kx + Jinv_T[1, 1] * ky
     cweight = _rfft_weights(ny, nx).ravel()
-    sigma2, data_ft, yy, npix = _data_modes(obs, ny, nx) if with_data else (1.0, None, 0.0, 0)
+    sigma2, data_ft, yy, npix = _data_modes(obs, ny, nx, pre.get("y"), pre.get("data_ft")) if with_data \
+        else (1.0, None, 0.0, 0)
     return ExposureModes(shape=(ny, nx), kx=Kx, ky=Ky, transfer=T, coarse=coarse, cweight=cweight,
                          data_ft=data_ft, sigma2=sigma2, yy=yy, npix=npix, pixel_scale=obs.pixel_scale)
 
