@@ -18,6 +18,7 @@ exceeds 1 % of its maximum, the 1D variance and the weight of eq. (weight).
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -366,6 +367,19 @@ def _mix(point: EPoint, e1, e2, cfg):
     return logl, logpost
 
 
+@functools.lru_cache(maxsize=32)
+def _lattice(h, step, limit):
+    """The lattice indices (I, J) over [-h, h]^2 and which points are on the step's lattice with
+    I^2 + J^2 < limit^2 (read-only, shared by every object)."""
+    idx = np.arange(-h, h + 1)
+    on = (idx % step == 0)
+    I, J = np.meshgrid(idx, idx, indexing="ij")
+    allowed = on[:, None] & on[None, :] & (I * I + J * J < limit * limit)
+    for a in (I, J, allowed):
+        a.setflags(write=False)
+    return I, J, allowed
+
+
 class _Store:
     """Samples on the integer lattice of the finest step (0.02 by default).
 
@@ -401,12 +415,8 @@ class _Store:
 
     def _points(self, step, mask):
         """The points of the step's lattice in mask with |e| below the model limit; records the region."""
-        h = self.half
-        limit = self.cfg.model_e_limit / self.unit
-        idx = np.arange(-h, h + 1)
-        on = (idx % step == 0)
-        I, J = np.meshgrid(idx, idx, indexing="ij")
-        sel = mask & on[:, None] & on[None, :] & (I * I + J * J < limit * limit)
+        I, J, allowed = _lattice(self.half, step, self.cfg.model_e_limit / self.unit)
+        sel = mask & allowed
         self.regions.append((step, mask))
         return list(zip(I[sel].tolist(), J[sel].tolist()))
 
