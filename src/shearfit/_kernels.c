@@ -676,7 +676,7 @@ MULTIVERSION
 static void log_erf_diff_vec(Py_ssize_t n, const double *restrict a, const double *restrict b,
                              double *restrict out, double *restrict w)
 {
-    double *p = w, *us = w + MB_L;
+    double *p = w, *us = w + MB_L, *vs = w + 2 * MB_L;
     int far = 0;
     for (Py_ssize_t e = 0; e < n; e++) {
         double ae = a[e], be = b[e];
@@ -685,14 +685,14 @@ static void log_erf_diff_vec(Py_ssize_t n, const double *restrict a, const doubl
         double uc = u < ERFC_SAFE ? u : 0.0;   /* the far ones are redone below */
         p[e] = erfc(uc) - erfc(uc < u ? uc : v);
         us[e] = u;
+        vs[e] = v;
         far |= !(u < ERFC_SAFE);
     }
     for (Py_ssize_t e = 0; e < n; e++) out[e] = log(p[e]);
     if (!far) return;
     for (Py_ssize_t e = 0; e < n; e++) {
-        double u = us[e];
+        double u = us[e], v = vs[e];
         if (u < ERFC_SAFE) continue;
-        double v = a[e] <= 0 && b[e] < 0 ? -b[e] : a[e];
         double d = u * u - v * v;
         double q = d > -745.0 ? sp_erfcx(v, 0) * exp(d) : 0.0;
         out[e] = -u * u + log(sp_erfcx(u, 0) - q);

@@ -34,7 +34,7 @@ from scipy.sparse.csgraph import connected_components
 from scipy.interpolate import CubicSpline
 
 from .config import FitConfig
-from .model import ExposureModes, shape_matrix
+from .model import ExposureModes, _indices_by_shape, shape_matrix
 
 try:  # the compiled inner loop; the numpy path below computes the same sums
     from . import _kernels
@@ -228,17 +228,16 @@ def _drop_threshold(b, tolerance):
     key = key - k0
     csum = np.cumsum(np.bincount(key, weights=v))
     j = int(np.searchsorted(csum, tolerance, side="right"))   # first bucket whose cumulative sum exceeds it
-    below = float(csum[j - 1]) if j > 0 else 0.0
-    best = float(np.max(v[key < j])) if j > 0 else None
     if j < csum.size:
         w = np.sort(v[key == j])
-        c = below + np.cumsum(w)
+        c = (float(csum[j - 1]) if j > 0 else 0.0) + np.cumsum(w)
         last = np.ones(w.size, bool)
         last[:-1] = w[1:] != w[:-1]
         ok = last & (c <= tolerance)
         if np.any(ok):
-            best = float(w[ok][-1])
-    return best
+            return float(w[ok][-1])
+    # no value of the crossing bucket qualifies: the largest of the buckets below it, if any
+    return float(np.max(v[key < j])) if j > 0 else None
 
 
 def _noise_aware_cut(exposures, chi2_tolerance):
@@ -865,10 +864,7 @@ def coarse_peak(exposures, jacobians, disk, r_ref, half_width, step):
     # h(s) = sum_k conj(Y) M exp(-i k.s): the inverse DFT of conj(conj(Y) M), conjugated back; the
     # exposures of one stamp shape in one inverse FFT
     hs = [None] * len(exposures)
-    by_shape = {}
-    for i, ex in enumerate(exposures):
-        by_shape.setdefault(ex.shape, []).append(i)
-    for (ny, nx), idx in by_shape.items():
+    for (ny, nx), idx in _indices_by_shape(ex.shape for ex in exposures).items():
         Cs = []
         for i in idx:
             ex = exposures[i]

@@ -438,6 +438,14 @@ def _data_modes(obs, ny, nx, y=None, data_ft=None):
     return sigma2, data_ft.ravel(), float(np.sum(y * y) / sigma2), int(np.count_nonzero(obs.weight > 0))
 
 
+def _indices_by_shape(shapes):
+    """{shape: the indices of the items of that shape, in order}, for transforms batched per shape."""
+    out = {}
+    for i, shp in enumerate(shapes):
+        out.setdefault(tuple(shp), []).append(i)
+    return out
+
+
 def prepare_exposures(observations, cfg: FitConfig, likes=None) -> list:
     """:func:`prepare_exposure` of each observation (``likes``: its ``like`` each, or None), the same
     numbers; the stamps' and native PSFs' transforms of equal shapes are made in one call each."""
@@ -447,10 +455,7 @@ def prepare_exposures(observations, cfg: FitConfig, likes=None) -> list:
         raise ShearfitValueError("prepare_exposures: one like= per observation is needed")
     alias = cfg.alias_correction == "moffat"
     pre = [{} for _ in observations]
-    by_shape = {}
-    for i, o in enumerate(observations):
-        by_shape.setdefault(o.shape, []).append(i)
-    for (ny, nx), idx in by_shape.items():
+    for (ny, nx), idx in _indices_by_shape(o.shape for o in observations).items():
         if len(idx) < 2:
             continue
         ys = [_masked_stamp(observations[i], ny, nx) for i in idx]
