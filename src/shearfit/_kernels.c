@@ -254,9 +254,13 @@ static PyObject *model_sums(PyObject *self, PyObject *args)
  * so the sums are right to fourth order in the bins' width (16 per octave: 7e-6 of the largest sum,
  * where 64 bins per octave of the earlier linear sharing gave the same).
  * The bins of a set of ellipticities are made once (make_bins) and serve models of any size at them
- * (binned_sums): block_sums takes them as modes of their own (basis [kappa_b / c11, 0, 0], so that
- * the model's coefficients give r^2 kappa_b); the folded modes are summed exactly, as in model_sums.
- * The DC mode (K = 0) has its own bin at kappa = 0. Bins no mode reaches are left out.
+ * (binned_sums). Since the bins are uniform in log kappa, a model of size r meets the transforms at
+ * log2(rho^2) = log2(r^2) + b / nb: points equally spaced on one table uniform in log2(rho^2)
+ * (profiles.FastRadial.log_table, P = nb M points per octave), all at one fraction of its step. Its
+ * bins' transforms are then a linear interpolation between two contiguous rows of that table laid out
+ * by phase (row s holds points s, s + M, s + 2M, ...): no square root and no gather per bin. The DC
+ * mode (K = 0) has its own bin, at the transform's value at 0; the folded modes are summed exactly,
+ * as in model_sums.
  */
 /* pass 1 of the binning: each mode's position x = bins_per_octave log2(K^T C K) on the bins' axis (a loop that
    vectorises), then its lowest bin i = floor(x) - 1 and the weights of its four bins i .. i + 3: cubic Lagrange
@@ -302,33 +306,37 @@ static void bin_index(const float *B3, Py_ssize_t n_single, double a0, double a1
     *hi_out = hi != LLONG_MIN ? hi + 3 : LLONG_MIN;
 }
 
-/* pass 2: the modes' weights into rows of 8 (the six linear vectors, q, padding), a row a vector */
+/* pass 2: the modes' weights into rows of 8 (the six linear vectors, q, padding), a row a vector; the DC
+   mode's into row nbin */
 typedef double v8u __attribute__((vector_size(8 * sizeof(double)), aligned(sizeof(double))));
 MULTIVERSION
 static void bin_scatter(const float *C8, Py_ssize_t n_single, const long long *idx, const double *w4,
-                        long long lo, Py_ssize_t nbin, double *A, char *used)
+                        long long lo, Py_ssize_t nbin, double *A)
 {
     for (Py_ssize_t j = 0; j < n_single; j++) {
         const float *c = C8 + 8 * j;
         if (idx[j] == LLONG_MIN) {
             double *w0 = A + 8 * nbin;
             for (int t = 0; t < 8; t++) w0[t] += c[t];
-            used[nbin] = 1;
             continue;
         }
         Py_ssize_t b = (Py_ssize_t)(idx[j] - lo);
         v8u cv, *row = (v8u *)(A + 8 * b);
         for (int t = 0; t < 8; t++) cv[t] = c[t];
         for (int q = 0; q < 4; q++) row[q] += w4[q * n_single + j] * cv;
-        used[b] = used[b + 1] = used[b + 2] = used[b + 3] = 1;
     }
 }
 
+#define NCH 7      /* a bin's weights: the six linear vectors and q */
+#define BPAD 8     /* bins per ellipticity padded to a multiple of this (one vector), with zero weights */
+
 /*
- * make_bins(shape, basis32, channels32, bins_per_octave) -> (rows, offsets): for each ellipticity
- * (its shape coefficients c11, c12, c22), the bins some mode reached, as kernel modes of 12 doubles
- * (basis [kappa_b / c11, 0, 0], the summed linear vectors and q), the DC bin last; rows of
- * ellipticity e are offsets[e] .. offsets[e + 1] (bytes of float64 and of int64).
+ * make_bins(shape, basis32, channels32, bins_per_octave) -> (lo, offsets, columns, dc): for each
+ * ellipticity e (its shape coefficients c11, c12, c22), its bins lo[e] .. lo[e] + n - 1 (kappa_b =
+ * 2^(b / nb)), every bin from the lowest to the highest a mode reached, padded with empty bins to a
+ * multiple of BPAD: n = offsets[e + 1] - offsets[e]. Their weights are in columns, channel after channel
+ * (NCH channels of n doubles from NCH offsets[e]); the DC bin's weights in dc[8 e .. 8 e + 6].
+ * Every output is bytes (int64 and float64).
  */
 static PyObject *make_bins(PyObject *self, PyObject *args)
 {
@@ -347,10 +355,11 @@ static PyObject *make_bins(PyObject *self, PyObject *args)
     long long *idx = (long long *)malloc(ns * sizeof(long long));
     double *frac = (double *)malloc(5 * ns * sizeof(double));   /* x, then the four weights */
     long long *off = (long long *)malloc((n_e + 1) * sizeof(long long));
-    double *A = NULL, *rows = NULL;
-    char *used = NULL;
-    Py_ssize_t capA = 0, capR = 0, nrows = 0;
-    int nomem = (idx == NULL || frac == NULL || off == NULL);
+    long long *los = (long long *)malloc((n_e > 0 ? n_e : 1) * sizeof(long long));
+    double *dc = (double *)calloc(8 * (n_e > 0 ? n_e : 1), sizeof(double));
+    double *A = NULL, *cols = NULL;
+    Py_ssize_t capA = 0, capC = 0, ncol = 0;
+    int nomem = (idx == NULL || frac == NULL || off == NULL || los == NULL || dc == NULL);
 
     Py_BEGIN_ALLOW_THREADS
     for (Py_ssize_t e = 0; !nomem && e < n_e; e++) {
@@ -358,126 +367,200 @@ static PyObject *make_bins(PyObject *self, PyObject *args)
         long long lo, hi;
         bin_index((const float *)b3.buf, n_single, a0, a1, a2, nb, frac, idx, frac + ns, &lo, &hi);
         Py_ssize_t nbin = hi >= lo ? (Py_ssize_t)(hi - lo) + 1 : 0;
+        Py_ssize_t npad = (nbin + BPAD - 1) / BPAD * BPAD;
         if (nbin + 1 > capA) {
-            free(A); free(used);
+            free(A);
             capA = 2 * (nbin + 1);
             /* rows of 8 doubles on 64-byte boundaries: each row's update is one aligned vector */
             void *pa = NULL;
             A = posix_memalign(&pa, 64, capA * 8 * sizeof(double)) == 0 ? (double *)pa : NULL;
-            used = (char *)malloc(capA);
-            if (A == NULL || used == NULL) { nomem = 1; break; }
+            if (A == NULL) { nomem = 1; break; }
         }
         memset(A, 0, (nbin + 1) * 8 * sizeof(double));
-        memset(used, 0, nbin + 1);
-        bin_scatter((const float *)c8.buf, n_single, idx, frac + ns, lo, nbin, A, used);
-        if (nrows + nbin + 1 > capR) {
-            capR = 2 * (nrows + nbin + 1);
-            double *r = (double *)realloc(rows, capR * NSTRIDE * sizeof(double));
+        bin_scatter((const float *)c8.buf, n_single, idx, frac + ns, lo, nbin, A);
+        if (NCH * (ncol + npad) > capC) {
+            capC = 2 * NCH * (ncol + npad);
+            double *r = (double *)realloc(cols, capC * sizeof(double));
             if (r == NULL) { nomem = 1; break; }
-            rows = r;
+            cols = r;
         }
-        off[e] = nrows;
-        for (Py_ssize_t b = 0; b <= nbin; b++) {
-            if (!used[b]) continue;
-            double *w = rows + NSTRIDE * nrows;
-            w[0] = b < nbin ? exp2((double)(lo + b) / nb) / a0 : 0.0;
-            w[1] = w[2] = 0.0;
-            for (int t = 0; t < 7; t++) w[3 + t] = A[8 * b + t];
-            w[10] = w[11] = 0.0;
-            nrows++;
+        off[e] = ncol;
+        los[e] = nbin > 0 ? lo : 0;
+        double *blk = cols + NCH * ncol;
+        for (int t = 0; t < NCH; t++) {
+            double *ch = blk + t * npad;
+            for (Py_ssize_t b = 0; b < nbin; b++) ch[b] = A[8 * b + t];
+            for (Py_ssize_t b = nbin; b < npad; b++) ch[b] = 0.0;
         }
+        for (int t = 0; t < NCH; t++) dc[8 * e + t] = A[8 * nbin + t];
+        ncol += npad;
     }
-    off[n_e] = nrows;
+    off[n_e] = ncol;
     Py_END_ALLOW_THREADS
 
     PyObject *res = NULL;
     if (!nomem) {
-        PyObject *r = PyBytes_FromStringAndSize((const char *)rows, nrows * NSTRIDE * sizeof(double));
+        PyObject *l = PyBytes_FromStringAndSize((const char *)los, n_e * sizeof(long long));
         PyObject *o = PyBytes_FromStringAndSize((const char *)off, (n_e + 1) * sizeof(long long));
-        if (r && o) res = PyTuple_Pack(2, r, o);
-        Py_XDECREF(r);
+        PyObject *c = PyBytes_FromStringAndSize((const char *)cols, NCH * ncol * sizeof(double));
+        PyObject *d = PyBytes_FromStringAndSize((const char *)dc, 8 * n_e * sizeof(double));
+        if (l && o && c && d) res = PyTuple_Pack(4, l, o, c, d);
+        Py_XDECREF(l);
         Py_XDECREF(o);
+        Py_XDECREF(c);
+        Py_XDECREF(d);
     }
-    free(idx); free(frac); free(off); free(A); free(rows); free(used);
+    free(idx); free(frac); free(off); free(los); free(dc); free(A); free(cols);
     RELEASE(&shape, &b3, &c8);
     if (nomem) return PyErr_NoMemory();
     return res;
 }
 
+/* the transform at the n (padded: npad) bins of a model whose bin 0 lies at position pos of the log table
+   (G2: rows of J points, row s holding the table's points s, s + M, s + 2M, ...; M + 1 rows): bins below
+   the table get low (the transform at its start, where it is flat), bins beyond it 0; pos = -inf (r = 0)
+   gives every bin zero_val, the transform at rho = 0 */
+static inline __attribute__((always_inline)) void log_table_row(
+    const double *G2, Py_ssize_t M, Py_ssize_t J, double pos, Py_ssize_t n, Py_ssize_t npad, double low,
+    double zero_val, double *restrict R)
+{
+    if (!(pos > -1e15)) {
+        for (Py_ssize_t b = 0; b < n; b++) R[b] = zero_val;
+        for (Py_ssize_t b = n; b < npad; b++) R[b] = 0.0;
+        return;
+    }
+    if (pos > 1e15) pos = 1e15;
+    const double fl = floor(pos), f = pos - fl;
+    const long long i0 = (long long)fl;
+    long long s = i0 % (long long)M;
+    if (s < 0) s += M;
+    const long long j0 = (i0 - s) / (long long)M;
+    long long blo = -j0, bhi = (long long)J - j0;
+    blo = blo < 0 ? 0 : (blo > n ? n : blo);
+    bhi = bhi < blo ? blo : (bhi > n ? n : bhi);
+    const double *A = G2 + s * J + j0, *B = G2 + (s + 1) * J + j0;
+    for (Py_ssize_t b = 0; b < blo; b++) R[b] = low;
+    for (Py_ssize_t b = (Py_ssize_t)blo; b < (Py_ssize_t)bhi; b++) R[b] = A[b] + f * (B[b] - A[b]);
+    for (Py_ssize_t b = (Py_ssize_t)bhi; b < npad; b++) R[b] = 0.0;
+}
+
+static inline double hsum8(v8u v)
+{
+    return ((v[0] + v[4]) + (v[1] + v[5])) + ((v[2] + v[6]) + (v[3] + v[7]));
+}
+
+/* the sums of one model from its ellipticity's bins (W: NCH channels of npad), transforms rf, rg there, and
+   the DC bin (dcw, at the transforms' values at 0, r0f and r0g): the output row o of NOUT, as block_body's */
+MULTIVERSION
+static void sums_from_bins(const double *restrict W, Py_ssize_t npad, const double *restrict rf,
+                           const double *restrict rg, const double *dcw, double r0f, double r0g, double *o)
+{
+    const v8u zero = {0};
+    v8u lf[6], lg[6], ff = zero, gg = zero, fg = zero;
+    for (int t = 0; t < 6; t++) lf[t] = lg[t] = zero;
+    for (Py_ssize_t b = 0; b < npad; b += 8) {
+        v8u vf = *(const v8u *)(rf + b), vg = *(const v8u *)(rg + b);
+        for (int t = 0; t < 6; t++) {
+            v8u w = *(const v8u *)(W + t * npad + b);
+            lf[t] += vf * w;
+            lg[t] += vg * w;
+        }
+        v8u q = *(const v8u *)(W + 6 * npad + b);
+        v8u qf = q * vf;
+        ff += qf * vf;
+        fg += qf * vg;
+        gg += q * vg * vg;
+    }
+    for (int t = 0; t < 6; t++) {
+        o[t] = hsum8(lf[t]) + r0f * dcw[t];
+        o[6 + t] = hsum8(lg[t]) + r0g * dcw[t];
+    }
+    o[12] = hsum8(ff) + dcw[6] * r0f * r0f;
+    o[13] = hsum8(gg) + dcw[6] * r0g * r0g;
+    o[14] = hsum8(fg) + dcw[6] * r0f * r0g;
+}
+
 /*
- * binned_sums(shape, r2, e_index, rows, offsets, modes, table, c, inv_du, ratio2, n_single, out): the
- * sums of models (r2 and the ellipticity e_index each, into shape and make_bins' rows and offsets),
- * from the bins of their ellipticity plus the folded modes (modes[n_single:]), summed exactly.
+ * binned_sums(shape, r2, e_index, lo, offsets, columns, dc, bins_per_octave, log_f, log_g, M, J, start, per_octave,
+ *             low_f, low_g, zero_f, zero_g, modes, table, c, inv_du, ratio2, n_single, group_sizes, group_ranks,
+ *             group_factors, out):
+ * the sums of models (r2 and the ellipticity e_index each, into shape and make_bins' outputs), from the bins of
+ * their ellipticity on the log tables of the disk and bulge (log_f, log_g: M + 1 rows of J; point i of a table
+ * at log2(rho^2) = start + i / per_octave), plus the folded modes (modes[n_single:], on the u table), summed
+ * exactly. The bulge's rho^2 is ratio2 times the disk's.
  */
 static PyObject *binned_sums(PyObject *self, PyObject *args)
 {
-    Py_buffer shape, r2b, eidx, rowsb, offb, modes, tab, gszb, grkb, facb, out;
-    double c, inv_du, ratio2;
-    Py_ssize_t n_single;
-    if (!PyArg_ParseTuple(args, "y*y*y*y*y*y*y*dddny*y*y*w*", &shape, &r2b, &eidx, &rowsb, &offb, &modes, &tab, &c,
-                          &inv_du, &ratio2, &n_single, &gszb, &grkb, &facb, &out))
+    Py_buffer shape, r2b, eidx, lob, offb, colb, dcb, gfb, ggb, modes, tab, gszb, grkb, facb, out;
+    double start, per_oct, low_f, low_g, zero_f, zero_g, c, inv_du, ratio2;
+    Py_ssize_t n_single, M, J;
+    int nb;
+    if (!PyArg_ParseTuple(args, "y*y*y*y*y*y*y*iy*y*nnddddddy*y*dddny*y*y*w*", &shape, &r2b, &eidx, &lob, &offb,
+                          &colb, &dcb, &nb, &gfb, &ggb, &M, &J, &start, &per_oct, &low_f, &low_g, &zero_f, &zero_g,
+                          &modes, &tab, &c, &inv_du, &ratio2, &n_single, &gszb, &grkb, &facb, &out))
         return NULL;
     Py_ssize_t n_models = r2b.len / (Py_ssize_t)sizeof(double);
     Py_ssize_t n_e = shape.len / (3 * (Py_ssize_t)sizeof(double));
     Py_ssize_t n_modes = modes.len / (NSTRIDE * (Py_ssize_t)sizeof(double));
-    Py_ssize_t n_rows = rowsb.len / (NSTRIDE * (Py_ssize_t)sizeof(double));
+    Py_ssize_t n_cols = colb.len / (NCH * (Py_ssize_t)sizeof(double));
     Py_ssize_t n_tab = tab.len / (4 * (Py_ssize_t)sizeof(float));
     Py_ssize_t n_groups = gszb.len / (Py_ssize_t)sizeof(long long);
     const long long *E = (const long long *)eidx.buf, *OFF = (const long long *)offb.buf;
+    const long long *LO = (const long long *)lob.buf;
     const long long *GS = (const long long *)gszb.buf, *GR = (const long long *)grkb.buf;
     Py_ssize_t max_group = check_groups(&gszb, &grkb, &facb, n_single, n_modes);
-    int bad = out.len < n_models * NOUT * (Py_ssize_t)sizeof(double) || max_group < 0
+    int bad = out.len < n_models * NOUT * (Py_ssize_t)sizeof(double) || max_group < 0 || nb < 1 || M < 1 || J < 1
               || eidx.len != n_models * (Py_ssize_t)sizeof(long long)
-              || offb.len != (n_e + 1) * (Py_ssize_t)sizeof(long long) || OFF[n_e] != n_rows;
+              || lob.len != n_e * (Py_ssize_t)sizeof(long long) || dcb.len != 8 * n_e * (Py_ssize_t)sizeof(double)
+              || gfb.len != (M + 1) * J * (Py_ssize_t)sizeof(double) || ggb.len != gfb.len
+              || offb.len != (n_e + 1) * (Py_ssize_t)sizeof(long long) || OFF[n_e] != n_cols
+              || per_oct != (double)(nb * M);
     for (Py_ssize_t m = 0; !bad && m < n_models; m++)
         bad = E[m] < 0 || E[m] >= n_e;
     for (Py_ssize_t e = 0; !bad && e < n_e; e++)
-        bad = OFF[e] < 0 || OFF[e] > OFF[e + 1];
+        bad = OFF[e] < 0 || OFF[e] > OFF[e + 1] || (OFF[e + 1] - OFF[e]) % BPAD != 0;
     if (bad) {
-        RELEASE(&shape, &r2b, &eidx, &rowsb, &offb, &modes, &tab, &gszb, &grkb, &facb, &out);
+        RELEASE(&shape, &r2b, &eidx, &lob, &offb, &colb, &dcb, &gfb, &ggb, &modes, &tab, &gszb, &grkb, &facb, &out);
         PyErr_SetString(PyExc_ValueError, "binned_sums: inconsistent buffers");
         return NULL;
     }
+    Py_ssize_t maxpad = 0;
+    for (Py_ssize_t e = 0; e < n_e; e++)
+        if (OFF[e + 1] - OFF[e] > maxpad) maxpad = (Py_ssize_t)(OFF[e + 1] - OFF[e]);
     vnb *scratch = alloc_scratch(max_group);
-    if (scratch == NULL) {
-        RELEASE(&shape, &r2b, &eidx, &rowsb, &offb, &modes, &tab, &gszb, &grkb, &facb, &out);
+    void *rbuf = NULL;
+    if (scratch == NULL || posix_memalign(&rbuf, 64, 2 * (maxpad + BPAD) * sizeof(double)) != 0) {
+        free(scratch);
+        RELEASE(&shape, &r2b, &eidx, &lob, &offb, &colb, &dcb, &gfb, &ggb, &modes, &tab, &gszb, &grkb, &facb, &out);
         return PyErr_NoMemory();
     }
+    double *RF = (double *)rbuf, *RG = RF + maxpad + BPAD;
     const double *S = (const double *)shape.buf;
     const double *R2 = (const double *)r2b.buf;
-    const double *M = (const double *)modes.buf;
-    const double *ROWS = (const double *)rowsb.buf;
+    const double *M_ = (const double *)modes.buf;
+    const double *COLS = (const double *)colb.buf, *DC = (const double *)dcb.buf;
+    const double *GF = (const double *)gfb.buf, *GG = (const double *)ggb.buf;
     const float *T = (const float *)tab.buf;
     const double *U = (const double *)facb.buf;
     double *O = (double *)out.buf;
     const double nmax = (double)(n_tab - 1);
     const int same = (ratio2 == 1.0);
+    const double shift_g = same ? 0.0 : log2(ratio2) * per_oct;
 
     Py_BEGIN_ALLOW_THREADS
-    /* the bins, per run of models with one ellipticity */
-    Py_ssize_t m0 = 0;
-    while (m0 < n_models) {
-        Py_ssize_t m1 = m0;
-        while (m1 < n_models && E[m1] == E[m0]) m1++;
-        const long long e = E[m0];
-        const double a0 = S[3 * e], a1 = S[3 * e + 1], a2 = S[3 * e + 2];
-        const double *W = ROWS + NSTRIDE * OFF[e];
-        const Py_ssize_t nbins = (Py_ssize_t)(OFF[e + 1] - OFF[e]);
-        for (Py_ssize_t b0 = m0; b0 < m1; b0 += NB) {
-            double c0[NB], c1[NB], c2[NB], ob[NB * NOUT];
-            for (int k = 0; k < NB; k++) {
-                Py_ssize_t m = b0 + k < m1 ? b0 + k : m1 - 1;
-                c0[k] = a0 * R2[m]; c1[k] = a1 * R2[m]; c2[k] = a2 * R2[m];
-            }
-            block_sums(c0, c1, c2, W, nbins, 0, GS, GR, U, scratch, T, nmax, c, inv_du, ratio2, same, ob);
-            for (int k = 0; k < NB && b0 + k < m1; k++)
-                for (int t = 0; t < NOUT; t++) O[NOUT * (b0 + k) + t] = ob[NOUT * k + t];
-        }
-        m0 = m1;
+    for (Py_ssize_t m = 0; m < n_models; m++) {
+        const long long e = E[m];
+        const Py_ssize_t npad = (Py_ssize_t)(OFF[e + 1] - OFF[e]);
+        const double *W = COLS + NCH * OFF[e];
+        /* the position of bin 0 (kappa = 2^(lo / nb)) on the tables; r = 0 gives -inf */
+        const double pos = (log2(R2[m]) - start) * per_oct + (double)LO[e] * (double)M;
+        log_table_row(GF, M, J, pos, npad, npad, low_f, zero_f, RF);
+        log_table_row(GG, M, J, pos + shift_g, npad, npad, low_g, zero_g, RG);
+        sums_from_bins(W, npad, RF, RG, DC + 8 * e, zero_f, zero_g, O + NOUT * m);
     }
     /* the fold groups, summed exactly, in full blocks whatever the models' ellipticities */
     if (n_groups > 0) {
-        const double *MG = M + NSTRIDE * n_single;
+        const double *MG = M_ + NSTRIDE * n_single;
         for (Py_ssize_t b0 = 0; b0 < n_models; b0 += NB) {
             double c0[NB], c1[NB], c2[NB], om[NB * NOUT];
             for (int k = 0; k < NB; k++) {
@@ -493,7 +576,8 @@ static PyObject *binned_sums(PyObject *self, PyObject *args)
     Py_END_ALLOW_THREADS
 
     free(scratch);
-    RELEASE(&shape, &r2b, &eidx, &rowsb, &offb, &modes, &tab, &gszb, &grkb, &facb, &out);
+    free(rbuf);
+    RELEASE(&shape, &r2b, &eidx, &lob, &offb, &colb, &dcb, &gfb, &ggb, &modes, &tab, &gszb, &grkb, &facb, &out);
     Py_RETURN_NONE;
 }
 
@@ -990,9 +1074,11 @@ static PyMethodDef methods[] = {
     {"marginal", marginal, METH_VARARGS, "marginal(sums, u, u_fine, spline, interp, params, out)"},
     {"size_marginal", size_marginal, METH_VARARGS,
      "size_marginal(ld, lb, fd, fb, bd, logprior, lsegprior, spline, interp, xf, u, rf, l0, logmix, out)"},
-    {"make_bins", make_bins, METH_VARARGS, "make_bins(shape, basis32, channels32, bins_per_octave) -> (rows, offsets)"},
+    {"make_bins", make_bins, METH_VARARGS,
+     "make_bins(shape, basis32, channels32, bins_per_octave) -> (lo, offsets, columns, dc)"},
     {"binned_sums", binned_sums, METH_VARARGS,
-     "binned_sums(shape, r2, e_index, rows, offsets, modes, table, c, inv_du, ratio2, n_single, group_sizes, "
+     "binned_sums(shape, r2, e_index, lo, offsets, columns, dc, bins_per_octave, log_f, log_g, M, J, start, "
+     "per_octave, low_f, low_g, zero_f, zero_g, modes, table, c, inv_du, ratio2, n_single, group_sizes, "
      "group_ranks, group_factors, out)"},
     {NULL, NULL, 0, NULL}};
 

@@ -414,8 +414,11 @@ class ModeBins:
     """An object's modes summed in bins of K^T C K, per ellipticity (see :func:`mode_bins`)."""
 
     shape: np.ndarray      # (n_e, 3): c11, c12, c22 of each ellipticity
-    rows: np.ndarray       # the bins of all ellipticities, as kernel modes
-    offsets: np.ndarray    # rows of ellipticity i: offsets[i]:offsets[i + 1]
+    bins_per_octave: int
+    lo: bytes              # int64 per ellipticity: its first bin (kappa = 2^(lo / bins_per_octave))
+    offsets: bytes         # int64, n_e + 1: ellipticity i's bins are columns offsets[i]:offsets[i + 1]
+    columns: bytes         # float64: the bins' weights (six linear vectors, q), channel after channel
+    dc: bytes              # float64 (n_e, 8): the DC mode's weights
 
 
 def mode_bins(jm: JointModes, e1, e2, bins_per_octave) -> ModeBins:
@@ -426,16 +429,19 @@ def mode_bins(jm: JointModes, e1, e2, bins_per_octave) -> ModeBins:
     shape = np.ascontiguousarray(np.stack(shape_matrix(np.atleast_1d(np.asarray(e1, float)),
                                                        np.atleast_1d(np.asarray(e2, float))), axis=1))
     b3, c8 = _packed_bins(jm)
-    rows, offsets = _kernels.make_bins(shape, b3, c8, int(bins_per_octave))
-    return ModeBins(shape=shape, rows=np.frombuffer(rows, dtype=np.float64).reshape(-1, 12),
-                    offsets=np.frombuffer(offsets, dtype=np.int64))
+    lo, offsets, columns, dc = _kernels.make_bins(shape, b3, c8, int(bins_per_octave))
+    return ModeBins(shape=shape, bins_per_octave=int(bins_per_octave), lo=lo, offsets=offsets, columns=columns,
+                    dc=dc)
 
 
 def _model_sums_binned(jm, bins, e_index, r2, fast, ratio):
     out = np.empty((r2.size, 15))
     packed, n_single, gsizes, granks, factors = jm.packed()
+    lt = fast.log_table(bins.bins_per_octave)
     _kernels.binned_sums(bins.shape, np.ascontiguousarray(r2), np.ascontiguousarray(e_index, dtype=np.int64),
-                         bins.rows, bins.offsets, packed, fast.packed32, fast.C, 1.0 / fast.du, float(ratio) ** 2,
+                         bins.lo, bins.offsets, bins.columns, bins.dc, bins.bins_per_octave, lt.rows[0], lt.rows[1],
+                         lt.m, lt.n_col, lt.start, lt.per_octave, lt.low[0], lt.low[1], lt.zero[0], lt.zero[1],
+                         packed, fast.packed32, fast.C, 1.0 / fast.du, float(ratio) ** 2,
                          n_single, gsizes, granks, factors, out)
     return ModelSums.from_kernel(out)
 

@@ -67,6 +67,7 @@ from __future__ import annotations
 
 import functools
 import math
+from dataclasses import dataclass
 
 import numpy as np
 from numpy.polynomial.laguerre import laggauss
@@ -655,10 +656,20 @@ class FastRadial:
     #: (|K| > U_MAX / r) where a galaxy of any fitted size would reach it.
     U_MAX = 256.0
 
+    #: the log tables (:meth:`log_table`) start at log2(rho^2) = LOG_START, below which every transform is
+    #: flat (1 - O(rho^2), 1e-12 from its value at 0) ...
+    LOG_START = -40.0
+    #: ... and have at least this many points per factor of 2 in rho^2: linear interpolation on them is then
+    #: within 7e-7 of the profiles' transforms (1.7e-6 at 256, 3e-6 for the u grid), tests check it
+    LOG_PER_OCTAVE = 512
+
     def __init__(self, profiles, du=0.004, u_max=None):
         self.du = float(du)
         u_max = self.U_MAX if u_max is None else u_max
         rho_max = min(min(p.rho_max for p in profiles), u_max)
+        self.profiles = list(profiles)
+        self.rho_max = rho_max
+        self._log_tables = {}
         n = int(np.ceil(rho_max / self.du)) + 2
         u = np.arange(n) * self.du
         rho2 = (u + self.C) ** 2 - self.C ** 2
@@ -695,6 +706,50 @@ class FastRadial:
     def __call__(self, which, rho2):
         i, f = self.index(rho2)
         return self.lookup(which, i, f)
+
+    def log_table(self, bins_per_octave):
+        """The transforms on a grid uniform in log2(rho^2), for the binned model sums (cached).
+
+        The grid has ``P = bins_per_octave * M`` points per factor of 2 (``M`` the smallest giving at least
+        :attr:`LOG_PER_OCTAVE`), so that the bins of log K^T C K (``bins_per_octave`` per octave) of a
+        model of any size fall every ``M`` points, all at one fraction of a step. Point ``i`` is at
+        log2(rho^2) = ``LOG_START + i / P``; beyond ``rho_max`` the transforms are 0, as on the u grid.
+        Each profile's table is laid out by phase: row ``s`` (0 .. M) holds points s, s + M, s + 2M, ...,
+        so a model's bins read two contiguous rows.
+
+        Returns a :class:`LogTable`.
+        """
+        nb = int(bins_per_octave)
+        tab = self._log_tables.get(nb)
+        if tab is None:
+            m = max(1, -(-self.LOG_PER_OCTAVE // nb))
+            per = nb * m
+            n = int(np.ceil((2 * np.log2(self.rho_max) - self.LOG_START) * per)) + 1
+            rho2 = 2.0 ** (self.LOG_START + np.arange(n) / per)
+            n_col = -(-n // m) + 2
+            rows = []
+            for p in self.profiles:
+                g = np.zeros((n_col + 1) * m)
+                g[:n] = np.where(rho2 <= self.rho_max ** 2, p.ft_rho2(rho2), 0.0)
+                rows.append(np.ascontiguousarray(np.stack([g[s:s + n_col * m:m] for s in range(m + 1)])))
+            tab = LogTable(rows=rows, m=m, n_col=n_col, start=self.LOG_START, per_octave=float(per),
+                           low=[float(r[0, 0]) for r in rows], zero=[float(t[0]) for t, _ in self.tables])
+            self._log_tables[nb] = tab
+        return tab
+
+
+@dataclass(frozen=True)
+class LogTable:
+    """:meth:`FastRadial.log_table`: per profile, the table's ``m + 1`` phase rows of ``n_col`` points,
+    its value below the grid (``low``) and at rho = 0 (``zero``)."""
+
+    rows: list
+    m: int
+    n_col: int
+    start: float
+    per_octave: float
+    low: list
+    zero: list
 
 
 @functools.lru_cache(maxsize=8)
