@@ -80,6 +80,35 @@ static void release_buffers(Py_buffer **b)
 
 typedef double vnb __attribute__((vector_size(NB * sizeof(double))));
 
+/* the table rows of the NB models (four floats each: value and slope of the disk, of the bulge) as four
+   vectors across the models: eight 16-byte loads and a transpose in registers, where a gather of each
+   float into its lane took a load and an insert per float (NB = 8 only) */
+typedef float v4f __attribute__((vector_size(16), aligned(4)));
+typedef float v8f __attribute__((vector_size(32)));
+typedef float v16f __attribute__((vector_size(64)));
+static inline __attribute__((always_inline)) void rows_t(const float *const *row, vnb *c0, vnb *c1, vnb *c2,
+                                                         vnb *c3)
+{
+#if NB == 8 && defined(__GNUC__) && !defined(__clang__) && __GNUC__ >= 12
+    v4f r[8];
+    for (int k = 0; k < 8; k++) r[k] = *(const v4f *)row[k];
+    v8f a01 = __builtin_shufflevector(r[0], r[1], 0, 1, 2, 3, 4, 5, 6, 7);
+    v8f a23 = __builtin_shufflevector(r[2], r[3], 0, 1, 2, 3, 4, 5, 6, 7);
+    v8f a45 = __builtin_shufflevector(r[4], r[5], 0, 1, 2, 3, 4, 5, 6, 7);
+    v8f a67 = __builtin_shufflevector(r[6], r[7], 0, 1, 2, 3, 4, 5, 6, 7);
+    v16f A = __builtin_shufflevector(a01, a23, 0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15);
+    v16f B = __builtin_shufflevector(a45, a67, 0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15);
+    *c0 = __builtin_convertvector(__builtin_shufflevector(A, B, 0, 4, 8, 12, 16, 20, 24, 28), vnb);
+    *c1 = __builtin_convertvector(__builtin_shufflevector(A, B, 1, 5, 9, 13, 17, 21, 25, 29), vnb);
+    *c2 = __builtin_convertvector(__builtin_shufflevector(A, B, 2, 6, 10, 14, 18, 22, 26, 30), vnb);
+    *c3 = __builtin_convertvector(__builtin_shufflevector(A, B, 3, 7, 11, 15, 19, 23, 27, 31), vnb);
+#else
+    for (int k = 0; k < NB; k++) {
+        (*c0)[k] = row[k][0]; (*c1)[k] = row[k][1]; (*c2)[k] = row[k][2]; (*c3)[k] = row[k][3];
+    }
+#endif
+}
+
 /* transforms of the NB models at one mode: u clamped to the last table row, which is zero */
 static inline __attribute__((always_inline)) void eval_block(
     const double *p, const vnb *a, double c, double c2, double inv_du, double ratio2, int same,
@@ -90,19 +119,28 @@ static inline __attribute__((always_inline)) void eval_block(
     vnb s, sg, u, ug;
     for (int k = 0; k < NB; k++) s[k] = sqrt(c2 + rho2[k]);
     u = (s - c) * inv_du;
+    const float *row[NB], *rowg[NB];
+    vnb fi, fig;
+    for (int k = 0; k < NB; k++) {
+        double uk = u[k] < nmax ? u[k] : nmax;
+        long i = (long)uk;
+        row[k] = T + 4 * i;
+        fi[k] = uk - (double)i;
+    }
+    vnb vf, sf, vg, slg, x0, x1;
+    rows_t(row, &vf, &sf, &vg, &slg);
     if (same) {
-        ug = u;
+        fig = fi;
     } else {
         for (int k = 0; k < NB; k++) sg[k] = sqrt(c2 + rho2[k] * ratio2);
         ug = (sg - c) * inv_du;
-    }
-    vnb vf, sf, vg, slg, fi, fig;
-    for (int k = 0; k < NB; k++) {
-        double uk = u[k] < nmax ? u[k] : nmax, ugk = ug[k] < nmax ? ug[k] : nmax;
-        long i = (long)uk, ig = (long)ugk;
-        const float *row = T + 4 * i, *rowg = T + 4 * ig;
-        vf[k] = row[0]; sf[k] = row[1]; vg[k] = rowg[2]; slg[k] = rowg[3];
-        fi[k] = uk - (double)i; fig[k] = ugk - (double)ig;
+        for (int k = 0; k < NB; k++) {
+            double ugk = ug[k] < nmax ? ug[k] : nmax;
+            long ig = (long)ugk;
+            rowg[k] = T + 4 * ig;
+            fig[k] = ugk - (double)ig;
+        }
+        rows_t(rowg, &x0, &x1, &vg, &slg);
     }
     *rf = vf + fi * sf;
     *rg = vg + fig * slg;
