@@ -215,3 +215,28 @@ def test_position_integral_bounded_where_the_curvature_vanishes():
     v1, _, _ = _position_integral(np.array([20.0]), np.array([10.0]), gs, Hs, t, mu_min=mu_min, max_step=radius)
     v2, _, _ = _position_integral(np.array([20.0]), np.array([10.0]), gs, Hs, t)
     assert v1[0] == pytest.approx(v2[0], abs=1e-12)
+
+
+def test_interpolation_matrices_of_uniform_grids_are_shared():
+    """spline_matrix and _interp_matrix serve every uniform grid pair with as many points from one
+    matrix (a spline commutes with an affine map of its axis): applied to values on grids of other
+    spans and offsets they give scipy's CubicSpline and numpy's interp there; a grid that is not
+    uniform gets its own matrix."""
+    from scipy.interpolate import CubicSpline
+
+    from shearfit.likelihood import _interp_matrix, spline_matrix
+
+    rng = np.random.default_rng(4)
+    for lo, hi in ((-1.3, 0.9), (-0.2, 4.0), (10.0, 10.5)):
+        x = np.linspace(lo, hi, 7)
+        xf = np.linspace(lo, hi, 49)
+        v = rng.normal(size=(3, 7))
+        ref = CubicSpline(x, v, axis=-1)(xf)
+        assert np.max(np.abs(v @ spline_matrix(x, xf) - ref)) < 1e-12 * np.max(np.abs(ref))
+        lin = np.array([np.interp(xf, x, row) for row in v])
+        assert np.max(np.abs(v @ _interp_matrix(x, xf) - lin)) < 1e-12 * np.max(np.abs(lin))
+    x = np.array([0.0, 0.1, 0.3, 0.6, 1.0, 1.5, 2.1])
+    xf = np.linspace(0.0, 2.1, 49)
+    v = rng.normal(size=(2, 7))
+    ref = CubicSpline(x, v, axis=-1)(xf)
+    assert np.max(np.abs(v @ spline_matrix(x, xf) - ref)) < 1e-12 * np.max(np.abs(ref))

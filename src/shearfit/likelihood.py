@@ -684,9 +684,28 @@ def _grid_key(kind, x, xf):
     return (kind, x.size, xf.size) + tuple(float(v) for v in x) + (float(xf[0]), float(xf[-1]))
 
 
+def _uniform_pair(x, xf):
+    """Whether x and xf are both uniform from x[0] to x[-1] (np.linspace): the interpolation matrices
+    between them are then those of any other such pair with as many points (a spline, cubic or linear,
+    commutes with an affine map of its axis), so one per (len(x), len(xf)) serves every object."""
+    x = np.asarray(x, float)
+    xf = np.asarray(xf, float)
+    if x.size < 2 or xf.size < 2 or not x[-1] > x[0]:
+        return False
+    span = x[-1] - x[0]
+    tol = 1e-12 * span
+    return (xf[0] == x[0] and xf[-1] == x[-1]
+            and np.max(np.abs(x - np.linspace(x[0], x[-1], x.size))) <= tol
+            and np.max(np.abs(xf - np.linspace(x[0], x[-1], xf.size))) <= tol)
+
+
 def _interp_matrix(x, xf):
     """Matrix W with (values at x) @ W = linear interpolation at xf (cached per grid pair)."""
-    key = _grid_key("linear", x, xf)
+    if _uniform_pair(x, xf):
+        key = ("linear uniform", len(x), len(xf))
+        x, xf = np.linspace(0.0, 1.0, len(x)), np.linspace(0.0, 1.0, len(xf))
+    else:
+        key = _grid_key("linear", x, xf)
     w = _INTERP_CACHE.get(key)
     if w is None:
         w = _INTERP_CACHE[key] = np.array([np.interp(xf, x, col) for col in np.eye(x.size)])
@@ -701,10 +720,15 @@ def spline_matrix(x, xf):
     as ``CubicSpline(x, values, axis=-1)(xf)`` without solving its system
     for every row.
     """
-    key = _grid_key("spline", x, xf)
+    if _uniform_pair(x, xf):
+        # the size nodes move with every object, but are always uniform: one matrix per node count
+        key = ("spline uniform", len(x), len(xf))
+        x, xf = np.linspace(0.0, 1.0, len(x)), np.linspace(0.0, 1.0, len(xf))
+    else:
+        key = _grid_key("spline", x, xf)
     w = _INTERP_CACHE.get(key)
     if w is None:
-        if len(_INTERP_CACHE) > 256:   # the size grid changes per object: keep the cache bounded
+        if len(_INTERP_CACHE) > 256:   # keep the cache bounded
             _INTERP_CACHE.clear()
         w = _INTERP_CACHE[key] = CubicSpline(x, np.eye(x.size), axis=0)(xf).T.copy()
     return w
