@@ -457,13 +457,14 @@ static PyObject *make_bins(PyObject *self, PyObject *args)
 /* the transform at the n (padded: npad) bins of a model whose bin 0 lies at position pos of the log table
    (G2: rows of J points, row s holding the table's points s, s + M, s + 2M, ...; M + 1 rows): bins below
    the table get low (the transform at its start, where it is flat), bins beyond it 0; pos = -inf (r = 0)
-   gives every bin zero_val, the transform at rho = 0 */
+   gives every bin zero_val, the transform at rho = 0, and a NaN (r NaN) NaN */
 static inline __attribute__((always_inline)) void log_table_row(
     const double *G2, Py_ssize_t M, Py_ssize_t J, double pos, Py_ssize_t n, Py_ssize_t npad, double low,
     double zero_val, double *restrict R)
 {
     if (!(pos > -1e15)) {
-        for (Py_ssize_t b = 0; b < n; b++) R[b] = zero_val;
+        const double v = pos != pos ? pos : zero_val;
+        for (Py_ssize_t b = 0; b < n; b++) R[b] = v;
         for (Py_ssize_t b = n; b < npad; b++) R[b] = 0.0;
         return;
     }

@@ -699,13 +699,17 @@ def _uniform_pair(x, xf):
             and np.max(np.abs(xf - np.linspace(x[0], x[-1], xf.size))) <= tol)
 
 
+def _matrix_key(kind, x, xf):
+    """The cache key of an interpolation matrix from x to xf, and the grids to make it on: a uniform pair
+    (the size nodes, which move with every object) becomes the pair on [0, 1] with as many points."""
+    if _uniform_pair(x, xf):
+        return (kind + " uniform", len(x), len(xf)), np.linspace(0.0, 1.0, len(x)), np.linspace(0.0, 1.0, len(xf))
+    return _grid_key(kind, x, xf), np.asarray(x, float), np.asarray(xf, float)
+
+
 def _interp_matrix(x, xf):
     """Matrix W with (values at x) @ W = linear interpolation at xf (cached per grid pair)."""
-    if _uniform_pair(x, xf):
-        key = ("linear uniform", len(x), len(xf))
-        x, xf = np.linspace(0.0, 1.0, len(x)), np.linspace(0.0, 1.0, len(xf))
-    else:
-        key = _grid_key("linear", x, xf)
+    key, x, xf = _matrix_key("linear", x, xf)
     w = _INTERP_CACHE.get(key)
     if w is None:
         w = _INTERP_CACHE[key] = np.array([np.interp(xf, x, col) for col in np.eye(x.size)])
@@ -720,12 +724,7 @@ def spline_matrix(x, xf):
     as ``CubicSpline(x, values, axis=-1)(xf)`` without solving its system
     for every row.
     """
-    if _uniform_pair(x, xf):
-        # the size nodes move with every object, but are always uniform: one matrix per node count
-        key = ("spline uniform", len(x), len(xf))
-        x, xf = np.linspace(0.0, 1.0, len(x)), np.linspace(0.0, 1.0, len(xf))
-    else:
-        key = _grid_key("spline", x, xf)
+    key, x, xf = _matrix_key("spline", x, xf)
     w = _INTERP_CACHE.get(key)
     if w is None:
         if len(_INTERP_CACHE) > 256:   # keep the cache bounded
