@@ -54,12 +54,12 @@ def _size_range(jm, cfg, mag, fast):
     ld0, lb0 = log_population_weights(cfg)
     logl = np.logaddexp(ld0 + mg.logl_disk, lb0 + mg.logl_bulge)
     # posterior density in ln r: likelihood x prior x r
-    lp = logl + np.log(np.maximum(priors.size_prior_pdf(r, mag, cfg), 1e-300)) + np.log(r)
+    x = np.log(r)
+    lp = logl + priors.log_size_prior_per_lnr(x, mag, cfg)
     if not np.any(np.isfinite(lp)):
         return None
     w = np.exp(lp - np.nanmax(lp))
     w = np.where(np.isfinite(w), w, 0.0)
-    x = np.log(r)
     # cumulative distribution, linear between grid points, inverted at the quantiles
     c = np.concatenate([[0.0], np.cumsum(0.5 * (w[1:] + w[:-1]) * np.diff(x))])
     c /= c[-1]
