@@ -165,6 +165,77 @@ def test_merged_exposures_give_each_exposures_sums():
                 assert np.max(np.abs(x - y)) <= 1e-12 * np.max(np.abs(y)), (f, use_kernel)
 
 
+def test_fold_groups_are_those_of_the_sparse_product():
+    """join_exposures' distinct wavevectors and fold groups, made without sparse products, against np.unique
+    and H = F^H F with scipy.sparse and its connected components: the same modes, groups and weights (to
+    rounding), for random entries with pairs, chains across rows and columns alone."""
+    from scipy import sparse
+    from scipy.sparse.csgraph import connected_components
+
+    from shearfit.likelihood import _distinct_pairs, _fold_groups
+
+    rng = np.random.default_rng(11)
+    for trial in range(40):
+        n_exp, per = int(rng.integers(1, 8)), int(rng.integers(1, 60))
+        # each exposure: distinct lattice points (a shared lattice, so that exposures repeat wavevectors),
+        # folded onto rows of its own; -0.0 and 0.0 are one wavevector
+        kx, ky, rows, off = [], [], [], 0
+        for _ in range(n_exp):
+            pts = rng.choice(150, size=min(per, 150), replace=False)
+            x, y = (pts % 15 - 7) * 0.3, (pts // 15 - 5) * 0.3
+            x = np.where(x == 0, rng.choice([0.0, -0.0], x.size), x)
+            kx.append(x)
+            ky.append(y)
+            n_rows = max(1, int(pts.size * rng.uniform(0.5, 1.0)))
+            rows.append(off + rng.integers(0, n_rows, pts.size))
+            off += n_rows
+        kx, ky, rows = np.concatenate(kx), np.concatenate(ky), np.concatenate(rows)
+        t = rng.normal(size=kx.size) + 1j * rng.normal(size=kx.size)
+        first, inv = _distinct_pairs(kx, ky)
+        _, ref_first, ref_inv = np.unique(kx + 1j * ky, return_index=True, return_inverse=True)
+        assert np.array_equal(first, ref_first) and np.array_equal(inv, ref_inv.ravel())
+        # a column appears at most once on a row: merge repeats as a sparse matrix would not hold them
+        key = rows * (inv.max() + 1) + inv
+        _, once = np.unique(key, return_index=True)
+        once = np.sort(once)
+        r, c, tv = np.unique(rows[once], return_inverse=True)[1].ravel(), inv[once], t[once]
+        n = first.size
+        q, multi, msizes, Hm = _fold_groups(r, c, tv, n)
+        F = sparse.csr_matrix((tv, (r, c)), shape=(r.max() + 1, n))
+        H = (F.conj().T @ F).tocsr()
+        n_comp, label = connected_components(sparse.csr_matrix((np.ones(H.nnz), H.indices, H.indptr), shape=H.shape),
+                                             directed=False)
+        sizes = np.bincount(label, minlength=n_comp)
+        single = sizes[label] == 1
+        assert np.allclose(q, np.where(single, H.diagonal().real, 0.0), rtol=1e-14, atol=0)
+        m = np.nonzero(~single)[0]
+        ref_multi = m[np.argsort(label[m], kind="stable")]
+        assert np.array_equal(multi, ref_multi), trial
+        assert np.array_equal(msizes, [np.count_nonzero(label[multi] == g) for g in dict.fromkeys(label[multi])])
+        ref = H[ref_multi][:, ref_multi].toarray()
+        assert np.allclose(Hm.toarray(), ref, rtol=1e-14, atol=1e-14 * np.abs(ref).max(initial=0))
+
+
+def test_noise_variance_and_the_offset_phase_are_the_direct_ones():
+    """The stamp's noise variance is 1 / np.median of the positive weights (odd and even counts), and the
+    offset phase the Moffat path makes from one phase in kx and one in ky is exp(-i (kx dx + ky dy))."""
+    from shearfit.model import _fine_modes_moffat, noise_variance
+
+    rng = np.random.default_rng(2)
+    for n in (1, 2, 5, 6, 48 * 48):
+        w = rng.uniform(0.5, 2.0, n) * (rng.uniform(size=n) > 0.2)
+        w[0] = 1.0
+        assert noise_variance(w) == 1.0 / float(np.median(w[w > 0]))
+    obs = _observations(0.3, (0.2, 0.1), n_exp=1, noise=True, snr=40)[0]
+    ny, nx = obs.shape
+    ky, kx, T0, c0 = _fine_modes_moffat(obs.psf, ny, nx, 3, tolerance=1e-6)
+    for dx, dy in ((0.37, -0.21), (-2.5, 4.0)):
+        ky1, kx1, T1, c1 = _fine_modes_moffat(obs.psf, ny, nx, 3, tolerance=1e-6, offset=(dx, dy))
+        assert np.array_equal(ky1, ky) and np.array_equal(kx1, kx) and np.array_equal(c1, c0)
+        direct = T0 * np.exp(-1j * (kx * dx + ky * dy))
+        assert np.max(np.abs(T1 - direct)) <= 1e-14 * np.max(np.abs(T0))
+
+
 def test_drop_threshold_is_the_sorted_sums_one():
     """The noise-aware cut's threshold from bucketed sums is the one of sorting every bound and summing in
     order (the largest value whose run of equal values keeps the sum within the tolerance), ties, zeros,

@@ -30,7 +30,6 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from scipy import fft as sfft
 from scipy import sparse, special
-from scipy.sparse.csgraph import connected_components
 from scipy.interpolate import CubicSpline
 
 from .config import FitConfig
@@ -278,6 +277,82 @@ def _select(ex: ExposureModes, keep) -> ExposureModes:
                          yy=ex.yy, npix=ex.npix, pixel_scale=ex.pixel_scale)
 
 
+def _distinct_pairs(kx, ky):
+    """(first, inv) of the distinct (kx, ky) pairs (exact equality), in np.unique's order of kx + i ky
+    (lexicographic): the index of each pair's first occurrence and, per item, its pair's number."""
+    if kx.size == 0:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    order = np.lexsort((ky, kx))   # stable: a pair's first occurrence leads its run
+    sx, sy = kx[order], ky[order]
+    new = np.empty(order.size, bool)
+    new[0] = True
+    new[1:] = (sx[1:] != sx[:-1]) | (sy[1:] != sy[:-1])
+    inv = np.empty(order.size, np.int64)
+    inv[order] = np.cumsum(new) - 1
+    return order[new], inv
+
+
+def _fold_groups(row, col, t, n):
+    """The Parseval weights and fold groups of H = F^H F, F the sparse matrix of the entries ``t`` at
+    (``row``, ``col``) (each pair at most once; rows ascending along the entries of each column), n columns.
+
+    Returns (q, multi, msizes, Hm): q, H's diagonal (real) for the columns that share no row with another
+    and 0 elsewhere; multi, the other columns, group after group (a group: the columns linked through
+    shared rows, groups ordered by their first column, columns ascending within); msizes, the groups'
+    sizes; Hm, H restricted to multi (csr, in multi's order). Each element of H is summed over its rows in
+    ascending order, as a sparse product F^H F sums it.
+    """
+    tt = (np.conj(t) * t).real
+    counts = np.bincount(row)
+    shared = counts[row] >= 2                        # entries on a row with another column
+    linked = np.zeros(n, bool)
+    linked[col[shared]] = True
+    q = np.where(linked, 0.0, np.bincount(col, tt, n))
+    m = np.nonzero(linked)[0]
+    if m.size == 0:
+        return q, m, np.zeros(0, np.int64), sparse.csr_matrix((0, 0), dtype=complex)
+    # the groups: the components of the graph of linked columns and shared rows, each labelled by its first
+    # column (a column takes the least label of its rows' columns until none changes)
+    sel = np.nonzero(shared)[0]
+    sel = sel[np.argsort(row[sel], kind="stable")]   # the shared entries, row after row
+    rs, cs = row[sel], col[sel]
+    heads = np.nonzero(np.concatenate([[True], rs[1:] != rs[:-1]]))[0]
+    run = np.repeat(np.arange(heads.size), np.diff(np.append(heads, rs.size)))
+    label = np.arange(n)
+    while True:
+        least = np.minimum.reduceat(label[cs], heads)[run]   # per entry, its row's least label
+        if np.all(least >= label[cs]):
+            break
+        np.minimum.at(label, cs, least)
+    multi = m[np.lexsort((m, label[m]))]
+    lab = label[multi]
+    starts = np.ones(lab.size, bool)
+    starts[1:] = lab[1:] != lab[:-1]
+    msizes = np.diff(np.append(np.nonzero(starts)[0], lab.size)).astype(np.int64)
+    pos = np.full(n, -1, np.int64)
+    pos[multi] = np.arange(multi.size)
+    # H's terms on multi: every pair of the columns of a shared row, and each linked column's own terms on
+    # rows it has alone
+    k = counts[rs]                                   # the size of each entry's row
+    a = np.repeat(np.arange(sel.size), k)            # each entry with every entry of its row (itself too)
+    b = np.repeat(np.searchsorted(rs, rs), k) + (np.arange(a.size) - np.repeat(np.cumsum(k) - k, k))
+    ea, eb = sel[a], sel[b]
+    alone = np.nonzero(~shared & linked[col])[0]
+    r_ = np.concatenate([row[ea], row[alone]])
+    i_ = np.concatenate([pos[col[ea]], pos[col[alone]]])
+    j_ = np.concatenate([pos[col[eb]], pos[col[alone]]])
+    v_ = np.concatenate([np.conj(t[ea]) * t[eb], np.conj(t[alone]) * t[alone]])
+    o = np.lexsort((r_, j_, i_))                     # by element, its rows ascending
+    i_, j_, v_ = i_[o], j_[o], v_[o]
+    head = np.ones(i_.size, bool)
+    head[1:] = (i_[1:] != i_[:-1]) | (j_[1:] != j_[:-1])
+    hs = np.nonzero(head)[0]
+    data = np.add.reduceat(v_, hs)
+    indptr = np.searchsorted(i_[hs], np.arange(multi.size + 1))
+    Hm = sparse.csr_matrix((data, j_[hs], indptr), shape=(multi.size, multi.size))
+    return q, multi, msizes, Hm
+
+
 def join_exposures(exposures: list[ExposureModes], chi2_tolerance: float = 0.0, keep=None) -> JointModes:
     """Concatenate the exposures' modes (after the noise-aware cut, if a tolerance is given).
 
@@ -311,32 +386,17 @@ def join_exposures(exposures: list[ExposureModes], chi2_tolerance: float = 0.0, 
     tscaled = np.concatenate(tscaled)
     group = np.concatenate(group)
     # one mode per distinct K (exactly equal: exposures with equal Jacobians)
-    uk, first, inv = np.unique(kx + 1j * ky, return_index=True, return_inverse=True)
-    inv = inv.ravel()
-    n = uk.size
+    first, inv = _distinct_pairs(kx, ky)
+    n = first.size
     dmap = _DataMap(zf=zf, index=group, inv=inv, sigma2=[ex.sigma2 for ex in exposures],
                     sizes=[ex.cweight.size for ex in exposures], phase=np.ones(n, complex))
     zu = dmap.merged_z(exposures)
-    # F: the exposures' sampled modes (rows) from the transforms at the distinct K (columns)
+    # F: the exposures' sampled modes (rows) from the transforms at the distinct K (columns); H = F^H F
     # the sampled modes used, numbered in order (np.unique's, without a sort)
     present = np.zeros(goffset, bool)
     present[group] = True
     grow = (np.cumsum(present) - 1)[group]
-    F = sparse.csr_matrix((tscaled, (grow, inv)), shape=(int(np.count_nonzero(present)), n))
-    H = (F.conj().T @ F).tocsr()
-    # groups: the modes linked through a sampled mode (components of H's pattern)
-    n_comp, label = connected_components(sparse.csr_matrix((np.ones(H.nnz), H.indices, H.indptr), shape=H.shape),
-                                         directed=False)
-    sizes = np.bincount(label, minlength=n_comp)
-    single = sizes[label] == 1
-    q = np.where(single, H.diagonal().real, 0.0)
-    m = np.nonzero(~single)[0]
-    multi = m[np.argsort(label[m], kind="stable")]
-    lab = label[multi]
-    starts = np.ones(lab.size, bool)
-    starts[1:] = lab[1:] != lab[:-1]
-    msizes = sizes[lab[starts]].astype(np.int64)
-    Hm = H[multi][:, multi].tocsr()
+    q, multi, msizes, Hm = _fold_groups(grow, inv, tscaled, n)
     kxu, kyu = kx[first], ky[first]
     return JointModes(kx=kxu, ky=kyu, z=zu, q=q, multi=multi, msizes=msizes, H=Hm,
                       basis=np.stack([kxu * kxu, 2 * kxu * kyu, kyu * kyu]), yy=yy, npix=npix,
@@ -879,13 +939,15 @@ def _marginal_numpy(sums, cfg, pixel_scale):
                     snr_disk=out["disk"][4], snr_bulge=out["bulge"][4])
 
 
-def coarse_peak(exposures, jacobians, disk, r_ref, half_width, step):
+def coarse_peak(exposures, jacobians, disk, r_ref, half_width, step, keep=None):
     """Sky offset of the peak of the summed cross-correlation, to about a pixel.
 
     Each exposure's cross-correlation with a round model is one inverse FFT
     on its own pixel grid; the exposures are added on a common grid of sky
     offsets (spacing ``step`` arcsec, within +-``half_width``) by nearest
     pixel, which is all a starting point for ``find_position`` needs.
+    ``keep``: per exposure, the modes to use (a mask, such as the noise-aware
+    cut's ``JointModes.keep``; None: all).
     """
     grid = np.arange(-half_width, half_width + 0.5 * step, step)
     GU, GV = np.meshgrid(grid, grid, indexing="ij")
@@ -897,6 +959,8 @@ def coarse_peak(exposures, jacobians, disk, r_ref, half_width, step):
         Cs = []
         for i in idx:
             ex = exposures[i]
+            if keep is not None and keep[i] is not None:
+                ex = _select(ex, keep[i])
             R = disk.ft_rho2(r_ref * r_ref * (ex.kx ** 2 + ex.ky ** 2))
             C = np.conj(ex.data_ft) * _complex_bincount(ex.coarse, ex.transfer * R, ny * (nx // 2 + 1))
             Cs.append(np.conj(C.reshape(ny, nx // 2 + 1)))

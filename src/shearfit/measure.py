@@ -156,7 +156,7 @@ def _measure(obs, mag, cfg, return_samples, plan=None, margin=np.inf):
         a = float(priors.size_prior_scale(mag, cfg))
         max_shift = cfg.max_centroid_shift * pix
         r_ref = min(a, 2 * pix)
-        start = coarse_peak(exposures, [o.jacobian for o in obs], disk, r_ref, 2 * max_shift, pix)
+        start = coarse_peak(exposures, [o.jacobian for o in obs], disk, r_ref, 2 * max_shift, pix, keep=jm.keep)
         du, dv, ok = find_position(jm, disk, r_ref, max_shift, start=start)
         shift = float(np.hypot(du, dv))
         if not ok or shift > max_shift:

@@ -299,7 +299,8 @@ _N_KTAB = 4001
 @functools.lru_cache(maxsize=8)
 def _alias_geometry(ny, nx, s):
     """What the alias tables of a (ny, nx) stamp share whatever the Moffat: |k| and the pixel response of
-    every alias k + 2 pi n, n in [-2, 2]^2, and the wavevectors and folded mode of the s x s kept ones."""
+    every alias k + 2 pi n, n in [-2, 2]^2, and the wavevectors and folded mode of the s x s kept ones
+    (and, for phases, their ky and kx as (the values, each mode's index in them))."""
     kyc = 2 * np.pi * np.fft.fftfreq(ny)
     kxc = 2 * np.pi * np.fft.rfftfreq(nx)
     na = _N_ALIAS
@@ -325,9 +326,12 @@ def _alias_geometry(ny, nx, s):
     KXf = np.broadcast_to(KXa[sel][None, :, None, :], shape).ravel()
     coarse_index = (np.arange(ny)[:, None] * nxh + np.arange(nxh)[None, :])
     cs = np.broadcast_to(coarse_index, shape).ravel()
-    for arr in (ktab, i0, w0, w1, KYf, KXf, cs):
+    kyv, kxv = KYa[sel].ravel(), KXa[sel].ravel()
+    iy = np.broadcast_to(np.arange(kyv.size).reshape(s, 1, ny, 1), shape).ravel()
+    ix = np.broadcast_to(np.arange(kxv.size).reshape(1, s, 1, nxh), shape).ravel()
+    for arr in (ktab, i0, w0, w1, KYf, KXf, cs, kyv, kxv, iy, ix):
         arr.setflags(write=False)
-    return ktab, i0, w0, w1, sel, KYf, KXf, cs
+    return ktab, i0, w0, w1, sel, KYf, KXf, cs, (kyv, iy, kxv, ix)
 
 
 def _moffat_table(k, rs, beta, x_exact=4.0, x_step=0.2, floor=1e-30):
@@ -366,20 +370,23 @@ def _moffat_aliases(rs, beta, ny, nx, s):
     """The Moffat (times the pixel response) at every alias of the stamp's rfft modes.
 
     Returns the aliased sum ``A = sum_n G(k + 2 pi n)`` over n in [-2, 2]^2
-    (beyond +-2 the Moffat is below 1e-8) and, for the s x s aliases the
-    model keeps, G with their wavevectors and the sampled mode each folds
-    onto. Cached: one exposure's CCD shares one Moffat (App. A fits one
+    (beyond +-2 the Moffat is below 1e-8; 1 where |A| <= 1e-12) and where
+    |A| > 1e-12, and, for the s x s aliases the model keeps, G (flat) and |G|
+    with their wavevectors and the sampled mode each folds onto. Cached: one exposure's CCD shares one Moffat (App. A fits one
     near the field centre), so its objects reuse these tables.
     """
-    ktab, i0, w0, w1, sel, KYf, KXf, cs = _alias_geometry(ny, nx, s)
+    ktab, i0, w0, w1, sel, KYf, KXf, cs, _ = _alias_geometry(ny, nx, s)
     # the Moffat's transform is radial: tabulate it once on |k| and interpolate linearly
     mtab = _moffat_table(ktab, rs, beta)
     G = mtab[i0] * w0 + mtab[i0 + 1] * w1
     A = G.sum(axis=(0, 1))
-    Gs = G[sel, sel]
-    for arr in (A, Gs):
+    Gs = G[sel, sel].ravel()
+    absG = np.abs(Gs)
+    ok = np.abs(A) > 1e-12
+    A = np.where(ok, A, 1.0)   # where not ok, the ratio P_s / A is set to 0
+    for arr in (A, ok, Gs, absG):
         arr.setflags(write=False)
-    return A, Gs, KYf, KXf, cs
+    return A, ok, Gs, absG, KYf, KXf, cs
 
 
 def _centred_rfft2(a):
@@ -388,7 +395,7 @@ def _centred_rfft2(a):
     return sfft.rfft2(np.fft.ifftshift(a, axes=(-2, -1)))
 
 
-def _fine_modes_moffat(psf, ny, nx, s, moffat=None, tolerance=0.0, Ps=None):
+def _fine_modes_moffat(psf, ny, nx, s, moffat=None, tolerance=0.0, Ps=None, offset=None):
     """Native PSF with the App. A alias correction, generalised (see fit_moffat).
 
     Above Nyquist the PSF is taken to be a circular Moffat times the pixel
@@ -399,6 +406,8 @@ def _fine_modes_moffat(psf, ny, nx, s, moffat=None, tolerance=0.0, Ps=None):
     models the modes a native image cannot hold. ``moffat`` = (rs, beta)
     gives the Moffat (one per CCD, as the pipeline does); by default it is
     fitted to this PSF. ``Ps``: the PSF's rfft on the grid, if already made.
+    ``offset`` = (dx, dy) pixels: the transfer times the phase exp(-i (kx dx + ky dy)) that puts the
+    model's origin there (made as the product of a phase in kx and one in ky).
     """
     if Ps is None:
         Ps = _centred_rfft2(_pad_center(psf, (ny, nx)))
@@ -406,20 +415,30 @@ def _fine_modes_moffat(psf, ny, nx, s, moffat=None, tolerance=0.0, Ps=None):
         rs, beta = _own_moffat(psf, Ps, ny, nx)
     else:
         rs, beta = moffat
-    A, Gs, KYf, KXf, cs = _moffat_aliases(float(rs), float(beta), ny, nx, int(s))
-    ratio = np.where(np.abs(A) > 1e-12, Ps / np.where(np.abs(A) > 1e-12, A, 1.0), 0.0)
+    A, ok, Gs, absG, KYf, KXf, cs = _moffat_aliases(float(rs), float(beta), ny, nx, int(s))
+    ratio = np.where(ok, Ps / A, 0.0).ravel()
     # only the modes above ``tolerance`` of the largest |T| (G is real: |T| = |G| |ratio|)
-    mag = (np.abs(Gs) * np.abs(ratio)[None, None]).ravel()
+    mag = (absG.reshape(-1, ratio.size) * np.abs(ratio)[None]).ravel()
     idx = np.nonzero(mag > tolerance * mag.max())[0]
-    return KYf[idx], KXf[idx], Gs.ravel()[idx] * ratio.ravel()[cs[idx]], cs[idx]
+    c = cs[idx]
+    T = Gs[idx] * ratio[c]
+    if offset is not None:
+        kyv, iy, kxv, ix = _alias_geometry(ny, nx, int(s))[-1]
+        T = T * (np.exp(-1j * kxv * offset[0])[ix[idx]] * np.exp(-1j * kyv * offset[1])[iy[idx]])
+    return KYf[idx], KXf[idx], T, c
 
 
 def noise_variance(weight):
     """Stationary noise variance of a stamp: 1 / median of the positive weights."""
-    good = weight > 0
-    if not np.any(good):
+    w = weight[weight > 0]
+    if w.size == 0:
         raise ShearfitValueError("stamp has no pixel with positive weight")
-    return 1.0 / float(np.median(weight[good]))
+    # np.median's value, from a partition alone
+    h = w.size // 2
+    if w.size % 2:
+        return 1.0 / float(np.partition(w, h)[h])
+    p = np.partition(w, (h - 1, h))
+    return 1.0 / float((p[h - 1] + p[h]) / 2)
 
 
 def _masked_stamp(obs, ny, nx):
@@ -489,17 +508,19 @@ def prepare_exposure(obs: Observation, cfg: FitConfig, grid_shape=None, with_dat
         return replace(like, data_ft=data_ft, sigma2=sigma2, yy=yy, npix=npix)
     s = obs.psf_oversampling
     if s == 1 and cfg.alias_correction == "moffat":
-        # the modes below the tolerance are dropped as they are made
+        # the modes below the tolerance are dropped as they are made; the object's nominal position sits
+        # at (stamp centre + offset)
         ky, kx, T, coarse = _fine_modes_moffat(obs.psf, ny, nx, cfg.alias_oversampling, obs.psf_moffat,
-                                               cfg.psf_mode_tolerance, Ps=pre.get("Ps"))
+                                               cfg.psf_mode_tolerance, Ps=pre.get("Ps"), offset=obs.offset)
     else:
         ky, kx, T, coarse = _fine_modes_from_psf(obs.psf, s, ny, nx)
         aT = np.abs(T)
         keep = aT > cfg.psf_mode_tolerance * aT.max()
         ky, kx, T, coarse = ky[keep], kx[keep], T[keep], coarse[keep]
-    # the object's nominal position sits at (stamp centre + offset)
-    dx, dy = obs.offset
-    T = T * np.exp(-1j * (kx * dx + ky * dy)) * obs.flux_scale
+        # the object's nominal position sits at (stamp centre + offset)
+        dx, dy = obs.offset
+        T = T * np.exp(-1j * (kx * dx + ky * dy))
+    T = T * obs.flux_scale
     # sky wavevector K = J^-T k
     Jinv_T = np.linalg.inv(obs.jacobian).T
     Kx = Jinv_T[0, 0] * kx + Jinv_T[0, 1] * ky
