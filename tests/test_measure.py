@@ -216,6 +216,39 @@ def test_fold_groups_are_those_of_the_sparse_product():
         assert np.allclose(Hm.toarray(), ref, rtol=1e-14, atol=1e-14 * np.abs(ref).max(initial=0))
 
 
+def test_decoupled_fold_groups_stay_within_their_tolerance():
+    """Dropping the weakest fold groups' cross terms (fold_tolerance) changes the quadratic sums of any model
+    by at most the tolerance at the flux bound S of the noise-aware cut (the point source, R = 1 on every
+    mode, included), leaves the linear sums as they were, and is replayed by decoupled=."""
+    from shearfit.likelihood import _mode_bounds, join_exposures, model_sums
+    from shearfit.model import prepare_exposure
+    from shearfit.profiles import fast_pair
+
+    cfg = shearfit.FitConfig()
+    rng = np.random.default_rng(8)
+    e1, e2 = rng.uniform(-0.7, 0.7, (2, 60))
+    r = np.concatenate([[0.0, 0.0], rng.uniform(0.0, 1.2, 58)])
+    e1[0] = e2[0] = 0.0
+    for snr, tol in ((40, 0.001), (200, 0.01), (1000, 0.1)):
+        exps = [prepare_exposure(o, cfg) for o in _observations(0.2, (0.2, 0.1), n_exp=4, noise=True, snr=snr,
+                                                                seed=3)]
+        full = join_exposures(exps, cfg.mode_chi2_tolerance)
+        dec = join_exposures(exps, cfg.mode_chi2_tolerance, fold_tolerance=tol)
+        assert 0 < np.count_nonzero(dec.decoupled) < dec.decoupled.size
+        assert dec.multi.size < full.multi.size and dec.n_modes == full.n_modes
+        s2 = _mode_bounds(exps)[1]
+        a = model_sums(full, e1, e2, r, fast_pair(), 0.8, use_kernel=False)
+        b = model_sums(dec, e1, e2, r, fast_pair(), 0.8, use_kernel=False)
+        for f in ("hf", "hg", "grad_f", "hess_g"):
+            assert np.max(np.abs(getattr(a, f) - getattr(b, f))) <= 1e-12 * np.max(np.abs(getattr(a, f)))
+        worst = max(np.max(np.abs(getattr(a, f) - getattr(b, f))) for f in ("ff", "gg", "fg")) * s2
+        assert 0 < worst <= tol
+        again = join_exposures(exps, keep=full.keep, decoupled=dec.decoupled)
+        assert np.array_equal(again.multi, dec.multi) and np.array_equal(again.q, dec.q)
+    with pytest.raises(shearfit.ShearfitValueError, match="decoupled="):
+        join_exposures(exps, keep=full.keep, decoupled=dec.decoupled[:-1])
+
+
 def test_noise_variance_and_the_offset_phase_are_the_direct_ones():
     """The stamp's noise variance is 1 / np.median of the positive weights (odd and even counts), and the
     offset phase the Moffat path makes from one phase in kx and one in ky is exp(-i (kx dx + ky dy))."""

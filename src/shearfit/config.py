@@ -88,6 +88,11 @@ class FitConfig:
     mode_chi2_tolerance: float = _opt(
         0.01, "Fourier modes are dropped, weakest first, while the chi^2 they could contribute for the brightest "
         "model the data allow (a point source at 3x the fitted flux plus 5 sigma) stays below this in total", "DESIGN: speed")
+    fold_chi2_tolerance: float = _opt(
+        0.01, "the cross terms of fold groups (modes that alias onto one sampled mode) are dropped, weakest first, "
+        "while the chi^2 they could change for that brightest model stays below this in total (their own terms "
+        "stay: the modes are then summed as modes alone; 0.01 moves e by at most 1.2e-5, 4e-5 of its error, "
+        "benchmarks/speed.py --check)", "DESIGN: speed")
     mode_bins_per_octave: int = _opt(
         16, "the Fourier modes of a fit are summed, per ellipticity, in bins uniform in log K^T C K, this many per "
         "factor of 2 (the model transform depends on a mode only through r^2 K^T C K; each mode is shared among four "

@@ -33,6 +33,7 @@ from scipy import sparse, special
 from scipy.interpolate import CubicSpline
 
 from .config import FitConfig
+from .errors import ShearfitValueError
 from .model import ExposureModes, _indices_by_shape, shape_matrix
 
 try:  # the compiled inner loop; the numpy path below computes the same sums
@@ -80,6 +81,7 @@ class JointModes:
     n_exposures: int
     pixel_scale: float
     keep: list = None      # per exposure, the modes the noise-aware cut kept (None: all)
+    decoupled: np.ndarray = None   # per fold group found, whether its cross terms were dropped (None: none)
     data_map: object = field(default=None, repr=False)   # how z was made from the exposures' data (_DataMap)
 
     @property
@@ -239,14 +241,10 @@ def _drop_threshold(b, tolerance):
     return float(np.max(v[key < j])) if j > 0 else None
 
 
-def _noise_aware_cut(exposures, chi2_tolerance):
-    """Per exposure, the modes to keep so that the dropped ones matter less than ``chi2_tolerance``.
-
-    A mode j can change any model's chi^2 by at most S^2 w |T_j|^2/(N sigma^2)
-    (|R| <= 1), S bounded from above by the point-source fit's flux: the
-    weakest modes are dropped while their summed bound stays below the
-    tolerance (all exposures together).
-    """
+def _mode_bounds(exposures):
+    """Per exposure, each mode's w |T_j|^2 / (N sigma^2), and S^2 for S the bound on the flux of the brightest
+    model the data allow (a point source at 3 times its fitted flux plus 5 sigma; None where no mode has
+    weight): a mode can change any model's chi^2 by at most S^2 times its value (|R| <= 1)."""
     h = 0.0
     ff = 0.0
     bounds = []
@@ -259,9 +257,22 @@ def _noise_aware_cut(exposures, chi2_tolerance):
         ff += float(np.sum(p))
         bounds.append(p)
     if not ff > 0:
+        return bounds, None
+    return bounds, (3.0 * abs(h) / ff + 5.0 / np.sqrt(ff)) ** 2
+
+
+def _noise_aware_cut(exposures, chi2_tolerance, mode_bounds=None):
+    """Per exposure, the modes to keep so that the dropped ones matter less than ``chi2_tolerance``.
+
+    A mode j can change any model's chi^2 by at most S^2 w |T_j|^2/(N sigma^2)
+    (|R| <= 1), S bounded from above by the point-source fit's flux: the
+    weakest modes are dropped while their summed bound stays below the
+    tolerance (all exposures together). ``mode_bounds``: :func:`_mode_bounds`'s, if already made.
+    """
+    bounds, s2 = _mode_bounds(exposures) if mode_bounds is None else mode_bounds
+    if s2 is None:
         return [np.ones(b.size, bool) for b in bounds]
-    s_bound = 3.0 * abs(h) / ff + 5.0 / np.sqrt(ff)
-    allb = np.concatenate(bounds) * s_bound ** 2
+    allb = np.concatenate(bounds) * s2
     t = _drop_threshold(allb, chi2_tolerance)
     drop = allb <= t if t is not None else np.zeros(allb.size, bool)
     keep, start = [], 0
@@ -353,15 +364,43 @@ def _fold_groups(row, col, t, n):
     return q, multi, msizes, Hm
 
 
-def join_exposures(exposures: list[ExposureModes], chi2_tolerance: float = 0.0, keep=None) -> JointModes:
+def _weak_couplings(msizes, Hm, s2, tolerance):
+    """Which fold groups' cross terms can be dropped: a group's off-diagonal elements of H change any model's
+    chi^2 by at most S^2 sum_(a != b) |H_ab| (|R| <= 1, ``s2`` = S^2 as in the noise-aware cut); the groups
+    with the weakest such bounds are decoupled while their sum stays within ``tolerance``."""
+    Hc = Hm.tocoo()
+    gid = np.repeat(np.arange(msizes.size), msizes)
+    off = Hc.row != Hc.col
+    bound = np.bincount(gid[Hc.row[off]], np.abs(Hc.data[off]), msizes.size) * s2
+    t = _drop_threshold(bound, tolerance)
+    return bound <= t if t is not None else np.zeros(msizes.size, bool)
+
+
+def _decouple(q, multi, msizes, Hm, decoupled):
+    """The fold groups flagged in ``decoupled`` without their cross terms: their modes become modes alone on
+    their sampled mode, with their diagonal elements of H as Parseval weights."""
+    gid = np.repeat(np.arange(msizes.size), msizes)
+    out = decoupled[gid]
+    q = q.copy()
+    q[multi[out]] = Hm.diagonal().real[out]
+    stay = np.nonzero(~out)[0]
+    return q, multi[stay], msizes[~decoupled], Hm[stay][:, stay].tocsr()
+
+
+def join_exposures(exposures: list[ExposureModes], chi2_tolerance: float = 0.0, keep=None,
+                   fold_tolerance: float = 0.0, decoupled=None) -> JointModes:
     """Concatenate the exposures' modes (after the noise-aware cut, if a tolerance is given).
 
     ``keep`` (per exposure, a boolean mask of its modes) imposes the modes
     another fit kept instead of cutting afresh; the masks used are
-    ``result.keep`` (None: no cut).
+    ``result.keep`` (None: no cut). With ``fold_tolerance`` > 0 (and no
+    ``keep``), the fold groups whose cross terms matter least are decoupled
+    (:func:`_weak_couplings`); ``decoupled`` (per fold group, as
+    ``result.decoupled``) imposes another fit's choice.
     """
+    mb = _mode_bounds(exposures) if keep is None and (chi2_tolerance > 0 or fold_tolerance > 0) else None
     if keep is None and chi2_tolerance > 0:
-        keep = _noise_aware_cut(exposures, chi2_tolerance)
+        keep = _noise_aware_cut(exposures, chi2_tolerance, mb)
     if keep is not None:
         exposures = [_select(ex, k) for ex, k in zip(exposures, keep)]
     kx, ky, zf, tscaled, group = [], [], [], [], []
@@ -397,11 +436,20 @@ def join_exposures(exposures: list[ExposureModes], chi2_tolerance: float = 0.0, 
     present[group] = True
     grow = (np.cumsum(present) - 1)[group]
     q, multi, msizes, Hm = _fold_groups(grow, inv, tscaled, n)
+    if decoupled is None and mb is not None and mb[1] is not None and fold_tolerance > 0 and msizes.size:
+        decoupled = _weak_couplings(msizes, Hm, mb[1], fold_tolerance)
+    if decoupled is not None:
+        decoupled = np.asarray(decoupled, bool)
+        if decoupled.size != msizes.size:
+            raise ShearfitValueError(f"join_exposures: decoupled= has {decoupled.size} fold groups, the modes "
+                                     f"{msizes.size}")
+        if np.any(decoupled):
+            q, multi, msizes, Hm = _decouple(q, multi, msizes, Hm, decoupled)
     kxu, kyu = kx[first], ky[first]
     return JointModes(kx=kxu, ky=kyu, z=zu, q=q, multi=multi, msizes=msizes, H=Hm,
                       basis=np.stack([kxu * kxu, 2 * kxu * kyu, kyu * kyu]), yy=yy, npix=npix,
                       n_exposures=len(exposures), pixel_scale=float(np.mean([e.pixel_scale for e in exposures])),
-                      keep=keep, data_map=dmap)
+                      keep=keep, decoupled=decoupled, data_map=dmap)
 
 
 def shift_joint(jm: JointModes, du, dv) -> JointModes:
@@ -420,7 +468,7 @@ def shift_joint(jm: JointModes, du, dv) -> JointModes:
         dm = replace(dm, phase=dm.phase * phase)
     return JointModes(kx=jm.kx, ky=jm.ky, z=jm.z * phase, q=jm.q, multi=jm.multi, msizes=jm.msizes, H=H,
                       basis=jm.basis, yy=jm.yy, npix=jm.npix, n_exposures=jm.n_exposures,
-                      pixel_scale=jm.pixel_scale, keep=jm.keep, data_map=dm)
+                      pixel_scale=jm.pixel_scale, keep=jm.keep, decoupled=jm.decoupled, data_map=dm)
 
 
 @dataclass

@@ -110,6 +110,7 @@ class FitPlan:
     """The choices a fit makes from its object's data, for replaying on other versions of the object.
 
     ``keep``: per exposure, the Fourier modes kept by the noise-aware cut;
+    ``decoupled``: per fold group, whether its cross terms were dropped;
     ``shift``: the sky offset (du, dv) of the cross-correlation peak;
     ``size_nodes`` and ``r_center``: the ln r spline nodes and the round
     model's size; ``centres``: the size centre used at each ellipticity
@@ -128,6 +129,7 @@ class FitPlan:
     observations: list = None   # the fitted observations and their ExposureModes, whose modes a version
     exposures: list = None      # with the same PSFs, Jacobians and offsets reuses
     joint: object = None        # the fit's JointModes (merged, shifted), whose structure such a version reuses
+    decoupled: object = None
 
 
 def _same_modes(o: Observation, ref: Observation) -> bool:
@@ -151,7 +153,7 @@ def _measure(obs, mag, cfg, return_samples, plan=None, margin=np.inf):
         exposures = prepare_exposures(obs, cfg)
     if plan is None:
         disk = exponential_disk(cfg.truncation)
-        jm = join_exposures(exposures, cfg.mode_chi2_tolerance)
+        jm = join_exposures(exposures, cfg.mode_chi2_tolerance, fold_tolerance=cfg.fold_chi2_tolerance)
         pix = jm.pixel_scale
         a = float(priors.size_prior_scale(mag, cfg))
         max_shift = cfg.max_centroid_shift * pix
@@ -179,7 +181,7 @@ def _measure(obs, mag, cfg, return_samples, plan=None, margin=np.inf):
         samples = adaptive_samples(like, cfg) if cfg.sampling == "adaptive" else two_pass_samples(like, cfg)
         n_samples = samples.e1.size
         plan = FitPlan(keep=jm.keep, shift=(du, dv), size_nodes=x, r_center=like.r_center, centres=like.centres,
-                       samples=samples, observations=list(obs), exposures=exposures, joint=jm)
+                       samples=samples, observations=list(obs), exposures=exposures, joint=jm, decoupled=jm.decoupled)
     else:
         if plan.keep is not None and [k.size for k in plan.keep] != [e.kx.size for e in exposures]:
             raise ShearfitValueError("a replayed fit needs the same PSFs (Fourier modes) as the fit it replays")
@@ -188,7 +190,7 @@ def _measure(obs, mag, cfg, return_samples, plan=None, margin=np.inf):
             and all(e.kx is r.kx for e, r in zip(exposures, plan.exposures))
         jm = plan.joint.with_data(exposures) if same else None
         if jm is None:
-            jm = shift_joint(join_exposures(exposures, keep=plan.keep), *plan.shift)
+            jm = shift_joint(join_exposures(exposures, keep=plan.keep, decoupled=plan.decoupled), *plan.shift)
         pix = jm.pixel_scale
         shift = float(np.hypot(*plan.shift))
         like = EllipticityLikelihood(jm, cfg, mag, fast, plan.size_nodes, plan.r_center)
