@@ -129,7 +129,7 @@ class FitPlan:
     observations: list = None   # the fitted observations and their ExposureModes, whose modes a version
     exposures: list = None      # with the same PSFs, Jacobians and offsets reuses
     joint: object = None        # the fit's JointModes (merged, shifted), whose structure such a version reuses
-    decoupled: object = None
+    decoupled: object = None    # per fold group, whether its cross terms were dropped (JointModes.decoupled)
 
 
 def _same_modes(o: Observation, ref: Observation) -> bool:

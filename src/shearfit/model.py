@@ -370,10 +370,12 @@ def _moffat_aliases(rs, beta, ny, nx, s):
     """The Moffat (times the pixel response) at every alias of the stamp's rfft modes.
 
     Returns the aliased sum ``A = sum_n G(k + 2 pi n)`` over n in [-2, 2]^2
-    (beyond +-2 the Moffat is below 1e-8; 1 where |A| <= 1e-12) and where
-    |A| > 1e-12, and, for the s x s aliases the model keeps, G (flat) and |G|
-    with their wavevectors and the sampled mode each folds onto. Cached: one exposure's CCD shares one Moffat (App. A fits one
-    near the field centre), so its objects reuse these tables.
+    (beyond +-2 the Moffat is below 1e-8), set to 1 where |A| <= 1e-12, and
+    the mask of |A| > 1e-12 (elsewhere the model's ratio P_s / A is 0); then,
+    for the s x s aliases the model keeps, G (flattened) and |G| with their
+    wavevectors and the sampled mode each folds onto. Cached: one exposure's
+    CCD shares one Moffat (App. A fits one near the field centre), so its
+    objects reuse these tables.
     """
     ktab, i0, w0, w1, sel, KYf, KXf, cs, _ = _alias_geometry(ny, nx, s)
     # the Moffat's transform is radial: tabulate it once on |k| and interpolate linearly
