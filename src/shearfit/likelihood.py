@@ -34,7 +34,7 @@ from scipy.interpolate import CubicSpline
 
 from .config import FitConfig
 from .errors import ShearfitValueError
-from .model import ExposureModes, _indices_by_shape, shape_matrix
+from .model import ExposureModes, _indices_by_shape, _inv2, shape_matrix
 
 try:  # the compiled inner loop; the numpy path below computes the same sums
     from . import _kernels
@@ -1016,7 +1016,7 @@ def coarse_peak(exposures, jacobians, disk, r_ref, half_width, step, keep=None):
             hs[i] = h / exposures[i].sigma2
     for ex, J, h in zip(exposures, jacobians, hs):
         ny, nx = ex.shape
-        Jinv = np.linalg.inv(J)
+        Jinv = _inv2(J)
         sx = np.rint(Jinv[0, 0] * GU + Jinv[0, 1] * GV).astype(int) % nx
         sy = np.rint(Jinv[1, 0] * GU + Jinv[1, 1] * GV).astype(int) % ny
         total += h[sy, sx]
@@ -1038,13 +1038,13 @@ def find_position(jm: JointModes, disk, r_ref, max_shift_arcsec, start=(0.0, 0.0
     zr = jm.z * R
     x = np.array(start, dtype=float)
     cell = jm.pixel_scale if cell is None else cell
+    K = np.stack([jm.kx, jm.ky])
     for _ in range(n_newton):
-        p = zr * np.exp(-1j * (jm.kx * x[0] + jm.ky * x[1]))
-        g = np.array([np.sum(jm.kx * p.imag), np.sum(jm.ky * p.imag)])
-        H = -np.array([[np.sum(jm.kx * jm.kx * p.real), np.sum(jm.kx * jm.ky * p.real)],
-                       [np.sum(jm.kx * jm.ky * p.real), np.sum(jm.ky * jm.ky * p.real)]])
+        p = zr * np.exp(-1j * (x @ K))
+        g = K @ p.imag                   # the gradient of h
+        c = jm.basis @ p.real            # minus its Hessian: [kx^2, 2 kx ky, ky^2] . Re p
         try:
-            step = np.linalg.solve(-H, g)
+            step = np.linalg.solve(np.array([[c[0], 0.5 * c[1]], [0.5 * c[1], c[2]]]), g)
         except np.linalg.LinAlgError:
             return x[0], x[1], False
         if not np.all(np.isfinite(step)):

@@ -181,7 +181,7 @@ class EllipticityLikelihood:
         With ``detail``: also the parabola's peak value (log L + log p(r) r, populations mixed) and an
         EPoint of the crude size integral over the 5 nodes."""
         cfg = self.cfg
-        xs = np.linspace(-half_width, half_width, 5)
+        xs = _locate_nodes(float(half_width))
         R = rc[:, None] * np.exp(xs)[None, :]
         n = xs.size
         sums = self._sums(np.repeat(e1, n), np.repeat(e2, n), R.ravel(), bins,
@@ -365,6 +365,14 @@ def _mix(point: EPoint, e1, e2, cfg):
         pb = np.log(priors.bulge_e_density(e1, e2, cfg))
     logpost = np.logaddexp(la + pd, lb + pb)
     return logl, logpost
+
+
+@functools.lru_cache(maxsize=32)
+def _locate_nodes(half_width):
+    """The 5 ln r offsets of a size-locating pass over +-half_width (read-only, shared)."""
+    xs = np.linspace(-half_width, half_width, 5)
+    xs.setflags(write=False)
+    return xs
 
 
 @functools.lru_cache(maxsize=32)
