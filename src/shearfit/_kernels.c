@@ -345,12 +345,17 @@ static void bin_index(const float *B3, Py_ssize_t n_single, double a0, double a1
 }
 
 /* pass 2: the modes' weights into rows of 8 (the six linear vectors, q, padding), a row a vector; the DC
-   mode's into row nbin */
+   mode's into row nbin. A run of consecutive modes with the same lowest bin is summed in registers and added
+   to its four rows once (modes ordered so that near-equal wavevectors, such as one sky mode seen by
+   exposures whose Jacobians differ slightly, follow each other: see likelihood._packed_bins) */
 typedef double v8u __attribute__((vector_size(8 * sizeof(double)), aligned(sizeof(double))));
 MULTIVERSION
 static void bin_scatter(const float *C8, Py_ssize_t n_single, const long long *idx, const double *w4,
                         long long lo, Py_ssize_t nbin, double *A)
 {
+    const v8u zero = {0};
+    v8u acc[4] = {zero, zero, zero, zero};
+    long long cur = LLONG_MIN;   /* the open run's lowest bin (LLONG_MIN: none) */
     for (Py_ssize_t j = 0; j < n_single; j++) {
         const float *c = C8 + 8 * j;
         if (idx[j] == LLONG_MIN) {
@@ -358,10 +363,21 @@ static void bin_scatter(const float *C8, Py_ssize_t n_single, const long long *i
             for (int t = 0; t < 8; t++) w0[t] += c[t];
             continue;
         }
-        Py_ssize_t b = (Py_ssize_t)(idx[j] - lo);
-        v8u cv, *row = (v8u *)(A + 8 * b);
+        if (idx[j] != cur) {
+            if (cur != LLONG_MIN) {
+                v8u *row = (v8u *)(A + 8 * (Py_ssize_t)(cur - lo));
+                for (int q = 0; q < 4; q++) row[q] += acc[q];
+            }
+            cur = idx[j];
+            for (int q = 0; q < 4; q++) acc[q] = zero;
+        }
+        v8u cv;
         for (int t = 0; t < 8; t++) cv[t] = c[t];
-        for (int q = 0; q < 4; q++) row[q] += w4[q * n_single + j] * cv;
+        for (int q = 0; q < 4; q++) acc[q] += w4[q * n_single + j] * cv;
+    }
+    if (cur != LLONG_MIN) {
+        v8u *row = (v8u *)(A + 8 * (Py_ssize_t)(cur - lo));
+        for (int q = 0; q < 4; q++) row[q] += acc[q];
     }
 }
 
