@@ -349,6 +349,14 @@ static void bin_index(const float *B3, Py_ssize_t n_single, double a0, double a1
    to its four rows once (modes ordered so that near-equal wavevectors, such as one sky mode seen by
    exposures whose Jacobians differ slightly, follow each other: see likelihood._packed_bins) */
 typedef double v8u __attribute__((vector_size(8 * sizeof(double)), aligned(sizeof(double))));
+/* a run's four accumulated rows added to the bins from its lowest bin cur (none where cur is LLONG_MIN) */
+static inline __attribute__((always_inline)) void add_run(double *A, long long cur, long long lo, const v8u *acc)
+{
+    if (cur == LLONG_MIN) return;
+    v8u *row = (v8u *)(A + 8 * (Py_ssize_t)(cur - lo));
+    for (int q = 0; q < 4; q++) row[q] += acc[q];
+}
+
 MULTIVERSION
 static void bin_scatter(const float *C8, Py_ssize_t n_single, const long long *idx, const double *w4,
                         long long lo, Py_ssize_t nbin, double *A)
@@ -364,10 +372,7 @@ static void bin_scatter(const float *C8, Py_ssize_t n_single, const long long *i
             continue;
         }
         if (idx[j] != cur) {
-            if (cur != LLONG_MIN) {
-                v8u *row = (v8u *)(A + 8 * (Py_ssize_t)(cur - lo));
-                for (int q = 0; q < 4; q++) row[q] += acc[q];
-            }
+            add_run(A, cur, lo, acc);
             cur = idx[j];
             for (int q = 0; q < 4; q++) acc[q] = zero;
         }
@@ -375,10 +380,7 @@ static void bin_scatter(const float *C8, Py_ssize_t n_single, const long long *i
         for (int t = 0; t < 8; t++) cv[t] = c[t];
         for (int q = 0; q < 4; q++) acc[q] += w4[q * n_single + j] * cv;
     }
-    if (cur != LLONG_MIN) {
-        v8u *row = (v8u *)(A + 8 * (Py_ssize_t)(cur - lo));
-        for (int q = 0; q < 4; q++) row[q] += acc[q];
-    }
+    add_run(A, cur, lo, acc);
 }
 
 #define NCH 7      /* a bin's weights: the six linear vectors and q */

@@ -113,6 +113,12 @@ class JointModes:
             cache = self._factors = (ranks, np.ascontiguousarray(factors, dtype=float))
         return cache
 
+    def single_modes(self):
+        """The modes in no fold group (alone on their sampled mode), in order."""
+        single = np.ones(self.n_modes, bool)
+        single[self.multi] = False
+        return np.nonzero(single)[0]
+
     def packed(self):
         """The modes interleaved for the kernel (cached): (rows, n_single, group sizes, group weights).
 
@@ -122,11 +128,10 @@ class JointModes:
         """
         cache = getattr(self, "_packed", None)
         if cache is None:
-            single = np.ones(self.n_modes, bool)
-            single[self.multi] = False
-            order = np.concatenate([np.nonzero(single)[0], self.multi])
+            singles = self.single_modes()
+            order = np.concatenate([singles, self.multi])
             lin = _linear_vectors(self)
-            n_single = int(single.sum())
+            n_single = singles.size
             rows = np.zeros((order.size, 12))
             rows[:, :3] = self.basis[:, order].T
             rows[:, 3:9] = lin[:, order].T
@@ -203,9 +208,8 @@ def _packed_bins(jm):
         packed, n_single = jm.packed()[:2]
         rows = packed[:n_single]
         if jm.k_cell > 0 and n_single > 1:
-            single = np.ones(jm.n_modes, bool)
-            single[jm.multi] = False
-            kx, ky = jm.kx[single], jm.ky[single]   # the order of packed's single rows
+            singles = jm.single_modes()             # the order of packed's single rows
+            kx, ky = jm.kx[singles], jm.ky[singles]
             rows = rows[np.lexsort((np.rint(ky / jm.k_cell), np.rint(kx / jm.k_cell)))]
         b3 = np.zeros((n_single, 4), np.float32)
         b3[:, :3] = rows[:, :3]
