@@ -349,35 +349,68 @@ def test_cubic_psf_k_interpolation_keeps_the_versions():
 
 
 @pytest.mark.parametrize("J", [None, PIX * np.array([[0.3, -0.95], [0.94, 0.31]])])
-def test_band_limited_shared_factor_draw_is_galsims_own(J):
-    """The versions' images are drawn by a convolution that evaluates its factors only within the
-    deconvolution's band and shares the PSF factors between the versions and the noise: every image
-    equals GalSim's plain ``Convolve(...).drawImage`` of the same profiles (to 1e-7 of the peak), also on
-    a rotated, sheared pixel grid, and the band holds fewer k pixels than the grid."""
+def test_batched_band_limited_draw_is_galsims_own(J):
+    """The versions' images are drawn in one batch per stamp, each product evaluated only within the
+    deconvolution's band and the PSF factors shared between the versions and the noise: every image equals
+    GalSim's plain ``Convolve(...).drawImage`` of the same profiles (to 1e-7 of the peak), also on a
+    rotated, sheared pixel grid."""
     import galsim
 
     from shearfit import metacal
 
     obs = _obs(0.3, (0.2, -0.1), snr=40, n_exp=1, seed=4, J=J)[0]
-    counted = []
-    orig_draw = metacal._KProduct._drawKImage
+    seen = []
+    orig_draw = metacal._Drawer.draw
 
-    def counting(self, image, jac=None):
-        orig_draw(self, image, jac)
-        counted.append((np.count_nonzero(image.array), image.array.size))
+    def plain(self, products, bands):
+        # the same products drawn by GalSim's own Convolution, one drawImage each
+        ny, nx = self.shape
+        for product, band in zip(products, bands):
+            n, _, dk = self._grid(product)
+            seen.append((int(np.ceil(band / (dk * self.sigma_min))) + 1, n))
+        return [galsim.Convolution(p).drawImage(nx=nx, ny=ny, wcs=self.wcs, method="no_pixel",
+                                                use_true_center=False).array for p in products]
 
-    gs_draw = metacal._draw
+    fast = metacal_observations(obs, rng=np.random.default_rng(5))
     try:
-        metacal._KProduct._drawKImage = counting
-        fast = metacal_observations(obs, rng=np.random.default_rng(5))
-        # the same, with each product drawn by GalSim's own Convolution
-        metacal._draw = lambda prof, shape, wcs: gs_draw(
-            galsim.Convolution(prof.obj_list) if isinstance(prof, metacal._KProduct) else prof, shape, wcs)
-        plain = metacal_observations(obs, rng=np.random.default_rng(5))
+        metacal._Drawer.draw = plain
+        ref = metacal_observations(obs, rng=np.random.default_rng(5))
     finally:
-        metacal._KProduct._drawKImage = orig_draw
-        metacal._draw = gs_draw
-    peak = np.abs(plain["noshear"].image).max()
-    for name in plain:
-        assert np.abs(fast[name].image - plain[name].image).max() < 1e-7 * peak, name
-    assert len(counted) == 10 and all(0 < n < 0.8 * size for n, size in counted)
+        metacal._Drawer.draw = orig_draw
+    peak = np.abs(ref["noshear"].image).max()
+    for name in ref:
+        assert np.abs(fast[name].image - ref[name].image).max() < 1e-7 * peak, name
+        assert np.allclose(fast[name].weight, ref[name].weight, rtol=1e-6, atol=0)
+    assert len(seen) == 10    # five versions and their noise, drawn by GalSim in the reference
+
+
+@pytest.mark.parametrize("fwhm", [0.9, 0.6])
+def test_drawer_folds_a_band_beyond_nyquist_as_galsim_does(fwhm):
+    """A PSF whose transform GalSim finds wider than the grid's Nyquist frequency (here 0.6": its maxk is
+    that of the interpolant, 17 / arcsec) puts the deconvolution's band beyond the grid: the drawer folds
+    the k image onto the grid as GalSim's drawFFT does; with a 0.9" PSF the band is inside. Either way the
+    images are GalSim's own, for sheared products on a rotated grid."""
+    import galsim
+
+    from shearfit import metacal
+
+    J = PIX * np.array([[0.3, -0.95], [0.94, 0.31]])
+    wcs = metacal._wcs(J)
+    rng = np.random.default_rng(2)
+    psf = metacal._interpolated(draw_psf_image(moffat_psf(fwhm, 3.0, 0.05, -0.02), J, size=33), wcs,
+                                calculate_maxk=True, k_interpolant="cubic")
+    gal = metacal._interpolated(rng.normal(size=(40, 40)), wcs)
+    inv, new = galsim.Deconvolve(psf), psf.dilate(1.02)
+    products, bands = [], []
+    for g1, g2 in ((0.0, 0.0), (0.01, 0.0), (0.0, -0.01)):
+        gi, ii = (gal.shear(g1=g1, g2=g2), inv.shear(g1=g1, g2=g2)) if (g1 or g2) else (gal, inv)
+        products.append([gi, ii, new])
+        bands.append(ii.maxk)
+    drawer = metacal._Drawer((40, 40), wcs)
+    fast = drawer.draw(products, bands)
+    n, _, dk = drawer._grid(products[0])
+    r = int(np.ceil(bands[0] / (dk * drawer.sigma_min))) + 1
+    assert (r >= n // 2) == (fwhm < 0.7)
+    for p, im in zip(products, fast):
+        ref = galsim.Convolution(p).drawImage(nx=40, ny=40, wcs=wcs, method="no_pixel", use_true_center=False).array
+        assert np.abs(im - ref).max() < 1e-7 * np.abs(ref).max()

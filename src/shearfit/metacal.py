@@ -41,6 +41,7 @@ from dataclasses import dataclass, field
 
 import galsim
 import numpy as np
+from scipy import fft as sfft
 from scipy import ndimage
 
 from .errors import FITCLASS_GALAXY, ShearfitIOError
@@ -80,57 +81,104 @@ def _draw(prof, shape, wcs):
     return prof.drawImage(nx=nx, ny=ny, wcs=wcs, method="no_pixel", use_true_center=False).array
 
 
-class _KProduct(galsim.Convolution):
-    """A convolution drawn as GalSim draws one, with two shortcuts that leave its images the same.
+class _Drawer:
+    """The pixels of one stamp's k-space products, drawn as GalSim's ``drawImage`` draws a convolution.
 
-    - Band limit. A ``galsim.Deconvolve`` sets its transform to zero beyond the deconvolved profile's
-      maxk, and a shear of it beyond the sheared profile's maxk (GalSim's ``Transformation.maxk``, the
-      original's over the shear's minor axis): ``band``, in world wavenumber. A convolution holding one
-      is then zero outside that disc, yet GalSim evaluates every factor on the whole k grid of the draw,
-      out to the pixels' Nyquist frequency. Here the factors are evaluated only on the smallest part of
-      the grid that holds the disc, and the rest is left zero.
-    - Shared factors. The factors in ``shared`` (the same objects in several products, such as the
-      sheared inverse PSF and the new PSF of the versions of one stamp and of its noise) are evaluated
-      once per k grid and kept in ``cache``.
+    ``draw(products, bands)`` takes a list of products (each a list of GSObjects in the sky frame, the
+    factors of a ``galsim.Convolution``) and the band of each (the world wavenumber beyond which the
+    product is zero: the sheared deconvolution's maxk), and returns their images on the stamp's pixel
+    grid, the profiles' origin at pixel (ny // 2, nx // 2) (``use_true_center=False``), as
+    ``galsim.Convolution(product).drawImage(nx=nx, ny=ny, wcs=wcs, method="no_pixel",
+    use_true_center=False)`` would, with three shortcuts that leave the images the same to rounding:
 
-    The factors are multiplied in their order, as ``galsim.Convolution`` does. The images equal GalSim's
-    own to rounding (2e-8 of the peak at most, from GalSim's k-space recurrences starting elsewhere
-    on the grid).
+    - GalSim's own pieces of that draw (``profileToImage``, ``drawFFT_makeKImage``, each factor's
+      ``_drawKImage`` with the image-frame Jacobian) are called once per stamp where they are the same
+      for every product, not once per image.
+    - Band limit: the factors are evaluated only on the smallest part of the k grid that holds the band
+      (a disc of radius ``band``, seen through the Jacobian); the rest of the grid is zero. GalSim
+      evaluates every factor on the whole grid, out to the pixels' Nyquist frequency.
+    - Shared factors (the same object in several products, such as the sheared inverse PSF and the new
+      PSF of a version and of its noise) are evaluated once per k grid; the inverse transforms of all
+      the products are one batched real FFT (``scipy.fft.irfft2``).
+
+    A band that reaches the grid's Nyquist row or column is folded onto the grid by GalSim's
+    ``Image.wrap`` (Hermitian in x), as ``drawFFT`` folds its k image before the transform.
     """
 
-    def __init__(self, objs, band, shared=(), cache=None):
-        super().__init__(objs)
-        self._band = float(band)
-        self._shared = {id(o) for o in shared}
-        self._cache = {} if cache is None else cache
+    def __init__(self, shape, wcs):
+        self.shape = tuple(shape)
+        self.wcs = wcs
+        ny, nx = self.shape
+        # drawImage's image, shifted so that its integer centre (the profile's origin) is (0, 0)
+        self.bounds = galsim.BoundsI(-(nx // 2), nx - 1 - nx // 2, -(ny // 2), ny - 1 - ny // 2)
+        frame = wcs.profileToImage(galsim.Gaussian(sigma=1.0))
+        if frame.offset.x != 0 or frame.offset.y != 0:
+            raise ValueError("metacal: a stamp WCS with an origin offset")
+        self.jac = np.asarray(frame.jac, float)
+        # the k-space values' scaling of GalSim's Transformation: surface brightness per pixel
+        self.flux_scaling = abs(float(np.linalg.det(self.jac))) * float(frame.flux_ratio)
+        # image k pixel (i, j) is the world wavenumber dk * jac^T (i, j): at least dk sigma_min |(i, j)| long
+        self.sigma_min = float(np.linalg.svd(self.jac, compute_uv=False)[-1])
+        self._grids = {}
 
-    def _drawKImage(self, image, jac=None):
-        # image pixel (i, j) is the world wavenumber scale * jac^T (i, j): its length is at least
-        # scale * sigma_min(jac) * |(i, j)|
-        J = np.eye(2) if jac is None else np.asarray(jac, float)
-        r = int(np.ceil(self._band / (image.scale * np.linalg.svd(J, compute_uv=False)[-1]))) + 1
-        b = image.bounds
-        sub = galsim.BoundsI(b.xmin, min(b.xmax, b.xmin + r), max(b.ymin, -r), min(b.ymax, r))
-        image.setZero()
-        if not sub.isDefined():
-            return
-        view = image[sub]
-        grid = (sub.xmin, sub.xmax, sub.ymin, sub.ymax, view.scale, J.tobytes())
-        out = None
-        for obj in self.obj_list:
-            key = (id(obj),) + grid
-            # the cache holds the object too: an id is unique only while its object lives
-            hit = self._cache.get(key) if id(obj) in self._shared else None
-            if hit is not None and hit[0] is obj:
-                arr = hit[1]
-            else:
-                part = galsim.Image(sub, dtype=view.dtype, scale=view.scale)
-                obj._drawKImage(part, jac)
-                arr = part.array
-                if id(obj) in self._shared:
-                    self._cache[key] = (obj, arr)
-            out = arr if out is None else out * arr   # a new array: the cached factors stay as they are
-        view.array[:, :] = out
+    def _grid(self, product):
+        """The FFT size GalSim's drawFFT picks for this product (from its stepk and maxk), the k image's
+        size before folding, and dk; asked of GalSim once per distinct (stepk, maxk)."""
+        prof = self.wcs.profileToImage(galsim.Convolution(product))
+        key = (prof.stepk, prof.maxk)
+        if key not in self._grids:
+            kimage, n = prof.drawFFT_makeKImage(galsim.Image(self.bounds, scale=1.0))
+            self._grids[key] = (n, kimage.bounds.xmax * 2, kimage.scale)
+        return self._grids[key]
+
+    def draw(self, products, bands):
+        out = [None] * len(products)
+        batches = {}
+        cache = {}
+        for i, (product, band) in enumerate(zip(products, bands)):
+            n, nk, dk = self._grid(product)
+            r = min(int(np.ceil(band / (dk * self.sigma_min))) + 1, nk // 2)
+            sub = galsim.BoundsI(0, r, -r, r)
+            grid = (r, dk)
+            arr = None
+            for obj in product:
+                key = (id(obj),) + grid
+                hit = cache.get(key)
+                # the cache holds the object too: an id is unique only while its object lives
+                if hit is None or hit[0] is not obj:
+                    part = galsim.Image(sub, dtype=np.complex128, scale=dk)
+                    obj._drawKImage(part, self.jac)
+                    hit = cache[key] = (obj, part.array)
+                arr = hit[1] if arr is None else arr * hit[1]   # a new array: the cached factors stay
+            if abs(self.flux_scaling - 1.0) > galsim.GSParams().kvalue_accuracy:
+                arr = arr * self.flux_scaling
+            batches.setdefault(n, []).append((i, r, arr))
+        ny, nx = self.shape
+        for n, items in batches.items():
+            half = n // 2
+            cols = min(max(r for _, r, _ in items), half) + 1
+            spec = np.zeros((len(items), n, cols), np.complex128)
+            for b, (_, r, arr) in enumerate(items):
+                if r < half:
+                    spec[b, np.arange(-r, r + 1) % n, :r + 1] = arr
+                else:
+                    # the band reaches the Nyquist row or column: GalSim's Hermitian fold onto the n grid
+                    full = galsim.ImageCD(galsim.BoundsI(0, r, -r, r), scale=1.0)
+                    full.array[:, :] = arr
+                    folded = full.wrap(galsim.BoundsI(0, half, -half, half - 1), hermitian="x").array
+                    spec[b, np.arange(-half, half) % n, :] = folded
+            # f(x) = (1 / 4 pi^2) sum_k F(k) exp(i k.x) dk^2 with dk = 2 pi / n, irfft2's own normalisation,
+            # evaluated only at the stamp's rows and columns: the transform over ky of the band's columns,
+            # the stamp's rows of it, then the real transform over kx
+            iy = (np.arange(ny) - ny // 2) % n
+            ix = (np.arange(nx) - nx // 2) % n
+            rows = sfft.ifft(spec, axis=1, workers=1)[:, iy, :]
+            if cols < half + 1:
+                rows = np.concatenate([rows, np.zeros(rows.shape[:2] + (half + 1 - cols,), rows.dtype)], axis=2)
+            real = sfft.irfft(rows, n=n, axis=2, workers=1)[:, :, ix]
+            for b, (i, _, _) in enumerate(items):
+                out[i] = real[b]
+        return out
 
 
 def metacal_observations(obs: Observation, delta=0.01, rng=None, versions=tuple(VERSIONS)) -> dict:
@@ -176,21 +224,25 @@ def metacal_observations(obs: Observation, delta=0.01, rng=None, versions=tuple(
     mask[:_EDGE, :] = mask[-_EDGE:, :] = True
     mask[:, :_EDGE] = mask[:, -_EDGE:] = True
     var_in = float(np.mean(sigma[~mask] ** 2)) if np.any(~mask) else 1.0
-    out = {}
-    scale = None
-    cache = {}
-    for name in ("noshear",) + tuple(v for v in versions if v != "noshear"):
+    names = ("noshear",) + tuple(v for v in versions if v != "noshear")
+    products, bands = [], []
+    for name in names:
         s1, s2 = VERSIONS[name]
         g1, g2 = s1 * delta, s2 * delta
         # the shear of (stamp / PSF) is the product of the sheared factors (a shear keeps areas)
         gal_g, noise_g, inv = [(p.shear(g1=g1, g2=g2) if (g1 or g2) else p) for p in (gal, nint, inv_psf)]
-        im = _draw(_KProduct([gal_g, inv, new_psf], inv.maxk, (inv, new_psf), cache), w.shape, wcs)
         # the same operations on the rotated noise; rotated back, its correlation is the processed
         # noise's turned by 90 degrees (as if sheared by -g), so the sum's is symmetric
-        nim = _draw(_KProduct([noise_g, inv, new_psf], inv.maxk, (inv, new_psf), cache), w.shape, wcs)
+        products += [[gal_g, inv, new_psf], [noise_g, inv, new_psf]]
+        bands += [inv.maxk, inv.maxk]
+    images = _Drawer(w.shape, wcs).draw(products, bands)
+    out = {}
+    weight = None
+    for v, name in enumerate(names):
+        im, nim = images[2 * v], images[2 * v + 1]
         if square:
             nim = np.rot90(nim, -1)
-        if scale is None:
+        if weight is None:
             # the versions' noise: the original, processed, plus the added field: twice the added field's
             # variance, measured on the noshear version and used for all, so that every version is fitted
             # with the same weights (and the same Fourier modes)
