@@ -384,12 +384,12 @@ def test_batched_band_limited_draw_is_galsims_own(J):
     assert len(seen) == 10    # five versions and their noise, drawn by GalSim in the reference
 
 
-@pytest.mark.parametrize("fwhm", [0.9, 0.6])
-def test_drawer_folds_a_band_beyond_nyquist_as_galsim_does(fwhm):
+@pytest.mark.parametrize("fwhm, shape", [(0.9, (40, 40)), (0.6, (40, 40)), (0.9, (41, 41)), (0.6, (36, 45))])
+def test_drawer_folds_a_band_beyond_nyquist_as_galsim_does(fwhm, shape):
     """A PSF whose transform GalSim finds wider than the grid's Nyquist frequency (here 0.6": its maxk is
     that of the interpolant, 17 / arcsec) puts the deconvolution's band beyond the grid: the drawer folds
     the k image onto the grid as GalSim's drawFFT does; with a 0.9" PSF the band is inside. Either way the
-    images are GalSim's own, for sheared products on a rotated grid."""
+    images are GalSim's own, for sheared products on a rotated grid, on even, odd and oblong stamps."""
     import galsim
 
     from shearfit import metacal
@@ -399,18 +399,19 @@ def test_drawer_folds_a_band_beyond_nyquist_as_galsim_does(fwhm):
     rng = np.random.default_rng(2)
     psf = metacal._interpolated(draw_psf_image(moffat_psf(fwhm, 3.0, 0.05, -0.02), J, size=33), wcs,
                                 calculate_maxk=True, k_interpolant="cubic")
-    gal = metacal._interpolated(rng.normal(size=(40, 40)), wcs)
+    gal = metacal._interpolated(rng.normal(size=shape), wcs)
     inv, new = galsim.Deconvolve(psf), psf.dilate(1.02)
     products, bands = [], []
     for g1, g2 in ((0.0, 0.0), (0.01, 0.0), (0.0, -0.01)):
         gi, ii = (gal.shear(g1=g1, g2=g2), inv.shear(g1=g1, g2=g2)) if (g1 or g2) else (gal, inv)
         products.append([gi, ii, new])
         bands.append(ii.maxk)
-    drawer = metacal._Drawer((40, 40), wcs)
+    drawer = metacal._Drawer(shape, wcs)
     fast = drawer.draw(products, bands)
     n, _, dk = drawer._grid(products[0])
     r = int(np.ceil(bands[0] / (dk * drawer.sigma_min))) + 1
     assert (r >= n // 2) == (fwhm < 0.7)
     for p, im in zip(products, fast):
-        ref = galsim.Convolution(p).drawImage(nx=40, ny=40, wcs=wcs, method="no_pixel", use_true_center=False).array
+        ref = galsim.Convolution(p).drawImage(nx=shape[1], ny=shape[0], wcs=wcs, method="no_pixel",
+                                              use_true_center=False).array
         assert np.abs(im - ref).max() < 1e-7 * np.abs(ref).max()

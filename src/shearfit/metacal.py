@@ -99,7 +99,7 @@ class _Drawer:
       evaluates every factor on the whole grid, out to the pixels' Nyquist frequency.
     - Shared factors (the same object in several products, such as the sheared inverse PSF and the new
       PSF of a version and of its noise) are evaluated once per k grid; the inverse transforms of all
-      the products are one batched real FFT (``scipy.fft.irfft2``).
+      the products are batched (``scipy.fft``) and evaluated only at the stamp's rows and columns.
 
     A band that reaches the grid's Nyquist row or column is folded onto the grid by GalSim's
     ``Image.wrap`` (Hermitian in x), as ``drawFFT`` folds its k image before the transform.
