@@ -118,6 +118,47 @@ def metacal_report(objs, cfg, passes):
           f"({ti / tp:.2f} x a plain fit), the five fits {1e3 * (tm - ti):.1f} ms ({(tm - ti) / tp:.2f} x)")
 
 
+def metacal_image_profile(objs):
+    """Where the metacal images' time goes: GalSim's k-space evaluation of its interpolated images (the
+    stamp, its symmetrising noise, the PSF under the deconvolution), split by whether the Jacobian
+    reaching them is diagonal (a shear along the pixel axes, evaluated separably) or not (a shear
+    along the diagonals, or any shear on a rotated pixel grid: evaluated point by point), per k point."""
+    import galsim
+
+    from shearfit.metacal import metacal_observations
+
+    orig = galsim.InterpolatedImage._drawKImage
+    acc = {}
+
+    def timed_draw(self, image, jac=None):
+        t0 = time.perf_counter()
+        orig(self, image, jac)
+        dt = time.perf_counter() - t0
+        kind = "diagonal" if jac is None or (jac[0, 1] == 0 and jac[1, 0] == 0) else "general"
+        first = not getattr(self, "_timed", False)   # the first draw also transforms the padded image
+        self._timed = True
+        a = acc.setdefault(kind if not first else "first draw of an image", [0.0, 0, 0])
+        a[0] += dt
+        a[1] += image.array.size
+        a[2] += 1
+
+    rng = np.random.default_rng(1)
+    galsim.InterpolatedImage._drawKImage = timed_draw
+    try:
+        t0 = time.perf_counter()
+        for o, _ in objs:
+            for ob in o:
+                metacal_observations(ob, 0.01, rng)
+        total = time.perf_counter() - t0
+    finally:
+        galsim.InterpolatedImage._drawKImage = orig
+    n = len(objs)
+    print(f"\n  metacal images: {1e3 * total / n:.1f} ms per galaxy; GalSim's k-space evaluation of interpolated images:")
+    for kind, (dt, pts, calls) in acc.items():
+        print(f"    {kind:24s} {calls / n:5.1f} per galaxy, {1e3 * dt / n:6.1f} ms per galaxy "
+              f"({100 * dt / total:4.1f} %), {1e9 * dt / pts:5.0f} ns per k point")
+
+
 #: the settings that trade exactness for speed, at their exact values
 EXACT = {"mode_bins_per_octave": 0, "n_flux": 11, "fold_chi2_tolerance": 0.0}
 
@@ -216,6 +257,7 @@ def main(argv=None):
     pstats.Stats(prof).sort_stats("tottime").print_stats(8)
     if args.metacal:
         metacal_report(objs, cfg, args.passes)
+        metacal_image_profile(objs)
     if args.check:
         check_report(objs, cfg, res, args.seed)
     if args.scaling:
