@@ -135,6 +135,12 @@ def _work(task):
                         rec[f"R{i + 1}{j + 1}"] = float(mc.R[i, j])
                 rec["time"] = time.perf_counter() - t0
                 t_meas += rec["time"]
+                if opts.get("with_plain"):
+                    # plain lensfit on the same stamps (the simulation calibration's side of issue 8's item 2)
+                    res = measure(obs, mag=truth["mag"], config=cfg)
+                    rec["plain_fitclass"] = int(res.fitclass)
+                    for name in RESULT_FIELDS:
+                        rec[f"plain_{name}"] = float(getattr(res, name, np.nan))
             elif measure is not None:
                 t0 = time.perf_counter()
                 try:
@@ -275,6 +281,9 @@ def report_metacal(tab, args, n_gal):
     print(f"  m2 = {format_with_error(est[1], err[1])}    c2 = {format_with_error(est[3], err[3])}")
     print(f"  without the response (raw lensfit on the metacal noshear images): m1 = "
           f"{format_with_error(est[4], err[4])}, m2 = {format_with_error(est[5], err[5])}")
+    print(f"  per galaxy (its whole ring): error x sqrt(galaxies) = {err[0] * np.sqrt(n_gal):.3f} / "
+          f"{err[1] * np.sqrt(n_gal):.3f} on m1 / m2, so +/-7e-4 on m takes about "
+          f"{int(np.ceil((max(err[:2]) * np.sqrt(n_gal) / 7e-4) ** 2))} such galaxies")
     print(f"  <R_gamma> = [[{Rg[0, 0]:.4f}, {Rg[0, 1]:+.4f}], [{Rg[1, 0]:+.4f}, {Rg[1, 1]:.4f}]]; "
           f"R_S = [[{Rs[0, 0]:+.4f}, {Rs[0, 1]:+.4f}], [{Rs[1, 0]:+.4f}, {Rs[1, 1]:+.4f}]]")
     print(f"  fitclass != 0: {np.mean(np.asarray(tab['fitclass']) != 0):.3%} of {len(tab)} objects")
@@ -335,6 +344,11 @@ def parse_args(argv=None):
                         "metacal's symmetrising noise): the terms odd in the noise cancel within each ring")
     p.add_argument("--metacal", action="store_true",
                    help="measure the five metacal versions of every object and report the metacal shear bias")
+    p.add_argument("--with-plain", action="store_true",
+                   help="with --metacal: also measure every object with plain lensfit (columns plain_*)")
+    p.add_argument("--plain", action="store_true",
+                   help="with --from-tables: report the plain lensfit columns (plain_*) of --with-plain runs, "
+                        "in the tables and in the reference tables")
     p.add_argument("--quiet", action="store_true")
     p.add_argument("--reference-tables", nargs="+", metavar="TABLE",
                    help="with --from-tables: a simulation calibration, the m of these ring tables (plain lensfit, "
@@ -405,11 +419,25 @@ def read_tables(paths):
     return tab, int(tab["galaxy"].max()) + 1
 
 
+def _plain_columns(tab):
+    """A --with-plain table with its plain lensfit columns in the places of the measured ones."""
+    out = tab.copy()
+    for name in RESULT_FIELDS + ("fitclass",):
+        if f"plain_{name}" not in tab.dtype.names:
+            raise KeyError(f"no column plain_{name}: the tables were not written by a --with-plain run")
+        out[name] = tab[f"plain_{name}"]
+    return out
+
+
 def report_tables(args):
     """The reports of several earlier runs' per-object tables, as one run."""
     try:
         tab, n_gal = read_tables(args.from_tables)
         ref = read_tables(args.reference_tables) if args.reference_tables else None
+        if args.plain:
+            tab = _plain_columns(tab)
+            ref = (_plain_columns(ref[0]), ref[1]) if ref is not None else None
+            args.metacal = False
     except (OSError, ValueError, KeyError) as exc:
         print(f"ring_test.py: error: {exc}", file=sys.stderr)
         return 2
@@ -448,7 +476,7 @@ def main(argv=None):
         return report_tables(args)
     opts = {
         "shear": tuple(args.shear), "dry_run": args.dry_run, "config": cfg, "metacal": args.metacal,
-        "antithetic": args.antithetic,
+        "antithetic": args.antithetic, "with_plain": args.with_plain and args.metacal,
         "ring_kwargs": dict(n_rotations=args.n_rotations, n_exposures=args.n_exposures,
                             snr_range=(args.snr_min, args.snr_max), mag_range=(args.mag_min, args.mag_max),
                             stamp_size=args.stamp_size, psf_oversampling=args.psf_oversampling,

@@ -60,6 +60,15 @@ SHEARED = ("1p", "1m", "2p", "2m")
 #: Pixels masked around a masked pixel and along the stamp's edge in the processed stamps.
 _MASK_GROW = 2
 _EDGE = 3
+#: The versions' FFT grid in stamp widths (:class:`_Drawer`): a third of a stamp width between the stamp
+#: and its periodic copies (0: the grid GalSim's drawImage would choose).
+WRAP_STAMPS = 4 / 3
+#: GalSim's k-interpolants of the interpolated stamp (and its noise) and of the PSF. Its default quintic for
+#: both: the cubic's interpolation errors are anisotropic enough to bias the response to shears along the
+#: pixel diagonals (m2 = +2.6e-3 with a cubic stamp, +2e-4 with a cubic PSF alone, on noise-free galaxies:
+#: ``benchmarks/metacal_noise_free.py --variants``).
+K_INTERPOLANT = "quintic"
+PSF_K_INTERPOLANT = "quintic"
 
 
 def _wcs(J, k=1):
@@ -89,7 +98,8 @@ class _Drawer:
     product is zero: the sheared deconvolution's maxk), and returns their images on the stamp's pixel
     grid, the profiles' origin at pixel (ny // 2, nx // 2) (``use_true_center=False``), as
     ``galsim.Convolution(product).drawImage(nx=nx, ny=ny, wcs=wcs, method="no_pixel",
-    use_true_center=False)`` would, with three shortcuts that leave the images the same to rounding:
+    use_true_center=False)`` would on GalSim's own FFT grid (``fft_size=0``; the default grid is smaller,
+    see below), with three shortcuts that leave the images the same to rounding:
 
     - GalSim's own pieces of that draw (``profileToImage``, ``drawFFT_makeKImage``, each factor's
       ``_drawKImage`` with the image-frame Jacobian) are called once per stamp where they are the same
@@ -103,12 +113,30 @@ class _Drawer:
 
     A band that reaches the grid's Nyquist row or column is folded onto the grid by GalSim's
     ``Image.wrap`` (Hermitian in x), as ``drawFFT`` folds its k image before the transform.
+
+    ``fft_size``: the largest FFT grid used (pixels; default :data:`WRAP_STAMPS` stamp widths, rounded up
+    to a fast size: 64 for a 48-pixel stamp). GalSim sizes its grid from the product's stepk, which for an
+    interpolated 48-pixel stamp is 128 pixels; the images are periodic on the grid, and for a galaxy inside
+    the stamp a third of a stamp width between the stamp and its periodic copies is enough: a noise-free
+    galaxy's versions are GalSim's own to 5e-5 of their peak away from the masked edge, and the metacal
+    response of noise-free galaxies matches their true shear response as closely as on GalSim's grid
+    (``benchmarks/metacal_noise_free.py``: |m| <= 1e-4 on either grid, for the paper's population and
+    for one unlike it), with a quarter of the k values. The deconvolution's hard band edge gives the
+    kernel a long ringing reach (a few per cent of its power lies beyond 16 pixels), so a noisy stamp's
+    processed noise does depend on the grid, by a few per cent of its amplitude; on either grid it is the
+    stamp's noise through one linear operator that is periodic on a square grid, so the 90-degree
+    symmetrisation holds as before and the weights follow the processed noise's variance
+    (``tests/test_metacal.py``).
+    ``fft_size=0`` keeps GalSim's own grid, and the images are then those of GalSim's ``drawImage``.
     """
 
-    def __init__(self, shape, wcs):
+    def __init__(self, shape, wcs, fft_size=None):
         self.shape = tuple(shape)
         self.wcs = wcs
         ny, nx = self.shape
+        if fft_size is None:
+            fft_size = sfft.next_fast_len(int(np.ceil(WRAP_STAMPS * max(ny, nx)))) if WRAP_STAMPS else 0
+        self.fft_size = int(fft_size)
         # drawImage's image, shifted so that its integer centre (the profile's origin) is (0, 0)
         self.bounds = galsim.BoundsI(-(nx // 2), nx - 1 - nx // 2, -(ny // 2), ny - 1 - ny // 2)
         frame = wcs.profileToImage(galsim.Gaussian(sigma=1.0))
@@ -124,11 +152,18 @@ class _Drawer:
     def _grid(self, product):
         """The FFT size GalSim's drawFFT picks for this product (from its stepk and maxk), the k image's
         size before folding, and dk; asked of GalSim once per distinct (stepk, maxk)."""
-        prof = self.wcs.profileToImage(galsim.Convolution(product))
-        key = (prof.stepk, prof.maxk)
+        conv = galsim.Convolution(product)
+        key = (conv.stepk, conv.maxk)   # the sky frame's: the image frame's follow from them through the WCS
         if key not in self._grids:
+            prof = self.wcs.profileToImage(conv)
             kimage, n = prof.drawFFT_makeKImage(galsim.Image(self.bounds, scale=1.0))
-            self._grids[key] = (n, kimage.bounds.xmax * 2, kimage.scale)
+            nk, dk = kimage.bounds.xmax * 2, kimage.scale
+            if 0 < self.fft_size < n:
+                # a smaller periodic grid (see the class doc): dk = 2 pi / n on the image's unit pixels,
+                # the k image as wide as GalSim's (its maxk), folded onto the grid where it reaches beyond
+                dk_small = 2.0 * np.pi / self.fft_size
+                n, nk, dk = self.fft_size, max(self.fft_size, 2 * int(np.ceil(nk * dk / (2.0 * dk_small)))), dk_small
+            self._grids[key] = (n, nk, dk)
         return self._grids[key]
 
     def draw(self, products, bands):
@@ -194,10 +229,8 @@ def metacal_observations(obs: Observation, delta=0.01, rng=None, versions=tuple(
     w = obs.weight
     good = w > 0
     image = np.where(good, obs.image, 0.0)
-    gal = _interpolated(image, wcs)
-    # the PSF's transform is smooth within its maxk: GalSim's cubic k-interpolant there gives the versions'
-    # images to 3e-5 of their peak of the default quintic's, and takes 2/3 of the k-space evaluations
-    psf = _interpolated(obs.psf, pwcs, calculate_maxk=True, k_interpolant="cubic")
+    gal = _interpolated(image, wcs, k_interpolant=K_INTERPOLANT)
+    psf = _interpolated(obs.psf, pwcs, calculate_maxk=True, k_interpolant=PSF_K_INTERPOLANT)
     inv_psf = galsim.Deconvolve(psf)
     new_psf = psf.dilate(1.0 + 2.0 * abs(delta))
     psf_img = _draw(new_psf, obs.psf.shape, pwcs)
@@ -219,7 +252,7 @@ def metacal_observations(obs: Observation, delta=0.01, rng=None, versions=tuple(
         # and its correlation doubles the processed noise's instead of symmetrising it
         log.warning("metacal: a %d x %d stamp is not square; its noise is not symmetrised", *w.shape)
     nrot = np.rot90(noise, 1) if square else noise
-    nint = _interpolated(nrot, wcs)
+    nint = _interpolated(nrot, wcs, k_interpolant=K_INTERPOLANT)
     mask = ndimage.binary_dilation(~good, iterations=_MASK_GROW)
     mask[:_EDGE, :] = mask[-_EDGE:, :] = True
     mask[:, :_EDGE] = mask[:, -_EDGE:] = True

@@ -1,0 +1,169 @@
+#!/usr/bin/env python
+"""Metacalibration's own accuracy, without noise: the metacal response against GalSim's true shear response.
+
+Each galaxy (the paper's population, or ``--population odd``) is rendered by GalSim without noise on 7
+dithered exposures with elliptical Moffat PSFs, unsheared and with true shears of +-h in each component
+(the same galaxy, PSFs and dithers). Every stamp goes through metacal's operations (deconvolution, shear,
+dilated PSF); the symmetrising noise is scaled down by 1e-9 and the weights scaled back, so that the fits
+see the noise level of the galaxy's target SNR on noise-free images (as ``ring_test.py --noise-free``).
+
+One joint fit chooses the samples (the noshear version of the unsheared stamps) and every other image is
+fitted with those choices replayed (:func:`shearfit.measure.measure_versions`): the metacal versions give
+``R_ii = (e_i[i+] - e_i[i-]) / (2 delta)`` and the noshear images of the truly sheared galaxy give
+``A_ii = (e_i[+h] - e_i[-h]) / (2 h)``. At fixed samples both are smooth in the pixels, so per galaxy they
+agree as closely as metacal's images reproduce a true shear; ``m = <A> / <R> - 1`` is the multiplicative
+bias metacal would leave with no noise, measured to about 1e-5 with tens of galaxies (noise is what makes
+the ring tests of ``ring_test.py --metacal`` need a million objects).
+
+    python benchmarks/metacal_noise_free.py --n-galaxies 60
+    python benchmarks/metacal_noise_free.py --n-galaxies 60 --population odd
+    python benchmarks/metacal_noise_free.py --n-galaxies 60 --variants 2:quintic:cubic,0:quintic:cubic
+
+``--variants`` compares image settings, each ``WRAP:STAMP_INTERPOLANT:PSF_INTERPOLANT``: the FFT grid in stamp
+widths (0: GalSim's own grid) and GalSim's k-interpolants of the stamp (and its noise) and of the PSF
+(``shearfit.metacal.WRAP_STAMPS``, ``K_INTERPOLANT``, ``PSF_K_INTERPOLANT``); the default is the shipped one.
+"""
+
+from __future__ import annotations
+
+import os
+
+for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
+
+import argparse  # noqa: E402
+import sys  # noqa: E402
+import time  # noqa: E402
+from dataclasses import replace  # noqa: E402
+
+import numpy as np  # noqa: E402
+
+from shearfit import metacal  # noqa: E402
+from shearfit.measure import as_config, measure_versions  # noqa: E402
+from shearfit.observation import Observation  # noqa: E402
+from shearfit.simulate import ring_set  # noqa: E402
+
+#: the symmetrising noise's scale (its weights are scaled back by its square)
+QUIET = 1e-9
+
+
+class _Quiet:
+    def __init__(self, seed):
+        self.rng = np.random.default_rng(seed)
+
+    def normal(self, loc, scale, size):
+        return QUIET * self.rng.normal(loc, scale, size)
+
+
+def _rescaled(versions):
+    return {k: Observation(image=v.image, weight=v.weight * QUIET ** 2, psf=v.psf,
+                           psf_oversampling=v.psf_oversampling, jacobian=v.jacobian, offset=v.offset,
+                           flux_scale=v.flux_scale, psf_moffat=v.psf_moffat) for k, v in versions.items()}
+
+
+def responses(sets, i, h, delta, cfg, seed, noisy=False, twin=False):
+    """Galaxy ``i``'s diagonal responses at fixed samples: (R, A, A_free, fitclasses).
+
+    R: metacal's; A: the noshear fit's to the true shear, both replaying the choices of the unsheared
+    noshear fit; A_free: the same true-shear difference with each noshear image fitted on its own (its
+    own modes, position, sizes and samples: the estimator as it runs on data). ``noisy``: the stamps
+    carry their noise and metacal its symmetrising noise (minus both for the antithetic ``twin``).
+    """
+    from shearfit.simulate.stamps import NegatedNormal
+
+    def rng(j):
+        # exposure j's symmetrising noise: its own field, the same for the galaxy at 0 and +-h
+        if not noisy:
+            return _Quiet([seed, j])
+        r = np.random.default_rng([seed, i, j])
+        return NegatedNormal(r) if twin else r
+
+    def prepared(obs, j, versions=tuple(metacal.VERSIONS)):
+        v = metacal.metacal_observations(obs, delta, rng(j), versions=versions)
+        return v if noisy else _rescaled(v)
+
+    shears = [(h, 0.0), (-h, 0.0), (0.0, h), (0.0, -h)]
+    per = [prepared(ob, j) for j, ob in enumerate(sets[(0.0, 0.0)][i][0])]
+    versions = [[d[name] for d in per] for name in metacal.VERSIONS]
+    for s in shears:
+        versions.append([prepared(ob, j, ("noshear",))["noshear"] for j, ob in enumerate(sets[s][i][0])])
+    mag = sets[(0.0, 0.0)][i][1]["mag"]
+    r = measure_versions(versions, mag, cfg, margin=10.0)
+    free = [measure_versions([v], mag, cfg)[0] for v in versions[5:]]
+    R = np.array([(r[1].e1 - r[2].e1), (r[3].e2 - r[4].e2)]) / (2 * delta)
+    A = np.array([(r[5].e1 - r[6].e1), (r[7].e2 - r[8].e2)]) / (2 * h)
+    A_free = np.array([(free[0].e1 - free[1].e1), (free[2].e2 - free[3].e2)]) / (2 * h)
+    return R, A, A_free, [x.fitclass for x in r + free]
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--n-galaxies", type=int, default=60)
+    ap.add_argument("--seed", type=int, default=12)
+    ap.add_argument("--snr-min", type=float, default=10.0)
+    ap.add_argument("--snr-max", type=float, default=40.0)
+    ap.add_argument("--mag-min", type=float, default=21.0)
+    ap.add_argument("--mag-max", type=float, default=24.7)
+    ap.add_argument("--h", type=float, default=0.01, help="the true shear of the +-h renders")
+    ap.add_argument("--delta", type=float, default=0.01, help="metacal's shear")
+    ap.add_argument("--population", choices=["paper", "odd"], default="paper")
+    ap.add_argument("--noisy", action="store_true",
+                    help="keep the stamps' noise (the same at 0 and +-h) and metacal's symmetrising noise: the "
+                         "per-galaxy scatter of A - R and of A_free - A then shows what limits the noisy ring tests")
+    ap.add_argument("--antithetic", action="store_true", help="with --noisy: also each galaxy's antithetic twin")
+    ap.add_argument("--variants", default=None,
+                    help="comma-separated WRAP:STAMP_INTERPOLANT:PSF_INTERPOLANT image settings to compare")
+    args = ap.parse_args(argv)
+
+    population = None
+    if args.population == "odd":
+        sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+        from ring_test import odd_population
+        population = odd_population
+    cfg = as_config(None)
+    cfg = replace(cfg, e_grid_min=min(cfg.e_grid_min, metacal.E_GRID_MIN))
+    kw = dict(n_rotations=1, n_exposures=7, snr_range=(args.snr_min, args.snr_max),
+              mag_range=(args.mag_min, args.mag_max), stamp_size=48, add_noise=args.noisy, population=population)
+    h = args.h
+    t0 = time.perf_counter()
+    twins = (False, True) if (args.noisy and args.antithetic) else (False,)
+    sets = {(s, tw): ring_set(args.n_galaxies, s, np.random.default_rng(args.seed), noise_sign=-1 if tw else 1, **kw)
+            for s in [(0.0, 0.0), (h, 0.0), (-h, 0.0), (0.0, h), (0.0, -h)] for tw in twins}
+    print(f"{args.n_galaxies} {'noisy' if args.noisy else 'noise-free'} galaxies"
+          f"{' and their antithetic twins' if len(twins) > 1 else ''} ({args.population} population, SNR "
+          f"{args.snr_min:g}-{args.snr_max:g}{'' if args.noisy else ' weights'}, mag {args.mag_min:g}-{args.mag_max:g}), "
+          f"7 exposures; true shears +-{h:g}, metacal delta {args.delta:g}; rendered in {time.perf_counter() - t0:.0f} s")
+    shipped = f"{metacal.WRAP_STAMPS:g}:{metacal.K_INTERPOLANT}:{metacal.PSF_K_INTERPOLANT}"
+    for variant in (args.variants.split(",") if args.variants else [shipped]):
+        wrap, kint, pkint = variant.split(":")
+        saved = metacal.WRAP_STAMPS, metacal.K_INTERPOLANT, metacal.PSF_K_INTERPOLANT
+        metacal.WRAP_STAMPS, metacal.K_INTERPOLANT, metacal.PSF_K_INTERPOLANT = float(wrap), kint, pkint
+        try:
+            t0 = time.perf_counter()
+            rows = [[responses({s: v for (s, tw), v in sets.items() if tw == twin}, i, h, args.delta, cfg,
+                               args.seed, args.noisy, twin) for twin in twins] for i in range(args.n_galaxies)]
+        finally:
+            metacal.WRAP_STAMPS, metacal.K_INTERPOLANT, metacal.PSF_K_INTERPOLANT = saved
+        # a galaxy (with its twin) counts where every fit of it measured a galaxy; twins averaged
+        ok = [np.mean([r[:3] for r in rs], axis=0) for rs in rows if all(c == 0 for r in rs for c in r[3])]
+        R, A, F = (np.array([o[k] for o in ok]) for k in range(3))
+        label = variant + (" (shipped)" if variant == shipped else "")
+        print(f"\n{label}: {len(ok)} of {len(rows)} galaxies measured ({time.perf_counter() - t0:.0f} s)")
+        print(f"  <R> = ({R[:, 0].mean():.4f}, {R[:, 1].mean():.4f}), <A> = ({A[:, 0].mean():.4f}, {A[:, 1].mean():.4f})"
+              + (f", <A_free> = ({F[:, 0].mean():.4f}, {F[:, 1].mean():.4f})" if args.noisy else ""))
+        for name, X in (("A", A),) + ((("A_free", F),) if args.noisy else ()):
+            m = X.mean(axis=0) / R.mean(axis=0) - 1
+            err = (X - (1 + m) * R).std(axis=0, ddof=1) / np.sqrt(len(ok)) / R.mean(axis=0)
+            q = np.percentile(np.abs(X - R), [50, 90, 99], axis=0)
+            print(f"  {name}: m1 = {m[0]:+.1e} +/- {err[0]:.1e}    m2 = {m[1]:+.1e} +/- {err[1]:.1e}; per galaxy "
+                  f"rms of {name} - R ({np.sqrt(np.mean((X - R) ** 2, axis=0))[0]:.1e}, "
+                  f"{np.sqrt(np.mean((X - R) ** 2, axis=0))[1]:.1e}); |{name} - R| 50/90/99 %: component 1 "
+                  f"{q[0, 0]:.1e} / {q[1, 0]:.1e} / {q[2, 0]:.1e}, component 2 {q[0, 1]:.1e} / {q[1, 1]:.1e} / {q[2, 1]:.1e}")
+        if args.noisy:
+            d = F - A
+            print(f"  A_free - A (the samples' own choices): rms ({np.sqrt(np.mean(d[:, 0] ** 2)):.1e}, "
+                  f"{np.sqrt(np.mean(d[:, 1] ** 2)):.1e}), mean ({d[:, 0].mean():+.1e}, {d[:, 1].mean():+.1e})")
+
+
+if __name__ == "__main__":
+    main()
