@@ -40,8 +40,11 @@ made from other tables (the paper's population, say) is applied to them with ``-
         --snr-min 10 --snr-max 40
 
 ``--antithetic`` also measures each object's antithetic twin (minus the noise): the terms odd in the
-noise cancel within a ring, which shrinks the errors on c several times (not those on m, which are
-even in the noise).
+noise cancel within a ring, which shrinks the errors on c several times; on m the twins gain less
+(with --metacal, 1.4-1.8 times less variance for the same compute: the noise of the response is
+mostly even in the noise). ``--with-plain`` (with --metacal) also fits every object with plain lensfit,
+and ``--from-tables ... --plain`` reports those fits, so one run gives both sides of a comparison of
+metacal with the simulation calibration.
 """
 
 from __future__ import annotations
@@ -262,9 +265,14 @@ def report_metacal(tab, args, n_gal):
         ebar = e @ w / w.sum()
         return np.linalg.solve(R, ebar), ebar, Rg, Rs
 
+    # each galaxy's rows of either sign, found once (the bootstrap resamples galaxies)
+    order = np.lexsort((sign, gal))
+    starts = np.searchsorted(gal[order], np.arange(n_gal + 1))
+    rows_of = {s: [order[a:b][sign[order[a:b]] * s > 0] for a, b in zip(starts[:-1], starts[1:])] for s in (1, -1)}
+
     def bias(sel_gal):
-        rows_p = np.concatenate([np.nonzero((gal == k) & (sign > 0))[0] for k in sel_gal])
-        rows_m = np.concatenate([np.nonzero((gal == k) & (sign < 0))[0] for k in sel_gal])
+        rows_p = np.concatenate([rows_of[1][k] for k in sel_gal])
+        rows_m = np.concatenate([rows_of[-1][k] for k in sel_gal])
         gp, ep, Rgp, Rsp = shear_of(rows_p)
         gm, em, Rgm, Rsm = shear_of(rows_m)
         raw_m = (ep - em) / (2 * g) - 1

@@ -517,3 +517,21 @@ def test_drawer_folds_a_band_beyond_nyquist_as_galsim_does(fwhm, shape):
         ref = galsim.Convolution(p).drawImage(nx=shape[1], ny=shape[0], wcs=wcs, method="no_pixel",
                                               use_true_center=False).array
         assert np.abs(im - ref)[3:-3, 3:-3].max() < 1e-4 * np.abs(ref).max()
+
+
+@pytest.mark.parametrize("k", [1, 3])
+def test_new_psf_is_drawn_in_its_pixel_frame_as_through_the_jacobian(k):
+    """The dilated PSF's image is drawn in the PSF's own pixel frame (a dilation commutes with the
+    Jacobian; GalSim then interpolates separably): the same pixels as drawing the dilated PSF through a
+    rotated, sheared Jacobian, to float32 rounding, natively and oversampled."""
+    from shearfit import metacal
+
+    J = PIX * np.array([[0.3, -0.95], [0.94, 0.31]])
+    img = draw_psf_image(moffat_psf(0.7, 3.0, 0.05, -0.03), J, size=25 * k, oversampling=k)
+    obs = shearfit.Observation(image=np.zeros((40, 40)), weight=np.ones((40, 40)), psf=img, jacobian=J,
+                               psf_oversampling=k)
+    got = metacal_observations(obs, delta=0.01, rng=np.random.default_rng(1), versions=("noshear",))["noshear"].psf
+    pwcs = metacal._wcs(J, k)
+    ref = metacal._draw(metacal._interpolated(img, pwcs).dilate(1.02), img.shape, pwcs)
+    ref = ref / ref.sum()
+    assert np.abs(got - ref).max() < 1e-6 * ref.max()
