@@ -39,61 +39,8 @@ from dataclasses import replace  # noqa: E402
 import numpy as np  # noqa: E402
 
 from shearfit import metacal  # noqa: E402
-from shearfit.measure import as_config, measure_versions  # noqa: E402
-from shearfit.observation import Observation  # noqa: E402
-from shearfit.simulate import ring_set  # noqa: E402
-
-#: the symmetrising noise's scale (its weights are scaled back by its square)
-QUIET = 1e-9
-
-
-class _Quiet:
-    def __init__(self, seed):
-        self.rng = np.random.default_rng(seed)
-
-    def normal(self, loc, scale, size):
-        return QUIET * self.rng.normal(loc, scale, size)
-
-
-def _rescaled(versions):
-    return {k: Observation(image=v.image, weight=v.weight * QUIET ** 2, psf=v.psf,
-                           psf_oversampling=v.psf_oversampling, jacobian=v.jacobian, offset=v.offset,
-                           flux_scale=v.flux_scale, psf_moffat=v.psf_moffat) for k, v in versions.items()}
-
-
-def responses(sets, i, h, delta, cfg, seed, noisy=False, twin=False):
-    """Galaxy ``i``'s diagonal responses at fixed samples: (R, A, A_free, fitclasses).
-
-    R: metacal's; A: the noshear fit's to the true shear, both replaying the choices of the unsheared
-    noshear fit; A_free: the same true-shear difference with each noshear image fitted on its own (its
-    own modes, position, sizes and samples: the estimator as it runs on data). ``noisy``: the stamps
-    carry their noise and metacal its symmetrising noise (minus both for the antithetic ``twin``).
-    """
-    from shearfit.simulate.stamps import NegatedNormal
-
-    def rng(j):
-        # exposure j's symmetrising noise: its own field, the same for the galaxy at 0 and +-h
-        if not noisy:
-            return _Quiet([seed, j])
-        r = np.random.default_rng([seed, i, j])
-        return NegatedNormal(r) if twin else r
-
-    def prepared(obs, j, versions=tuple(metacal.VERSIONS)):
-        v = metacal.metacal_observations(obs, delta, rng(j), versions=versions)
-        return v if noisy else _rescaled(v)
-
-    shears = [(h, 0.0), (-h, 0.0), (0.0, h), (0.0, -h)]
-    per = [prepared(ob, j) for j, ob in enumerate(sets[(0.0, 0.0)][i][0])]
-    versions = [[d[name] for d in per] for name in metacal.VERSIONS]
-    for s in shears:
-        versions.append([prepared(ob, j, ("noshear",))["noshear"] for j, ob in enumerate(sets[s][i][0])])
-    mag = sets[(0.0, 0.0)][i][1]["mag"]
-    r = measure_versions(versions, mag, cfg, margin=10.0)
-    free = [measure_versions([v], mag, cfg)[0] for v in versions[5:]]
-    R = np.array([(r[1].e1 - r[2].e1), (r[3].e2 - r[4].e2)]) / (2 * delta)
-    A = np.array([(r[5].e1 - r[6].e1), (r[7].e2 - r[8].e2)]) / (2 * h)
-    A_free = np.array([(free[0].e1 - free[1].e1), (free[2].e2 - free[3].e2)]) / (2 * h)
-    return R, A, A_free, [x.fitclass for x in r + free]
+from shearfit.measure import as_config  # noqa: E402
+from shearfit.simulate.metacal_check import fixed_sample_responses, shear_sets  # noqa: E402
 
 
 def main(argv=None):
@@ -122,13 +69,12 @@ def main(argv=None):
         population = odd_population
     cfg = as_config(None)
     cfg = replace(cfg, e_grid_min=min(cfg.e_grid_min, metacal.E_GRID_MIN))
-    kw = dict(n_rotations=1, n_exposures=7, snr_range=(args.snr_min, args.snr_max),
+    kw = dict(n_exposures=7, snr_range=(args.snr_min, args.snr_max),
               mag_range=(args.mag_min, args.mag_max), stamp_size=48, add_noise=args.noisy, population=population)
     h = args.h
     t0 = time.perf_counter()
     twins = (False, True) if (args.noisy and args.antithetic) else (False,)
-    sets = {(s, tw): ring_set(args.n_galaxies, s, np.random.default_rng(args.seed), noise_sign=-1 if tw else 1, **kw)
-            for s in [(0.0, 0.0), (h, 0.0), (-h, 0.0), (0.0, h), (0.0, -h)] for tw in twins}
+    sets = {tw: shear_sets(args.n_galaxies, h, args.seed, noise_sign=-1 if tw else 1, **kw) for tw in twins}
     print(f"{args.n_galaxies} {'noisy' if args.noisy else 'noise-free'} galaxies"
           f"{' and their antithetic twins' if len(twins) > 1 else ''} ({args.population} population, SNR "
           f"{args.snr_min:g}-{args.snr_max:g}{'' if args.noisy else ' weights'}, mag {args.mag_min:g}-{args.mag_max:g}), "
@@ -140,12 +86,14 @@ def main(argv=None):
         metacal.WRAP_STAMPS, metacal.K_INTERPOLANT, metacal.PSF_K_INTERPOLANT = float(wrap), kint, pkint
         try:
             t0 = time.perf_counter()
-            rows = [[responses({s: v for (s, tw), v in sets.items() if tw == twin}, i, h, args.delta, cfg,
-                               args.seed, args.noisy, twin) for twin in twins] for i in range(args.n_galaxies)]
+            rows = [[fixed_sample_responses(sets[twin], i, h, args.delta, cfg, args.seed, args.noisy, twin,
+                                            free=args.noisy) for twin in twins] for i in range(args.n_galaxies)]
         finally:
             metacal.WRAP_STAMPS, metacal.K_INTERPOLANT, metacal.PSF_K_INTERPOLANT = saved
         # a galaxy (with its twin) counts where every fit of it measured a galaxy; twins averaged
-        ok = [np.mean([r[:3] for r in rs], axis=0) for rs in rows if all(c == 0 for r in rs for c in r[3])]
+        # (A_free is measured only with --noisy: A stands in for it, unprinted)
+        ok = [np.mean([(R, A, A if F is None else F) for R, A, F, _ in rs], axis=0)
+              for rs in rows if all(c == 0 for r in rs for c in r[3])]
         R, A, F = (np.array([o[k] for o in ok]) for k in range(3))
         label = variant + (" (shipped)" if variant == shipped else "")
         print(f"\n{label}: {len(ok)} of {len(rows)} galaxies measured ({time.perf_counter() - t0:.0f} s)")

@@ -41,9 +41,11 @@ made from other tables (the paper's population, say) is applied to them with ``-
 
 ``--antithetic`` also measures each object's antithetic twin (minus the noise): the terms odd in the
 noise cancel within a ring, which shrinks the errors on c several times; on m the twins gain less
-(the noise of the metacal response is largely even in the noise). ``--with-plain`` (with --metacal) also fits every object with plain lensfit,
-and ``--from-tables ... --plain`` reports those fits, so one run gives both sides of a comparison of
-metacal with the simulation calibration.
+(the noise of the metacal response is largely even in the noise).
+
+``--with-plain`` (with --metacal) also fits every object with plain lensfit, and ``--from-tables ...
+--plain`` reports those fits, so one run gives both sides of a comparison of metacal with the
+simulation calibration.
 """
 
 from __future__ import annotations

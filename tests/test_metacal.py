@@ -7,6 +7,7 @@ from astropy.table import Table
 import shearfit
 from shearfit.errors import FITCLASS_GALAXY
 from shearfit.metacal import ensemble_response, measure_metacal, metacal_observations, metacal_shear
+from shearfit.simulate.metacal_check import QuietNormal
 from shearfit.simulate.stamps import draw_psf_image, draw_stamp, galaxy_profile, moffat_psf, noise_for_snr
 
 PIX = 0.187
@@ -324,23 +325,13 @@ def test_a_version_reuses_the_modes_of_the_first():
     assert not np.array_equal(fresh.data_ft, prepare_exposure(a, cfg).data_ft)
 
 
-class _Quiet:
-    """A generator whose normal deviates are scaled by 1e-9: the symmetrising noise out of the way."""
-
-    def __init__(self, seed):
-        self.rng = np.random.default_rng(seed)
-
-    def normal(self, loc, scale, size):
-        return 1e-9 * self.rng.normal(loc, scale, size)
-
-
 def _versions_with(monkeypatch, obs, rng_seed, quiet, **settings):
     from shearfit import metacal
 
     with monkeypatch.context() as m:
         for name, value in settings.items():
             m.setattr(metacal, name, value)
-        rng = _Quiet(rng_seed) if quiet else np.random.default_rng(rng_seed)
+        rng = QuietNormal(rng_seed) if quiet else np.random.default_rng(rng_seed)
         return metacal_observations(obs, rng=rng)
 
 
@@ -368,38 +359,27 @@ def test_versions_of_a_noise_free_galaxy_keep_to_galsims_grid(monkeypatch, J):
 
 def _fixed_sample_responses(monkeypatch, n_gal, seed, **settings):
     """Per noise-free galaxy: metacal's diagonal R and the true shear response A of the noshear fit (GalSim
-    renders at +-h), every fit replaying the unsheared noshear fit's choices (as
-    benchmarks/metacal_noise_free.py)."""
+    renders at +-h), every fit replaying the unsheared noshear fit's choices
+    (:func:`shearfit.simulate.metacal_check.fixed_sample_responses`)."""
     from dataclasses import replace
 
     from shearfit import metacal
-    from shearfit.measure import as_config, measure_versions
-    from shearfit.simulate import ring_set
+    from shearfit.measure import as_config
+    from shearfit.simulate.metacal_check import fixed_sample_responses, shear_sets
 
     h = 0.01
-    kw = dict(n_rotations=1, n_exposures=2, snr_range=(15, 30), mag_range=(22, 24), stamp_size=48, add_noise=False)
-    shears = [(0.0, 0.0), (h, 0.0), (-h, 0.0), (0.0, h), (0.0, -h)]
-    sets = {s: ring_set(n_gal, s, np.random.default_rng(seed), **kw) for s in shears}
+    sets = shear_sets(n_gal, h, seed, n_exposures=2, snr_range=(15, 30), mag_range=(22, 24), stamp_size=48,
+                      add_noise=False)
     cfg = replace(as_config(None), e_grid_min=metacal.E_GRID_MIN)
-
-    def quiet(v):
-        return shearfit.Observation(image=v.image, weight=v.weight * 1e-18, psf=v.psf, jacobian=v.jacobian,
-                                    offset=v.offset, psf_moffat=v.psf_moffat)
-
     out = []
     with monkeypatch.context() as m:
         for name, value in settings.items():
             m.setattr(metacal, name, value)
         for i in range(n_gal):
-            per = [metacal_observations(ob, rng=_Quiet(3)) for ob in sets[(0.0, 0.0)][i][0]]
-            versions = [[quiet(d[v]) for d in per] for v in metacal.VERSIONS]
-            for s in shears[1:]:
-                versions.append([quiet(metacal_observations(ob, rng=_Quiet(3), versions=("noshear",))["noshear"])
-                                 for ob in sets[s][i][0]])
-            r = measure_versions(versions, sets[(0.0, 0.0)][i][1]["mag"], cfg, margin=10.0)
-            assert all(x.fitclass == FITCLASS_GALAXY for x in r)
-            out.append(([r[1].e1 - r[2].e1, r[3].e2 - r[4].e2], [r[5].e1 - r[6].e1, r[7].e2 - r[8].e2]))
-    d = np.array(out) / (2 * h)
+            R, A, _, fitclasses = fixed_sample_responses(sets, i, h, 0.01, cfg, 3, free=False)
+            assert all(c == FITCLASS_GALAXY for c in fitclasses)
+            out.append((R, A))
+    d = np.array(out)
     return d[:, 0], d[:, 1]
 
 

@@ -65,7 +65,7 @@ _EDGE = 3
 WRAP_STAMPS = 4 / 3
 #: GalSim's k-interpolants of the interpolated stamp (and its noise) and of the PSF. Its default quintic for
 #: both: the cubic's interpolation errors are anisotropic enough to bias the response to shears along the
-#: pixel diagonals (m2 = +2.6e-3 with a cubic stamp, +2e-4 with a cubic PSF alone, on noise-free galaxies:
+#: pixel diagonals (m2 = +2.6e-3 with a cubic stamp, about 2e-4 with a cubic PSF alone, on noise-free galaxies:
 #: ``benchmarks/metacal_noise_free.py --variants``).
 K_INTERPOLANT = "quintic"
 PSF_K_INTERPOLANT = "quintic"
@@ -153,8 +153,9 @@ class _Drawer:
         self._grids = {}
 
     def _grid(self, product):
-        """The FFT size GalSim's drawFFT picks for this product (from its stepk and maxk), the k image's
-        size before folding, and dk; asked of GalSim once per distinct (stepk, maxk)."""
+        """The FFT size for this product (GalSim's drawFFT's, from its stepk and maxk, or ``fft_size`` where
+        that is smaller), the k image's size before folding, and dk; asked of GalSim once per distinct
+        (stepk, maxk)."""
         conv = galsim.Convolution(product)
         key = (conv.stepk, conv.maxk)   # the sky frame's: the image frame's follow from them through the WCS
         if key not in self._grids:
@@ -235,17 +236,18 @@ def metacal_observations(obs: Observation, delta=0.01, rng=None, versions=tuple(
     gal = _interpolated(image, wcs, k_interpolant=K_INTERPOLANT)
     psf = _interpolated(obs.psf, pwcs, calculate_maxk=True, k_interpolant=PSF_K_INTERPOLANT)
     inv_psf = galsim.Deconvolve(psf)
-    new_psf = psf.dilate(1.0 + 2.0 * abs(delta))
+    dilation = 1.0 + 2.0 * abs(delta)
+    new_psf = psf.dilate(dilation)
     # its image: a dilation commutes with the Jacobian, so it is drawn in the PSF's own pixel frame, where
     # GalSim interpolates separably (through a general Jacobian, 25 times slower; the same pixels)
-    psf_img = _draw(_interpolated(obs.psf, _PIXEL).dilate(1.0 + 2.0 * abs(delta)), obs.psf.shape, _PIXEL)
+    psf_img = _draw(_interpolated(obs.psf, _PIXEL).dilate(dilation), obs.psf.shape, _PIXEL)
     psf_img /= psf_img.sum()
     # the App. A Moffat of the new PSF: the exposure's own, dilated the same way (so objects sharing an
     # exposure's Moffat share its alias tables); fitted to the new PSF only when none was given
     if k != 1:
         moffat = None
     elif obs.psf_moffat is not None:
-        moffat = (float(obs.psf_moffat[0]) * (1.0 + 2.0 * abs(delta)), float(obs.psf_moffat[1]))
+        moffat = (float(obs.psf_moffat[0]) * dilation, float(obs.psf_moffat[1]))
     else:
         moffat = psf_moffat(psf_img)
     # the symmetrising noise: the stamp's variance, rotated by 90 degrees before the operations
