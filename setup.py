@@ -25,7 +25,7 @@ class OptionalBuildExt(build_ext):
 
 setup(
     # -fno-trapping-math: loops holding float-to-integer conversions and selects vectorise (the binning's)
-    ext_modules=[Extension("shearfit._kernels", ["src/shearfit/_kernels.c"],
+    ext_modules=[Extension("shearfit.engine._kernels", ["src/shearfit/engine/_kernels.c"],
                            extra_compile_args=["-O3", "-fno-math-errno", "-fno-trapping-math"], libraries=["m"])],
     cmdclass={"build_ext": OptionalBuildExt},
 )

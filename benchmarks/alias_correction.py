@@ -20,7 +20,7 @@ from __future__ import annotations
 import numpy as np
 
 import shearfit
-from shearfit.model import psf_moffat
+from shearfit.engine.model import psf_moffat
 from shearfit.simulate.stamps import draw_psf_image, draw_stamp, galaxy_profile, moffat_psf
 
 PIX = 0.187

@@ -33,9 +33,9 @@ from concurrent.futures import ProcessPoolExecutor
 
 import numpy as np
 
-from shearfit.calibrate import (PAPER_ALPHA, PAPER_BETA, CalibrationModel, calibrate, calibrated_bias,
+from shearfit.calib.calibrate import (PAPER_ALPHA, PAPER_BETA, CalibrationModel, calibrate, calibrated_bias,
                                 plot_calibration, quantity_bins, stack_matched, weight_bins, write_calibration)
-from shearfit.cli import main as cli_main
+from shearfit.app.cli import main as cli_main
 from shearfit.simulate.field import simulate_missing
 
 GREAT = dict(preset="small", ccd_nx=1024, ccd_ny=1024, grid_spacing=48.0, star_density=1.5)

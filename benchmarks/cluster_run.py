@@ -42,7 +42,7 @@ from shearfit.simulate.field import simulate_field, simulation_config
 
 
 # ``shearfit measure ARGS`` in a fresh interpreter
-MEASURE = [sys.executable, "-c", "import sys; from shearfit.cli import main; sys.exit(main(sys.argv[1:]))",
+MEASURE = [sys.executable, "-c", "import sys; from shearfit.app.cli import main; sys.exit(main(sys.argv[1:]))",
            "measure"]
 
 

@@ -42,9 +42,9 @@ import yaml
 from astropy.io import fits
 from astropy.table import Table
 
-from shearfit import priors
-from shearfit.cli import main as shearfit_main
-from shearfit.simulate.shear_bias import ring_sums, shear_bias
+from shearfit.engine import priors
+from shearfit.app.cli import main as shearfit_main
+from shearfit.calib.bias import ring_sums, shear_bias
 from shearfit.simulate.stamps import galaxy_profile
 
 PIX = 0.187

@@ -8,7 +8,7 @@ dilated PSF); the symmetrising noise is scaled down by 1e-9 and the weights scal
 see the noise level of the galaxy's target SNR on noise-free images (as ``ring_test.py --noise-free``).
 
 One joint fit chooses the samples (the noshear version of the unsheared stamps) and every other image is
-fitted with those choices replayed (:func:`shearfit.measure.measure_versions`): the metacal versions give
+fitted with those choices replayed (:func:`shearfit.engine.measure.measure_versions`): the metacal versions give
 ``R_ii = (e_i[i+] - e_i[i-]) / (2 delta)`` and the noshear images of the truly sheared galaxy give
 ``A_ii = (e_i[+h] - e_i[-h]) / (2 h)``. At fixed samples both are smooth in the pixels, so per galaxy they
 agree as closely as metacal's images reproduce a true shear; ``m = <A> / <R> - 1`` is the multiplicative
@@ -21,7 +21,7 @@ the ring tests of ``ring_test.py --metacal`` need a million objects).
 
 ``--variants`` compares image settings, each ``WRAP:STAMP_INTERPOLANT:PSF_INTERPOLANT``: the FFT grid in stamp
 widths (0: GalSim's own grid) and GalSim's k-interpolants of the stamp (and its noise) and of the PSF
-(``shearfit.metacal.WRAP_STAMPS``, ``K_INTERPOLANT``, ``PSF_K_INTERPOLANT``); the default is the shipped one.
+(``shearfit.calib.metacal.WRAP_STAMPS``, ``K_INTERPOLANT``, ``PSF_K_INTERPOLANT``); the default is the shipped one.
 """
 
 from __future__ import annotations
@@ -38,8 +38,8 @@ from dataclasses import replace  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-from shearfit import metacal  # noqa: E402
-from shearfit.measure import as_config  # noqa: E402
+from shearfit.calib import metacal  # noqa: E402
+from shearfit.engine.measure import as_config  # noqa: E402
 from shearfit.simulate.metacal_check import fixed_sample_responses, shear_sets  # noqa: E402
 
 

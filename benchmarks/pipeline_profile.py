@@ -28,8 +28,8 @@ import time  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-from shearfit.field.fieldconfig import load_field_config  # noqa: E402
-from shearfit.field.pipeline import measure_field  # noqa: E402
+from shearfit.io.fieldconfig import load_field_config  # noqa: E402
+from shearfit.pipeline.driver import measure_field  # noqa: E402
 from shearfit.simulate.field import simulate_field, simulation_config  # noqa: E402
 
 # (label, file suffix, function): cumulative time of each

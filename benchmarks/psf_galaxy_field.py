@@ -22,9 +22,9 @@ from astropy.io import fits
 from astropy.table import vstack
 
 from calibration_closure import measure   # the same resumable measure step (benchmarks/ is on sys.path)
-from shearfit.cli import main as cli_main
+from shearfit.app.cli import main as cli_main
 from shearfit.simulate.field import simulate_missing
-from shearfit.systematics import equal_number_edges, psf_galaxy_xcorr, read_catalogs
+from shearfit.stats.systematics import equal_number_edges, psf_galaxy_xcorr, read_catalogs
 
 
 def main(argv=None):

@@ -21,8 +21,8 @@ for _v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
     os.environ.setdefault(_v, "1")
 
 import shearfit  # noqa: E402
-from shearfit import priors  # noqa: E402
-from shearfit.simulate.shear_bias import ring_sums, shear_bias  # noqa: E402
+from shearfit.engine import priors  # noqa: E402
+from shearfit.calib.bias import ring_sums, shear_bias  # noqa: E402
 from shearfit.simulate.stamps import draw_psf_image, draw_stamp, galaxy_profile, moffat_psf, noise_for_snr  # noqa: E402
 
 PIX = 0.187

@@ -9,7 +9,7 @@ import sys
 import numpy as np
 from astropy.table import Table
 
-from shearfit.simulate.shear_bias import ring_sums, shear_bias
+from shearfit.calib.bias import ring_sums, shear_bias
 
 
 def main(path):

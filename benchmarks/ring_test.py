@@ -28,7 +28,7 @@ Noise bias across SNR::
     python benchmarks/ring_test.py --n-galaxies 2000 --snr-min 10 --snr-max 100 --out ring.fits
 
 Metacalibration (issue 8): every object measured in its five metacal versions; the shear of each sign
-is <R>^-1 <e> with the ensemble response (shear and selection, :mod:`shearfit.metacal`), no external
+is <R>^-1 <e> with the ensemble response (shear and selection, :mod:`shearfit.calib.metacal`), no external
 calibration. The symmetrising noise of an object is the same at +g and -g, so it cancels too::
 
     python benchmarks/ring_test.py --n-galaxies 400 --snr-min 10 --snr-max 40 --metacal
@@ -67,7 +67,7 @@ import numpy as np  # noqa: E402
 import shearfit  # noqa: E402
 from shearfit.simulate import ring_set  # noqa: E402
 from shearfit.simulate.stamps import NegatedNormal  # noqa: E402
-from shearfit.simulate.shear_bias import (format_with_error, galaxy_column, ring_sums, shear_bias,  # noqa: E402
+from shearfit.calib.bias import (format_with_error, galaxy_column, ring_sums, shear_bias,  # noqa: E402
                                           shear_bias_by_snr)
 
 # m(SNR) is printed when snr_max / snr_min exceeds this: a narrower range has no noise-bias trend to see.
@@ -120,7 +120,7 @@ def _work(task):
             for name in RESULT_FIELDS + (METACAL_FIELDS if metacal else ()):
                 rec[name] = np.nan
             if measure is not None and metacal:
-                from shearfit.metacal import SHEARED, measure_metacal
+                from shearfit.calib.metacal import SHEARED, measure_metacal
 
                 t0 = time.perf_counter()
                 mrng = np.random.default_rng([int(seed.generate_state(1)[0]), truth["rotation"]])
@@ -173,7 +173,7 @@ def _get_measure_object():
 def odd_population(mags, rng, cfg):
     """A population unlike the priors (issue 8): sizes doubled, a third of the galaxies single Sersic n = 2.5
     profiles, ellipticities Gaussian with an rms |e| of 0.3 (redrawn above 0.9)."""
-    from shearfit.priors import sample_population
+    from shearfit.engine.priors import sample_population
 
     rec = sample_population(mags, rng, cfg)
     pop = {k: np.array(rec[k], copy=True) for k in rec.dtype.names}
@@ -204,7 +204,7 @@ def report_bias(tab, args, n_gal):
     print(f"  m1 = {format_with_error(est[0], err[0])}    c1 = {format_with_error(est[2], err[2])}")
     print(f"  m2 = {format_with_error(est[1], err[1])}    c2 = {format_with_error(est[3], err[3])}")
     # the simulation calibration of the paper (or a calibration file): m(nu, r) of the measured galaxies
-    from shearfit.calibrate import PAPER_ALPHA, PAPER_BETA, as_model
+    from shearfit.calib.calibrate import PAPER_ALPHA, PAPER_BETA, as_model
 
     model = as_model(args.calibration if args.calibration else (PAPER_ALPHA, PAPER_BETA))
     good = tab["fitclass"] == 0
@@ -248,7 +248,7 @@ def report_metacal(tab, args, n_gal):
     """m and c of the metacal shear <R>^-1 <e> per sign (shear and selection response), bootstrap errors."""
     from astropy.table import Table
 
-    from shearfit.metacal import ensemble_response
+    from shearfit.calib.metacal import ensemble_response
 
     g = np.array(args.shear, dtype=float)
     cols = ["e1", "e2", "weight", "fitclass"] + list(METACAL_FIELDS)

@@ -5,7 +5,7 @@ Simulates one field (preset ``cfhtlens`` by default: 4 CCDs of 2048 x 4096, 7 di
 own Moffat PSFs, stars at a survey's density, the paper's galaxy population in 90-degree pairs) whose shear
 is a Gaussian E-mode field from ``galsim.PowerSpectrum`` (P(k) ~ k^-1.5, scaled to ``--shear-rms`` per
 component), measures it with ``shearfit measure`` (PSF models fitted from the field's stars unless
-``--psf true``), and computes with ``shearfit.twopoint.xipm`` (TreeCorr) the measured xi+ and xi-, calibrated
+``--psf true``), and computes with ``shearfit.stats.twopoint.xipm`` (TreeCorr) the measured xi+ and xi-, calibrated
 by 1 + K from ``--calibration`` (a ``shearfit calibrate`` file; the paper's default alpha, beta without it).
 
 The input's xi+- is TreeCorr's of the true reduced shear at the same galaxies with the same weights, so the
@@ -33,7 +33,7 @@ from astropy.table import Table, join
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from calibration_closure import measure   # noqa: E402  the resumable measure step
 from shearfit.simulate.field import simulate_missing   # noqa: E402
-from shearfit.twopoint import measured, xipm   # noqa: E402
+from shearfit.stats.twopoint import measured, xipm   # noqa: E402
 
 
 def input_and_measured(shear_path, truth_path):

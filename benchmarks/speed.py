@@ -32,8 +32,8 @@ import time  # noqa: E402
 import numpy as np  # noqa: E402
 
 import shearfit  # noqa: E402
-from shearfit import likelihood  # noqa: E402
-from shearfit.model import psf_moffat  # noqa: E402
+from shearfit.engine import likelihood  # noqa: E402
+from shearfit.engine.model import psf_moffat  # noqa: E402
 from shearfit.observation import Observation  # noqa: E402
 from shearfit.simulate.stamps import ring_set  # noqa: E402
 
@@ -89,7 +89,7 @@ def metacal_report(objs, cfg, passes):
     after the other, galaxy by galaxy, so that the three see the same machine (whose speed drifts by
     10-30 %% from minute to minute here); the ratio is taken per pass and its median reported.
     """
-    from shearfit.metacal import measure_metacal, metacal_observations
+    from shearfit.calib.metacal import measure_metacal, metacal_observations
 
     rng = np.random.default_rng(0)
     rows = []
@@ -125,7 +125,7 @@ def metacal_image_profile(objs):
     along the diagonals, or any shear on a rotated pixel grid: evaluated point by point), per k point."""
     import galsim
 
-    from shearfit.metacal import metacal_observations
+    from shearfit.calib.metacal import metacal_observations
 
     orig = galsim.InterpolatedImage._drawKImage
     acc = {}

@@ -5,9 +5,9 @@ import pytest
 import yaml
 from astropy.table import Table
 
-from shearfit.calibrate import (CalibrationModel, bin_indices, calibrate, calibrated_bias, calibration_m,
+from shearfit.calib.calibrate import (CalibrationModel, bin_indices, calibrate, calibrated_bias, calibration_m,
                                 load_calibration, matched_galaxies, read_calibration, write_calibration)
-from shearfit.cli import main
+from shearfit.app.cli import main
 from shearfit.errors import ShearfitIOError, ShearfitValueError
 
 ALPHA, BETA = 0.08, -0.6

@@ -3,7 +3,7 @@
 import pytest
 
 from shearfit import __version__
-from shearfit.cli import main
+from shearfit.app.cli import main
 
 
 def test_version(capsys):

@@ -1,4 +1,4 @@
-"""The ring-test statistics (shearfit.simulate.shear_bias) and the demo (shearfit.demo)."""
+"""The ring-test statistics (shearfit.calib.bias) and the demo (shearfit.app.demo_stamps)."""
 
 import math
 
@@ -8,7 +8,7 @@ import yaml
 from astropy.table import Table
 
 from shearfit.errors import ShearfitValueError
-from shearfit.simulate.shear_bias import (bias_from_sums, format_with_error, galaxy_column, mean_shear,
+from shearfit.calib.bias import (bias_from_sums, format_with_error, galaxy_column, mean_shear,
                                           ring_sums, shear_bias, shear_bias_by_snr)
 
 G = np.array([0.03, -0.02])
@@ -149,7 +149,7 @@ def test_format_with_error():
 # --------------------------------------------------------------------------- demo
 
 def test_run_demo_small(tmp_path):
-    from shearfit.demo import OBJECTS_FILE, SUMMARY_FILE, run_demo
+    from shearfit.app.demo_stamps import OBJECTS_FILE, SUMMARY_FILE, run_demo
 
     # 3 galaxies x 4 orientations x 2 shears = 24 objects on 3 exposures at high SNR: about 10 s
     # at the engine's speed of this writing (0.3 - 0.6 s per object). Two galaxies or two
@@ -195,7 +195,7 @@ def test_run_demo_small(tmp_path):
 
 
 def test_run_demo_rejects_bad_input():
-    from shearfit.demo import run_demo
+    from shearfit.app.demo_stamps import run_demo
 
     with pytest.raises(ShearfitValueError):
         run_demo(n_galaxies=0, quiet=True)

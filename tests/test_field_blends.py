@@ -18,7 +18,7 @@ galsim = pytest.importorskip("galsim")
 
 from shearfit.errors import (FITCLASS_BLENDED, FITCLASS_CENTROID, FITCLASS_GALAXY,  # noqa: E402
                              ShearfitValueError)
-from shearfit.field.blends import (_deblend, _significant_maxima, analyse_stamps, smooth_coadd,  # noqa: E402
+from shearfit.pipeline.blends import (_deblend, _significant_maxima, analyse_stamps, smooth_coadd,  # noqa: E402
                                    smoothing_kernel)
 
 PIX = 0.187  # arcsec per pixel (MegaCam)
@@ -402,7 +402,7 @@ def test_false_blend_rate_on_population():
     # priors) at S/N 10-50. With the default min_contrast = 2, 7 and 8 of 1000 were flagged in
     # development; a limit of 3 % (6 of 200) is exceeded by a true rate of 0.7 % with
     # probability 6e-4.
-    from shearfit.priors import sample_population
+    from shearfit.engine.priors import sample_population
     from shearfit.simulate.stamps import galaxy_profile
 
     rng = np.random.default_rng(2024)
@@ -437,8 +437,8 @@ def test_rotated_and_flipped_exposures_get_the_neighbour_masked_too(seed):
     where it lies on that exposure's own pixels, the galaxy must not be, and a bad column through
     the galaxy drops only the exposure that has it.
     """
-    from shearfit.field.fieldconfig import PipelineConfig
-    from shearfit.field.pipeline import _isophote_analysis
+    from shearfit.io.fieldconfig import PipelineConfig
+    from shearfit.pipeline.driver import _isophote_analysis
 
     rng = np.random.default_rng(seed)
     nb_sky = np.array([14.0, -14.0]) * PIX            # arcsec (u, v) from the galaxy: 20 pixels

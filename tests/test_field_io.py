@@ -16,10 +16,10 @@ from astropy.table import Table
 from shearfit.config import FitConfig
 from shearfit.errors import (FITCLASS_FIT_FAILED, FITCLASS_OFF_EXPOSURES, ShearfitError, ShearfitIOError,
                              ShearfitKeyError, ShearfitValueError)
-from shearfit.field.fieldconfig import (FieldConfig, PipelineConfig, field_config_from_mapping,
+from shearfit.io.fieldconfig import (FieldConfig, PipelineConfig, field_config_from_mapping,
                                         load_field_config)
-from shearfit.field.stamps import cut_stamp
-from shearfit.field.io import (COMMON_ZEROPOINT, attach_pixels, detached, empty_output_table, empty_result_row,
+from shearfit.io.stamps import cut_stamp
+from shearfit.io.fits import (COMMON_ZEROPOINT, attach_pixels, detached, empty_output_table, empty_result_row,
                                estimate_noise,
                                output_columns, photometric_scale, provenance_cards, read_catalog,
                                read_exposure, write_catalog_atomic)
@@ -341,7 +341,7 @@ def test_read_exposure_primary_hdu_and_inherited_keywords(tmp_path):
 def test_read_exposure_without_weight_estimates_constant_noise(tmp_path, caplog):
     sigma = 2.0
     image_path, _, images = two_ccd_exposure(tmp_path, shape=(200, 150), sigma=sigma, with_weight=False)
-    with caplog.at_level(logging.INFO, logger="shearfit.field.io"):
+    with caplog.at_level(logging.INFO, logger="shearfit.io.fits"):
         ccds = read_exposure(image_path)
     assert any("no weight file" in r.getMessage() and image_path in r.getMessage() for r in caplog.records)
     for ccd in ccds:
@@ -364,7 +364,7 @@ def test_nan_pixels_get_zero_weight(tmp_path, caplog):
     with fits.open(image_path, mode="update") as h:
         h[2].data[5, 7] = np.nan
         h[2].data[6, 7] = np.inf
-    with caplog.at_level(logging.WARNING, logger="shearfit.field.io"):
+    with caplog.at_level(logging.WARNING, logger="shearfit.io.fits"):
         ccds = read_exposure(image_path, weight_path)
     assert ccds[0].n_bad_pixels == 0 and ccds[1].n_bad_pixels == 2
     msgs = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]

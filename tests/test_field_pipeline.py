@@ -15,7 +15,7 @@ from astropy.table import Table
 
 galsim = pytest.importorskip("galsim")
 
-from shearfit.cli import main  # noqa: E402
+from shearfit.app.cli import main  # noqa: E402
 from shearfit.simulate.stamps import galaxy_profile, moffat_psf  # noqa: E402
 
 PIX = 0.187
@@ -100,6 +100,8 @@ def test_measure_field_end_to_end(field, capsys):
     assert np.all(np.abs(good["psf_e1"] - 0.05) < 0.01) and np.all(np.abs(good["psf_e2"] + 0.03) < 0.01)
     hdr = fits.getheader(out, 1)
     assert "SFCONFIG" in hdr and "SFVERS" in hdr
+    from shearfit.engine.kernel import kernel_info
+    assert hdr["SFKERNEL"] == kernel_info()["path"] and hdr["SFISA"] == kernel_info()["isa"]
     # the same catalogue with two worker processes, bit for bit
     out2 = d / "shear_j2.fits"
     assert main(["measure", str(d / "field.yaml"), "--out", str(out2), "--quiet", "-j", "2"]) == 0
@@ -193,7 +195,7 @@ def test_blends_neighbours_and_masks(crowded):
 
 
 def test_measure_applies_a_given_calibration(field):
-    from shearfit.calibrate import calibration_m
+    from shearfit.calib.calibrate import calibration_m
 
     d, gals = field
     (d / "cal.yaml").write_text("alpha: 0.1\nbeta: -0.5\n")

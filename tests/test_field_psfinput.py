@@ -1,4 +1,4 @@
-"""Tests of shearfit.field.psfinput: given PSF images and PSFEx models.
+"""Tests of shearfit.io.psfinput: given PSF images and PSFEx models.
 
 The PSFEx reader is checked three ways: analytically (synthetic files whose
 basis planes are delta functions, so the image shows each polynomial term's
@@ -17,7 +17,7 @@ import galsim
 import galsim.des
 
 from shearfit.errors import ShearfitError, ShearfitIOError, ShearfitKeyError, ShearfitValueError
-from shearfit.field.psfinput import PSFExModel, is_psfex_file, read_psf_fits, resample_matrix
+from shearfit.io.psfinput import PSFExModel, is_psfex_file, read_psf_fits, resample_matrix
 
 REAL = Path(__file__).resolve().parents[2] / "shared" / "data" / "real"
 

@@ -6,8 +6,8 @@ from astropy.io import fits
 from astropy.wcs import WCS
 
 from shearfit.errors import ShearfitValueError
-from shearfit.field.io import read_exposure
-from shearfit.field.stamps import Stamp, cut_stamp, locate, locate_all
+from shearfit.io.fits import read_exposure
+from shearfit.io.stamps import Stamp, cut_stamp, locate, locate_all
 
 PIXEL_SCALE = 0.187 / 3600.0
 

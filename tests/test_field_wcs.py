@@ -1,4 +1,4 @@
-"""Tests of shearfit.field.wcs: the local Jacobian d(u, v)/d(x, y) from a WCS (sec. 6).
+"""Tests of shearfit.io.wcs: the local Jacobian d(u, v)/d(x, y) from a WCS (sec. 6).
 
 Two independent references:
 
@@ -25,7 +25,7 @@ from astropy.wcs import WCS
 import galsim
 
 from shearfit.errors import ShearfitValueError
-from shearfit.field.wcs import (as_wcs, header_from_ldac, local_jacobian, pixel_to_sky,
+from shearfit.io.wcs import (as_wcs, header_from_ldac, local_jacobian, pixel_to_sky,
                                 sky_to_pixel, tangent_plane_offsets)
 
 REAL = Path(__file__).resolve().parents[2] / "shared" / "data" / "real"

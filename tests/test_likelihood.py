@@ -9,9 +9,9 @@ import pytest
 from scipy import integrate, special
 
 from shearfit.config import FitConfig
-from shearfit.likelihood import (ModelSums, _disk_logp, _position_integral, flux_position_marginal,
+from shearfit.engine.likelihood import (ModelSums, _disk_logp, _position_integral, flux_position_marginal,
                                  log_erf_diff, log_ei_minus)
-from shearfit.sampling import lensing_weight
+from shearfit.engine.sampling import lensing_weight
 
 
 def _log_zb(cfg):
@@ -159,8 +159,8 @@ def test_size_spline_integral_against_quadrature(mag, peak, width):
     point source's value at r = 0, is sampled at the engine's nodes; the result must match
     the direct integral of L(r) p(r) over r in [0, inf).
     """
-    from shearfit import priors
-    from shearfit.sampling import EllipticityLikelihood
+    from shearfit.engine import priors
+    from shearfit.engine.sampling import EllipticityLikelihood
 
     cfg = FitConfig()
 
@@ -218,13 +218,13 @@ def test_position_integral_bounded_where_the_curvature_vanishes():
 
 
 def test_interpolation_matrices_of_uniform_grids_are_shared():
-    """spline_matrix and _interp_matrix serve every uniform grid pair with as many points from one
+    """spline_matrix and interp_matrix serve every uniform grid pair with as many points from one
     matrix (a spline commutes with an affine map of its axis): applied to values on grids of other
     spans and offsets they give scipy's CubicSpline and numpy's interp there; a grid that is not
     uniform gets its own matrix."""
     from scipy.interpolate import CubicSpline
 
-    from shearfit.likelihood import _interp_matrix, spline_matrix
+    from shearfit.engine.likelihood import interp_matrix, spline_matrix
 
     rng = np.random.default_rng(4)
     for lo, hi in ((-1.3, 0.9), (-0.2, 4.0), (10.0, 10.5)):
@@ -234,7 +234,7 @@ def test_interpolation_matrices_of_uniform_grids_are_shared():
         ref = CubicSpline(x, v, axis=-1)(xf)
         assert np.max(np.abs(v @ spline_matrix(x, xf) - ref)) < 1e-12 * np.max(np.abs(ref))
         lin = np.array([np.interp(xf, x, row) for row in v])
-        assert np.max(np.abs(v @ _interp_matrix(x, xf) - lin)) < 1e-12 * np.max(np.abs(lin))
+        assert np.max(np.abs(v @ interp_matrix(x, xf) - lin)) < 1e-12 * np.max(np.abs(lin))
     x = np.array([0.0, 0.1, 0.3, 0.6, 1.0, 1.5, 2.1])
     xf = np.linspace(0.0, 2.1, 49)
     v = rng.normal(size=(2, 7))

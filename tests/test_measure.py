@@ -111,12 +111,12 @@ def test_no_usable_exposure():
 
 
 def test_kernel_matches_numpy():
-    from shearfit import likelihood
-    from shearfit.likelihood import join_exposures, model_sums
-    from shearfit.model import prepare_exposure
-    from shearfit.profiles import fast_pair
+    from shearfit.engine import likelihood
+    from shearfit.engine.likelihood import join_exposures, model_sums
+    from shearfit.engine.model import prepare_exposure
+    from shearfit.engine.profiles import fast_pair
 
-    if likelihood._kernels is None:
+    if likelihood.KERNEL is None:
         pytest.skip("compiled kernel not built")
     cfg = shearfit.FitConfig(alias_correction="moffat", mode_chi2_tolerance=0.0)
     obs = _observations(0.3, (0.2, 0.1), noise=True, snr=30)
@@ -138,9 +138,9 @@ def test_kernel_matches_numpy():
 def test_merged_exposures_give_each_exposures_sums():
     """Exposures with equal Jacobians sample the same K: join_exposures merges their modes (alias fold
     groups included), and the joint sums are the sums of each exposure alone, added up."""
-    from shearfit.likelihood import join_exposures, model_sums, shift_joint
-    from shearfit.model import prepare_exposure
-    from shearfit.profiles import fast_pair
+    from shearfit.engine.likelihood import join_exposures, model_sums, shift_joint
+    from shearfit.engine.model import prepare_exposure
+    from shearfit.engine.profiles import fast_pair
 
     cfg = shearfit.FitConfig(mode_chi2_tolerance=0.0)
     rot = PIX * np.array([[np.cos(0.3), -np.sin(0.3)], [np.sin(0.3), np.cos(0.3)]])
@@ -172,7 +172,7 @@ def test_fold_groups_are_those_of_the_sparse_product():
     from scipy import sparse
     from scipy.sparse.csgraph import connected_components
 
-    from shearfit.likelihood import _distinct_pairs, _fold_groups
+    from shearfit.engine.likelihood import _distinct_pairs, _fold_groups
 
     rng = np.random.default_rng(11)
     for trial in range(40):
@@ -220,9 +220,9 @@ def test_decoupled_fold_groups_stay_within_their_tolerance():
     """Dropping the weakest fold groups' cross terms (fold_tolerance) changes the quadratic sums of any model
     by at most the tolerance at the flux bound S of the noise-aware cut (the point source, R = 1 on every
     mode, included), leaves the linear sums as they were, and is replayed by decoupled=."""
-    from shearfit.likelihood import _mode_bounds, join_exposures, model_sums
-    from shearfit.model import prepare_exposure
-    from shearfit.profiles import fast_pair
+    from shearfit.engine.likelihood import _mode_bounds, join_exposures, model_sums
+    from shearfit.engine.model import prepare_exposure
+    from shearfit.engine.profiles import fast_pair
 
     cfg = shearfit.FitConfig()
     rng = np.random.default_rng(8)
@@ -252,7 +252,7 @@ def test_decoupled_fold_groups_stay_within_their_tolerance():
 def test_noise_variance_and_the_offset_phase_are_the_direct_ones():
     """The stamp's noise variance is 1 / np.median of the positive weights (odd and even counts), and the
     offset phase the Moffat path makes from one phase in kx and one in ky is exp(-i (kx dx + ky dy))."""
-    from shearfit.model import _fine_modes_moffat, noise_variance
+    from shearfit.engine.model import _fine_modes_moffat, noise_variance
 
     rng = np.random.default_rng(2)
     for n in (1, 2, 5, 6, 48 * 48):
@@ -273,7 +273,7 @@ def test_drop_threshold_is_the_sorted_sums_one():
     """The noise-aware cut's threshold from bucketed sums is the one of sorting every bound and summing in
     order (the largest value whose run of equal values keeps the sum within the tolerance), ties, zeros,
     bounds above the tolerance and nothing droppable included."""
-    from shearfit.likelihood import _drop_threshold
+    from shearfit.engine.likelihood import _drop_threshold
 
     def by_sorting(b, tol):
         v = np.sort(b[b <= tol])
@@ -309,7 +309,7 @@ def test_prepare_exposures_is_prepare_exposure_of_each():
     stamps of two shapes and a PSF oversampled."""
     from dataclasses import fields
 
-    from shearfit.model import prepare_exposure, prepare_exposures
+    from shearfit.engine.model import prepare_exposure, prepare_exposures
 
     cfg = shearfit.FitConfig()
     obs = _observations(0.3, (0.2, 0.1), n_exp=4, noise=True, snr=40, seed=2)
@@ -340,8 +340,8 @@ def test_joint_modes_with_other_data():
     equal the modes joined and shifted afresh from that version; a mismatch is refused."""
     from dataclasses import replace
 
-    from shearfit.likelihood import join_exposures, shift_joint
-    from shearfit.model import prepare_exposure
+    from shearfit.engine.likelihood import join_exposures, shift_joint
+    from shearfit.engine.model import prepare_exposure
 
     cfg = shearfit.FitConfig()
     obs = _observations(0.3, (0.2, 0.1), n_exp=3, noise=True, snr=40, seed=1)
@@ -367,10 +367,10 @@ def test_binned_modes_match_every_mode():
     without a bulge size ratio; the estimate moves by far less than its error. The reference evaluates
     every mode on a u grid 20 times finer than the default: the bins' log table (7e-7) is closer to the
     profiles' transforms than the default u grid (3e-6), so the binned sums are too."""
-    from shearfit import likelihood
-    from shearfit.likelihood import join_exposures, model_sums
-    from shearfit.model import prepare_exposure
-    from shearfit.profiles import FastRadial, de_vaucouleurs, exponential_disk, fast_pair
+    from shearfit.engine import likelihood
+    from shearfit.engine.likelihood import join_exposures, model_sums
+    from shearfit.engine.model import prepare_exposure
+    from shearfit.engine.profiles import FastRadial, de_vaucouleurs, exponential_disk, fast_pair
 
     if not likelihood.USE_KERNEL:
         pytest.skip("compiled kernel not built")
@@ -409,10 +409,11 @@ def test_mode_bins_do_not_depend_on_the_modes_order():
     the binning orders the modes by K cells so that these follow each other, and the kernel sums runs of
     modes with the same bins in registers. The bins are those of any other order of the modes (to rounding),
     and the binned sums those of every mode to the binning's accuracy."""
-    from shearfit import likelihood
-    from shearfit.likelihood import _kernels, _packed_bins, join_exposures, mode_bins, model_sums
-    from shearfit.model import prepare_exposure, shape_matrix
-    from shearfit.profiles import fast_pair
+    from shearfit.engine import likelihood
+    from shearfit.engine.kernel import KERNEL
+    from shearfit.engine.likelihood import _packed_bins, join_exposures, mode_bins, model_sums
+    from shearfit.engine.model import prepare_exposure, shape_matrix
+    from shearfit.engine.profiles import fast_pair
 
     if not likelihood.USE_KERNEL:
         pytest.skip("compiled kernel not built")
@@ -424,9 +425,9 @@ def test_mode_bins_do_not_depend_on_the_modes_order():
     b3, c8 = _packed_bins(jm)
     e1, e2 = rng.uniform(-0.7, 0.7, (2, 30))
     shape = np.ascontiguousarray(np.stack(shape_matrix(e1, e2), axis=1))
-    ordered = _kernels.make_bins(shape, b3, c8, 16)
+    ordered = KERNEL.make_bins(shape, b3, c8, 16)
     perm = rng.permutation(b3.shape[0])
-    shuffled = _kernels.make_bins(shape, np.ascontiguousarray(b3[perm]), np.ascontiguousarray(c8[perm]), 16)
+    shuffled = KERNEL.make_bins(shape, np.ascontiguousarray(b3[perm]), np.ascontiguousarray(c8[perm]), 16)
     for a, b in zip(ordered[:2], shuffled[:2]):
         assert a == b                                   # the same bins for every ellipticity
     ca, cb = np.frombuffer(ordered[2]), np.frombuffer(shuffled[2])
@@ -450,7 +451,7 @@ def test_log_table_is_the_profiles_transform():
     """FastRadial.log_table: its phase rows, read as the kernel reads them (two rows, one fraction), give
     the profiles' transforms within 7e-7 over log2(rho^2) from -30 to the table's end, 0 beyond it, and
     the flat value below its start."""
-    from shearfit.profiles import fast_pair
+    from shearfit.engine.profiles import fast_pair
 
     fast = fast_pair()
     for nb in (3, 16):
@@ -479,10 +480,10 @@ def test_log_table_is_the_profiles_transform():
 def test_compiled_marginal_matches_numpy():
     """The compiled marginalisation over B, position and flux gives the numpy reference's numbers, with
     and without the position prior's bounds, for models from point-like to large and very elliptical."""
-    from shearfit import likelihood
-    from shearfit.likelihood import flux_position_marginal, join_exposures, model_sums
-    from shearfit.model import prepare_exposure
-    from shearfit.profiles import fast_pair
+    from shearfit.engine import likelihood
+    from shearfit.engine.likelihood import flux_position_marginal, join_exposures, model_sums
+    from shearfit.engine.model import prepare_exposure
+    from shearfit.engine.profiles import fast_pair
 
     if not likelihood.USE_KERNEL_MARGINAL:
         pytest.skip("compiled kernel not built")
@@ -509,8 +510,8 @@ def test_compiled_marginal_matches_numpy_in_the_bulge_fraction_tails():
     """Data whose bulge fraction lies far outside [0, 1] put the B integral's erf arguments deep in both
     tails, where erfc(u) would underflow (u > 25, the kernel's erfcx branch), and in the middle: the
     compiled marginalisation still gives the numpy reference's numbers."""
-    from shearfit import likelihood
-    from shearfit.likelihood import ModelSums, flux_position_marginal
+    from shearfit.engine import likelihood
+    from shearfit.engine.likelihood import ModelSums, flux_position_marginal
 
     if not likelihood.USE_KERNEL_MARGINAL:
         pytest.skip("compiled kernel not built")
@@ -553,11 +554,11 @@ def test_compiled_marginal_matches_numpy_in_the_bulge_fraction_tails():
 def test_compiled_size_marginal_matches_numpy():
     """The compiled size integral (spline over ln r, the segment down to the point source, posterior means,
     the populations mixed) gives the numpy path's numbers, non-finite nodes included."""
-    from shearfit import likelihood
-    from shearfit.likelihood import join_exposures
-    from shearfit.model import prepare_exposure
-    from shearfit.profiles import fast_pair
-    from shearfit.sampling import EllipticityLikelihood
+    from shearfit.engine import likelihood
+    from shearfit.engine.likelihood import join_exposures
+    from shearfit.engine.model import prepare_exposure
+    from shearfit.engine.profiles import fast_pair
+    from shearfit.engine.sampling import EllipticityLikelihood
 
     if not likelihood.USE_KERNEL:
         pytest.skip("compiled kernel not built")

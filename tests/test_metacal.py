@@ -6,7 +6,7 @@ from astropy.table import Table
 
 import shearfit
 from shearfit.errors import FITCLASS_GALAXY
-from shearfit.metacal import ensemble_response, measure_metacal, metacal_observations, metacal_shear
+from shearfit.calib.metacal import ensemble_response, measure_metacal, metacal_observations, metacal_shear
 from shearfit.simulate.metacal_check import QuietNormal
 from shearfit.simulate.stamps import draw_psf_image, draw_stamp, galaxy_profile, moffat_psf, noise_for_snr
 
@@ -163,7 +163,7 @@ def test_ensemble_response_and_selection_response():
 
 
 def test_pipeline_metacal_columns(tmp_path):
-    from shearfit.cli import main
+    from shearfit.app.cli import main
     from shearfit.simulate.field import simulate_field, simulation_config
 
     d = tmp_path / "f"
@@ -189,8 +189,8 @@ def test_pipeline_metacal_columns(tmp_path):
 def test_xipm_and_calibrate_read_a_metacal_catalogue(tmp_path):
     from astropy.io import fits
 
-    from shearfit.calibrate import matched_galaxies
-    from shearfit.cli import main
+    from shearfit.calib.calibrate import matched_galaxies
+    from shearfit.app.cli import main
 
     rng = np.random.default_rng(4)
     t, R_true, g = _table(2000, rng)
@@ -224,7 +224,7 @@ def test_non_square_stamp_is_processed_with_a_warning(caplog):
     psf = draw_psf_image(moffat_psf(0.7, 3.0), J, size=25)
     o = shearfit.Observation(image=np.random.default_rng(0).normal(0, 1, (40, 48)), weight=np.ones((40, 48)),
                              psf=psf, jacobian=J)
-    with caplog.at_level("WARNING", logger="shearfit.metacal"):
+    with caplog.at_level("WARNING", logger="shearfit.calib.metacal"):
         v = metacal_observations(o, rng=np.random.default_rng(1), versions=("noshear", "1p"))
     assert set(v) == {"noshear", "1p"} and v["1p"].image.shape == (40, 48)
     assert "not square" in caplog.text
@@ -234,7 +234,7 @@ def test_new_psf_moffat_is_the_exposures_dilated():
     """A given App. A Moffat is dilated with the PSF (shared alias tables), and matches a fit to the new PSF."""
     import galsim
 
-    from shearfit.model import psf_moffat
+    from shearfit.engine.model import psf_moffat
     from shearfit.observation import Observation
 
     psf = galsim.Moffat(beta=3.0, fwhm=0.45 / 0.187).shear(g1=0.05)
@@ -262,7 +262,7 @@ def test_a_replayed_fit_of_the_same_stamps_is_the_fit_itself(sampling):
     measure_object gives when every reference sample is evaluated again, and the same to rounding when only
     those near the cut are (they are then evaluated in other batches, and a few samples' posterior means can
     differ by one unit in the last place with their position in a batch: 3 of 304 on this object)."""
-    from shearfit.measure import measure_versions
+    from shearfit.engine.measure import measure_versions
 
     obs = _obs(0.3, (0.2, 0.1), snr=20, seed=4)
     cfg = {"sampling": sampling}
@@ -283,7 +283,7 @@ def test_replayed_versions_follow_a_small_shear_linearly():
     """A galaxy drawn by GalSim at shears +-d with the same noise, the unsheared version the reference:
     the replayed estimates respond to the shear, and (e1(+d) - e1(-d)) / 2d is the same for d = 0.01 and
     0.005 to second order in d (a jump of one sample's weight would differ by far more between them)."""
-    from shearfit.measure import measure_versions
+    from shearfit.engine.measure import measure_versions
 
     for seed in range(3):
         R = []
@@ -298,7 +298,7 @@ def test_replayed_versions_follow_a_small_shear_linearly():
 
 def test_replay_needs_the_same_psfs():
     from shearfit.errors import ShearfitValueError
-    from shearfit.measure import measure_versions
+    from shearfit.engine.measure import measure_versions
 
     obs = _obs(0.3, (0.2, 0.1), snr=20, seed=4)
     other = []
@@ -312,7 +312,7 @@ def test_replay_needs_the_same_psfs():
 
 def test_a_version_reuses_the_modes_of_the_first():
     """prepare_exposure(like=...) transforms only the pixels: the same ExposureModes as a fresh preparation."""
-    from shearfit.model import prepare_exposure
+    from shearfit.engine.model import prepare_exposure
 
     a = _obs(0.3, (0.2, 0.1), snr=20, seed=4)[0]
     b = _obs(0.3, (0.2, 0.1), snr=20, seed=4, g=(0.01, 0.0))[0]
@@ -326,7 +326,7 @@ def test_a_version_reuses_the_modes_of_the_first():
 
 
 def _versions_with(monkeypatch, obs, rng_seed, quiet, **settings):
-    from shearfit import metacal
+    from shearfit.calib import metacal
 
     with monkeypatch.context() as m:
         for name, value in settings.items():
@@ -363,8 +363,8 @@ def _fixed_sample_responses(monkeypatch, n_gal, seed, **settings):
     (:func:`shearfit.simulate.metacal_check.fixed_sample_responses`)."""
     from dataclasses import replace
 
-    from shearfit import metacal
-    from shearfit.measure import as_config
+    from shearfit.calib import metacal
+    from shearfit.engine.measure import as_config
     from shearfit.simulate.metacal_check import fixed_sample_responses, shear_sets
 
     h = 0.01
@@ -422,7 +422,7 @@ def test_batched_band_limited_draw_is_galsims_own(J, monkeypatch):
     rotated, sheared pixel grid."""
     import galsim
 
-    from shearfit import metacal
+    from shearfit.calib import metacal
 
     obs = _obs(0.3, (0.2, -0.1), snr=40, n_exp=1, seed=4, J=J)[0]
     seen = []
@@ -459,7 +459,7 @@ def test_drawer_folds_a_band_beyond_nyquist_as_galsim_does(fwhm, shape):
     images are GalSim's own, for sheared products on a rotated grid, on even, odd and oblong stamps."""
     import galsim
 
-    from shearfit import metacal
+    from shearfit.calib import metacal
 
     J = PIX * np.array([[0.3, -0.95], [0.94, 0.31]])
     wcs = metacal._wcs(J)
@@ -504,7 +504,7 @@ def test_new_psf_is_drawn_in_its_pixel_frame_as_through_the_jacobian(k):
     """The dilated PSF's image is drawn in the PSF's own pixel frame (a dilation commutes with the
     Jacobian; GalSim then interpolates separably): the same pixels as drawing the dilated PSF through a
     rotated, sheared Jacobian, to float32 rounding, natively and oversampled."""
-    from shearfit import metacal
+    from shearfit.calib import metacal
 
     J = PIX * np.array([[0.3, -0.95], [0.94, 0.31]])
     img = draw_psf_image(moffat_psf(0.7, 3.0, 0.05, -0.03), J, size=25 * k, oversampling=k)

@@ -22,7 +22,7 @@ import pytest
 galsim = pytest.importorskip("galsim")
 
 import shearfit  # noqa: E402
-from shearfit.model import psf_moffat, shape_matrix  # noqa: E402
+from shearfit.engine.model import psf_moffat, shape_matrix  # noqa: E402
 from shearfit.simulate.stamps import draw_psf_image, draw_stamp, galaxy_profile, moffat_psf  # noqa: E402
 
 PIX = 0.187
@@ -198,14 +198,14 @@ def test_psf_moffat_recovers_galsims_moffat(beta, rs, tol):
 def test_psf_moffat_of_a_gaussian_keeps_its_width(sigma):
     """A PSF with no Moffat wings (a Gaussian: beta -> infinity) gets beta at its bound and the size refitted
     for it: the Moffat's transform still follows the Gaussian's inside the band."""
-    from shearfit.model import _moffat_ft
+    from shearfit.engine.moffat import moffat_ft
 
     im = galsim.Convolve(galsim.Gaussian(sigma=sigma), galsim.Pixel(1.0)).drawImage(
         nx=48, ny=48, scale=1.0, method="no_pixel").array
     rs, beta = psf_moffat(im)
     assert beta == pytest.approx(21.0)
     k = np.linspace(0.0, 0.7 * np.pi, 50)
-    assert np.abs(_moffat_ft(k, rs, beta) - np.exp(-0.5 * (k * sigma) ** 2)).max() < 0.02
+    assert np.abs(moffat_ft(k, rs, beta) - np.exp(-0.5 * (k * sigma) ** 2)).max() < 0.02
 
 
 @pytest.mark.parametrize("rs", [0.3, 1.0, 3.0, 4.5, 8.0, 40.0])
@@ -213,10 +213,11 @@ def test_psf_moffat_of_a_gaussian_keeps_its_width(sigma):
 def test_moffat_table_is_the_exact_transform(rs, beta):
     """The alias tables' Moffat (exact near k = 0, a spline of its logarithm beyond, zero below 1e-30)
     is the Bessel-function transform to 1e-7, far below the error of the linear interpolation in the table."""
-    from shearfit.model import _alias_geometry, _moffat_ft, _moffat_table
+    from shearfit.engine.model import _alias_geometry, _moffat_table
+    from shearfit.engine.moffat import moffat_ft
 
     k = _alias_geometry(48, 48, 3)[0]
-    exact = _moffat_ft(k, rs, beta)
+    exact = moffat_ft(k, rs, beta)
     got = _moffat_table(k, rs, beta)
     assert np.abs(got - exact).max() < 1e-7
     assert np.all(got[exact < 1e-31] == 0.0)
@@ -225,7 +226,8 @@ def test_moffat_table_is_the_exact_transform(rs, beta):
 def test_own_moffat_is_remembered_by_the_psfs_contents():
     """Observations without a Moffat that share a PSF image fit it once; the remembered fit is the fresh
     one bit for bit, and a PSF differing in one pixel gets its own."""
-    from shearfit import model
+    from shearfit.engine import model
+    from shearfit.engine.moffat import fit_moffat
     from shearfit.config import FitConfig
 
     J = PIX * np.eye(2)
@@ -242,5 +244,5 @@ def test_own_moffat_is_remembered_by_the_psfs_contents():
                                                 jacobian=J), FitConfig())
     assert len(model._OWN_MOFFAT) == 2
     Ps = np.fft.rfft2(np.fft.ifftshift(other))
-    assert list(model._OWN_MOFFAT.values())[1] == model.fit_moffat(Ps, 2 * np.pi * np.fft.fftfreq(48),
+    assert list(model._OWN_MOFFAT.values())[1] == fit_moffat(Ps, 2 * np.pi * np.fft.fftfreq(48),
                                                                    2 * np.pi * np.fft.rfftfreq(48))

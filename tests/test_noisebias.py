@@ -6,8 +6,8 @@ from astropy.io import fits
 
 galsim = pytest.importorskip("galsim")
 
-from shearfit import noisebias as nb  # noqa: E402
-from shearfit.cli import main  # noqa: E402
+from shearfit.calib import noisebias as nb  # noqa: E402
+from shearfit.app.cli import main  # noqa: E402
 
 
 @pytest.mark.parametrize("e", [(0.3, 0.0), (0.1, -0.4), (0.0, 0.3), (-0.55, 0.2)])

@@ -1,4 +1,4 @@
-"""Tests of shearfit.priors against the paper's formulas (Miller et al. 2013, App. B).
+"""Tests of shearfit.engine.priors against the paper's formulas (Miller et al. 2013, App. B).
 
 The reference pdfs below are written out again from the paper, and every
 normalisation, CDF and moment is recomputed here by independent quadrature,
@@ -13,7 +13,7 @@ import pytest
 from scipy import integrate, special, stats
 from scipy.optimize import minimize_scalar
 
-from shearfit import priors
+from shearfit.engine import priors
 from shearfit.config import FitConfig
 from shearfit.errors import ShearfitValueError
 
@@ -326,7 +326,7 @@ def test_log_flux_prior():
 
 
 def test_nothing_computed_at_import():
-    code = ("import shearfit.priors as p; "
+    code = ("import shearfit.engine.priors as p; "
             "print(p._disk_norm.cache_info().currsize + p._bulge_norm.cache_info().currsize "
             "+ p._modulus_cdf_table.cache_info().currsize)")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)

@@ -1,4 +1,4 @@
-"""Tests of shearfit.profiles: truncated Sersic profiles and their tabulated Hankel transforms.
+"""Tests of shearfit.engine.profiles: truncated Sersic profiles and their tabulated Hankel transforms.
 
 R(k) = 2 pi int_0^T I(r) J0(k r) r dr / flux is checked against (a) the
 module's own slow quadrature, (b) an independent brute-force real-axis
@@ -13,7 +13,7 @@ from numpy.polynomial.legendre import leggauss
 from scipy import integrate, optimize, special
 
 from shearfit.errors import ShearfitValueError
-from shearfit.profiles import RadialProfile, de_vaucouleurs, exponential_disk, sersic
+from shearfit.engine.profiles import RadialProfile, de_vaucouleurs, exponential_disk, sersic
 
 T = 4.5
 B4 = special.gammaincinv(8, 0.5)  # 7.66925: r = 1 is the untruncated half-light radius

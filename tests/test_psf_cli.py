@@ -8,7 +8,7 @@ from astropy.table import Table
 
 galsim = pytest.importorskip("galsim")
 
-from shearfit.cli import main  # noqa: E402
+from shearfit.app.cli import main  # noqa: E402
 from shearfit.psf.build import read_psf_model  # noqa: E402
 
 PIX = 0.187

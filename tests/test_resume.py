@@ -12,8 +12,8 @@ from astropy.table import Table
 
 pytest.importorskip("galsim")
 
-from shearfit.cli import main  # noqa: E402
-from shearfit.field import pipeline  # noqa: E402
+from shearfit.app.cli import main  # noqa: E402
+from shearfit.pipeline import driver as pipeline  # noqa: E402
 from shearfit.simulate.field import simulate_field, simulation_config  # noqa: E402
 
 
@@ -59,7 +59,7 @@ def test_killed_run_resumes_to_the_same_catalogue(field, tmp_path, monkeypatch):
     d, cfg, ref = field
     out = tmp_path / "shear.fits"
     parts = str(out) + ".parts"
-    code = ("import sys; from shearfit.cli import main; "
+    code = ("import sys; from shearfit.app.cli import main; "
             f"sys.exit(main(['measure', {str(cfg)!r}, 'chunk_size=6', '--out', {str(out)!r}, '--quiet']))")
     proc = subprocess.Popen([sys.executable, "-c", code])
     t0 = time.time()

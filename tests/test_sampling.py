@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from shearfit.config import FitConfig
-from shearfit.sampling import EPoint, adaptive_samples, estimate, lensing_weight, two_pass_samples
+from shearfit.engine.sampling import EPoint, adaptive_samples, estimate, lensing_weight, two_pass_samples
 
 
 class Gaussian:

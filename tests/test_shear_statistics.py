@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 import shearfit
-from shearfit.simulate.shear_bias import ring_sums, shear_bias
+from shearfit.calib.bias import ring_sums, shear_bias
 from shearfit.simulate.stamps import ring_set
 
 G = np.array([0.03, -0.02])

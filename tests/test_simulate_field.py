@@ -7,7 +7,7 @@ from astropy.table import Table
 
 galsim = pytest.importorskip("galsim")
 
-from shearfit.cli import main  # noqa: E402
+from shearfit.app.cli import main  # noqa: E402
 from shearfit.errors import ShearfitValueError  # noqa: E402
 from shearfit.simulate.field import PRESETS, simulate_field, simulation_config  # noqa: E402
 
@@ -113,7 +113,7 @@ def test_field_demo_end_to_end(tmp_path):
     """The demo's whole chain (simulate +g/-g, PSF from stars, measure, match, m and c) on the tiny preset."""
     import io
 
-    from shearfit.demo_field import run_field_demo
+    from shearfit.app.demo import run_field_demo
 
     buf = io.StringIO()
     s = run_field_demo(out_dir=tmp_path / "demo", processes=2, preset="tiny", stream=buf)

@@ -5,9 +5,9 @@ import pytest
 from astropy.io import fits
 from astropy.table import Table
 
-from shearfit.cli import main
+from shearfit.app.cli import main
 from shearfit.errors import ShearfitIOError
-from shearfit.systematics import psf_galaxy_xcorr, read_catalogs, weight_bias
+from shearfit.stats.systematics import psf_galaxy_xcorr, read_catalogs, weight_bias
 
 
 def _catalog(n=20000, seed=0, leak=0.1, weight_bias_amp=0.0):

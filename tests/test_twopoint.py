@@ -9,10 +9,10 @@ from astropy.table import Table
 import galsim
 import treecorr
 
-from shearfit.calibrate import calibration_samples
-from shearfit.cli import main
+from shearfit.calib.calibrate import calibration_samples
+from shearfit.app.cli import main
 from shearfit.errors import ShearfitIOError, ShearfitValueError
-from shearfit.twopoint import parse_selection, read_shear_catalog, xipm
+from shearfit.stats.twopoint import parse_selection, read_shear_catalog, xipm
 
 RA0, DEC0 = 35.0, -4.0
 

@@ -1,19 +1,13 @@
 """shearfit: Bayesian bulge+disk shear measurement on individual exposures (lensfit)."""
 
-from importlib.metadata import PackageNotFoundError, version as _version
-
-try:
-    __version__ = _version("shearfit")
-except PackageNotFoundError:  # pragma: no cover - running from a source tree
-    __version__ = "0.0.0+unknown"
-
+from .version import __version__
 from .config import FitConfig, fit_config_from_mapping  # noqa: E402
 from .errors import ShearfitError, ShearfitValueError, ShearfitKeyError, ShearfitIOError  # noqa: E402
 from .observation import Observation, FitResult  # noqa: E402
 
 __all__ = ["__version__", "FitConfig", "fit_config_from_mapping", "Observation", "FitResult",
            "ShearfitError", "ShearfitValueError", "ShearfitKeyError", "ShearfitIOError"]
-from .measure import measure_object, measure_objects  # noqa: E402
-from .model import render_object  # noqa: E402
+from .engine.measure import measure_object, measure_objects  # noqa: E402
+from .engine.model import render_object  # noqa: E402
 
 __all__ += ["measure_object", "measure_objects", "render_object"]

@@ -16,10 +16,16 @@ from typing import Any, Mapping
 
 from .errors import ShearfitKeyError, ShearfitValueError
 
-__all__ = ["FitConfig", "fit_config_from_mapping"]
+__all__ = ["FitConfig", "fit_config_from_mapping", "as_config", "describe", "setting", "coerce_setting"]
 
 
-def _opt(default, help, ref="", choices=None):
+def setting(default, help, ref="", choices=None):
+    """A dataclass field for one setting: its default, help text, paper reference and allowed values.
+
+    Every settings schema of shearfit (:class:`FitConfig`, the field pipeline's
+    ``PipelineConfig``) declares its fields with this, and
+    :func:`coerce_setting` checks values against them.
+    """
     return field(default=default, metadata={"help": help, "ref": ref, "choices": choices})
 
 
@@ -32,109 +38,111 @@ class FitConfig:
     """
 
     # --- ellipticity priors (appendix B.2) -----------------------------------
-    disk_e_max: float = _opt(0.804, "maximum disk ellipticity of the disk prior", "eq. (edisk), App. B")
-    disk_e0: float = _opt(0.0256, "circularity parameter e0 of the disk prior", "eq. (edisk)")
-    disk_e_a: float = _opt(0.2539, "dispersion a of the disk prior", "eq. (edisk)")
-    bulge_e_b: float = _opt(2.368, "b of the bulge ellipticity prior p(e) ~ e exp(-b e - c e^2)", "eq. (ebulge)")
-    bulge_e_c: float = _opt(6.691, "c of the bulge ellipticity prior", "eq. (ebulge)")
+    disk_e_max: float = setting(0.804, "maximum disk ellipticity of the disk prior", "eq. (edisk), App. B")
+    disk_e0: float = setting(0.0256, "circularity parameter e0 of the disk prior", "eq. (edisk)")
+    disk_e_a: float = setting(0.2539, "dispersion a of the disk prior", "eq. (edisk)")
+    bulge_e_b: float = setting(2.368, "b of the bulge ellipticity prior p(e) ~ e exp(-b e - c e^2)", "eq. (ebulge)")
+    bulge_e_c: float = setting(6.691, "c of the bulge ellipticity prior", "eq. (ebulge)")
 
     # --- bulge fraction and populations (sec. 3.2, App. B.3) ------------------
-    bulge_population_fraction: float = _opt(0.1, "f_B, fraction of bulge-dominated (pure de Vaucouleurs) galaxies", "sec. 3.2")
-    bulge_fraction_mean: float = _opt(0.0, "B0 of the truncated-Gaussian B/T prior of disk galaxies", "eq. (bulgeprior)")
-    bulge_fraction_sigma: float = _opt(0.1, "sigma_B of the B/T prior", "eq. (bulgeprior)")
+    bulge_population_fraction: float = setting(
+        0.1, "f_B, fraction of bulge-dominated (pure de Vaucouleurs) galaxies", "sec. 3.2")
+    bulge_fraction_mean: float = setting(0.0, "B0 of the truncated-Gaussian B/T prior of disk galaxies", "eq. (bulgeprior)")
+    bulge_fraction_sigma: float = setting(0.1, "sigma_B of the B/T prior", "eq. (bulgeprior)")
 
     # --- size prior (App. B.1) ------------------------------------------------
-    size_lnrd_intercept: float = _opt(-1.145, "ln(r_d/arcsec) at the pivot magnitude", "App. B.1")
-    size_lnrd_slope: float = _opt(-0.269, "d ln(r_d) / d mag", "App. B.1")
-    size_pivot_mag: float = _opt(23.0, "pivot magnitude of the size relation", "App. B.1")
-    size_alpha: float = _opt(4.0 / 3.0, "alpha of p(r) ~ r exp(-(r/a)^alpha)", "App. B.1")
-    size_rd_over_a: float = _opt(
+    size_lnrd_intercept: float = setting(-1.145, "ln(r_d/arcsec) at the pivot magnitude", "App. B.1")
+    size_lnrd_slope: float = setting(-0.269, "d ln(r_d) / d mag", "App. B.1")
+    size_pivot_mag: float = setting(23.0, "pivot magnitude of the size relation", "App. B.1")
+    size_alpha: float = setting(4.0 / 3.0, "alpha of p(r) ~ r exp(-(r/a)^alpha)", "App. B.1")
+    size_rd_over_a: float = setting(
         0.833,
         "r_d/a as the paper writes it (a = r_d/0.833). The true median of p(r) is 1.134 a; "
         "set size_prior_scale='median' to make r_d the prior's exact median instead",
         "App. B.1",
     )
-    size_prior_scale: str = _opt("paper", "'paper': a = r_d/size_rd_over_a; 'median': a such that median(r) = r_d",
+    size_prior_scale: str = setting("paper", "'paper': a = r_d/size_rd_over_a; 'median': a such that median(r) = r_d",
                                  "App. B.1", ("paper", "median"))
 
     # --- flux prior (sec. 3.2) --------------------------------------------------
-    flux_prior_slope: float = _opt(2.0, "alpha of the flux prior P(S) ~ S^-alpha", "sec. 3.2")
+    flux_prior_slope: float = setting(2.0, "alpha of the flux prior P(S) ~ S^-alpha", "sec. 3.2")
 
     # --- galaxy models (sec. 3.1, App. A) ---------------------------------------
-    truncation: float = _opt(4.5, "truncation radius in scalelengths (disk) / half-light radii (bulge), major axis", "sec. 3.1")
-    bulge_size_ratio: float = _opt(1.0, "bulge half-light radius / disk scalelength", "sec. 3.1")
+    truncation: float = setting(
+        4.5, "truncation radius in scalelengths (disk) / half-light radii (bulge), major axis", "sec. 3.1")
+    bulge_size_ratio: float = setting(1.0, "bulge half-light radius / disk scalelength", "sec. 3.1")
 
     # --- position marginalisation (sec. 3.2) ------------------------------------
-    delta_chi2_crit: float = _opt(6.0, "Delta chi^2 that defines r_max of the position integral", "sec. 3.2")
-    max_centroid_shift: float = _opt(4.0, "largest accepted position offset of the fitted centre, pixels", "sec. 3.6")
+    delta_chi2_crit: float = setting(6.0, "Delta chi^2 that defines r_max of the position integral", "sec. 3.2")
+    max_centroid_shift: float = setting(4.0, "largest accepted position offset of the fitted centre, pixels", "sec. 3.6")
 
     # --- flux and size marginalisation (sec. 3.2) -------------------------------
-    n_flux: int = _opt(7, "flux values per (e, r) for the spline integral (over +-flux_halfwidth sigma; 11 "
+    n_flux: int = setting(7, "flux values per (e, r) for the spline integral (over +-flux_halfwidth sigma; 11 "
                        "moves e by at most 1.5e-5 from 7 at SNR 7-15, benchmarks/speed.py --check)", "sec. 3.2")
-    flux_halfwidth: float = _opt(5.0, "half-width of the flux samples in units of the flux error", "sec. 3.2")
-    n_size: int = _opt(7, "scalelengths r > 0 sampled for the size spline (r = 0 is added)", "sec. 3.2")
-    tail_skip: float = _opt(
+    flux_halfwidth: float = setting(5.0, "half-width of the flux samples in units of the flux error", "sec. 3.2")
+    n_size: int = setting(7, "scalelengths r > 0 sampled for the size spline (r = 0 is added)", "sec. 3.2")
+    tail_skip: float = setting(
         40.0, "a sample whose first size-locating pass peaks this far (nats) below the highest so far is far "
         "beyond the posterior cut (-4.6): its size integral is that pass's 5 nodes' instead of its size nodes' spline "
         "(0: evaluate every sample fully)", "implementation")
-    size_reuse_distance: float = _opt(
+    size_reuse_distance: float = setting(
         0.12, "a sample this close in e to one whose size peak was located reuses it (0: locate every sample)",
         "implementation")
 
     # --- Fourier-space modelling (App. A) -----------------------------------------
-    psf_mode_tolerance: float = _opt(
+    psf_mode_tolerance: float = setting(
         1e-6, "Fourier modes where the PSF transform (times the brightest model) is below this fraction of its "
         "peak are dropped", "DESIGN: speed")
-    mode_chi2_tolerance: float = _opt(
+    mode_chi2_tolerance: float = setting(
         0.01, "Fourier modes are dropped, weakest first, while the chi^2 they could contribute for the brightest "
         "model the data allow (a point source at 3x the fitted flux plus 5 sigma) stays below this in total", "DESIGN: speed")
-    fold_chi2_tolerance: float = _opt(
+    fold_chi2_tolerance: float = setting(
         0.01, "the cross terms of fold groups (modes that alias onto one sampled mode) are dropped, weakest first, "
         "while the chi^2 they could change for that brightest model stays below this in total (their own terms "
         "stay: the modes are then summed as modes alone; 0.01 moves e by at most 1.2e-5, 4e-5 of its error, "
         "benchmarks/speed.py --check)", "DESIGN: speed")
-    mode_bins_per_octave: int = _opt(
+    mode_bins_per_octave: int = setting(
         16, "the Fourier modes of a fit are summed, per ellipticity, in bins uniform in log K^T C K, this many per "
         "factor of 2 (the model transform depends on a mode only through r^2 K^T C K; each mode is shared among four "
         "bins by cubic interpolation, so errors scale as the inverse fourth power: 16 gives sums within 1e-5 of "
         "every mode's, benchmarks/speed.py --check); 0 evaluates "
         "every mode (also what the numpy path without the compiled kernel does)", "DESIGN: speed")
-    alias_correction: str = _opt(
+    alias_correction: str = setting(
         "moffat",
         "high frequencies of a native-sampled PSF: 'moffat' models them with a circular Moffat fitted to the PSF "
         "(the paper's App. A correction), scaled mode by mode so that its aliased sum is the sampled PSF; 'none' "
         "assumes a band-limited PSF",
         "App. A", ("moffat", "none"))
-    alias_oversampling: int = _opt(3, "sub-sampling of the galaxy model before the alias fold", "App. A")
+    alias_oversampling: int = setting(3, "sub-sampling of the galaxy model before the alias fold", "App. A")
 
     # --- ellipticity sampling (sec. 3.3) ------------------------------------------
-    sampling: str = _opt("adaptive", "'adaptive': the paper's grid refinement; 'two-pass': find the maximum first",
+    sampling: str = setting("adaptive", "'adaptive': the paper's grid refinement; 'two-pass': find the maximum first",
                          "sec. 3.3", ("adaptive", "two-pass"))
-    e_grid_start: float = _opt(0.16, "starting ellipticity grid spacing", "sec. 3.3")
-    e_grid_min: float = _opt(0.02, "finest ellipticity grid spacing", "sec. 3.3")
-    n_above: int = _opt(30, "samples wanted above the threshold", "sec. 3.3")
-    above_fraction: float = _opt(0.05, "threshold, as a fraction of the maximum posterior", "sec. 3.3")
-    model_e_limit: float = _opt(0.98, "largest |e| a model may have", "sec. 3.3")
+    e_grid_start: float = setting(0.16, "starting ellipticity grid spacing", "sec. 3.3")
+    e_grid_min: float = setting(0.02, "finest ellipticity grid spacing", "sec. 3.3")
+    n_above: int = setting(30, "samples wanted above the threshold", "sec. 3.3")
+    above_fraction: float = setting(0.05, "threshold, as a fraction of the maximum posterior", "sec. 3.3")
+    model_e_limit: float = setting(0.98, "largest |e| a model may have", "sec. 3.3")
 
     # --- estimator and weight (sec. 3.4, 3.5) --------------------------------------
-    posterior_cut: float = _opt(0.01, "samples whose posterior is below this fraction of its maximum are rejected",
+    posterior_cut: float = setting(0.01, "samples whose posterior is below this fraction of its maximum are rejected",
                                 "sec. 3.4")
-    weight_e_max: float = _opt(0.804, "e_max of the weight", "eq. (weight)")
-    sigma_pop: float = _opt(0.255, "1D rms ellipticity of the population, sigma_pop", "eq. (weight)")
+    weight_e_max: float = setting(0.804, "e_max of the weight", "eq. (weight)")
+    sigma_pop: float = setting(0.255, "1D rms ellipticity of the population, sigma_pop", "eq. (weight)")
 
     # --- star / galaxy (sec. 3.2) -----------------------------------------------------
-    star_pvalue: float = _opt(
+    star_pvalue: float = setting(
         0.01,
         "an object is a star if the F-test probability that the galaxy model's improvement over a point source "
         "arises by chance exceeds this", "sec. 3.2")
-    star_psf_error: float = _opt(
+    star_psf_error: float = setting(
         0.03,
         "fractional PSF model error allowed for in the star/galaxy test: the galaxy model's chi^2 improvement "
         "over a point source is reduced by (SNR x this)^2 before the F-test, so that bright stars, which a "
         "slightly imperfect PSF model lets a tiny galaxy fit better, stay stars (the paper's magnitude-dependent "
         "limit, matched to visual classification, expressed through the PSF error it compensates)",
         "sec. 3.2 (implementation)")
-    star_faint_limit: float = _opt(
+    star_faint_limit: float = setting(
         23.0,
         "objects fainter than this magnitude are never classified as stars: the paper's limit is "
         "magnitude-dependent and it expects very few stars at i > 23, where a faint small galaxy and a point "
@@ -168,21 +176,24 @@ class FitConfig:
         return dataclasses.asdict(self)
 
 
-def _coerce(name: str, ftype, value):
-    target = {"float": float, "int": int, "str": str, "bool": bool}.get(str(ftype).replace("'", ""), None)
-    if target is None:
-        return value
-    if target is bool:
-        if isinstance(value, bool):
-            return value
-        raise ShearfitValueError(f"setting {name}={value!r} must be true or false")
-    if target is float and isinstance(value, (int, float)) and not isinstance(value, bool):
-        return float(value)
-    if target is int and isinstance(value, int) and not isinstance(value, bool):
-        return value
-    if target is str and isinstance(value, str):
-        return value
-    raise ShearfitValueError(f"setting {name}={value!r} must be of type {target.__name__}")
+def coerce_setting(name: str, ftype, value, source: str | None = None):
+    """Check a setting's value against its declared type; an int is accepted where a float is wanted (YAML
+    writes 2 for 2.0) and returned as a float.
+
+    Raises :class:`ShearfitValueError` with one line naming the setting (and ``source``, the file or
+    override it came from, when given).
+    """
+    kind = str(ftype).replace("'", "").replace("<class ", "").replace(">", "")
+    ok = {
+        "bool": isinstance(value, bool),
+        "int": isinstance(value, int) and not isinstance(value, bool),
+        "float": isinstance(value, (int, float)) and not isinstance(value, bool),
+        "str": isinstance(value, str),
+    }.get(kind, True)
+    if not ok:
+        where = f"{source}: " if source else ""
+        raise ShearfitValueError(f"{where}setting {name}={value!r} must be of type {kind}")
+    return float(value) if kind == "float" else value
 
 
 def fit_config_from_mapping(mapping: Mapping[str, Any] | None) -> FitConfig:
@@ -192,8 +203,19 @@ def fit_config_from_mapping(mapping: Mapping[str, Any] | None) -> FitConfig:
     unknown = sorted(set(mapping) - set(known))
     if unknown:
         raise ShearfitKeyError(f"unknown setting {unknown[0]!r} (valid: {', '.join(sorted(known))})")
-    kwargs = {k: _coerce(k, known[k].type, v) for k, v in mapping.items()}
+    kwargs = {k: coerce_setting(k, known[k].type, v) for k, v in mapping.items()}
     return FitConfig(**kwargs)
+
+
+def as_config(config) -> FitConfig:
+    """A :class:`FitConfig` from ``None`` (the defaults), a :class:`FitConfig` or a mapping of settings."""
+    if config is None:
+        return FitConfig()
+    if isinstance(config, FitConfig):
+        return config
+    if isinstance(config, Mapping):
+        return fit_config_from_mapping(config)
+    raise ShearfitValueError(f"config must be a FitConfig or a mapping, got {type(config).__name__}")
 
 
 def describe() -> str:

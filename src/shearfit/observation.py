@@ -51,7 +51,7 @@ class Observation:
         Counts in this exposure per unit of the common flux.
     psf_moffat : (rs, beta), optional
         For a native PSF, the circular Moffat (scale radius in pixels, beta)
-        that carries it above Nyquist (App. A; see :func:`shearfit.model.psf_moffat`).
+        that carries it above Nyquist (App. A; see :func:`shearfit.engine.model.psf_moffat`).
         The pipeline fits one per CCD; by default one is fitted to ``psf``.
     """
 

@@ -20,10 +20,10 @@ import numpy as np
 from astropy.io import fits
 from scipy.spatial import cKDTree
 
-from .._atomic import atomic_path
+from ..files import atomic_path
 from ..errors import ShearfitIOError, ShearfitValueError
-from ..field.stamps import cut_stamp, locate_all
-from ..field.wcs import pixel_to_sky, tangent_plane_offsets
+from ..io.stamps import cut_stamp, locate_all
+from ..io.wcs import pixel_to_sky, tangent_plane_offsets
 from .pixelmodel import PixelPSF, StarSet, fit_pixel_psf
 
 log = logging.getLogger(__name__)

@@ -13,8 +13,8 @@ from __future__ import annotations
 import numpy as np
 from astropy.io import fits
 
-from .._atomic import atomic_path
-from ..field.wcs import pixel_to_sky
+from ..files import atomic_path
+from ..io.wcs import pixel_to_sky
 from .build import FieldFrame
 from .pixelmodel import fit_pixel_psf, residual_images
 

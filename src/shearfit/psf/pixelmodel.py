@@ -309,7 +309,7 @@ def _alias_prior(native: PixelPSF, stars: StarSet, k, model: PixelPSF, rel_width
     small floor), so that components the stars' sub-pixel phases constrain
     follow the stars and the others fall back on the Moffat extrapolation.
     """
-    from ..model import _moffat_ft, fit_moffat
+    from ..engine.moffat import fit_moffat, moffat_ft
 
     n = native.size
     P0 = np.mean(native.star_spectra(stars.ccd, stars.u, stars.v)[:, 0, 0], axis=0)   # (n, n)
@@ -321,7 +321,7 @@ def _alias_prior(native: PixelPSF, stars: StarSet, k, model: PixelPSF, rel_width
     kf = 2 * np.pi * f / n
     pix = np.sinc(f / n)
     kk = np.hypot(kf[:, None, :, None], kf[None, :, None, :])          # (k, k, n, n)
-    G = _moffat_ft(kk, rs, beta) * pix[:, None, :, None] * pix[None, :, None, :]
+    G = moffat_ft(kk, rs, beta) * pix[:, None, :, None] * pix[None, :, None, :]
     h = (k - 1) // 2
     g0 = G[h, h]
     ratio = np.where(np.abs(g0) > 1e-12, G / np.where(np.abs(g0) > 1e-12, g0, 1.0), 0.0)

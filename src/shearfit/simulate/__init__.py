@@ -18,8 +18,6 @@ from .stamps import (  # noqa: F401
     noise_for_snr,
     ring_set,
 )
-from .shear_bias import mean_shear, ring_sums, shear_bias, shear_bias_by_snr  # noqa: F401
 
 __all__ = ["ZERO_POINT", "draw_psf_image", "draw_stamp", "galaxy_profile", "jacobian_wcs", "mag_to_flux",
-           "make_observations", "moffat_psf", "noise_for_snr", "ring_set", "ring_sums", "shear_bias", "mean_shear",
-           "shear_bias_by_snr"]
+           "make_observations", "moffat_psf", "noise_for_snr", "ring_set"]

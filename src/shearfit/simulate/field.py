@@ -52,10 +52,10 @@ import yaml
 from astropy.io import fits
 from astropy.table import Table
 
-from .._atomic import atomic_path
+from ..files import atomic_path
 from ..config import FitConfig
 from ..errors import ShearfitValueError
-from ..priors import sample_population
+from ..engine.priors import sample_population
 from .stamps import galaxy_profile, mag_to_flux
 
 __all__ = ["SimulationConfig", "PRESETS", "simulate_field", "simulation_config", "simulate_missing"]

@@ -3,7 +3,7 @@
 A galaxy rendered by GalSim unsheared and at true shears of +-h in each component (the same galaxy,
 PSFs, dithers and noise: :func:`shear_sets`) goes through metacal's operations; one joint fit chooses
 the samples (the noshear version of the unsheared stamps) and every other image replays them
-(:func:`shearfit.measure.measure_versions`). Then metacal's ``R_ii = (e_i[i+] - e_i[i-]) / 2 delta`` and
+(:func:`shearfit.engine.measure.measure_versions`). Then metacal's ``R_ii = (e_i[i+] - e_i[i-]) / 2 delta`` and
 the true-shear response ``A_ii = (e_i[+h] - e_i[-h]) / 2 h`` of the noshear fit are both smooth in the
 pixels, and agree per galaxy as closely as metacal's images reproduce a true shear
 (:func:`fixed_sample_responses`). Used by ``benchmarks/metacal_noise_free.py`` and the tests.
@@ -13,8 +13,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from .. import metacal
-from ..measure import measure_versions
+from ..calib import metacal
+from ..engine.measure import measure_versions
 from ..observation import Observation
 from .stamps import NegatedNormal, ring_set
 

@@ -394,7 +394,7 @@ def ring_set(n_galaxies, shear, rng, n_rotations=4, n_exposures=7, snr_range=(10
     max_dither : float
         Dither offsets uniform in [-max_dither, max_dither] pixels per axis.
     cfg : FitConfig, optional
-        Population settings for :func:`shearfit.priors.sample_population` and
+        Population settings for :func:`shearfit.engine.priors.sample_population` and
         the truncation radius.
     noise_seed : int or sequence of int, optional
         When given, the noise of galaxy ``i``, orientation ``j`` comes from
@@ -521,7 +521,7 @@ def _draw_galaxy(rng, sampler, cfg, n_exposures, snr_range, mag_range, psf_fwhm_
 
 def _population_sampler():
     # Imported late so that the simulation module loads even while priors.py is edited.
-    from ..priors import sample_population
+    from ..engine.priors import sample_population
     return sample_population
 
 

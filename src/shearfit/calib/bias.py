@@ -1,0 +1,368 @@
+"""Shear-bias statistics of ring tests with +g / -g noise cancellation.
+
+A ring test simulates every galaxy at ``n_rotations`` orientations (intrinsic
+ellipticity rotated by ``2 pi j / n_rotations``), once with shear ``+g`` and
+once with ``-g``, the two runs sharing galaxy, PSFs, dithers *and noise*
+(:func:`shearfit.simulate.ring_set` with equal generator states). With the
+linear model ``<e> = (1 + m) g + c`` per component,
+
+.. math::
+
+    m_i = \\frac{\\langle e_i \\rangle_+ - \\langle e_i \\rangle_-}{2 g_i} - 1, \\qquad
+    c_i = \\frac{\\langle e_i \\rangle_+ + \\langle e_i \\rangle_-}{2},
+
+where ``<>`` is the (lensfit-)weighted mean over all objects of one sign. The
+rotations cancel the shape noise and the shared noise cancels most of the
+pixel noise in the difference, so a few dozen galaxies already give a useful
+m. Errors come from a bootstrap over *galaxies*: a galaxy carries its whole
+ring at both signs, which keeps the correlations that the cancellation relies
+on.
+
+Everything works on per-galaxy sums (:func:`ring_sums`), so that a bootstrap
+resampling is a weighted sum over galaxies and thousands of resamplings cost
+one matrix product.
+
+This module is the one home of shear-bias estimates with bootstrap errors: ring
+tests (``benchmarks/ring_test.py``), the demos (:mod:`shearfit.app.demo`,
+:mod:`shearfit.app.demo_stamps`) and the calibration's binned fits
+(:mod:`shearfit.calib.calibrate`, through :func:`group_resamples`).
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+
+import numpy as np
+
+from ..errors import ShearfitValueError
+
+__all__ = [
+    "ring_sums",
+    "bias_from_sums",
+    "mean_shear_from_sums",
+    "bootstrap_counts",
+    "group_resamples",
+    "shear_bias",
+    "mean_shear",
+    "shear_bias_by_snr",
+    "galaxy_column",
+    "format_with_error",
+    "BIAS_NAMES",
+]
+
+#: Order of the entries of every bias vector this module returns.
+BIAS_NAMES = ("m1", "m2", "c1", "c2")
+
+#: ``fitclass`` of the objects that enter the means (galaxies; see :mod:`shearfit.errors`).
+_GALAXY = 0
+
+
+def ring_sums(table, n_galaxies: int, weighted: bool = True) -> np.ndarray:
+    """Per-galaxy sums of ``w``, ``w e1`` and ``w e2`` for each sign of the shear.
+
+    Only objects with ``fitclass == 0`` (galaxies) and finite ``e1``, ``e2``
+    enter; any other object (star, failure, NaN) counts with weight zero, as it
+    would in a catalogue.
+
+    Parameters
+    ----------
+    table : structured array, astropy Table or mapping of arrays
+        One row per measured object, with columns ``galaxy`` (integer index in
+        ``[0, n_galaxies)``), ``sign`` (+1 or -1: the sign of the applied
+        shear), ``fitclass``, ``e1``, ``e2`` and, if ``weighted``, ``weight``.
+    n_galaxies : int
+        Number of galaxies (a galaxy whose objects all failed still counts: it
+        is drawn, with zero weight, by the bootstrap).
+    weighted : bool
+        Use the ``weight`` column (lensfit's weight); otherwise every
+        ``fitclass == 0`` object has unit weight. Non-finite weights count as
+        zero.
+
+    Returns
+    -------
+    ndarray of shape (3, n_galaxies, 2)
+        ``sums[k, i, s]``: ``k`` = 0, 1, 2 for ``w``, ``w e1``, ``w e2``; ``i``
+        the galaxy; ``s`` = 0 for the ``+g`` objects, 1 for ``-g``.
+    """
+    n_galaxies = int(n_galaxies)
+    galaxy = np.asarray(table["galaxy"])
+    if galaxy.size and (not np.issubdtype(galaxy.dtype, np.integer) or galaxy.min() < 0
+                        or galaxy.max() >= n_galaxies):
+        raise ShearfitValueError(f"column 'galaxy' must hold integers in [0, {n_galaxies})")
+    e1 = np.asarray(table["e1"], dtype=np.float64)
+    e2 = np.asarray(table["e2"], dtype=np.float64)
+    good = (np.asarray(table["fitclass"]) == _GALAXY) & np.isfinite(e1) & np.isfinite(e2)
+    if weighted:
+        w = np.asarray(table["weight"], dtype=np.float64)
+        w = np.where(good & np.isfinite(w), w, 0.0)
+    else:
+        w = good.astype(np.float64)
+    e1 = np.where(good, e1, 0.0)
+    e2 = np.where(good, e2, 0.0)
+    col = (np.asarray(table["sign"]) < 0).astype(np.intp)
+    sums = np.zeros((3, n_galaxies, 2))
+    for k, v in enumerate((w, w * e1, w * e2)):
+        np.add.at(sums[k], (galaxy, col), v)
+    return sums
+
+
+def mean_shear_from_sums(sums, counts=None) -> np.ndarray:
+    """Weighted mean ellipticity of each sign, optionally for resampled galaxies.
+
+    Parameters
+    ----------
+    sums : ndarray of shape (3, n_galaxies, 2)
+        From :func:`ring_sums`.
+    counts : ndarray of shape (..., n_galaxies), optional
+        Multiplicity of each galaxy (a bootstrap resampling); default one each.
+
+    Returns
+    -------
+    ndarray of shape (..., 2, 2)
+        ``[..., s, i]``: the mean of ``e_(i+1)`` over the objects of sign ``s``
+        (0: ``+g``, 1: ``-g``); NaN where the total weight is zero.
+    """
+    sums = np.asarray(sums, dtype=np.float64)
+    if sums.ndim != 3 or sums.shape[0] != 3 or sums.shape[2] != 2:
+        raise ShearfitValueError(f"sums must have shape (3, n_galaxies, 2), got {sums.shape}")
+    if counts is None:
+        counts = np.ones(sums.shape[1])
+    S = np.einsum("...g,kgs->...sk", np.asarray(counts, dtype=np.float64), sums)  # (..., 2 signs, 3)
+    w = S[..., :1]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(w != 0, S[..., 1:] / np.where(w != 0, w, 1.0), np.nan)
+
+
+def bias_from_sums(sums, g, counts=None) -> np.ndarray:
+    """m1, m2, c1, c2 of per-galaxy ring sums, optionally for resampled galaxies.
+
+    Parameters
+    ----------
+    sums : ndarray of shape (3, n_galaxies, 2)
+        From :func:`ring_sums`.
+    g : (g1, g2)
+        The applied shear of the ``+g`` set (the ``-g`` set has ``-g``). A
+        zero component gives a NaN m for that component.
+    counts : ndarray of shape (..., n_galaxies), optional
+        Multiplicity of each galaxy; default one each.
+
+    Returns
+    -------
+    ndarray of shape (..., 4)
+        m1, m2, c1, c2 (see :data:`BIAS_NAMES`).
+    """
+    g = np.asarray(g, dtype=np.float64).reshape(2)
+    mean_e = mean_shear_from_sums(sums, counts)
+    plus, minus = mean_e[..., 0, :], mean_e[..., 1, :]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        m = (plus - minus) / (2.0 * np.where(g != 0, g, np.nan)) - 1.0
+    c = 0.5 * (plus + minus)
+    return np.concatenate([m, c], axis=-1)
+
+
+def bootstrap_counts(n_galaxies: int, n_boot: int, rng) -> np.ndarray:
+    """Multiplicities of ``n_boot`` bootstrap resamplings of ``n_galaxies`` galaxies.
+
+    Parameters
+    ----------
+    n_galaxies, n_boot : int
+    rng : numpy.random.Generator or seed
+
+    Returns
+    -------
+    ndarray of shape (n_boot, n_galaxies)
+        Each row sums to ``n_galaxies``.
+    """
+    rng = np.random.default_rng(rng)
+    idx = rng.integers(0, n_galaxies, size=(n_boot, n_galaxies))
+    counts = np.zeros((n_boot, n_galaxies))
+    np.add.at(counts, (np.arange(n_boot)[:, None], idx), 1.0)
+    return counts
+
+
+def group_resamples(rows, groups, n_boot: int, rng) -> list:
+    """Bootstrap resamplings of ``rows`` that draw whole groups, as index arrays.
+
+    Parameters
+    ----------
+    rows : ndarray of int
+        The rows to resample.
+    groups : ndarray
+        A group label per row of the whole table (``groups[rows]`` are the
+        rows' labels): rows that share noise or a galaxy are drawn together.
+    n_boot : int
+    rng : numpy.random.Generator
+
+    Returns
+    -------
+    list of ndarray
+        ``n_boot`` arrays of row indices; with one row per group, the plain
+        bootstrap of the rows.
+    """
+    codes, inv = np.unique(groups[rows], return_inverse=True)
+    if codes.size == rows.size:                      # one row per group: the plain bootstrap
+        return [rng.choice(rows, rows.size) for _ in range(n_boot)]
+    order = np.argsort(inv, kind="stable")
+    starts = np.searchsorted(inv[order], np.arange(codes.size + 1))
+    members = [rows[order[starts[k]:starts[k + 1]]] for k in range(codes.size)]
+    return [np.concatenate([members[k] for k in rng.integers(0, codes.size, codes.size)]) for _ in range(n_boot)]
+
+
+def _boot_std(boot):
+    """Standard deviation over axis 0 ignoring NaN, NaN where fewer than two values are finite."""
+    boot = np.asarray(boot, dtype=np.float64)
+    n = np.isfinite(boot).sum(axis=0)
+    out = np.full(boot.shape[1:], np.nan)
+    ok = n >= 2
+    if np.any(ok):
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            out[ok] = np.nanstd(boot[:, ok], axis=0, ddof=1)
+    return out
+
+
+def shear_bias(sums, g, n_boot: int = 200, rng=None):
+    """Multiplicative and additive shear bias with bootstrap errors.
+
+    Parameters
+    ----------
+    sums : ndarray of shape (3, n_galaxies, 2)
+        From :func:`ring_sums`.
+    g : (g1, g2)
+        Shear applied to the ``+g`` set.
+    n_boot : int
+        Bootstrap resamplings of whole galaxies (each with its ring at both
+        signs).
+    rng : numpy.random.Generator or seed, optional
+
+    Returns
+    -------
+    estimate : ndarray of shape (4,)
+        m1, m2, c1, c2 from all galaxies.
+    errors : ndarray of shape (4,)
+        Their bootstrap standard deviations; NaN with fewer than two galaxies
+        or bootstrap resamplings.
+    """
+    sums = np.asarray(sums, dtype=np.float64)
+    n_gal = sums.shape[1] if sums.ndim == 3 else 0
+    est = bias_from_sums(sums, g)
+    if n_gal < 2 or n_boot < 2:
+        return est, np.full(4, np.nan)
+    boot = bias_from_sums(sums, g, bootstrap_counts(n_gal, int(n_boot), rng))
+    return est, _boot_std(boot)
+
+
+def mean_shear(sums, n_boot: int = 200, rng=None):
+    """Weighted mean ellipticity of the ``+g`` and ``-g`` sets with bootstrap errors.
+
+    In a ring test the mean ellipticity estimates the applied shear,
+    ``(1 + m) g + c``.
+
+    Parameters
+    ----------
+    sums : ndarray of shape (3, n_galaxies, 2)
+        From :func:`ring_sums`.
+    n_boot : int
+    rng : numpy.random.Generator or seed, optional
+
+    Returns
+    -------
+    estimate : ndarray of shape (2, 2)
+        ``[s, i]``: mean ``e_(i+1)`` of sign ``s`` (0: ``+g``, 1: ``-g``).
+    errors : ndarray of shape (2, 2)
+        Bootstrap standard deviations over galaxies (NaN with fewer than two).
+    """
+    sums = np.asarray(sums, dtype=np.float64)
+    est = mean_shear_from_sums(sums)
+    n_gal = sums.shape[1]
+    if n_gal < 2 or n_boot < 2:
+        return est, np.full((2, 2), np.nan)
+    boot = mean_shear_from_sums(sums, bootstrap_counts(n_gal, int(n_boot), rng))
+    return est, _boot_std(boot)
+
+
+def galaxy_column(table, column: str, n_galaxies: int) -> np.ndarray:
+    """One value per galaxy of a column that is constant over a galaxy's objects.
+
+    Parameters
+    ----------
+    table : structured array, astropy Table or mapping of arrays
+        With a ``galaxy`` column.
+    column : str
+        E.g. ``"snr_target"`` or ``"mag"``.
+    n_galaxies : int
+
+    Returns
+    -------
+    ndarray of shape (n_galaxies,)
+        NaN for a galaxy with no row.
+    """
+    out = np.full(int(n_galaxies), np.nan)
+    out[np.asarray(table["galaxy"])] = np.asarray(table[column], dtype=np.float64)
+    return out
+
+
+def shear_bias_by_snr(sums, galaxy_snr, edges, g, n_boot: int = 200, rng=None) -> list:
+    """m and c in bins of a per-galaxy SNR: the noise-bias signature.
+
+    Parameters
+    ----------
+    sums : ndarray of shape (3, n_galaxies, 2)
+        From :func:`ring_sums`.
+    galaxy_snr : ndarray of shape (n_galaxies,)
+        The SNR that bins the galaxies (e.g. the target SNR of the
+        simulation, :func:`galaxy_column`).
+    edges : sequence of float
+        Bin edges, increasing; the last bin includes its upper edge.
+    g : (g1, g2)
+    n_boot : int
+    rng : numpy.random.Generator or seed, optional
+        One generator for all bins (resamplings differ between bins).
+
+    Returns
+    -------
+    list of dict
+        One per bin, with ``lo``, ``hi``, ``n_galaxies``, ``galaxies`` (their
+        indices), ``estimate`` and ``errors`` (as :func:`shear_bias`; NaN
+        for a bin of fewer than two galaxies).
+    """
+    sums = np.asarray(sums, dtype=np.float64)
+    snr = np.asarray(galaxy_snr, dtype=np.float64)
+    edges = np.asarray(edges, dtype=np.float64)
+    if snr.shape != (sums.shape[1],):
+        raise ShearfitValueError(f"galaxy_snr needs one value per galaxy ({sums.shape[1]}), got shape {snr.shape}")
+    if edges.ndim != 1 or edges.size < 2 or np.any(np.diff(edges) <= 0):
+        raise ShearfitValueError("edges must be an increasing sequence of at least two values")
+    rng = np.random.default_rng(rng)
+    out = []
+    for k, (lo, hi) in enumerate(zip(edges[:-1], edges[1:])):
+        last = k == edges.size - 2
+        sel = (snr >= lo) & ((snr <= hi) if last else (snr < hi))
+        n = int(sel.sum())
+        if n >= 2:
+            est, err = shear_bias(sums[:, sel], g, n_boot, rng)
+        else:
+            est, err = np.full(4, np.nan), np.full(4, np.nan)
+        out.append({"lo": float(lo), "hi": float(hi), "n_galaxies": n, "galaxies": np.flatnonzero(sel),
+                    "estimate": est, "errors": err})
+    return out
+
+
+def format_with_error(value: float, error: float, scale: float = 1.0, digits: int = 5) -> str:
+    """``"+0.01234 +/- 0.00456"`` with fixed widths for tables; ``"nan"`` for a non-finite value.
+
+    Parameters
+    ----------
+    value, error : float
+    scale : float
+        Multiplies both (e.g. 1e3 to print in units of 1e-3).
+    digits : int
+        Decimals.
+    """
+    value, error = float(value), float(error)
+    width = digits + 4
+    if not math.isfinite(value):
+        return f"{'nan':>{width}s}"
+    err = f"{error * scale:{width - 1}.{digits}f}" if math.isfinite(error) else f"{'nan':>{width - 1}s}"
+    return f"{value * scale:+{width}.{digits}f} +/- {err}"

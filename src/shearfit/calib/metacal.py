@@ -1,0 +1,400 @@
+"""Metacalibration on the lensfit likelihood: a shear response from the data themselves.
+
+Huff & Mandelbaum (2017), Sheldon & Huff (2017). For each exposure of an
+object, GalSim turns the stamp into an interpolated image
+(``galsim.InterpolatedImage``), divides out that exposure's PSF
+(``galsim.Deconvolve`` of the interpolated PSF, which includes the pixel),
+shears the result by +-delta in each component in the sky frame (the stamp's
+WCS is the exposure's Jacobian, so ``.shear`` acts on the catalogue's (u, v)
+axes), and convolves it with the PSF dilated by 1 + 2 delta, which is wider
+than the sheared original in every direction. The same without the shear
+gives the ``noshear`` version. All five versions carry the same new PSF.
+
+The deconvolution and the shear correlate the noise anisotropically, which
+would itself respond to the shear. The standard cure: a new noise field with
+the stamp's variance, rotated by 90 degrees, is put through the same
+operations, rotated back and added; the sum's noise correlation is then
+symmetric under 90-degree rotation, so it carries no preferred ellipticity
+(square stamps only: a non-square stamp is processed with a warning and its
+noise left unsymmetrised).
+The weight maps of the versions are the original ones scaled to the variance
+of the processed noise; pixels near masked ones (whose contents were set to
+zero before interpolation) and near the stamp's edge are masked.
+
+The lensfit engine then measures each version jointly over the exposures.
+The ``noshear`` fit makes its choices from its data as any fit does (the
+Fourier modes kept, the position, the size nodes, the ellipticity samples);
+the sheared versions replay them (:func:`shearfit.engine.measure.measure_versions`),
+so that their estimates differ only through their pixels, and evaluate only
+the samples within ``replay_margin`` nats of the posterior cut.
+``R_ij = (e_i[j+] - e_i[j-]) / (2 delta)`` per galaxy, and an ensemble
+shear is ``<R>^-1 <e>`` with the lensfit weights of the ``noshear`` fit.
+Cuts and weights computed from measured quantities respond to the shear too
+(selection response): :func:`ensemble_response` recomputes them from each
+sheared version's own measurement and adds ``R_S``.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+
+import galsim
+import numpy as np
+from scipy import fft as sfft
+from scipy import ndimage
+
+from ..errors import FITCLASS_GALAXY, ShearfitIOError
+from ..engine.model import psf_moffat
+from ..observation import Observation
+
+log = logging.getLogger(__name__)
+
+__all__ = ["VERSIONS", "SHEARED", "metacal_observations", "measure_metacal", "MetacalResult",
+           "ensemble_response", "catalogue_response", "metacal_shear"]
+
+#: The versions and the shear (g1, g2) in units of delta that each applies.
+VERSIONS = {"noshear": (0, 0), "1p": (1, 0), "1m": (-1, 0), "2p": (0, 1), "2m": (0, -1)}
+SHEARED = ("1p", "1m", "2p", "2m")
+
+#: Pixels masked around a masked pixel and along the stamp's edge in the processed stamps.
+_MASK_GROW = 2
+_EDGE = 3
+#: The versions' FFT grid in stamp widths (:class:`_Drawer`): a third of a stamp width between the stamp
+#: and its periodic copies (0: the grid GalSim's drawImage would choose).
+WRAP_STAMPS = 4 / 3
+#: GalSim's k-interpolants of the interpolated stamp (and its noise) and of the PSF. Its default quintic for
+#: both: the cubic's interpolation errors are anisotropic enough to bias the response to shears along the
+#: pixel diagonals (m2 = +2.6e-3 with a cubic stamp, about 2e-4 with a cubic PSF alone, on noise-free galaxies:
+#: ``benchmarks/metacal_noise_free.py --variants``).
+K_INTERPOLANT = "quintic"
+PSF_K_INTERPOLANT = "quintic"
+
+
+def _wcs(J, k=1):
+    J = np.asarray(J, float) / k
+    return galsim.JacobianWCS(J[0, 0], J[0, 1], J[1, 0], J[1, 1])
+
+
+def _interpolated(array, wcs, calculate_maxk=False, k_interpolant="quintic"):
+    # use_true_center=False: the profile's origin is pixel (ny // 2, nx // 2), the convention of the stamps.
+    # The PSF's own maxk (calculate_maxk) bounds the k-space grids of every convolution with it: about
+    # 13 times faster than the interpolant's maxk, and the same images to 1e-4 of the peak.
+    return galsim.InterpolatedImage(galsim.Image(np.ascontiguousarray(array, dtype=np.float64), wcs=wcs),
+                                    x_interpolant="lanczos15", k_interpolant=k_interpolant, use_true_center=False,
+                                    calculate_stepk=False, calculate_maxk=calculate_maxk)
+
+
+_PIXEL = galsim.PixelScale(1.0)
+
+
+def _draw(prof, shape, wcs):
+    ny, nx = shape
+    return prof.drawImage(nx=nx, ny=ny, wcs=wcs, method="no_pixel", use_true_center=False).array
+
+
+class _Drawer:
+    """The pixels of one stamp's k-space products, drawn as GalSim's ``drawImage`` draws a convolution.
+
+    ``draw(products, bands)`` takes a list of products (each a list of GSObjects in the sky frame, the
+    factors of a ``galsim.Convolution``) and the band of each (the world wavenumber beyond which the
+    product is zero: the sheared deconvolution's maxk), and returns their images on the stamp's pixel
+    grid, the profiles' origin at pixel (ny // 2, nx // 2) (``use_true_center=False``), as
+    ``galsim.Convolution(product).drawImage(nx=nx, ny=ny, wcs=wcs, method="no_pixel",
+    use_true_center=False)`` would on GalSim's own FFT grid (``fft_size=0``; the default grid is smaller,
+    see below), with three shortcuts that leave the images the same to rounding:
+
+    - GalSim's own pieces of that draw (``profileToImage``, ``drawFFT_makeKImage``, each factor's
+      ``_drawKImage`` with the image-frame Jacobian) are called once per stamp where they are the same
+      for every product, not once per image.
+    - Band limit: the factors are evaluated only on the smallest part of the k grid that holds the band
+      (a disc of radius ``band``, seen through the Jacobian); the rest of the grid is zero. GalSim
+      evaluates every factor on the whole grid, out to the pixels' Nyquist frequency.
+    - Shared factors (the same object in several products, such as the sheared inverse PSF and the new
+      PSF of a version and of its noise) are evaluated once per k grid; the inverse transforms of all
+      the products are batched (``scipy.fft``) and evaluated only at the stamp's rows and columns.
+
+    A band that reaches the grid's Nyquist row or column is folded onto the grid by GalSim's
+    ``Image.wrap`` (Hermitian in x), as ``drawFFT`` folds its k image before the transform.
+
+    ``fft_size``: the largest FFT grid used (pixels; default :data:`WRAP_STAMPS` stamp widths, rounded up
+    to a fast size: 64 for a 48-pixel stamp). GalSim sizes its grid from the product's stepk, which for an
+    interpolated 48-pixel stamp is 128 pixels; the images are periodic on the grid, and for a galaxy inside
+    the stamp a third of a stamp width between the stamp and its periodic copies is enough: a noise-free
+    galaxy's versions are GalSim's own to 5e-5 of their peak away from the masked edge, and the metacal
+    response of noise-free galaxies matches their true shear response as closely as on GalSim's grid
+    (``benchmarks/metacal_noise_free.py``: |m| <= 1e-4 on either grid, for the paper's population and
+    for one unlike it), with a quarter of the k values. The deconvolution's hard band edge gives the
+    kernel a long ringing reach (a few per cent of its power lies beyond 16 pixels), so a noisy stamp's
+    processed noise does depend on the grid, by a few per cent of its amplitude; on either grid it is the
+    stamp's noise through one linear operator that is periodic on a square grid, so the 90-degree
+    symmetrisation holds as before and the weights follow the processed noise's variance
+    (``tests/test_metacal.py``).
+    ``fft_size=0`` keeps GalSim's own grid, and the images are then those of GalSim's ``drawImage``.
+    """
+
+    def __init__(self, shape, wcs, fft_size=None):
+        self.shape = tuple(shape)
+        self.wcs = wcs
+        ny, nx = self.shape
+        if fft_size is None:
+            fft_size = sfft.next_fast_len(int(np.ceil(WRAP_STAMPS * max(ny, nx)))) if WRAP_STAMPS else 0
+        self.fft_size = int(fft_size)
+        # drawImage's image, shifted so that its integer centre (the profile's origin) is (0, 0)
+        self.bounds = galsim.BoundsI(-(nx // 2), nx - 1 - nx // 2, -(ny // 2), ny - 1 - ny // 2)
+        frame = wcs.profileToImage(galsim.Gaussian(sigma=1.0))
+        if frame.offset.x != 0 or frame.offset.y != 0:
+            raise ValueError("metacal: a stamp WCS with an origin offset")
+        self.jac = np.asarray(frame.jac, float)
+        # the k-space values' scaling of GalSim's Transformation: surface brightness per pixel
+        self.flux_scaling = abs(float(np.linalg.det(self.jac))) * float(frame.flux_ratio)
+        # image k pixel (i, j) is the world wavenumber dk * jac^T (i, j): at least dk sigma_min |(i, j)| long
+        self.sigma_min = float(np.linalg.svd(self.jac, compute_uv=False)[-1])
+        self._grids = {}
+
+    def _grid(self, product):
+        """The FFT size for this product (GalSim's drawFFT's, from its stepk and maxk, or ``fft_size`` where
+        that is smaller), the k image's size before folding, and dk; asked of GalSim once per distinct
+        (stepk, maxk)."""
+        conv = galsim.Convolution(product)
+        key = (conv.stepk, conv.maxk)   # the sky frame's: the image frame's follow from them through the WCS
+        if key not in self._grids:
+            prof = self.wcs.profileToImage(conv)
+            kimage, n = prof.drawFFT_makeKImage(galsim.Image(self.bounds, scale=1.0))
+            nk, dk = kimage.bounds.xmax * 2, kimage.scale
+            if 0 < self.fft_size < n:
+                # a smaller periodic grid (see the class doc): dk = 2 pi / n on the image's unit pixels,
+                # the k image as wide as GalSim's (its maxk), folded onto the grid where it reaches beyond
+                dk_small = 2.0 * np.pi / self.fft_size
+                n, nk, dk = self.fft_size, max(self.fft_size, 2 * int(np.ceil(nk * dk / (2.0 * dk_small)))), dk_small
+            self._grids[key] = (n, nk, dk)
+        return self._grids[key]
+
+    def draw(self, products, bands):
+        out = [None] * len(products)
+        batches = {}
+        cache = {}
+        for i, (product, band) in enumerate(zip(products, bands)):
+            n, nk, dk = self._grid(product)
+            r = min(int(np.ceil(band / (dk * self.sigma_min))) + 1, nk // 2)
+            sub = galsim.BoundsI(0, r, -r, r)
+            grid = (r, dk)
+            arr = None
+            for obj in product:
+                key = (id(obj),) + grid
+                hit = cache.get(key)
+                # the cache holds the object too: an id is unique only while its object lives
+                if hit is None or hit[0] is not obj:
+                    part = galsim.Image(sub, dtype=np.complex128, scale=dk)
+                    obj._drawKImage(part, self.jac)
+                    hit = cache[key] = (obj, part.array)
+                arr = hit[1] if arr is None else arr * hit[1]   # a new array: the cached factors stay
+            if abs(self.flux_scaling - 1.0) > galsim.GSParams().kvalue_accuracy:
+                arr = arr * self.flux_scaling
+            batches.setdefault(n, []).append((i, r, arr))
+        ny, nx = self.shape
+        for n, items in batches.items():
+            half = n // 2
+            cols = min(max(r for _, r, _ in items), half) + 1
+            spec = np.zeros((len(items), n, cols), np.complex128)
+            for b, (_, r, arr) in enumerate(items):
+                if r < half:
+                    spec[b, np.arange(-r, r + 1) % n, :r + 1] = arr
+                else:
+                    # the band reaches the Nyquist row or column: GalSim's Hermitian fold onto the n grid
+                    full = galsim.ImageCD(galsim.BoundsI(0, r, -r, r), scale=1.0)
+                    full.array[:, :] = arr
+                    folded = full.wrap(galsim.BoundsI(0, half, -half, half - 1), hermitian="x").array
+                    spec[b, np.arange(-half, half) % n, :] = folded
+            # f(x) = (1 / 4 pi^2) sum_k F(k) exp(i k.x) dk^2 with dk = 2 pi / n, irfft2's own normalisation,
+            # evaluated only at the stamp's rows and columns: the transform over ky of the band's columns,
+            # the stamp's rows of it, then the real transform over kx
+            iy = (np.arange(ny) - ny // 2) % n
+            ix = (np.arange(nx) - nx // 2) % n
+            rows = sfft.ifft(spec, axis=1, workers=1)[:, iy, :]
+            if cols < half + 1:
+                rows = np.concatenate([rows, np.zeros(rows.shape[:2] + (half + 1 - cols,), rows.dtype)], axis=2)
+            real = sfft.irfft(rows, n=n, axis=2, workers=1)[:, :, ix]
+            for b, (i, _, _) in enumerate(items):
+                out[i] = real[b]
+        return out
+
+
+def metacal_observations(obs: Observation, delta=0.01, rng=None, versions=tuple(VERSIONS)) -> dict:
+    """The metacal versions of one exposure's stamp: ``{version: Observation}`` (see the module doc).
+
+    ``rng`` (numpy Generator) draws the symmetrising noise field.
+    """
+    rng = np.random.default_rng() if rng is None else rng
+    J = obs.jacobian
+    wcs = _wcs(J)
+    k = obs.psf_oversampling
+    pwcs = _wcs(J, k)
+    w = obs.weight
+    good = w > 0
+    image = np.where(good, obs.image, 0.0)
+    gal = _interpolated(image, wcs, k_interpolant=K_INTERPOLANT)
+    psf = _interpolated(obs.psf, pwcs, calculate_maxk=True, k_interpolant=PSF_K_INTERPOLANT)
+    inv_psf = galsim.Deconvolve(psf)
+    dilation = 1.0 + 2.0 * abs(delta)
+    new_psf = psf.dilate(dilation)
+    # its image: a dilation commutes with the Jacobian, so it is drawn in the PSF's own pixel frame, where
+    # GalSim interpolates separably (through a general Jacobian, 25 times slower; the same pixels)
+    psf_img = _draw(_interpolated(obs.psf, _PIXEL).dilate(dilation), obs.psf.shape, _PIXEL)
+    psf_img /= psf_img.sum()
+    # the App. A Moffat of the new PSF: the exposure's own, dilated the same way (so objects sharing an
+    # exposure's Moffat share its alias tables); fitted to the new PSF only when none was given
+    if k != 1:
+        moffat = None
+    elif obs.psf_moffat is not None:
+        moffat = (float(obs.psf_moffat[0]) * dilation, float(obs.psf_moffat[1]))
+    else:
+        moffat = psf_moffat(psf_img)
+    # the symmetrising noise: the stamp's variance, rotated by 90 degrees before the operations
+    sigma = np.where(good, 1.0 / np.sqrt(np.where(good, w, 1.0)), 0.0)
+    noise = rng.normal(0.0, 1.0, w.shape) * sigma
+    square = w.shape[0] == w.shape[1]
+    if not square:
+        # a 90-degree rotation of a non-square stamp is another shape: the added noise is then not rotated,
+        # and its correlation doubles the processed noise's instead of symmetrising it
+        log.warning("metacal: a %d x %d stamp is not square; its noise is not symmetrised", *w.shape)
+    nrot = np.rot90(noise, 1) if square else noise
+    nint = _interpolated(nrot, wcs, k_interpolant=K_INTERPOLANT)
+    mask = ndimage.binary_dilation(~good, iterations=_MASK_GROW)
+    mask[:_EDGE, :] = mask[-_EDGE:, :] = True
+    mask[:, :_EDGE] = mask[:, -_EDGE:] = True
+    var_in = float(np.mean(sigma[~mask] ** 2)) if np.any(~mask) else 1.0
+    names = ("noshear",) + tuple(v for v in versions if v != "noshear")
+    products, bands = [], []
+    for name in names:
+        s1, s2 = VERSIONS[name]
+        g1, g2 = s1 * delta, s2 * delta
+        # the shear of (stamp / PSF) is the product of the sheared factors (a shear keeps areas)
+        gal_g, noise_g, inv = [(p.shear(g1=g1, g2=g2) if (g1 or g2) else p) for p in (gal, nint, inv_psf)]
+        # the same operations on the rotated noise; rotated back, its correlation is the processed
+        # noise's turned by 90 degrees (as if sheared by -g), so the sum's is symmetric
+        products += [[gal_g, inv, new_psf], [noise_g, inv, new_psf]]
+        bands += [inv.maxk, inv.maxk]
+    images = _Drawer(w.shape, wcs).draw(products, bands)
+    out = {}
+    weight = None
+    for v, name in enumerate(names):
+        im, nim = images[2 * v], images[2 * v + 1]
+        if square:
+            nim = np.rot90(nim, -1)
+        if weight is None:
+            # the versions' noise: the original, processed, plus the added field: twice the added field's
+            # variance, measured on the noshear version and used for all, so that every version is fitted
+            # with the same weights (and the same Fourier modes)
+            var_out = float(np.mean(nim[~mask] ** 2)) if np.any(~mask) else var_in
+            scale = var_in / max(2.0 * var_out, 1e-300)
+            weight = np.where(mask, 0.0, w * scale)
+        if name in versions:
+            out[name] = Observation(image=im + nim, weight=weight, psf=psf_img, psf_oversampling=k, jacobian=J,
+                                    offset=tuple(obs.offset), flux_scale=obs.flux_scale, psf_moffat=moffat)
+    return out
+
+
+@dataclass
+class MetacalResult:
+    """The fits of every version of one object, and its shear response."""
+
+    results: dict = field(default_factory=dict)     # version -> FitResult
+    R: np.ndarray = field(default_factory=lambda: np.full((2, 2), np.nan))
+    delta: float = 0.01
+
+    @property
+    def noshear(self):
+        return self.results.get("noshear")
+
+
+#: Finest ellipticity step of the metacal fits. R compares estimates 2 delta apart, so the estimate must
+#: follow the data smoothly: the paper's 0.02 leaves likelihoods narrower than the step (bright
+#: galaxies) sampled by a handful of points, whose mean jumps by up to a step. The adaptive grid only
+#: goes below 0.02 where fewer than 30 samples lie above 5 % of the peak, so broad likelihoods cost
+#: nothing more.
+E_GRID_MIN = 0.005
+
+
+def measure_metacal(observations, mag, config=None, delta=0.01, rng=None, replay_margin=10.0) -> MetacalResult:
+    """Measure the five metacal versions of one object jointly over its exposures (see the module doc)."""
+    from dataclasses import replace
+
+    from ..config import as_config
+    from ..engine.measure import measure_versions
+
+    rng = np.random.default_rng() if rng is None else rng
+    config = as_config(config)
+    if config.e_grid_min > E_GRID_MIN:
+        config = replace(config, e_grid_min=E_GRID_MIN)
+    per_exp = [metacal_observations(o, delta, rng) for o in observations]
+    out = MetacalResult(delta=float(delta))
+    # the sheared versions replay the noshear fit's choices (modes, position, size nodes, ellipticity
+    # samples): their estimates then differ only through their pixels (measure_versions)
+    results = measure_versions([[v[name] for v in per_exp] for name in VERSIONS], mag, config,
+                               margin=replay_margin)
+    out.results = dict(zip(VERSIONS, results))
+    R = np.full((2, 2), np.nan)
+    for j, (p, m) in enumerate((("1p", "1m"), ("2p", "2m"))):
+        rp, rm = out.results[p], out.results[m]
+        R[0, j] = (rp.e1 - rm.e1) / (2 * delta)
+        R[1, j] = (rp.e2 - rm.e2) / (2 * delta)
+    out.R = R
+    return out
+
+
+def _col(tab, name):
+    return np.asarray(tab[name], float)
+
+
+def _selected(tab, suffix, select):
+    """Weights of the galaxies a version selects: its own fitclass, weight and optional cuts."""
+    sfx = f"_{suffix}" if suffix else ""
+    w = np.where(np.asarray(tab[f"fitclass{sfx}"]) == FITCLASS_GALAXY, _col(tab, f"weight{sfx}"), 0.0)
+    w = np.where(np.isfinite(w), w, 0.0)
+    if select is not None:
+        w = w * np.asarray(select(tab, sfx), bool)
+    return w
+
+
+def ensemble_response(tab, select=None, delta=None):
+    """Mean shear response of a metacal catalogue: (R_total, R_gamma, R_S), each 2x2.
+
+    ``R_gamma`` is the weighted mean of the per-galaxy R (the noshear fit's
+    lensfit weights and selection). ``R_S`` is the selection response: the
+    noshear ellipticities averaged with the weights and selection recomputed
+    from each sheared version (``fitclass``, ``weight`` and ``select``, a
+    function ``select(table, suffix) -> bool array`` that reads columns
+    ``name + suffix``, e.g. ``snr_1p``), differenced over +-delta.
+    """
+    delta = float(tab.meta.get("MCDELTA", 0.01)) if delta is None else float(delta)
+    w0 = _selected(tab, "", select)
+    R = np.array([[_col(tab, "R11"), _col(tab, "R12")], [_col(tab, "R21"), _col(tab, "R22")]])
+    ok = (w0 > 0) & np.all(np.isfinite(R.reshape(4, -1)), axis=0)
+    R_gamma = np.einsum("n,ijn->ij", w0[ok], R[..., ok]) / w0[ok].sum()
+    e = np.stack([_col(tab, "e1"), _col(tab, "e2")])
+    e = np.where(np.isfinite(e), e, 0.0)
+    R_S = np.zeros((2, 2))
+    for j, (p, m) in enumerate((("1p", "1m"), ("2p", "2m"))):
+        wp, wm = _selected(tab, p, select), _selected(tab, m, select)
+        R_S[:, j] = (e @ wp / wp.sum() - e @ wm / wm.sum()) / (2 * delta)
+    return R_gamma + R_S, R_gamma, R_S
+
+
+def catalogue_response(tab, source):
+    """:func:`ensemble_response` of a metacal catalogue read from ``source``: R, with a missing column
+    named as a one-line error."""
+    try:
+        R, _, _ = ensemble_response(tab)
+    except KeyError as exc:
+        raise ShearfitIOError(f"{source}: metacal catalogue has no column {exc.args[0]!r}") from None
+    return R
+
+
+def metacal_shear(tab, select=None, delta=None):
+    """The ensemble shear <R>^-1 <e> of a metacal catalogue (noshear weights and selection)."""
+    R, _, _ = ensemble_response(tab, select, delta)
+    w0 = _selected(tab, "", select)
+    e = np.stack([_col(tab, "e1"), _col(tab, "e2")])
+    e = np.where(np.isfinite(e), e, 0.0)
+    return np.linalg.solve(R, e @ w0 / w0.sum())

@@ -1,0 +1,1186 @@
+/*
+ * Inner loop of the likelihood: pixel sums of a batch of galaxy models.
+ *
+ * For each model m (coefficients of the quadratic form K^T C K times r^2)
+ * and each Fourier mode j it evaluates the disk and bulge transforms from a
+ * table uniform in u = sqrt(c^2 + rho^2) - c (see profiles.FastRadial), and
+ * accumulates, without temporaries:
+ *   L_f[t] = sum_j R_f(j) lin[t](j), L_g[t] likewise   (t = 0..5)
+ *   ff = sum_j q(j) R_f^2, gg = sum_j q(j) R_g^2, fg = sum_j q(j) R_f R_g
+ * for the modes in no fold group (q = the exposures' summed w |T|^2 / (N sigma^2)),
+ * and for the fold groups (modes above Nyquist folding onto sampled modes,
+ * merged over the exposures that share them, likelihood.JointModes) the
+ * quadratic form R^T Re(H) R of each group, as sum_j (u_j . R)^2 over the
+ * factors u_j of its block of Re H (as many as the block's rank).
+ * This is the same arithmetic as likelihood.model_sums' numpy path, which
+ * stays as the reference and the fallback; a test checks they agree.
+ *
+ * Modes are passed interleaved, 12 doubles each:
+ *   [kx^2, 2 kx ky, ky^2, lin0..lin5, q, 0, 0]
+ * the n_single modes in no group first (their loop has no branch), then the
+ * groups' modes group after group, with each group's size, rank and factors
+ * in three more buffers.
+ * Only the buffer protocol is used, so no numpy headers are needed to build.
+ */
+#define PY_SSIZE_T_CLEAN
+#include <Python.h>
+#include <math.h>
+#include <stdlib.h>
+#include <string.h>
+#include <stdint.h>
+#include <limits.h>
+
+#define NSTRIDE 12
+#define NOUT 15
+
+/* table rows are [value_f, slope_f, value_g, slope_g] in float32; the last row is zero */
+/* Models are processed NB at a time: each mode's data is loaded once for the block, and the
+ * per-model arithmetic (independent across the block) vectorises. On x86-64 Linux with GCC the
+ * block loop is compiled for several instruction sets and the best one the CPU has is chosen at
+ * run time (target_clones), so the build stays portable. Eight models fill one AVX-512 register
+ * (8 % faster per galaxy than four, benchmarks/speed.py). */
+#define NB 8
+/* target_clones needs GCC and the ifunc resolver of glibc (musl has none); the x86-64-v4 / v3 level names
+ * need GCC >= 12, and GCC 6-11 get the same two levels by the CPUs that define them. Elsewhere (clang,
+ * musl, other architectures) one portable version is compiled; kernel_isa() says which one runs. */
+#if defined(__GNUC__) && !defined(__clang__) && defined(__x86_64__) && defined(__linux__) && defined(__GLIBC__)
+#if __GNUC__ >= 12
+#define MULTIVERSION __attribute__((target_clones("arch=x86-64-v4", "arch=x86-64-v3", "default")))
+#define MV_LEVELS "x86-64-v4,x86-64-v3,default"
+#define MV_HAS_V4() __builtin_cpu_supports("x86-64-v4")
+#define MV_HAS_V3() __builtin_cpu_supports("x86-64-v3")
+#elif __GNUC__ >= 6
+#define MULTIVERSION __attribute__((target_clones("arch=skylake-avx512", "arch=haswell", "default")))
+#define MV_LEVELS "skylake-avx512,haswell,default"
+#define MV_HAS_V4() __builtin_cpu_is("skylake-avx512")
+#define MV_HAS_V3() (__builtin_cpu_supports("avx2") && __builtin_cpu_supports("fma"))
+#endif
+#endif
+#ifndef MULTIVERSION
+#define MULTIVERSION
+#define MV_LEVELS "none"
+#endif
+
+/* glibc's vector exp and log (libmvec, linked with libm): simple loops over arrays of them vectorise,
+ * 8 at a time with AVX-512. Only where they exist (glibc on x86-64 with GCC); elsewhere the loops stay
+ * scalar. They are accurate to a few units in the last place, as the scalar ones to one. */
+#if defined(__GNUC__) && !defined(__clang__) && defined(__x86_64__) && defined(__linux__) && defined(__GLIBC__)
+double exp(double) __attribute__((simd("notinbranch")));
+double log(double) __attribute__((simd("notinbranch")));
+#if __GLIBC__ > 2 || (__GLIBC__ == 2 && __GLIBC_MINOR__ >= 35)
+double log2(double) __attribute__((simd("notinbranch")));
+double erfc(double) __attribute__((simd("notinbranch")));
+#endif
+#endif
+
+/* out[i] = exp(x[i] - shift) and out[i] = log(x[i]), vectorised where the CPU allows */
+MULTIVERSION
+static void vexp_shift(const double *x, double shift, double *out, Py_ssize_t n)
+{
+    for (Py_ssize_t i = 0; i < n; i++) out[i] = exp(x[i] - shift);
+}
+
+MULTIVERSION
+static void vlog(const double *x, double *out, Py_ssize_t n)
+{
+    for (Py_ssize_t i = 0; i < n; i++) out[i] = log(x[i]);
+}
+
+/* release the buffers of a call (a NULL-terminated list) */
+static void release_buffers(Py_buffer **b)
+{
+    for (; *b != NULL; b++) PyBuffer_Release(*b);
+}
+#define RELEASE(...) release_buffers((Py_buffer *[]){__VA_ARGS__, NULL})
+
+typedef double vnb __attribute__((vector_size(NB * sizeof(double))));
+
+/* the table rows of the NB models (four floats each: value and slope of the disk, of the bulge) as four
+   vectors across the models: eight 16-byte loads and a transpose in registers, where a gather of each
+   float into its lane took a load and an insert per float (NB = 8 only) */
+typedef float v4f __attribute__((vector_size(16), aligned(4)));
+typedef float v8f __attribute__((vector_size(32)));
+typedef float v16f __attribute__((vector_size(64)));
+static inline __attribute__((always_inline)) void rows_t(const float *const *row, vnb *c0, vnb *c1, vnb *c2,
+                                                         vnb *c3)
+{
+#if NB == 8 && defined(__GNUC__) && !defined(__clang__) && __GNUC__ >= 12
+    v4f r[8];
+    for (int k = 0; k < 8; k++) r[k] = *(const v4f *)row[k];
+    v8f a01 = __builtin_shufflevector(r[0], r[1], 0, 1, 2, 3, 4, 5, 6, 7);
+    v8f a23 = __builtin_shufflevector(r[2], r[3], 0, 1, 2, 3, 4, 5, 6, 7);
+    v8f a45 = __builtin_shufflevector(r[4], r[5], 0, 1, 2, 3, 4, 5, 6, 7);
+    v8f a67 = __builtin_shufflevector(r[6], r[7], 0, 1, 2, 3, 4, 5, 6, 7);
+    v16f A = __builtin_shufflevector(a01, a23, 0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15);
+    v16f B = __builtin_shufflevector(a45, a67, 0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15);
+    *c0 = __builtin_convertvector(__builtin_shufflevector(A, B, 0, 4, 8, 12, 16, 20, 24, 28), vnb);
+    *c1 = __builtin_convertvector(__builtin_shufflevector(A, B, 1, 5, 9, 13, 17, 21, 25, 29), vnb);
+    *c2 = __builtin_convertvector(__builtin_shufflevector(A, B, 2, 6, 10, 14, 18, 22, 26, 30), vnb);
+    *c3 = __builtin_convertvector(__builtin_shufflevector(A, B, 3, 7, 11, 15, 19, 23, 27, 31), vnb);
+#else
+    for (int k = 0; k < NB; k++) {
+        (*c0)[k] = row[k][0]; (*c1)[k] = row[k][1]; (*c2)[k] = row[k][2]; (*c3)[k] = row[k][3];
+    }
+#endif
+}
+
+/* transforms of the NB models at one mode: u clamped to the last table row, which is zero */
+static inline __attribute__((always_inline)) void eval_block(
+    const double *p, const vnb *a, double c, double c2, double inv_du, double ratio2, int same,
+    const float *T, double nmax, vnb *rf, vnb *rg)
+{
+    /* rho2 >= 0 up to rounding, far below c2 */
+    vnb rho2 = a[0] * p[0] + a[1] * p[1] + a[2] * p[2];
+    vnb s, sg, u, ug;
+    for (int k = 0; k < NB; k++) s[k] = sqrt(c2 + rho2[k]);
+    u = (s - c) * inv_du;
+    const float *row[NB], *rowg[NB];
+    vnb fi, fig;
+    for (int k = 0; k < NB; k++) {
+        double uk = u[k] < nmax ? u[k] : nmax;
+        long i = (long)uk;
+        row[k] = T + 4 * i;
+        fi[k] = uk - (double)i;
+    }
+    vnb vf, sf, vg, slg, x0, x1;
+    rows_t(row, &vf, &sf, &vg, &slg);
+    if (same) {
+        fig = fi;
+    } else {
+        for (int k = 0; k < NB; k++) sg[k] = sqrt(c2 + rho2[k] * ratio2);
+        ug = (sg - c) * inv_du;
+        for (int k = 0; k < NB; k++) {
+            double ugk = ug[k] < nmax ? ug[k] : nmax;
+            long ig = (long)ugk;
+            rowg[k] = T + 4 * ig;
+            fig[k] = ugk - (double)ig;
+        }
+        rows_t(rowg, &x0, &x1, &vg, &slg);
+    }
+    *rf = vf + fi * sf;
+    *rg = vg + fig * slg;
+}
+
+static inline __attribute__((always_inline)) void block_body(
+    const double *a0p, const double *a1p, const double *a2p, const double *M, Py_ssize_t n_single,
+    Py_ssize_t n_groups, const long long *gsz, const long long *grank, const double *fac, vnb *scratch,
+    const float *T, double nmax, double c, double inv_du, double ratio2, int same, double *o)
+{
+    vnb a[3];
+    for (int k = 0; k < NB; k++) { a[0][k] = a0p[k]; a[1][k] = a1p[k]; a[2][k] = a2p[k]; }
+    const vnb zero = {0};
+    vnb lf[6], lg[6];
+    for (int t = 0; t < 6; t++) lf[t] = lg[t] = zero;
+    vnb ff = zero, gg = zero, fg = zero;
+    const double c2 = c * c;
+    const double *p = M;
+    for (Py_ssize_t j = 0; j < n_single; j++, p += NSTRIDE) {
+        vnb rf, rg;
+        eval_block(p, a, c, c2, inv_du, ratio2, same, T, nmax, &rf, &rg);
+        for (int t = 0; t < 6; t++) { lf[t] += rf * p[3 + t]; lg[t] += rg * p[3 + t]; }
+        vnb qf = rf * p[9];
+        ff += qf * rf;
+        fg += qf * rg;
+        gg += rg * rg * p[9];
+    }
+    /* the fold groups: the transforms at the group's modes, then R^T Re(H) R = sum_j (u_j . R)^2 from the
+       factors u_j of Re(H) (its eigenvectors times the root of their eigenvalues, as many as its rank) */
+    const double *u = fac;
+    for (Py_ssize_t g = 0; g < n_groups; g++) {
+        const Py_ssize_t np_ = (Py_ssize_t)gsz[g], nr = (Py_ssize_t)grank[g];
+        vnb *rfs = scratch, *rgs = scratch + np_;
+        for (Py_ssize_t n = 0; n < np_; n++, p += NSTRIDE) {
+            eval_block(p, a, c, c2, inv_du, ratio2, same, T, nmax, rfs + n, rgs + n);
+            for (int t = 0; t < 6; t++) { lf[t] += rfs[n] * p[3 + t]; lg[t] += rgs[n] * p[3 + t]; }
+        }
+        for (Py_ssize_t j = 0; j < nr; j++, u += np_) {
+            vnb sf = zero, sg = zero;
+            for (Py_ssize_t n = 0; n < np_; n++) { sf += rfs[n] * u[n]; sg += rgs[n] * u[n]; }
+            ff += sf * sf;
+            gg += sg * sg;
+            fg += sf * sg;
+        }
+    }
+    for (int k = 0; k < NB; k++) {
+        double *ok = o + NOUT * k;
+        for (int t = 0; t < 6; t++) { ok[t] = lf[t][k]; ok[6 + t] = lg[t][k]; }
+        ok[12] = ff[k]; ok[13] = gg[k]; ok[14] = fg[k];
+    }
+}
+
+MULTIVERSION
+static void block_sums(const double *a0, const double *a1, const double *a2, const double *M,
+                       Py_ssize_t n_single, Py_ssize_t n_groups, const long long *gsz, const long long *grank,
+                       const double *fac, vnb *scratch, const float *T, double nmax, double c, double inv_du, double ratio2, int same,
+                       double *o)
+{
+    /* two copies of the loop, so that the common case (bulge and disk on one table row) has no branch */
+    if (same)
+        block_body(a0, a1, a2, M, n_single, n_groups, gsz, grank, fac, scratch, T, nmax, c, inv_du, ratio2, 1, o);
+    else
+        block_body(a0, a1, a2, M, n_single, n_groups, gsz, grank, fac, scratch, T, nmax, c, inv_du, ratio2, 0, o);
+}
+
+/* checks the fold groups' buffers (sizes and ranks, int64; factors, float64) against the modes, of which the
+   first n_single are in no group; returns the largest group (-1: inconsistent) */
+static Py_ssize_t check_groups(const Py_buffer *gszb, const Py_buffer *grkb, const Py_buffer *facb,
+                               Py_ssize_t n_single, Py_ssize_t n_modes)
+{
+    const long long *gsz = (const long long *)gszb->buf, *grank = (const long long *)grkb->buf;
+    Py_ssize_t n_groups = gszb->len / (Py_ssize_t)sizeof(long long);
+    if (n_single > n_modes || grkb->len != gszb->len) return -1;
+    Py_ssize_t tot = 0, totf = 0, mx = 0;
+    for (Py_ssize_t g = 0; g < n_groups; g++) {
+        if (gsz[g] < 1 || grank[g] < 0 || grank[g] > gsz[g]) return -1;
+        tot += (Py_ssize_t)gsz[g];
+        totf += (Py_ssize_t)(gsz[g] * grank[g]);
+        if (gsz[g] > mx) mx = (Py_ssize_t)gsz[g];
+    }
+    return (tot == n_modes - n_single && totf == facb->len / (Py_ssize_t)sizeof(double)) ? mx : -1;
+}
+
+static vnb *alloc_scratch(Py_ssize_t max_group)
+{
+    void *ptr = NULL;
+    size_t n = (size_t)(2 * (max_group > 0 ? max_group : 1)) * sizeof(vnb);
+    if (posix_memalign(&ptr, 64, n) != 0) return NULL;
+    return (vnb *)ptr;
+}
+
+static PyObject *model_sums(PyObject *self, PyObject *args)
+{
+    Py_buffer coef, modes, tab, gszb, grkb, facb, out;
+    double c, inv_du, ratio2;
+    Py_ssize_t n_single;
+    if (!PyArg_ParseTuple(args, "y*y*y*dddny*y*y*w*", &coef, &modes, &tab, &c, &inv_du, &ratio2, &n_single, &gszb,
+                          &grkb, &facb, &out))
+        return NULL;
+    Py_ssize_t n_models = coef.len / (3 * (Py_ssize_t)sizeof(double));
+    Py_ssize_t n_modes = modes.len / (NSTRIDE * (Py_ssize_t)sizeof(double));
+    Py_ssize_t n_tab = tab.len / (4 * (Py_ssize_t)sizeof(float));
+    Py_ssize_t n_groups = gszb.len / (Py_ssize_t)sizeof(long long);
+    const long long *GS = (const long long *)gszb.buf, *GR = (const long long *)grkb.buf;
+    Py_ssize_t max_group = check_groups(&gszb, &grkb, &facb, n_single, n_modes);
+    if (out.len < n_models * NOUT * (Py_ssize_t)sizeof(double) || max_group < 0) {
+        RELEASE(&coef, &modes, &tab, &gszb, &grkb, &facb, &out);
+        PyErr_SetString(PyExc_ValueError, "model_sums: inconsistent buffer sizes");
+        return NULL;
+    }
+    vnb *scratch = alloc_scratch(max_group);
+    if (scratch == NULL) {
+        RELEASE(&coef, &modes, &tab, &gszb, &grkb, &facb, &out);
+        return PyErr_NoMemory();
+    }
+    const double *C = (const double *)coef.buf;
+    const double *M = (const double *)modes.buf;
+    const float *T = (const float *)tab.buf;
+    const double *U = (const double *)facb.buf;
+    double *O = (double *)out.buf;
+    const double nmax = (double)(n_tab - 1);
+    const int same = (ratio2 == 1.0);
+
+    Py_BEGIN_ALLOW_THREADS
+    for (Py_ssize_t m0 = 0; m0 < n_models; m0 += NB) {
+        double a0[NB], a1[NB], a2[NB], ob[NB * NOUT];
+        for (int k = 0; k < NB; k++) {
+            /* a short last block repeats its last model; the copies are not written out */
+            Py_ssize_t m = m0 + k < n_models ? m0 + k : n_models - 1;
+            a0[k] = C[3 * m]; a1[k] = C[3 * m + 1]; a2[k] = C[3 * m + 2];
+        }
+        block_sums(a0, a1, a2, M, n_single, n_groups, GS, GR, U, scratch, T, nmax, c, inv_du, ratio2, same, ob);
+        for (int k = 0; k < NB && m0 + k < n_models; k++)
+            for (int t = 0; t < NOUT; t++) O[NOUT * (m0 + k) + t] = ob[NOUT * k + t];
+    }
+    Py_END_ALLOW_THREADS
+
+    free(scratch);
+    RELEASE(&coef, &modes, &tab, &gszb, &grkb, &facb, &out);
+    Py_RETURN_NONE;
+}
+
+/*
+ * The same sums with the modes alone on their sampled mode binned per ellipticity in kappa = K^T C K:
+ * for a model of that ellipticity and any size r the transform depends on a mode only through
+ * r^2 kappa, so the bins' summed weights (the six linear vectors and q) stand for their modes at the
+ * bins' kappa. The bins are uniform in log kappa, nb per octave (kappa_b = 2^(b/nb)); each mode is
+ * shared among the four bins around it with the weights of cubic Lagrange interpolation in log kappa,
+ * so the sums are right to fourth order in the bins' width (16 per octave: 7e-6 of the largest sum,
+ * where 64 bins per octave of the earlier linear sharing gave the same).
+ * The bins of a set of ellipticities are made once (make_bins) and serve models of any size at them
+ * (binned_sums). Since the bins are uniform in log kappa, a model of size r meets the transforms at
+ * log2(rho^2) = log2(r^2) + b / nb: points equally spaced on one table uniform in log2(rho^2)
+ * (profiles.FastRadial.log_table, P = nb M points per octave), all at one fraction of its step. Its
+ * bins' transforms are then a linear interpolation between two contiguous rows of that table laid out
+ * by phase (row s holds points s, s + M, s + 2M, ...): no square root and no gather per bin. The DC
+ * mode (K = 0) has its own bin, at the transform's value at 0; the folded modes are summed exactly,
+ * as in model_sums.
+ */
+/* pass 1 of the binning: each mode's position x = bins_per_octave log2(K^T C K) on the bins' axis (a loop that
+   vectorises), then its lowest bin i = floor(x) - 1 and the weights of its four bins i .. i + 3: cubic Lagrange
+   interpolation at x between them (w4: four arrays of n_single), so that a function cubic in log K^T C K over
+   four bins is summed exactly.
+   Returns the lowest and highest bin; the DC mode (K = 0) gets the bin LLONG_MIN */
+MULTIVERSION
+static void bin_index(const float *B3, Py_ssize_t n_single, double a0, double a1, double a2, int nb,
+                      double *restrict xs, long long *restrict idx, double *restrict w4, long long *lo_out,
+                      long long *hi_out)
+{
+    for (Py_ssize_t j = 0; j < n_single; j++) {
+        const float *p = B3 + 4 * j;
+        double k = a0 * p[0] + a1 * p[1] + a2 * p[2];
+        double lg = log2(k > 0 ? k : 1.0) * nb;
+        xs[j] = k > 0 ? lg : INFINITY;   /* +inf: the DC mode */
+    }
+    /* the weights and bins: a loop of selects that vectorises (a floating-point min/max in it would not) */
+    for (Py_ssize_t j = 0; j < n_single; j++) {
+        int dc = !(xs[j] < INFINITY);
+        double x = dc ? 0.0 : xs[j];
+        double f = floor(x), t = x - f;
+        double tp = t + 1.0, tm = t - 1.0, tm2 = t - 2.0;
+        w4[j] = -t * tm * tm2 / 6.0;
+        w4[n_single + j] = tp * tm * tm2 / 2.0;
+        w4[2 * n_single + j] = -tp * t * tm2 / 2.0;
+        w4[3 * n_single + j] = tp * t * tm / 6.0;
+        idx[j] = dc ? LLONG_MIN : (long long)f - 1;
+    }
+    /* the lowest and highest bin reached, the DC mode left out, as plain minimum and maximum loops that
+       vectorise: for the minimum, the order-keeping map of the signed bins onto unsigned ones, less one,
+       sends the DC mode's LLONG_MIN to the largest value (a minimum that skips a value does not vectorise) */
+    const unsigned long long sign = 1ULL << 63;
+    unsigned long long ulo = ULLONG_MAX;
+    for (Py_ssize_t j = 0; j < n_single; j++) {
+        unsigned long long u = ((unsigned long long)idx[j] ^ sign) - 1ULL;
+        ulo = u < ulo ? u : ulo;
+    }
+    long long hi = LLONG_MIN;
+    for (Py_ssize_t j = 0; j < n_single; j++)
+        hi = idx[j] > hi ? idx[j] : hi;
+    *lo_out = ulo != ULLONG_MAX ? (long long)((ulo + 1ULL) ^ sign) : LLONG_MAX;
+    *hi_out = hi != LLONG_MIN ? hi + 3 : LLONG_MIN;
+}
+
+/* pass 2: the modes' weights into rows of 8 (the six linear vectors, q, padding), a row a vector; the DC
+   mode's into row nbin. A run of consecutive modes with the same lowest bin is summed in registers and added
+   to its four rows once (modes ordered so that near-equal wavevectors, such as one sky mode seen by
+   exposures whose Jacobians differ slightly, follow each other: see likelihood._packed_bins) */
+typedef double v8u __attribute__((vector_size(8 * sizeof(double)), aligned(sizeof(double))));
+/* a run's four accumulated rows added to the bins from its lowest bin cur (none where cur is LLONG_MIN) */
+static inline __attribute__((always_inline)) void add_run(double *A, long long cur, long long lo, const v8u *acc)
+{
+    if (cur == LLONG_MIN) return;
+    v8u *row = (v8u *)(A + 8 * (Py_ssize_t)(cur - lo));
+    for (int q = 0; q < 4; q++) row[q] += acc[q];
+}
+
+MULTIVERSION
+static void bin_scatter(const float *C8, Py_ssize_t n_single, const long long *idx, const double *w4,
+                        long long lo, Py_ssize_t nbin, double *A)
+{
+    const v8u zero = {0};
+    v8u acc[4] = {zero, zero, zero, zero};
+    long long cur = LLONG_MIN;   /* the open run's lowest bin (LLONG_MIN: none) */
+    for (Py_ssize_t j = 0; j < n_single; j++) {
+        const float *c = C8 + 8 * j;
+        if (idx[j] == LLONG_MIN) {
+            double *w0 = A + 8 * nbin;
+            for (int t = 0; t < 8; t++) w0[t] += c[t];
+            continue;
+        }
+        if (idx[j] != cur) {
+            add_run(A, cur, lo, acc);
+            cur = idx[j];
+            for (int q = 0; q < 4; q++) acc[q] = zero;
+        }
+        v8u cv;
+        for (int t = 0; t < 8; t++) cv[t] = c[t];
+        for (int q = 0; q < 4; q++) acc[q] += w4[q * n_single + j] * cv;
+    }
+    add_run(A, cur, lo, acc);
+}
+
+#define NCH 7      /* a bin's weights: the six linear vectors and q */
+#define BPAD 8     /* bins per ellipticity padded to a multiple of this (one vector), with zero weights */
+
+/*
+ * make_bins(shape, basis32, channels32, bins_per_octave) -> (lo, offsets, columns, dc): for each
+ * ellipticity e (its shape coefficients c11, c12, c22), its bins lo[e] .. lo[e] + n - 1 (kappa_b =
+ * 2^(b / nb)), every bin from the lowest to the highest a mode reached, padded with empty bins to a
+ * multiple of BPAD: n = offsets[e + 1] - offsets[e]. Their weights are in columns, channel after channel
+ * (NCH channels of n doubles from NCH offsets[e]); the DC bin's weights in dc[8 e .. 8 e + 6].
+ * Every output is bytes (int64 and float64).
+ */
+static PyObject *make_bins(PyObject *self, PyObject *args)
+{
+    Py_buffer shape, b3, c8;
+    int nb;
+    if (!PyArg_ParseTuple(args, "y*y*y*i", &shape, &b3, &c8, &nb)) return NULL;
+    Py_ssize_t n_e = shape.len / (3 * (Py_ssize_t)sizeof(double));
+    Py_ssize_t n_single = b3.len / (4 * (Py_ssize_t)sizeof(float));
+    if (c8.len != 8 * n_single * (Py_ssize_t)sizeof(float) || nb < 1 || nb > 4096) {
+        RELEASE(&shape, &b3, &c8);
+        PyErr_SetString(PyExc_ValueError, "make_bins: inconsistent buffers");
+        return NULL;
+    }
+    const double *S = (const double *)shape.buf;
+    Py_ssize_t ns = n_single > 0 ? n_single : 1;
+    long long *idx = (long long *)malloc(ns * sizeof(long long));
+    double *frac = (double *)malloc(5 * ns * sizeof(double));   /* x, then the four weights */
+    long long *off = (long long *)malloc((n_e + 1) * sizeof(long long));
+    long long *los = (long long *)malloc((n_e > 0 ? n_e : 1) * sizeof(long long));
+    double *dc = (double *)calloc(8 * (n_e > 0 ? n_e : 1), sizeof(double));
+    double *A = NULL, *cols = NULL;
+    Py_ssize_t capA = 0, capC = 0, ncol = 0;
+    int nomem = (idx == NULL || frac == NULL || off == NULL || los == NULL || dc == NULL);
+
+    Py_BEGIN_ALLOW_THREADS
+    for (Py_ssize_t e = 0; !nomem && e < n_e; e++) {
+        const double a0 = S[3 * e], a1 = S[3 * e + 1], a2 = S[3 * e + 2];
+        long long lo, hi;
+        bin_index((const float *)b3.buf, n_single, a0, a1, a2, nb, frac, idx, frac + ns, &lo, &hi);
+        Py_ssize_t nbin = hi >= lo ? (Py_ssize_t)(hi - lo) + 1 : 0;
+        Py_ssize_t npad = (nbin + BPAD - 1) / BPAD * BPAD;
+        if (nbin + 1 > capA) {
+            free(A);
+            capA = 2 * (nbin + 1);
+            /* rows of 8 doubles on 64-byte boundaries: each row's update is one aligned vector */
+            void *pa = NULL;
+            A = posix_memalign(&pa, 64, capA * 8 * sizeof(double)) == 0 ? (double *)pa : NULL;
+            if (A == NULL) { nomem = 1; break; }
+        }
+        memset(A, 0, (nbin + 1) * 8 * sizeof(double));
+        bin_scatter((const float *)c8.buf, n_single, idx, frac + ns, lo, nbin, A);
+        if (NCH * (ncol + npad) > capC) {
+            capC = 2 * NCH * (ncol + npad);
+            double *r = (double *)realloc(cols, capC * sizeof(double));
+            if (r == NULL) { nomem = 1; break; }
+            cols = r;
+        }
+        off[e] = ncol;
+        los[e] = nbin > 0 ? lo : 0;
+        double *blk = cols + NCH * ncol;
+        for (int t = 0; t < NCH; t++) {
+            double *ch = blk + t * npad;
+            for (Py_ssize_t b = 0; b < nbin; b++) ch[b] = A[8 * b + t];
+            for (Py_ssize_t b = nbin; b < npad; b++) ch[b] = 0.0;
+        }
+        for (int t = 0; t < NCH; t++) dc[8 * e + t] = A[8 * nbin + t];
+        ncol += npad;
+    }
+    off[n_e] = ncol;
+    Py_END_ALLOW_THREADS
+
+    PyObject *res = NULL;
+    if (!nomem) {
+        PyObject *l = PyBytes_FromStringAndSize((const char *)los, n_e * sizeof(long long));
+        PyObject *o = PyBytes_FromStringAndSize((const char *)off, (n_e + 1) * sizeof(long long));
+        PyObject *c = PyBytes_FromStringAndSize((const char *)cols, NCH * ncol * sizeof(double));
+        PyObject *d = PyBytes_FromStringAndSize((const char *)dc, 8 * n_e * sizeof(double));
+        if (l && o && c && d) res = PyTuple_Pack(4, l, o, c, d);
+        Py_XDECREF(l);
+        Py_XDECREF(o);
+        Py_XDECREF(c);
+        Py_XDECREF(d);
+    }
+    free(idx); free(frac); free(off); free(los); free(dc); free(A); free(cols);
+    RELEASE(&shape, &b3, &c8);
+    if (nomem) return PyErr_NoMemory();
+    return res;
+}
+
+/* the transform at the n (padded: npad) bins of a model whose bin 0 lies at position pos of the log table
+   (G2: rows of J points, row s holding the table's points s, s + M, s + 2M, ...; M + 1 rows): bins below
+   the table get low (the transform at its start, where it is flat), bins beyond it 0; pos = -inf (r = 0)
+   gives every bin zero_val, the transform at rho = 0, and a NaN (r NaN) NaN */
+static inline __attribute__((always_inline)) void log_table_row(
+    const double *G2, Py_ssize_t M, Py_ssize_t J, double pos, Py_ssize_t n, Py_ssize_t npad, double low,
+    double zero_val, double *restrict R)
+{
+    if (!(pos > -1e15)) {
+        const double v = pos != pos ? pos : zero_val;
+        for (Py_ssize_t b = 0; b < n; b++) R[b] = v;
+        for (Py_ssize_t b = n; b < npad; b++) R[b] = 0.0;
+        return;
+    }
+    if (pos > 1e15) pos = 1e15;
+    const double fl = floor(pos), f = pos - fl;
+    const long long i0 = (long long)fl;
+    long long s = i0 % (long long)M;
+    if (s < 0) s += M;
+    const long long j0 = (i0 - s) / (long long)M;
+    long long blo = -j0, bhi = (long long)J - j0;
+    blo = blo < 0 ? 0 : (blo > n ? n : blo);
+    bhi = bhi < blo ? blo : (bhi > n ? n : bhi);
+    const double *A = G2 + s * J + j0, *B = G2 + (s + 1) * J + j0;
+    for (Py_ssize_t b = 0; b < blo; b++) R[b] = low;
+    for (Py_ssize_t b = (Py_ssize_t)blo; b < (Py_ssize_t)bhi; b++) R[b] = A[b] + f * (B[b] - A[b]);
+    for (Py_ssize_t b = (Py_ssize_t)bhi; b < npad; b++) R[b] = 0.0;
+}
+
+static inline double hsum8(v8u v)
+{
+    return ((v[0] + v[4]) + (v[1] + v[5])) + ((v[2] + v[6]) + (v[3] + v[7]));
+}
+
+/* the sums of one model from its ellipticity's bins (W: NCH channels of npad), transforms rf, rg there, and
+   the DC bin (dcw, at the transforms' values at 0, r0f and r0g): the output row o of NOUT, as block_body's */
+MULTIVERSION
+static void sums_from_bins(const double *restrict W, Py_ssize_t npad, const double *restrict rf,
+                           const double *restrict rg, const double *dcw, double r0f, double r0g, double *o)
+{
+    const v8u zero = {0};
+    v8u lf[6], lg[6], ff = zero, gg = zero, fg = zero;
+    for (int t = 0; t < 6; t++) lf[t] = lg[t] = zero;
+    for (Py_ssize_t b = 0; b < npad; b += 8) {
+        v8u vf = *(const v8u *)(rf + b), vg = *(const v8u *)(rg + b);
+        for (int t = 0; t < 6; t++) {
+            v8u w = *(const v8u *)(W + t * npad + b);
+            lf[t] += vf * w;
+            lg[t] += vg * w;
+        }
+        v8u q = *(const v8u *)(W + 6 * npad + b);
+        v8u qf = q * vf;
+        ff += qf * vf;
+        fg += qf * vg;
+        gg += q * vg * vg;
+    }
+    for (int t = 0; t < 6; t++) {
+        o[t] = hsum8(lf[t]) + r0f * dcw[t];
+        o[6 + t] = hsum8(lg[t]) + r0g * dcw[t];
+    }
+    o[12] = hsum8(ff) + dcw[6] * r0f * r0f;
+    o[13] = hsum8(gg) + dcw[6] * r0g * r0g;
+    o[14] = hsum8(fg) + dcw[6] * r0f * r0g;
+}
+
+/*
+ * binned_sums(shape, r2, e_index, lo, offsets, columns, dc, bins_per_octave, log_f, log_g, M, J, start, per_octave,
+ *             low_f, low_g, zero_f, zero_g, modes, table, c, inv_du, ratio2, n_single, group_sizes, group_ranks,
+ *             group_factors, out):
+ * the sums of models (r2 and the ellipticity e_index each, into shape and make_bins' outputs), from the bins of
+ * their ellipticity on the log tables of the disk and bulge (log_f, log_g: M + 1 rows of J; point i of a table
+ * at log2(rho^2) = start + i / per_octave), plus the folded modes (modes[n_single:], on the u table), summed
+ * exactly. The bulge's rho^2 is ratio2 times the disk's.
+ */
+static PyObject *binned_sums(PyObject *self, PyObject *args)
+{
+    Py_buffer shape, r2b, eidx, lob, offb, colb, dcb, gfb, ggb, modes, tab, gszb, grkb, facb, out;
+    double start, per_oct, low_f, low_g, zero_f, zero_g, c, inv_du, ratio2;
+    Py_ssize_t n_single, M, J;
+    int nb;
+    if (!PyArg_ParseTuple(args, "y*y*y*y*y*y*y*iy*y*nnddddddy*y*dddny*y*y*w*", &shape, &r2b, &eidx, &lob, &offb,
+                          &colb, &dcb, &nb, &gfb, &ggb, &M, &J, &start, &per_oct, &low_f, &low_g, &zero_f, &zero_g,
+                          &modes, &tab, &c, &inv_du, &ratio2, &n_single, &gszb, &grkb, &facb, &out))
+        return NULL;
+    Py_ssize_t n_models = r2b.len / (Py_ssize_t)sizeof(double);
+    Py_ssize_t n_e = shape.len / (3 * (Py_ssize_t)sizeof(double));
+    Py_ssize_t n_modes = modes.len / (NSTRIDE * (Py_ssize_t)sizeof(double));
+    Py_ssize_t n_cols = colb.len / (NCH * (Py_ssize_t)sizeof(double));
+    Py_ssize_t n_tab = tab.len / (4 * (Py_ssize_t)sizeof(float));
+    Py_ssize_t n_groups = gszb.len / (Py_ssize_t)sizeof(long long);
+    const long long *E = (const long long *)eidx.buf, *OFF = (const long long *)offb.buf;
+    const long long *LO = (const long long *)lob.buf;
+    const long long *GS = (const long long *)gszb.buf, *GR = (const long long *)grkb.buf;
+    Py_ssize_t max_group = check_groups(&gszb, &grkb, &facb, n_single, n_modes);
+    int bad = out.len < n_models * NOUT * (Py_ssize_t)sizeof(double) || max_group < 0 || nb < 1 || M < 1 || J < 1
+              || eidx.len != n_models * (Py_ssize_t)sizeof(long long)
+              || lob.len != n_e * (Py_ssize_t)sizeof(long long) || dcb.len != 8 * n_e * (Py_ssize_t)sizeof(double)
+              || gfb.len != (M + 1) * J * (Py_ssize_t)sizeof(double) || ggb.len != gfb.len
+              || offb.len != (n_e + 1) * (Py_ssize_t)sizeof(long long) || OFF[n_e] != n_cols
+              || per_oct != (double)(nb * M);
+    for (Py_ssize_t m = 0; !bad && m < n_models; m++)
+        bad = E[m] < 0 || E[m] >= n_e;
+    for (Py_ssize_t e = 0; !bad && e < n_e; e++)
+        bad = OFF[e] < 0 || OFF[e] > OFF[e + 1] || (OFF[e + 1] - OFF[e]) % BPAD != 0;
+    if (bad) {
+        RELEASE(&shape, &r2b, &eidx, &lob, &offb, &colb, &dcb, &gfb, &ggb, &modes, &tab, &gszb, &grkb, &facb, &out);
+        PyErr_SetString(PyExc_ValueError, "binned_sums: inconsistent buffers");
+        return NULL;
+    }
+    Py_ssize_t maxpad = 0;
+    for (Py_ssize_t e = 0; e < n_e; e++)
+        if (OFF[e + 1] - OFF[e] > maxpad) maxpad = (Py_ssize_t)(OFF[e + 1] - OFF[e]);
+    vnb *scratch = alloc_scratch(max_group);
+    void *rbuf = NULL;
+    if (scratch == NULL || posix_memalign(&rbuf, 64, 2 * (maxpad + BPAD) * sizeof(double)) != 0) {
+        free(scratch);
+        RELEASE(&shape, &r2b, &eidx, &lob, &offb, &colb, &dcb, &gfb, &ggb, &modes, &tab, &gszb, &grkb, &facb, &out);
+        return PyErr_NoMemory();
+    }
+    double *RF = (double *)rbuf, *RG = RF + maxpad + BPAD;
+    const double *S = (const double *)shape.buf;
+    const double *R2 = (const double *)r2b.buf;
+    const double *M_ = (const double *)modes.buf;
+    const double *COLS = (const double *)colb.buf, *DC = (const double *)dcb.buf;
+    const double *GF = (const double *)gfb.buf, *GG = (const double *)ggb.buf;
+    const float *T = (const float *)tab.buf;
+    const double *U = (const double *)facb.buf;
+    double *O = (double *)out.buf;
+    const double nmax = (double)(n_tab - 1);
+    const int same = (ratio2 == 1.0);
+    const double shift_g = same ? 0.0 : log2(ratio2) * per_oct;
+
+    Py_BEGIN_ALLOW_THREADS
+    for (Py_ssize_t m = 0; m < n_models; m++) {
+        const long long e = E[m];
+        const Py_ssize_t npad = (Py_ssize_t)(OFF[e + 1] - OFF[e]);
+        const double *W = COLS + NCH * OFF[e];
+        /* the position of bin 0 (kappa = 2^(lo / nb)) on the tables; r = 0 gives -inf */
+        const double pos = (log2(R2[m]) - start) * per_oct + (double)LO[e] * (double)M;
+        log_table_row(GF, M, J, pos, npad, npad, low_f, zero_f, RF);
+        log_table_row(GG, M, J, pos + shift_g, npad, npad, low_g, zero_g, RG);
+        sums_from_bins(W, npad, RF, RG, DC + 8 * e, zero_f, zero_g, O + NOUT * m);
+    }
+    /* the fold groups, summed exactly, in full blocks whatever the models' ellipticities */
+    if (n_groups > 0) {
+        const double *MG = M_ + NSTRIDE * n_single;
+        for (Py_ssize_t b0 = 0; b0 < n_models; b0 += NB) {
+            double c0[NB], c1[NB], c2[NB], om[NB * NOUT];
+            for (int k = 0; k < NB; k++) {
+                Py_ssize_t m = b0 + k < n_models ? b0 + k : n_models - 1;
+                const long long e = E[m];
+                c0[k] = S[3 * e] * R2[m]; c1[k] = S[3 * e + 1] * R2[m]; c2[k] = S[3 * e + 2] * R2[m];
+            }
+            block_sums(c0, c1, c2, MG, 0, n_groups, GS, GR, U, scratch, T, nmax, c, inv_du, ratio2, same, om);
+            for (int k = 0; k < NB && b0 + k < n_models; k++)
+                for (int t = 0; t < NOUT; t++) O[NOUT * (b0 + k) + t] += om[NOUT * k + t];
+        }
+    }
+    Py_END_ALLOW_THREADS
+
+    free(scratch);
+    free(rbuf);
+    RELEASE(&shape, &r2b, &eidx, &lob, &offb, &colb, &dcb, &gfb, &ggb, &modes, &tab, &gszb, &grkb, &facb, &out);
+    Py_RETURN_NONE;
+}
+
+/*
+ * The marginalisation of each model over bulge fraction, position and flux (likelihood.py's
+ * flux_position_marginal, which stays as the reference: a test checks they agree). erfcx and expi
+ * are scipy.special's own (cython_special), whose C entry points the module is given once
+ * (set_special); erf, exp and log are the C library's.
+ */
+typedef double (*special_fn)(double, int);
+static special_fn sp_erfcx = NULL, sp_expi = NULL;
+static const char *SPECIAL_SIG = "double (double, int __pyx_skip_dispatch)";
+/* log Ei and its derivative e^x / (x Ei(x)) at x = ei_x0 + i ei_dx, from scipy's expi (likelihood.py):
+   cubic Hermite interpolation between them is good to 1e-11, and 50 times faster than expi itself */
+static double *ei_tab = NULL;
+static Py_ssize_t ei_n = 0;
+static double ei_x0 = 0.0, ei_dx = 1.0;
+
+static PyObject *set_special(PyObject *self, PyObject *args)
+{
+    PyObject *c1, *c2;
+    Py_buffer tab;
+    double x0, dx;
+    if (!PyArg_ParseTuple(args, "OOy*dd", &c1, &c2, &tab, &x0, &dx)) return NULL;
+    if (!PyCapsule_IsValid(c1, SPECIAL_SIG) || !PyCapsule_IsValid(c2, SPECIAL_SIG) || !(dx > 0)
+        || tab.len < 4 * (Py_ssize_t)sizeof(double) || tab.len % (2 * sizeof(double))) {
+        PyBuffer_Release(&tab);
+        PyErr_SetString(PyExc_ValueError, "set_special: capsules of signature 'double (double, int)' and a table needed");
+        return NULL;
+    }
+    double *t = (double *)malloc(tab.len);
+    if (t == NULL) { PyBuffer_Release(&tab); return PyErr_NoMemory(); }
+    memcpy(t, tab.buf, tab.len);
+    free(ei_tab);
+    ei_tab = t;
+    ei_n = tab.len / (2 * (Py_ssize_t)sizeof(double));
+    ei_x0 = x0;
+    ei_dx = dx;
+    PyBuffer_Release(&tab);
+    sp_erfcx = (special_fn)PyCapsule_GetPointer(c1, SPECIAL_SIG);
+    sp_expi = (special_fn)PyCapsule_GetPointer(c2, SPECIAL_SIG);
+    Py_RETURN_NONE;
+}
+
+#define LOG_2PI 1.8378770664093453
+#define EI_SERIES_FROM 40.0
+
+typedef struct {
+    double sb2, b0, log_zb, tcrit, log_ei_tcrit, mu_min, max_step, slope, halfwidth;
+    int bounded;
+} MargPar;
+
+/* The marginalisation runs in stages over arrays of (model, flux node) elements, so that the exponentials
+ * and logarithms of each stage vectorise (libmvec, see vexp_shift); only erfcx, erf and the exponential
+ * integral's table are evaluated one element at a time. MB_L elements per batch. */
+#define MB_L 256
+
+/* the position integral's geometry for one element (likelihood._position_integral): the determinant's
+   argument dl (whose log is log det), the second-order correction corr, and whether the curvature is usable */
+static inline __attribute__((always_inline)) void position_geometry(
+    double g1, double g2, double H0, double H1, double H2, const MargPar *P, double *dl, double *corr_out, int *ok_out)
+{
+    double h11 = -H0, h12 = -H1, h22 = -H2;
+    double gqg, step;
+    int ok;
+    if (P->bounded) {
+        double half_tr = 0.5 * (h11 + h22);
+        double rad = sqrt(0.25 * (h11 - h22) * (h11 - h22) + h12 * h12);
+        double v1 = half_tr + rad, v2 = half_tr - rad;
+        /* np.maximum: NaN propagates */
+        double lam1 = v1 != v1 ? v1 : (v1 > P->mu_min ? v1 : P->mu_min);
+        double lam2 = v2 != v2 ? v2 : (v2 > P->mu_min ? v2 : P->mu_min);
+        double gg = g1 * g1 + g2 * g2;
+        double gmg = h11 * g1 * g1 + 2 * h12 * g1 * g2 + h22 * g2 * g2;
+        double p1sq = rad > 1e-9 * fabs(half_tr) ? (gmg - (half_tr - rad) * gg) / (2 * rad) : gg;
+        p1sq = p1sq < 0 ? 0 : (p1sq > gg ? gg : p1sq);
+        double p2sq = gg - p1sq;
+        ok = isfinite(lam1) && isfinite(lam2);
+        *dl = lam1 * lam2;
+        gqg = p1sq / lam1 + p2sq / lam2;
+        step = sqrt(p1sq / (lam1 * lam1) + p2sq / (lam2 * lam2));
+    } else {
+        double det = h11 * h22 - h12 * h12;
+        ok = (h11 > 0) && (det > 0);
+        *dl = ok ? det : 1.0;
+        gqg = (g1 * g1 * h22 - 2 * g1 * g2 * h12 + g2 * g2 * h11) / det;
+        step = 0.0;
+    }
+    double t = step > P->max_step ? P->max_step / (step > 0 ? step : 1.0) : 1.0;
+    double corr = (t - 0.5 * t * t) * gqg;
+    corr = ok ? (corr > 0 ? corr : (corr != corr ? corr : 0.0)) : 0.0;
+    *corr_out = corr;
+    *ok_out = ok;
+}
+
+/* log Ei(x) for x > tcrit, in two parts: returns 1 and the series sum k! / x^k (likelihood._log_ei's 13
+   terms) where log Ei = x - log x + log(series), else 0 and log Ei itself in *la */
+static int log_ei_part(double x, double *la, double *series)
+{
+    if (x < EI_SERIES_FROM) {
+        double t = (x - ei_x0) / ei_dx;
+        if (t >= 0 && t < (double)(ei_n - 1)) {
+            Py_ssize_t i = (Py_ssize_t)t;
+            double s = t - (double)i, s1 = 1.0 - s;
+            const double *a = ei_tab + 2 * i;
+            *la = (1 + 2 * s) * s1 * s1 * a[0] + s * s1 * s1 * ei_dx * a[1]
+                  + s * s * (3 - 2 * s) * a[2] - s * s * s1 * ei_dx * a[3];
+        } else {
+            *la = log(sp_expi(x, 0));
+        }
+        return 0;
+    }
+    static const double fact[13] = {1.0, 1.0, 2.0, 6.0, 24.0, 120.0, 720.0, 5040.0, 40320.0, 362880.0,
+                                    3628800.0, 39916800.0, 479001600.0};
+    double inv = 1.0 / x, s = 0.0;
+    for (int k = 12; k >= 0; k--) s = s * inv + fact[k];
+    *series = s;
+    return 1;
+}
+
+static double log_ei(double x)
+{
+    double la = 0.0, series = 1.0;
+    return log_ei_part(x, &la, &series) ? x - log(x) + log(series) : la;
+}
+
+/* the position integral (likelihood._position_integral) of n elements: val = log integral, -inf where the
+   curvature is unusable; w: scratch of 7 x MB_L */
+MULTIVERSION
+static void position_vec(Py_ssize_t n, const double *restrict lpr, const double *restrict lp0,
+                         const double *restrict g1, const double *restrict g2, const double *restrict H0,
+                         const double *restrict H1, const double *restrict H2, const MargPar *P,
+                         double *restrict val, double *restrict w)
+{
+    double *dl = w, *A = w + MB_L, *okf = w + 2 * MB_L, *ld = w + 3 * MB_L, *lA = w + 4 * MB_L;
+    double *la = w + 5 * MB_L, *ser = w + 6 * MB_L;
+    const double tcrit = P->tcrit, lt = P->log_ei_tcrit;
+    for (Py_ssize_t e = 0; e < n; e++) {
+        double corr, d;
+        int ok;
+        position_geometry(g1[e], g2[e], H0[e], H1[e], H2[e], P, &d, &corr, &ok);
+        dl[e] = d;
+        A[e] = lpr[e] + corr - lp0[e];
+        okf[e] = ok;
+    }
+    for (Py_ssize_t e = 0; e < n; e++) {
+        ld[e] = log(dl[e]);
+        lA[e] = log(A[e] > 0 ? A[e] : 1.0);
+    }
+    /* log Ei: the table (or scipy's expi) one at a time; the series' logarithms vectorised below */
+    for (Py_ssize_t e = 0; e < n; e++) {
+        double s = 1.0, l = lt + 1.0;
+        if (A[e] > tcrit && !log_ei_part(A[e], &l, &s)) s = -1.0;   /* -1: la is l */
+        la[e] = l;
+        ser[e] = s;
+    }
+    for (Py_ssize_t e = 0; e < n; e++) {
+        double ls = log(ser[e] > 0 ? ser[e] : 1.0);
+        double l = ser[e] > 0 ? A[e] - lA[e] + ls : la[e];
+        la[e] = A[e] > tcrit ? l : lt + 1.0;
+    }
+    for (Py_ssize_t e = 0; e < n; e++) {
+        /* log1p(-e^-d) ~ -e^-d is below half a unit in the last place of la once d > 37 and |la| >= 1 */
+        double l = la[e];
+        double lei = (l - lt > 37.0 && fabs(l) >= 1.0) ? l : l + log1p(-exp(lt - l));
+        lei = A[e] > tcrit ? lei : -INFINITY;
+        val[e] = okf[e] != 0 ? lp0[e] + LOG_2PI - 0.5 * ld[e] + lA[e] + lei : -INFINITY;
+    }
+}
+
+/* log(erf(a) - erf(b)) for a > b (likelihood.log_erf_diff) of n pairs, without cancellation in the tails.
+   erf(a) - erf(b) = erfc(u) - erfc(v) with u = b, v = a, or, in the lower tail (a <= 0), u = -a, v = -b:
+   u < v and u is never in the lower tail, so erfc(u) is accurate and the difference cancels no more than
+   the erf form (a - b >= 1/(sqrt(2) sigma_B) here). Both erfc in a loop that vectorises (glibc's vector
+   erfc where it exists); where erfc(u) would underflow (u >= ERFC_SAFE), e^-u^2 comes out and scipy's
+   erfcx is used, one element at a time: -u^2 + log(erfcx(u) - erfcx(v) e^(u^2 - v^2)).
+   w: scratch of 4 x MB_L */
+#define ERFC_SAFE 25.0
+MULTIVERSION
+static void log_erf_diff_vec(Py_ssize_t n, const double *restrict a, const double *restrict b,
+                             double *restrict out, double *restrict w)
+{
+    double *p = w, *us = w + MB_L, *vs = w + 2 * MB_L;
+    int far = 0;
+    for (Py_ssize_t e = 0; e < n; e++) {
+        double ae = a[e], be = b[e];
+        int lower = ae <= 0 && be < 0;
+        double u = lower ? -ae : be, v = lower ? -be : ae;
+        double uc = u < ERFC_SAFE ? u : 0.0;   /* the far ones are redone below */
+        p[e] = erfc(uc) - erfc(uc < u ? uc : v);
+        us[e] = u;
+        vs[e] = v;
+        far |= !(u < ERFC_SAFE);
+    }
+    for (Py_ssize_t e = 0; e < n; e++) out[e] = log(p[e]);
+    if (!far) return;
+    for (Py_ssize_t e = 0; e < n; e++) {
+        double u = us[e], v = vs[e];
+        if (u < ERFC_SAFE) continue;
+        double d = u * u - v * v;
+        double q = d > -745.0 ? sp_erfcx(v, 0) * exp(d) : 0.0;
+        out[e] = -u * u + log(sp_erfcx(u, 0) - q);
+    }
+}
+
+/* the disk population (bulge fraction marginalised analytically, likelihood._disk_logp) of n elements:
+   log P at (hf, hg) and at h = 0 (the pedestal, which shares theta), <B>, and the position's gradient and
+   Hessian mixed by <B> (g: 5 x MB_L). x: each element's model sums (15, see marginal); w: scratch of
+   14 x MB_L */
+MULTIVERSION
+static void disk_vec(Py_ssize_t n, const double *restrict S, const double *const *restrict x, const MargPar *P,
+                     double *restrict lp, double *restrict lp0, double *restrict mb, double *restrict g,
+                     double *restrict w)
+{
+    double *th = w, *lth = w + MB_L, *r0 = w + 2 * MB_L, *ab = w + 4 * MB_L, *led = w + 8 * MB_L;
+    double *scratch = w + 10 * MB_L;
+    const double inv_sb2 = 1.0 / P->sb2, b0s = P->b0 / P->sb2;
+    for (Py_ssize_t e = 0; e < n; e++) {
+        const double *xe = x[e];
+        double s = S[e], ff = xe[12], gg = xe[13], fg = xe[14];
+        double t = sqrt(0.5 * (s * s * (ff + gg - 2 * fg) + inv_sb2));
+        double rn = s * (xe[0] - xe[6]) + s * s * (fg - ff) - b0s, rz = s * s * (fg - ff) - b0s;
+        th[e] = t;
+        r0[e] = rn;
+        r0[MB_L + e] = rz;
+        ab[e] = t + rn / (2 * t);              /* a and b at (hf, hg), then at h = 0 */
+        ab[MB_L + e] = rn / (2 * t);
+        ab[2 * MB_L + e] = t + rz / (2 * t);
+        ab[3 * MB_L + e] = rz / (2 * t);
+    }
+    for (Py_ssize_t e = 0; e < n; e++) lth[e] = log(th[e]);
+    log_erf_diff_vec(n, ab, ab + MB_L, led, scratch);
+    log_erf_diff_vec(n, ab + 2 * MB_L, ab + 3 * MB_L, led + MB_L, scratch);
+    const double c0 = -0.5 * P->b0 * P->b0 / P->sb2, c1 = log(sqrt(M_PI) / 2);
+    for (Py_ssize_t e = 0; e < n; e++) {
+        const double *xe = x[e];
+        double s = S[e], t = th[e], rn = r0[e], rz = r0[MB_L + e];
+        double a = ab[e], b = ab[MB_L + e], le = led[e];
+        lp[e] = s * xe[0] - 0.5 * s * s * xe[12] + c0 + rn * rn / (4 * t * t) + c1 - lth[e] + le - P->log_zb;
+        lp0[e] = -0.5 * s * s * xe[12] + c0 + rz * rz / (4 * t * t) + c1 - lth[e] + led[MB_L + e] - P->log_zb;
+        double mu = -rn / (2 * t * t);
+        double num = exp(-b * b - le) - exp(-a * a - le);
+        double m = mu + num / (t * sqrt(M_PI));
+        m = m < 0 ? 0 : (m > 1 ? 1 : m);
+        mb[e] = m;
+        for (int c = 0; c < 2; c++) g[c * MB_L + e] = s * ((1 - m) * xe[1 + c] + m * xe[7 + c]);
+        for (int c = 0; c < 3; c++) g[(2 + c) * MB_L + e] = s * ((1 - m) * xe[3 + c] + m * xe[9 + c]);
+    }
+}
+
+/* the bulge population (B = 1): log P at hg and at h = 0, and the position's gradient and Hessian */
+MULTIVERSION
+static void bulge_vec(Py_ssize_t n, const double *restrict S, const double *const *restrict x,
+                      double *restrict lp, double *restrict lp0, double *restrict g)
+{
+    for (Py_ssize_t e = 0; e < n; e++) {
+        const double *xe = x[e];
+        double s = S[e];
+        lp[e] = s * xe[6] - 0.5 * s * s * xe[13];
+        lp0[e] = -0.5 * s * s * xe[13];
+        for (int c = 0; c < 2; c++) g[c * MB_L + e] = s * xe[7 + c];
+        for (int c = 0; c < 3; c++) g[(2 + c) * MB_L + e] = s * xe[9 + c];
+    }
+}
+
+#define MAXF 64
+
+/* out[q] = sum_k v[k] M[k, q] (M: nk x nq), summed over k in order as the scalar loop did */
+MULTIVERSION
+static void spline_rows(const double *restrict v, const double *restrict M, Py_ssize_t nk, Py_ssize_t nq,
+                        double *restrict out)
+{
+    for (Py_ssize_t q = 0; q < nq; q++) out[q] = 0.0;
+    for (Py_ssize_t k = 0; k < nk; k++)
+        for (Py_ssize_t q = 0; q < nq; q++) out[q] += v[k] * M[k * nq + q];
+}
+
+static PyObject *marginal(PyObject *self, PyObject *args)
+{
+    Py_buffer sums, ub, ufb, spl, itp, par, out;
+    if (!PyArg_ParseTuple(args, "y*y*y*y*y*y*w*", &sums, &ub, &ufb, &spl, &itp, &par, &out)) return NULL;
+    Py_ssize_t n = sums.len / (15 * (Py_ssize_t)sizeof(double));
+    Py_ssize_t nf = ub.len / (Py_ssize_t)sizeof(double), nfine = ufb.len / (Py_ssize_t)sizeof(double);
+    int bad = sp_erfcx == NULL || nf < 2 || nf > MAXF || nfine < 2 || nfine > 4 * MAXF
+              || spl.len != nf * nfine * (Py_ssize_t)sizeof(double) || itp.len != spl.len
+              || par.len != 10 * (Py_ssize_t)sizeof(double) || out.len < 9 * n * (Py_ssize_t)sizeof(double);
+    double *work = bad ? NULL : (double *)malloc(28 * MB_L * sizeof(double));
+    const double **xp = bad ? NULL : (const double **)malloc(MB_L * sizeof(double *));
+    if (bad || work == NULL || xp == NULL) {
+        free(work);
+        free(xp);
+        RELEASE(&sums, &ub, &ufb, &spl, &itp, &par, &out);
+        if (!bad) return PyErr_NoMemory();
+        PyErr_SetString(PyExc_ValueError, sp_erfcx == NULL ? "marginal: set_special first"
+                                                           : "marginal: inconsistent buffers");
+        return NULL;
+    }
+    const double *X = (const double *)sums.buf, *u = (const double *)ub.buf, *uf = (const double *)ufb.buf;
+    const double *SPL = (const double *)spl.buf, *ITP = (const double *)itp.buf, *pp = (const double *)par.buf;
+    double *O = (double *)out.buf;
+    MargPar P = {pp[0], pp[1], pp[2], pp[3], 0.0, pp[4], pp[5], pp[6], pp[7], pp[8] != 0.0};
+    /* per element: S, log S, log P, log P at h = 0, <B>, gradient and Hessian (5), log integral (val) */
+    double *Sk = work, *logS = work + MB_L, *lp = work + 2 * MB_L, *lp0 = work + 3 * MB_L, *mbe = work + 4 * MB_L;
+    double *g = work + 5 * MB_L, *val = work + 10 * MB_L, *scratch = work + 11 * MB_L;   /* scratch: 14 */
+    /* per model of the batch: the flux range [lo, hi] and whether the model correlates with the data */
+    double *lo_m = work + 25 * MB_L, *hi_m = work + 26 * MB_L, *good_m = work + 27 * MB_L;
+    const Py_ssize_t per = MB_L / nf;   /* models per batch */
+    Py_BEGIN_ALLOW_THREADS
+    P.log_ei_tcrit = log_ei(P.tcrit);
+    for (Py_ssize_t i0 = 0; i0 < n; i0 += per) {
+        const Py_ssize_t nm = i0 + per <= n ? per : n - i0, ne = nm * nf;
+        for (int pop = 0; pop < 2; pop++) {
+            for (Py_ssize_t j = 0; j < nm; j++) {
+                const double *x = X + 15 * (i0 + j);
+                double h = x[6 * pop], hh = x[12 + pop];
+                int good = (hh > 0) && (h > 0);
+                double hh_s = good ? hh : 1.0, s_ml = good ? h / hh_s : 1.0, sig = 1.0 / sqrt(hh_s);
+                double lo = fmax(s_ml - P.halfwidth * sig, 0.02 * s_ml), hi = s_ml + P.halfwidth * sig;
+                for (Py_ssize_t k = 0; k < nf; k++) {
+                    Sk[j * nf + k] = lo + (hi - lo) * u[k];
+                    xp[j * nf + k] = x;
+                }
+                lo_m[j] = lo;
+                hi_m[j] = hi;
+                good_m[j] = good;
+            }
+            vlog(Sk, logS, ne);
+            if (pop == 0)
+                disk_vec(ne, Sk, xp, &P, lp, lp0, mbe, g, scratch);
+            else
+                bulge_vec(ne, Sk, xp, lp, lp0, g);
+            position_vec(ne, lp, lp0, g, g + MB_L, g + 2 * MB_L, g + 3 * MB_L, g + 4 * MB_L, &P, val, scratch);
+            for (Py_ssize_t j = 0; j < nm; j++) {
+                const double *x = X + 15 * (i0 + j);
+                const double *L = x + 6 * pop;   /* h, grad, hess of this population */
+                double *o = O + 9 * (i0 + j);    /* logl_d, logl_b, flux_d, flux_b, meanb_d, chi2_d, chi2_b, snr_d, snr_b */
+                double h = L[0], hh = x[12 + pop];
+                const int good = good_m[j] != 0;
+                const double lo = lo_m[j], hi = hi_m[j];
+                double hh_s = good ? hh : 1.0, s_ml = good ? h / hh_s : 1.0;
+                double lpk[MAXF];
+                for (Py_ssize_t k = 0; k < nf; k++)
+                    lpk[k] = good ? val[j * nf + k] - P.slope * logS[j * nf + k] : -INFINITY;
+                const double *mb = mbe + j * nf;
+                /* the cubic spline of log P over the flux nodes, integrated on the fine grid (_spline_logint) */
+                double rowmax = -INFINITY;
+                for (Py_ssize_t k = 0; k < nf; k++) if (isfinite(lpk[k]) && lpk[k] > rowmax) rowmax = lpk[k];
+                int good_row = isfinite(rowmax);
+                double floor_ = good_row ? rowmax - 40.0 : 0.0;
+                double lv[MAXF];
+                for (Py_ssize_t k = 0; k < nf; k++) lv[k] = isfinite(lpk[k]) ? fmax(lpk[k], floor_) : floor_;
+                double vf[4 * MAXF], bf[4 * MAXF], m;
+                spline_rows(lv, SPL, nf, nfine, vf);
+                if (pop == 0) spline_rows(mb, ITP, nf, nfine, bf);
+                m = vf[0];
+                for (Py_ssize_t q = 1; q < nfine; q++) m = vf[q] > m ? vf[q] : m;
+                double integral = 0.0, wsum = 0.0, ws = 0.0, wb = 0.0, wprev = 0.0, wv[4 * MAXF];
+                vexp_shift(vf, m, wv, nfine);
+                for (Py_ssize_t q = 0; q < nfine; q++) {
+                    double w = wv[q];
+                    if (q > 0) integral += 0.5 * (w + wprev) * (uf[q] - uf[q - 1]);
+                    wprev = w;
+                    wsum += w;
+                    ws += w * (lo + (hi - lo) * uf[q]);
+                    wb += pop == 0 ? w * bf[q] : w;
+                }
+                if (!(wsum > 0)) wsum = 1.0;
+                double logint = good_row ? m + log(integral) : -INFINITY;
+                logint += log(hi - lo);
+                /* best-fit chi^2 of the single-component model at its best flux and position */
+                double dl, cml;
+                int ok;
+                position_geometry(L[1] * s_ml, L[2] * s_ml, L[3] * s_ml, L[4] * s_ml, L[5] * s_ml, &P, &dl, &cml, &ok);
+                double chi2 = good ? -(h * h / hh_s) - 2 * cml : 0.0;
+                o[pop] = good ? logint : -INFINITY;
+                o[2 + pop] = ws / wsum;
+                if (pop == 0) o[4] = wb / wsum;
+                o[5 + pop] = chi2;
+                o[7 + pop] = good ? h / sqrt(hh_s) : 0.0;
+            }
+        }
+    }
+    Py_END_ALLOW_THREADS
+    free(work);
+    free(xp);
+    RELEASE(&sums, &ub, &ufb, &spl, &itp, &par, &out);
+    Py_RETURN_NONE;
+}
+
+/*
+ * size_marginal(ld, lb, fd, fb, bd, logprior, lsegprior, spline, interp, xf, u, rf, l0, logmix, out): the size
+ * integral of sampling.EllipticityLikelihood._size_marginal (which stays as the reference: a test checks they
+ * agree). Per ellipticity e and population (disk, bulge): log L at the n_r nodes (ld, lb; floored 40 below
+ * their maximum), splined onto the fine ln r grid xf (spline: n_r x n_f), plus the log prior there
+ * (logprior: n_e x n_f); from r = 0 to the first node, log L linear in r^2 between the point source (l0)
+ * and the first node, on u in [0, 1] (lsegprior: n_e x n_u); trapezoid sums; posterior means of r and of
+ * the flux and B (fd, fb, bd linearly interpolated from the nodes, interp: n_r x n_f); the populations
+ * mixed by logmix (log(1 - f_B), log f_B). out (5 x n_e): log L disk, log L bulge, mean r, mean B, mean flux.
+ */
+#define MAXN 512
+static PyObject *size_marginal(PyObject *self, PyObject *args)
+{
+    Py_buffer b[15];
+    if (!PyArg_ParseTuple(args, "y*y*y*y*y*y*y*y*y*y*y*y*y*y*w*", &b[0], &b[1], &b[2], &b[3], &b[4], &b[5], &b[6],
+                          &b[7], &b[8], &b[9], &b[10], &b[11], &b[12], &b[13], &b[14]))
+        return NULL;
+    const Py_ssize_t D = (Py_ssize_t)sizeof(double);
+    Py_ssize_t nf = b[9].len / D, nu = b[10].len / D, nr = nf > 0 ? b[7].len / D / nf : 0;
+    Py_ssize_t ne = nr > 0 ? b[0].len / D / nr : 0;
+    int bad = nf < 2 || nu < 2 || nr < 2 || nf > MAXN || nu > MAXN || nr > MAXN
+              || b[8].len != nr * nf * D || b[7].len != nr * nf * D || b[12].len != 2 * D || b[13].len != 2 * D
+              || b[14].len < 5 * ne * D || b[5].len != ne * nf * D || b[11].len != ne * nf * D
+              || b[6].len != ne * nu * D;
+    for (int i = 1; i < 5 && !bad; i++) bad = b[i].len != ne * nr * D;
+    if (bad) {
+        RELEASE(&b[0], &b[1], &b[2], &b[3], &b[4], &b[5], &b[6], &b[7], &b[8], &b[9], &b[10], &b[11], &b[12],
+                &b[13], &b[14]);
+        PyErr_SetString(PyExc_ValueError, "size_marginal: inconsistent buffers");
+        return NULL;
+    }
+    const double *LD = b[0].buf, *LB = b[1].buf, *FD = b[2].buf, *FB = b[3].buf, *BD = b[4].buf;
+    const double *LP = b[5].buf, *LS = b[6].buf, *SPL = b[7].buf, *ITP = b[8].buf, *XF = b[9].buf, *U = b[10].buf;
+    const double *RF = b[11].buf, *L0 = b[12].buf, *LM = b[13].buf;
+    double *O = b[14].buf;
+    Py_BEGIN_ALLOW_THREADS
+    for (Py_ssize_t e = 0; e < ne; e++) {
+        const double *rf = RF + e * nf;
+        double lm[2], mr[2], mf[2], mb = 0.0;
+        for (int pop = 0; pop < 2; pop++) {
+            const double *L = (pop == 0 ? LD : LB) + e * nr, *F = (pop == 0 ? FD : FB) + e * nr;
+            double rowmax = -INFINITY, lv[MAXN], vf[MAXN], w[MAXN];
+            for (Py_ssize_t n = 0; n < nr; n++) if (isfinite(L[n]) && L[n] > rowmax) rowmax = L[n];
+            int good = isfinite(rowmax);
+            double floor_ = good ? rowmax - 40.0 : 0.0;
+            for (Py_ssize_t n = 0; n < nr; n++) lv[n] = isfinite(L[n]) ? (L[n] > floor_ ? L[n] : floor_) : floor_;
+            double m = -INFINITY;
+            for (Py_ssize_t q = 0; q < nf; q++) {
+                double acc = 0.0;
+                for (Py_ssize_t n = 0; n < nr; n++) acc += lv[n] * SPL[n * nf + q];
+                vf[q] = acc + LP[e * nf + q];
+                if (vf[q] > m) m = vf[q];
+            }
+            double l0 = isfinite(L0[pop]) ? L0[pop] : -INFINITY, lseg[MAXN];
+            for (Py_ssize_t j = 0; j < nu; j++) {
+                lseg[j] = (isfinite(l0) ? (1 - U[j]) * (l0 > -1e300 ? l0 : -1e300) + U[j] * lv[0]
+                                        : lv[0] - 1e3 * (1 - U[j])) + LS[e * nu + j];
+                if (lseg[j] > m) m = lseg[j];
+            }
+            double integ = 0.0, seg = 0.0, wsum = 0.0, wr = 0.0, wf = 0.0, wb = 0.0;
+            double es[MAXN];
+            vexp_shift(vf, m, w, nf);
+            vexp_shift(lseg, m, es, nu);
+            for (Py_ssize_t q = 0; q < nf; q++) {
+                if (q > 0) integ += (XF[q] - XF[q - 1]) * (w[q] + w[q - 1]) * 0.5;
+                wsum += w[q];
+                wr += w[q] * rf[q];
+                double fi = 0.0, bi = 0.0;
+                for (Py_ssize_t n = 0; n < nr; n++) fi += F[n] * ITP[n * nf + q];
+                wf += w[q] * fi;
+                if (pop == 0) {
+                    for (Py_ssize_t n = 0; n < nr; n++) bi += BD[e * nr + n] * ITP[n * nf + q];
+                    wb += w[q] * bi;
+                }
+            }
+            for (Py_ssize_t j = 1; j < nu; j++) seg += (U[j] - U[j - 1]) * (es[j] + es[j - 1]) * 0.5;
+            integ += seg * 0.5 * rf[0] * rf[0];
+            lm[pop] = good ? m + log(integ) : -INFINITY;
+            if (!(wsum > 1e-300)) wsum = 1e-300;
+            mr[pop] = wr / wsum;
+            mf[pop] = wf / wsum;
+            if (pop == 0) mb = wb / wsum;
+        }
+        double la = LM[0] + lm[0], lbb = LM[1] + lm[1];
+        double mx = la > lbb ? la : lbb;
+        if (!isfinite(mx)) mx = 0.0;
+        double pa = exp(la - mx), pb = exp(lbb - mx), tot = pa + pb;
+        if (!(tot > 1e-300)) tot = 1e-300;
+        O[e] = lm[0];
+        O[ne + e] = lm[1];
+        O[2 * ne + e] = (pa * mr[0] + pb * mr[1]) / tot;
+        O[3 * ne + e] = (pa * mb + pb * 1.0) / tot;
+        O[4 * ne + e] = (pa * mf[0] + pb * mf[1]) / tot;
+    }
+    Py_END_ALLOW_THREADS
+    RELEASE(&b[0], &b[1], &b[2], &b[3], &b[4], &b[5], &b[6], &b[7], &b[8], &b[9], &b[10], &b[11], &b[12], &b[13],
+            &b[14]);
+    Py_RETURN_NONE;
+}
+
+/* which of the multiversioned loops the CPU runs, as the ifunc resolver chooses them (the most capable
+ * level first), and how the module was built */
+static PyObject *kernel_isa(PyObject *self, PyObject *args)
+{
+#ifdef MV_HAS_V4
+    __builtin_cpu_init();
+    if (MV_HAS_V4()) return PyUnicode_FromString("x86-64-v4 (AVX-512)");
+    if (MV_HAS_V3()) return PyUnicode_FromString("x86-64-v3 (AVX2)");
+    return PyUnicode_FromString("x86-64 baseline");
+#else
+    return PyUnicode_FromString("portable (not multiversioned)");
+#endif
+}
+
+static PyObject *build_info(PyObject *self, PyObject *args)
+{
+#if defined(__VERSION__)
+    const char *compiler = __VERSION__;
+#else
+    const char *compiler = "unknown";
+#endif
+    return Py_BuildValue("{s:s,s:s}", "compiler", compiler, "multiversion", MV_LEVELS);
+}
+
+static PyMethodDef methods[] = {
+    {"kernel_isa", kernel_isa, METH_NOARGS, "kernel_isa() -> the instruction-set level of the loops in use"},
+    {"build_info", build_info, METH_NOARGS, "build_info() -> {'compiler': ..., 'multiversion': levels}"},
+    {"model_sums", model_sums, METH_VARARGS,
+     "model_sums(coef, modes, table, c, inv_du, ratio2, n_single, group_sizes, group_ranks, group_factors, out)"},
+    {"set_special", set_special, METH_VARARGS, "set_special(erfcx_capsule, expi_capsule)"},
+    {"marginal", marginal, METH_VARARGS, "marginal(sums, u, u_fine, spline, interp, params, out)"},
+    {"size_marginal", size_marginal, METH_VARARGS,
+     "size_marginal(ld, lb, fd, fb, bd, logprior, lsegprior, spline, interp, xf, u, rf, l0, logmix, out)"},
+    {"make_bins", make_bins, METH_VARARGS,
+     "make_bins(shape, basis32, channels32, bins_per_octave) -> (lo, offsets, columns, dc)"},
+    {"binned_sums", binned_sums, METH_VARARGS,
+     "binned_sums(shape, r2, e_index, lo, offsets, columns, dc, bins_per_octave, log_f, log_g, M, J, start, "
+     "per_octave, low_f, low_g, zero_f, zero_g, modes, table, c, inv_du, ratio2, n_single, group_sizes, "
+     "group_ranks, group_factors, out)"},
+    {NULL, NULL, 0, NULL}};
+
+static struct PyModuleDef module = {PyModuleDef_HEAD_INIT, "_kernels",
+                                    "Compiled inner loop of the shearfit likelihood.", -1, methods};
+
+PyMODINIT_FUNC PyInit__kernels(void) { return PyModule_Create(&module); }

@@ -1,0 +1,313 @@
+"""Measure one object on many exposures: the public single-object API."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Iterable, Sequence
+
+import numpy as np
+from scipy import stats
+
+from . import priors
+from ..config import as_config
+from ..errors import (FITCLASS_CENTROID, FITCLASS_FEW_EXPOSURES, FITCLASS_FIT_FAILED, FITCLASS_GALAXY,
+                     FITCLASS_STAR, FITCLASS_TOO_LARGE, ShearfitValueError)
+from .likelihood import coarse_peak, find_position, flux_position_marginal, join_exposures, model_sums, shift_joint
+from .model import prepare_exposures
+from ..observation import FitResult, Observation
+from .profiles import exponential_disk, fast_pair
+from .sampling import (EllipticityLikelihood, Samples, adaptive_samples, estimate, log_population_weights,
+                       replay_samples, two_pass_samples)
+
+__all__ = ["measure_object", "measure_objects", "measure_versions", "FitPlan"]
+
+# free parameters of the galaxy (e1, e2, x, y, r, S, B) and of a point source (x, y, S)
+_NPAR_GALAXY = 7
+_NPAR_STAR = 3
+
+
+
+
+def _size_range(jm, cfg, mag, fast):
+    """Where the round model's size posterior lies in ln r: its median and its 0.1 % and 99.9 % points.
+
+    Quantiles of the posterior on a fine grid move continuously with the data
+    (nodes that jumped with a small change of the data would make the
+    estimator respond unevenly to shear) and follow a skewed posterior's tail
+    towards r = 0, which small galaxies have.
+    """
+    a = float(priors.size_prior_scale(mag, cfg))
+    pix = jm.pixel_scale
+    r = np.geomspace(0.01 * min(a, pix), 12.0 * max(a, pix), 64)
+    z = np.zeros_like(r)
+    mg = flux_position_marginal(model_sums(jm, z, z, r, fast, cfg.bulge_size_ratio, bins_per_octave=cfg.mode_bins_per_octave),
+                                cfg, jm.pixel_scale)
+    ld0, lb0 = log_population_weights(cfg)
+    logl = np.logaddexp(ld0 + mg.logl_disk, lb0 + mg.logl_bulge)
+    # posterior density in ln r: likelihood x prior x r
+    x = np.log(r)
+    lp = logl + priors.log_size_prior_per_lnr(x, mag, cfg)
+    if not np.any(np.isfinite(lp)):
+        return None
+    w = np.exp(lp - np.nanmax(lp))
+    w = np.where(np.isfinite(w), w, 0.0)
+    # cumulative distribution, linear between grid points, inverted at the quantiles
+    c = np.concatenate([[0.0], np.cumsum(0.5 * (w[1:] + w[:-1]) * np.diff(x))])
+    c /= c[-1]
+    lo, med, hi = np.interp([1e-3, 0.5, 1 - 1e-3], c, x)
+    return float(med), float(lo), float(hi)
+
+
+def measure_object(observations: Sequence[Observation], mag: float, config=None,
+                   return_samples: bool = False) -> FitResult:
+    """Measure the ellipticity of one object jointly on all its exposures.
+
+    Parameters
+    ----------
+    observations : sequence of :class:`Observation`
+        The object's stamps, one per exposure, with PSF, Jacobian, offset and
+        photometric scale each.
+    mag : float
+        The object's magnitude: it sets the size prior (App. B.1).
+    config : FitConfig or mapping, optional
+        Settings (defaults: the paper's).
+    return_samples : bool
+        Attach the ellipticity samples (``result.samples``: a structured array
+        with e1, e2, area, logl, logpost).
+
+    Returns
+    -------
+    FitResult
+        A single unmeasurable object gives a result with a negative
+        ``fitclass`` and a ``message``, never an exception.
+    """
+    cfg = as_config(config)
+    observations = list(observations)
+    if any(not isinstance(o, Observation) for o in observations):
+        raise ShearfitValueError("measure_object takes a sequence of shearfit.Observation")
+    obs = [o for o in observations if np.any(o.weight > 0)]
+    if not obs:
+        return FitResult(fitclass=FITCLASS_FEW_EXPOSURES, message="no usable exposure")
+    try:
+        return _measure(obs, float(mag), cfg, return_samples)[0]
+    except (np.linalg.LinAlgError, FloatingPointError, ZeroDivisionError, ValueError) as exc:
+        if isinstance(exc, ShearfitValueError):
+            raise
+        return FitResult(fitclass=FITCLASS_FIT_FAILED, n_exposures_used=len(obs), message=f"fit failed: {exc}")
+
+
+@dataclass
+class FitPlan:
+    """The choices a fit makes from its object's data, for replaying on other versions of the object.
+
+    ``keep``: per exposure, the Fourier modes kept by the noise-aware cut;
+    ``decoupled``: per fold group, whether its cross terms were dropped;
+    ``shift``: the sky offset (du, dv) of the cross-correlation peak;
+    ``size_nodes`` and ``r_center``: the ln r spline nodes and the round
+    model's size; ``centres``: the size centre used at each ellipticity
+    sample; ``samples``: the ellipticity samples, their cells and posterior;
+    ``observations`` and ``exposures``: the fitted observations and their
+    Fourier modes, which a version with the same PSFs, Jacobians and offsets
+    reuses (only its pixels are transformed).
+    """
+
+    keep: list
+    shift: tuple
+    size_nodes: np.ndarray
+    r_center: float
+    centres: dict
+    samples: Samples
+    observations: list = None   # the fitted observations and their ExposureModes, whose modes a version
+    exposures: list = None      # with the same PSFs, Jacobians and offsets reuses
+    joint: object = None        # the fit's JointModes (merged, shifted), whose structure such a version reuses
+    decoupled: object = None    # per fold group, whether its cross terms were dropped (JointModes.decoupled)
+
+
+def _same_modes(o: Observation, ref: Observation) -> bool:
+    """Whether two observations reduce to the same Fourier modes (all but the pixel data equal)."""
+    return (o.shape == ref.shape and o.psf_oversampling == ref.psf_oversampling and o.psf_moffat == ref.psf_moffat
+            and o.flux_scale == ref.flux_scale and np.array_equal(o.offset, ref.offset)
+            and np.array_equal(o.jacobian, ref.jacobian) and (o.psf is ref.psf or np.array_equal(o.psf, ref.psf)))
+
+
+def _measure(obs, mag, cfg, return_samples, plan=None, margin=np.inf):
+    """One object's fit: (FitResult, the FitPlan it made, or None where it stopped early).
+
+    With ``plan``, the fit replays another version's choices (modes, position, size nodes and centres,
+    ellipticity samples within ``margin`` nats of its posterior cut) instead of making its own.
+    """
+    fast = fast_pair(cfg.truncation)
+    if plan is not None and plan.exposures is not None and len(plan.observations) == len(obs):
+        exposures = prepare_exposures(obs, cfg, likes=[ex if _same_modes(o, r) else None
+                                                       for o, r, ex in zip(obs, plan.observations, plan.exposures)])
+    else:
+        exposures = prepare_exposures(obs, cfg)
+    if plan is None:
+        disk = exponential_disk(cfg.truncation)
+        jm = join_exposures(exposures, cfg.mode_chi2_tolerance, fold_tolerance=cfg.fold_chi2_tolerance)
+        pix = jm.pixel_scale
+        a = float(priors.size_prior_scale(mag, cfg))
+        max_shift = cfg.max_centroid_shift * pix
+        r_ref = min(a, 2 * pix)
+        start = coarse_peak(exposures, [o.jacobian for o in obs], disk, r_ref, 2 * max_shift, pix, keep=jm.keep)
+        du, dv, ok = find_position(jm, disk, r_ref, max_shift, start=start)
+        shift = float(np.hypot(du, dv))
+        if not ok or shift > max_shift:
+            return FitResult(fitclass=FITCLASS_CENTROID, n_exposures_used=len(obs), centroid_shift=shift / pix,
+                             message="cross-correlation peak too far from the input position"), None
+        jm = shift_joint(jm, du, dv)
+        rng = _size_range(jm, cfg, mag, fast)
+        if rng is None:
+            return FitResult(fitclass=FITCLASS_FIT_FAILED, n_exposures_used=len(obs), centroid_shift=shift / pix,
+                             message="no model correlates with the data"), None
+        med, lo, hi = rng
+        # spline nodes uniform in ln r from the round model's 0.1 % to its 99.9 % point (plus a margin),
+        # carried to each ellipticity by the predicted growth of the best size with e; where that range
+        # is narrower than the +-15 % uncertainty of the prediction, passes of 5 nodes over +-0.6 and then
+        # +-0.15 first locate the peak at each ellipticity
+        margin_x = 0.1
+        x = np.linspace(lo - med - margin_x, hi - med + margin_x, cfg.n_size)
+        locate = (0.6, 0.15) if (hi - lo) < 1.2 else None
+        like = EllipticityLikelihood(jm, cfg, mag, fast, x, float(np.exp(med)), locate_widths=locate)
+        samples = adaptive_samples(like, cfg) if cfg.sampling == "adaptive" else two_pass_samples(like, cfg)
+        n_samples = samples.e1.size
+        plan = FitPlan(keep=jm.keep, shift=(du, dv), size_nodes=x, r_center=like.r_center, centres=like.centres,
+                       samples=samples, observations=list(obs), exposures=exposures, joint=jm, decoupled=jm.decoupled)
+    else:
+        if plan.keep is not None and [k.size for k in plan.keep] != [e.kx.size for e in exposures]:
+            raise ShearfitValueError("a replayed fit needs the same PSFs (Fourier modes) as the fit it replays")
+        # the same modes (PSFs, Jacobians, offsets and noise): only the data's weights z change
+        same = plan.joint is not None and plan.exposures is not None and len(plan.exposures) == len(exposures) \
+            and all(e.kx is r.kx for e, r in zip(exposures, plan.exposures))
+        jm = plan.joint.with_data(exposures) if same else None
+        if jm is None:
+            jm = shift_joint(join_exposures(exposures, keep=plan.keep, decoupled=plan.decoupled), *plan.shift)
+        pix = jm.pixel_scale
+        shift = float(np.hypot(*plan.shift))
+        like = EllipticityLikelihood(jm, cfg, mag, fast, plan.size_nodes, plan.r_center)
+        like.fixed_centres = plan.centres
+        samples = replay_samples(like, plan.samples, cfg, margin)
+        n_samples = int(np.count_nonzero(samples.evaluated))
+    return _result(obs, cfg, mag, jm, like, samples, n_samples, shift / pix, return_samples), plan
+
+
+def _result(obs, cfg, mag, jm, like, samples, n_samples, centroid_shift, return_samples):
+    """The estimate, the star/galaxy test and the size check of one fit, as a FitResult."""
+    pix = jm.pixel_scale
+    est = estimate(samples, cfg)
+    # star/galaxy: F-ratio of the best galaxy (r > 0) against the best point source (sec. 3.2)
+    z = like.zero   # the point source, already evaluated for the size integral
+    chi2_star = jm.yy + float(min(z.chi2_disk[0], z.chi2_bulge[0]))
+    chi2_gal = jm.yy + like.best_chi2_gal
+    dof = max(jm.npix - _NPAR_GALAXY, 1)
+    allowance = (like.best_snr * cfg.star_psf_error) ** 2 if np.isfinite(like.best_snr) else 0.0
+    fstat = max(chi2_star - chi2_gal - allowance, 0.0) / (_NPAR_GALAXY - _NPAR_STAR) / max(chi2_gal / dof, 1e-12)
+    pvalue = float(stats.f.sf(fstat, _NPAR_GALAXY - _NPAR_STAR, dof))
+    is_star = pvalue > cfg.star_pvalue and mag <= cfg.star_faint_limit
+    result = FitResult(
+        e1=est.e1, e2=est.e2, e_var=est.e_var,
+        weight=0.0 if is_star else est.weight,
+        snr=like.best_snr, scalelength=est.scalelength, bulge_fraction=est.bulge_fraction,
+        model_flux=est.model_flux, fitclass=FITCLASS_STAR if is_star else FITCLASS_GALAXY,
+        n_exposures_used=len(obs), star_pvalue=pvalue, centroid_shift=centroid_shift,
+        n_samples=n_samples)
+    if not np.isfinite(est.e1):
+        result.fitclass = FITCLASS_FIT_FAILED
+        result.weight = 0.0
+        result.message = "likelihood surface empty"
+    else:
+        # the truncated model must fit in the stamp, or its Fourier image wraps around (sec. 3.6)
+        half_stamp = min(min(o.shape) for o in obs) / 2.0
+        extent = cfg.truncation * max(1.0, cfg.bulge_size_ratio) * est.scalelength / pix
+        if extent > half_stamp:
+            result.fitclass = FITCLASS_TOO_LARGE
+            result.weight = 0.0
+            result.message = f"truncated model ({extent:.1f} pixels) larger than half the stamp ({half_stamp:.0f})"
+    result.shape_weight = est.weight
+    result.n_models = int(like.n_models)
+    if return_samples:
+        rec = np.zeros(samples.e1.size, dtype=[("e1", "f8"), ("e2", "f8"), ("area", "f8"), ("logl", "f8"),
+                                               ("logpost", "f8")])
+        for f in rec.dtype.names:
+            rec[f] = getattr(samples, f)
+        result.samples = rec
+    return result
+
+
+def measure_versions(versions: Sequence[Sequence[Observation]], mag: float, config=None,
+                     margin: float = 10.0) -> list:
+    """Measure versions of one object (its stamps slightly transformed, as metacalibration's) alike.
+
+    The first version is fitted as :func:`measure_object` fits it; every
+    other one replays the choices that fit made from its data (the Fourier
+    modes kept, the position, the size nodes and centres, and the
+    ellipticity samples and cells, see :func:`shearfit.engine.sampling.replay_samples`),
+    so that differences between the versions' estimates follow the
+    differences between their pixels smoothly. The versions must carry the
+    same PSFs, Jacobians and weights. Returns one FitResult per version.
+    """
+    cfg = as_config(config)
+    versions = [list(v) for v in versions]
+    if not versions or any(any(not isinstance(o, Observation) for o in v) for v in versions):
+        raise ShearfitValueError("measure_versions takes a sequence of sequences of shearfit.Observation")
+    if len({len(v) for v in versions}) != 1:
+        raise ShearfitValueError("measure_versions: every version needs the same exposures")
+    usable = [i for i, o in enumerate(versions[0]) if np.any(o.weight > 0)]
+    versions = [[v[i] for i in usable] for v in versions]
+    if not usable:
+        return [FitResult(fitclass=FITCLASS_FEW_EXPOSURES, message="no usable exposure") for _ in versions]
+    plan = None
+    out = []
+    for k, obs in enumerate(versions):
+        try:
+            res, made = _measure(obs, float(mag), cfg, False, plan=plan, margin=margin)
+        except (np.linalg.LinAlgError, FloatingPointError, ZeroDivisionError, ValueError) as exc:
+            if isinstance(exc, ShearfitValueError):
+                raise
+            res, made = FitResult(fitclass=FITCLASS_FIT_FAILED, n_exposures_used=len(obs),
+                                  message=f"fit failed: {exc}"), None
+        if k == 0:
+            if made is None:   # nothing to replay: the reference stopped before sampling
+                return [res] + [measure_object(v, mag, cfg) for v in versions[1:]]
+            plan = made
+        out.append(res)
+    return out
+
+
+def _measure_one(args):
+    obs, mag, cfg = args
+    return measure_object(obs, mag, cfg)
+
+
+def measure_objects(objects: Iterable[Sequence[Observation]], mags, config=None, progress=False, processes=1):
+    """Batched form of :func:`measure_object`: one result per object, in input order.
+
+    Parameters
+    ----------
+    objects : iterable of sequences of :class:`Observation`
+    mags : float or array
+        One magnitude per object (or one for all).
+    config : FitConfig or mapping, optional
+    progress : bool
+        Show a progress bar.
+    processes : int
+        Worker processes; results do not depend on it.
+    """
+    cfg = as_config(config)
+    objects = list(objects)
+    mags = np.broadcast_to(np.asarray(mags, float), (len(objects),))
+    tasks = [(o, float(m), cfg) for o, m in zip(objects, mags)]
+    if processes and processes > 1:
+        from ..workers import process_pool
+
+        with process_pool(processes) as pool:
+            it = pool.imap(_measure_one, tasks, chunksize=max(1, len(tasks) // (8 * processes)))
+            if progress:
+                from tqdm import tqdm
+                it = tqdm(it, total=len(tasks), desc="measuring")
+            return list(it)
+    it = tasks
+    if progress:
+        from tqdm import tqdm
+        it = tqdm(it, total=len(tasks), desc="measuring")
+    return [_measure_one(t) for t in it]

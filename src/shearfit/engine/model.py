@@ -1,0 +1,463 @@
+"""Galaxy models in Fourier space (sec. 3.1, 4, 6 and App. A of the paper).
+
+A model component is a circular radial profile with a tabulated Fourier
+transform ``R(rho)`` (:mod:`shearfit.engine.profiles`). Everything else is a change
+of the wavevector or a factor per Fourier mode:
+
+* ellipticity with the semi-major axis fixed: ``rho^2 = r^2 K^T C(e) K`` with
+  ``C = a a^T + q^2 b b^T`` (a, b the major/minor axis directions, q = b/a);
+* the exposure's local affine map (WCS Jacobian J, sec. 6): the sky wavevector
+  is ``K = J^-T k`` for the pixel wavevector k;
+* a sub-pixel shift d: the phase ``exp(-i k.d)``;
+* the PSF (pixel response included): a product with its transform, after
+  which the modes beyond Nyquist fold onto the sampled grid (App. A).
+
+One exposure is reduced to a list of *modes* ``j`` on a fine frequency grid,
+each with its sky wavevector ``K_j``, its complex transfer ``T_j`` (PSF, pixel,
+shift, photometric scale) and the sampled-grid mode ``c(j)`` it folds onto:
+``M_c = sum_{j -> c} T_j R(rho_j)`` is the model's DFT on the stamp. With a
+native-sampled PSF the fine grid is the stamp's own (the band-limited
+assumption) unless the Moffat alias correction (App. A) is switched on;
+with a PSF oversampled k times, the fine grid is k times wider and the fold
+is exact.
+"""
+
+from __future__ import annotations
+
+import functools
+import hashlib
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+from scipy import fft as sfft
+from scipy import interpolate
+
+from ..config import FitConfig
+from ..errors import ShearfitValueError
+from ..observation import Observation
+from .moffat import fit_moffat, moffat_ft
+
+__all__ = ["ExposureModes", "prepare_exposure", "prepare_exposures", "shape_matrix", "render_object"]
+
+
+def shape_matrix(e1, e2):
+    """Coefficients (c11, c12, c22) of ``|K'|^2 = K^T C K`` for ellipticity e.
+
+    The profile is stretched so that its semi-major axis keeps the circular
+    profile's size and its minor axis is q = (1-|e|)/(1+|e|) times that
+    (App. A); its transform is then ``R(r |K'|)`` with
+    ``K' = (K.a, q K.b)``. Flux is conserved by construction.
+    """
+    e1 = np.asarray(e1, dtype=float)
+    e2 = np.asarray(e2, dtype=float)
+    e = np.hypot(e1, e2)
+    q = (1.0 - e) / (1.0 + e)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        c2 = np.where(e > 0, e1 / np.where(e > 0, e, 1.0), 1.0)
+        s2 = np.where(e > 0, e2 / np.where(e > 0, e, 1.0), 0.0)
+    mean = 0.5 * (1.0 + q * q)
+    half = 0.5 * (1.0 - q * q)
+    return mean + half * c2, half * s2, mean - half * c2
+
+
+def _pad_center(a, shape):
+    """Crop or zero-pad ``a`` to ``shape`` keeping index (n//2) on (n//2)."""
+    out = np.zeros(shape, dtype=float)
+    ny, nx = a.shape
+    my, mx = shape
+    # source and destination windows aligned on the centres n//2
+    y0s = max(0, ny // 2 - my // 2)
+    x0s = max(0, nx // 2 - mx // 2)
+    y0d = max(0, my // 2 - ny // 2)
+    x0d = max(0, mx // 2 - nx // 2)
+    hy = min(ny - y0s, my - y0d)
+    hx = min(nx - x0s, mx - x0d)
+    out[y0d:y0d + hy, x0d:x0d + hx] = a[y0s:y0s + hy, x0s:x0s + hx]
+    return out
+
+# --------------------------------------------------------------------------
+# one exposure as a set of Fourier modes
+# --------------------------------------------------------------------------
+
+@dataclass
+class ExposureModes:
+    """One exposure of one object, reduced to Fourier modes (see module doc).
+
+    Attributes
+    ----------
+    shape : (ny, nx) of the stamp
+    kxx, kxy, kyy : sky-frame K components products (arcsec^-2) per fine mode
+    kx, ky : sky-frame wavevector per fine mode (rad/arcsec)
+    transfer : complex T_j (PSF, pixel, sub-pixel offset, flux scale)
+    coarse : index of the sampled rfft mode each fine mode folds onto
+    cweight : Hermitian weight (1 or 2) of each sampled rfft mode
+    data_ft : rfft of the masked, centred stamp
+    sigma2 : stationary pixel noise variance
+    yy : sum of y^2 / sigma^2 over used pixels
+    npix : pixels with non-zero weight
+    """
+
+    shape: tuple
+    kx: np.ndarray
+    ky: np.ndarray
+    transfer: np.ndarray
+    coarse: np.ndarray
+    cweight: np.ndarray
+    data_ft: np.ndarray
+    sigma2: float
+    yy: float
+    npix: int
+    pixel_scale: float
+
+
+def inv2(J):
+    """The inverse of a 2 x 2 matrix, by its adjugate (a tenth of np.linalg.inv's overhead)."""
+    (a, b), (c, d) = np.asarray(J, float)
+    det = a * d - b * c
+    return np.array([[d, -b], [-c, a]]) / det
+
+
+def _rfft_weights(ny, nx):
+    w = np.full((ny, nx // 2 + 1), 2.0)
+    w[:, 0] = 1.0
+    if nx % 2 == 0:
+        w[:, -1] = 1.0
+    return w
+
+
+def _fine_modes_from_psf(psf, s, ny, nx):
+    """Fine wavevectors (rad per stamp pixel), PSF transform and coarse index.
+
+    The PSF array is taken on a grid s times finer than the stamp, padded or
+    cropped to (s ny, s nx); its DFT gives the PSF at wavevectors up to
+    s pi. Each fine mode folds onto the stamp's mode (m mod n).
+    """
+    fy, fx = s * ny, s * nx
+    p = _pad_center(psf, (fy, fx))
+    P = np.fft.fft2(np.fft.ifftshift(p))
+    my = np.rint(np.fft.fftfreq(fy) * fy).astype(int)   # signed integer frequencies
+    mx = np.rint(np.fft.fftfreq(fx) * fx).astype(int)
+    MY, MX = np.meshgrid(my, mx, indexing="ij")
+    cy = MY % ny
+    cx = MX % nx
+    keep = cx <= nx // 2   # only modes folding onto the rfft half-plane
+    ky = 2 * np.pi * MY[keep] / ny
+    kx = 2 * np.pi * MX[keep] / nx
+    coarse = cy[keep] * (nx // 2 + 1) + cx[keep]
+    return ky, kx, P[keep], coarse
+
+
+def psf_moffat(psf):
+    """(rs, beta) of the circular Moffat that stands for a native PSF above Nyquist (see fit_moffat)."""
+    ny, nx = (n + n % 2 for n in psf.shape)
+    return _fit_moffat_rfft(_centred_rfft2(_pad_center(psf, (ny, nx))), ny, nx)
+
+
+def _fit_moffat_rfft(Ps, ny, nx):
+    """fit_moffat of the rfft ``Ps`` of a PSF on a (ny, nx) grid."""
+    return fit_moffat(Ps, 2 * np.pi * np.fft.fftfreq(ny), 2 * np.pi * np.fft.rfftfreq(nx))
+
+
+#: Moffats fitted to observations' own PSFs, by the PSF's bytes and the grid (see _own_moffat)
+_OWN_MOFFAT: dict = {}
+_OWN_MOFFAT_SIZE = 512
+
+
+def _own_moffat(psf, Ps, ny, nx):
+    """fit_moffat of a PSF without a given Moffat, remembered by the PSF's contents: objects handed the
+    same PSF image (a constant PSF per exposure, as in the GREAT challenges) fit it once and share its
+    alias tables. The same fit, bit for bit, as without the memory."""
+    a = np.ascontiguousarray(psf)
+    key = (a.shape, a.dtype.str, ny, nx, hashlib.blake2b(a.view(np.uint8), digest_size=16).digest())
+    got = _OWN_MOFFAT.get(key)
+    if got is None:
+        got = _fit_moffat_rfft(Ps, ny, nx)
+        if len(_OWN_MOFFAT) >= _OWN_MOFFAT_SIZE:
+            _OWN_MOFFAT.clear()
+        _OWN_MOFFAT[key] = got
+    return got
+
+
+#: aliases of the stamp's modes the Moffat is summed over, each way (beyond +-2 it is below 1e-8)
+_N_ALIAS = 2
+#: points of the Moffat's |k| table
+_N_KTAB = 4001
+
+
+@functools.lru_cache(maxsize=8)
+def _alias_geometry(ny, nx, s):
+    """What the alias tables of a (ny, nx) stamp share whatever the Moffat: |k| and the pixel response of
+    every alias k + 2 pi n, n in [-2, 2]^2, and the wavevectors and folded mode of the s x s kept ones
+    (and, for phases, their ky and kx as (the values, each mode's index in them))."""
+    kyc = 2 * np.pi * np.fft.fftfreq(ny)
+    kxc = 2 * np.pi * np.fft.rfftfreq(nx)
+    na = _N_ALIAS
+    offs = 2 * np.pi * np.arange(-na, na + 1)
+    kmax = np.hypot(np.pi + offs[-1], np.pi + offs[-1]) + 1.0
+    KYa = kyc[None, :] + offs[:, None]                     # (5, ny)
+    KXa = kxc[None, :] + offs[:, None]                     # (5, nxh)
+    sy = np.sinc(KYa / (2 * np.pi))
+    sx = np.sinc(KXa / (2 * np.pi))
+    kk = np.hypot(KYa[:, None, :, None], KXa[None, :, None, :])          # (5, 5, ny, nxh)
+    pix = sy[:, None, :, None] * sx[None, :, None, :]
+    # linear interpolation on the uniform |k| table, weights with the pixel response folded in
+    ktab = np.linspace(0.0, kmax, _N_KTAB)
+    u = kk * ((_N_KTAB - 1) / kmax)
+    i0 = np.minimum(u.astype(np.intp), _N_KTAB - 2)
+    t = u - i0
+    w0, w1 = (1.0 - t) * pix, t * pix
+    half = s // 2
+    sel = slice(na - half, na + half + 1)
+    shape = kk[sel, sel].shape
+    nxh = kxc.size
+    KYf = np.broadcast_to(KYa[sel][:, None, :, None], shape).ravel()
+    KXf = np.broadcast_to(KXa[sel][None, :, None, :], shape).ravel()
+    coarse_index = (np.arange(ny)[:, None] * nxh + np.arange(nxh)[None, :])
+    cs = np.broadcast_to(coarse_index, shape).ravel()
+    kyv, kxv = KYa[sel].ravel(), KXa[sel].ravel()
+    iy = np.broadcast_to(np.arange(kyv.size).reshape(s, 1, ny, 1), shape).ravel()
+    ix = np.broadcast_to(np.arange(kxv.size).reshape(1, s, 1, nxh), shape).ravel()
+    for arr in (ktab, i0, w0, w1, KYf, KXf, cs, kyv, kxv, iy, ix):
+        arr.setflags(write=False)
+    return ktab, i0, w0, w1, sel, KYf, KXf, cs, (kyv, iy, kxv, ix)
+
+
+def _moffat_table(k, rs, beta, x_exact=4.0, x_step=0.2, floor=1e-30):
+    """moffat_ft on a uniform grid k, set to zero where it falls below ``floor``.
+
+    Exact up to x = k rs = ``x_exact``; beyond, a cubic spline of its
+    logarithm through exact nodes ``x_step`` apart (within 1e-7 of the exact
+    values: the logarithm of this exponentially falling function is smooth
+    there, where the transform itself has a cusp at x = 0 for beta < 3). The
+    transform decreases monotonically (its derivative is -c x^nu K_(nu-1)(x)),
+    so it is zero beyond the last node above the floor.
+    """
+    n = k.size
+    dx = (k[1] - k[0]) * rs
+    j = int(np.ceil(x_exact / dx))
+    step = int(x_step / dx)
+    if step >= 3 and n - j >= 4 * step:
+        nodes = np.append(np.arange(j, n - 1, step), n - 1)
+        v = moffat_ft(k[nodes], rs, beta)
+        m = int(np.count_nonzero(v >= floor))
+        if m >= 4:
+            out = np.zeros_like(k)
+            out[:j] = moffat_ft(k[:j], rs, beta)
+            nodes, v = nodes[:m], v[:m]
+            last = nodes[-1] + 1
+            out[j:last] = np.exp(interpolate.CubicSpline(k[nodes], np.log(v))(k[j:last]))
+            out[nodes] = v
+            return out
+    out = moffat_ft(k, rs, beta)
+    out[out < floor] = 0.0
+    return out
+
+
+@functools.lru_cache(maxsize=64)
+def _moffat_aliases(rs, beta, ny, nx, s):
+    """The Moffat (times the pixel response) at every alias of the stamp's rfft modes.
+
+    Returns the aliased sum ``A = sum_n G(k + 2 pi n)`` over n in [-2, 2]^2
+    (beyond +-2 the Moffat is below 1e-8), set to 1 where |A| <= 1e-12, and
+    the mask of |A| > 1e-12 (elsewhere the model's ratio P_s / A is 0); then,
+    for the s x s aliases the model keeps, G (flattened) and |G| with their
+    wavevectors and the sampled mode each folds onto. Cached: one exposure's
+    CCD shares one Moffat (App. A fits one near the field centre), so its
+    objects reuse these tables.
+    """
+    ktab, i0, w0, w1, sel, KYf, KXf, cs, _ = _alias_geometry(ny, nx, s)
+    # the Moffat's transform is radial: tabulate it once on |k| and interpolate linearly
+    mtab = _moffat_table(ktab, rs, beta)
+    G = mtab[i0] * w0 + mtab[i0 + 1] * w1
+    A = G.sum(axis=(0, 1))
+    Gs = G[sel, sel].ravel()
+    absG = np.abs(Gs)
+    ok = np.abs(A) > 1e-12
+    A = np.where(ok, A, 1.0)   # where not ok, the ratio P_s / A is set to 0
+    for arr in (A, ok, Gs, absG):
+        arr.setflags(write=False)
+    return A, ok, Gs, absG, KYf, KXf, cs
+
+
+def _centred_rfft2(a):
+    """rfft2 of arrays (the last two axes) whose centre pixel (n//2) is the origin (scipy's FFT: the
+    same numbers as numpy's, with less overhead per call on stamps this small)."""
+    return sfft.rfft2(np.fft.ifftshift(a, axes=(-2, -1)))
+
+
+def _fine_modes_moffat(psf, ny, nx, s, moffat=None, tolerance=0.0, Ps=None, offset=None):
+    """Native PSF with the App. A alias correction, generalised (see fit_moffat).
+
+    Above Nyquist the PSF is taken to be a circular Moffat times the pixel
+    response, scaled mode by mode so that its aliased sum reproduces the
+    sampled PSF's transform exactly inside the band: the model is
+    ``sum_n (R G)(k + 2 pi n) * P_s(k) / sum_n G(k + 2 pi n)``. For a
+    band-limited PSF this is the exact convolution; for a Moffat-like PSF it
+    models the modes a native image cannot hold. ``moffat`` = (rs, beta)
+    gives the Moffat (one per CCD, as the pipeline does); by default it is
+    fitted to this PSF. ``Ps``: the PSF's rfft on the grid, if already made.
+    ``offset`` = (dx, dy) pixels: the transfer times the phase exp(-i (kx dx + ky dy)) that puts the
+    model's origin there (made as the product of a phase in kx and one in ky).
+    """
+    if Ps is None:
+        Ps = _centred_rfft2(_pad_center(psf, (ny, nx)))
+    if moffat is None:
+        rs, beta = _own_moffat(psf, Ps, ny, nx)
+    else:
+        rs, beta = moffat
+    A, ok, Gs, absG, KYf, KXf, cs = _moffat_aliases(float(rs), float(beta), ny, nx, int(s))
+    ratio = np.where(ok, Ps / A, 0.0).ravel()
+    # only the modes above ``tolerance`` of the largest |T| (G is real: |T| = |G| |ratio|)
+    mag = (absG.reshape(-1, ratio.size) * np.abs(ratio)[None]).ravel()
+    idx = np.nonzero(mag > tolerance * mag.max())[0]
+    c = cs[idx]
+    T = Gs[idx] * ratio[c]
+    if offset is not None:
+        kyv, iy, kxv, ix = _alias_geometry(ny, nx, int(s))[-1]
+        T = T * (np.exp(-1j * kxv * offset[0])[ix[idx]] * np.exp(-1j * kyv * offset[1])[iy[idx]])
+    return KYf[idx], KXf[idx], T, c
+
+
+def noise_variance(weight):
+    """Stationary noise variance of a stamp: 1 / median of the positive weights."""
+    w = weight[weight > 0]
+    if w.size == 0:
+        raise ShearfitValueError("stamp has no pixel with positive weight")
+    # np.median's value, from a partition alone
+    h = w.size // 2
+    if w.size % 2:
+        return 1.0 / float(np.partition(w, h)[h])
+    p = np.partition(w, (h - 1, h))
+    return 1.0 / float((p[h - 1] + p[h]) / 2)
+
+
+def _masked_stamp(obs, ny, nx):
+    y = np.where(obs.weight > 0, obs.image, 0.0)
+    return y if y.shape == (ny, nx) else _pad_center(y, (ny, nx))
+
+
+def _data_modes(obs, ny, nx, y=None, data_ft=None):
+    """The stamp's noise variance, rfft (masked, centred on the grid), sum y^2 / sigma^2 and used pixels
+    (``y``, ``data_ft``: the masked stamp on the grid and its rfft, if already made)."""
+    sigma2 = noise_variance(obs.weight)
+    if y is None:
+        y = _masked_stamp(obs, ny, nx)
+    if data_ft is None:
+        data_ft = _centred_rfft2(y)
+    return sigma2, data_ft.ravel(), float(np.sum(y * y) / sigma2), int(np.count_nonzero(obs.weight > 0))
+
+
+def indices_by_shape(shapes):
+    """{shape: the indices of the items of that shape, in order}, for transforms batched per shape."""
+    out = {}
+    for i, shp in enumerate(shapes):
+        out.setdefault(tuple(shp), []).append(i)
+    return out
+
+
+def prepare_exposures(observations, cfg: FitConfig, likes=None) -> list:
+    """:func:`prepare_exposure` of each observation (``likes``: its ``like`` each, or None), the same
+    numbers; the stamps' and native PSFs' transforms of equal shapes are made in one call each."""
+    observations = list(observations)
+    likes = [None] * len(observations) if likes is None else list(likes)
+    if len(likes) != len(observations):
+        raise ShearfitValueError("prepare_exposures: one like= per observation is needed")
+    alias = cfg.alias_correction == "moffat"
+    pre = [{} for _ in observations]
+    for (ny, nx), idx in indices_by_shape(o.shape for o in observations).items():
+        if len(idx) < 2:
+            continue
+        ys = [_masked_stamp(observations[i], ny, nx) for i in idx]
+        for i, y, f in zip(idx, ys, _centred_rfft2(np.stack(ys))):
+            pre[i]["y"], pre[i]["data_ft"] = y, f
+        native = [i for i in idx if likes[i] is None and alias and observations[i].psf_oversampling == 1]
+        if len(native) >= 2:
+            P = _centred_rfft2(np.stack([_pad_center(observations[i].psf, (ny, nx)) for i in native]))
+            for i, Ps in zip(native, P):
+                pre[i]["Ps"] = Ps
+    return [prepare_exposure(o, cfg, like=lk, _pre=p) for o, lk, p in zip(observations, likes, pre)]
+
+
+def prepare_exposure(obs: Observation, cfg: FitConfig, grid_shape=None, with_data=True, like=None,
+                     _pre=None) -> ExposureModes:
+    """Reduce one observation to its Fourier modes.
+
+    ``grid_shape`` (default: the stamp's) is the periodic grid the model
+    lives on; rendering pads it to avoid wrap-around. ``like``: the
+    ExposureModes of an observation with the same PSF, Moffat, Jacobian,
+    offset, flux scale and shape (another version of the same stamp, as
+    metacalibration's): its modes are reused and only the data transformed.
+    (``_pre``: transforms :func:`prepare_exposures` made for it.)
+    """
+    ny, nx = grid_shape if grid_shape is not None else obs.shape
+    pre = _pre or {}
+    if like is not None:
+        if like.shape != (ny, nx):
+            raise ShearfitValueError(f"prepare_exposure: like= has shape {like.shape}, the stamp {(ny, nx)}")
+        sigma2, data_ft, yy, npix = _data_modes(obs, ny, nx, pre.get("y"), pre.get("data_ft"))
+        return replace(like, data_ft=data_ft, sigma2=sigma2, yy=yy, npix=npix)
+    s = obs.psf_oversampling
+    if s == 1 and cfg.alias_correction == "moffat":
+        # the modes below the tolerance are dropped as they are made; the object's nominal position sits
+        # at (stamp centre + offset)
+        ky, kx, T, coarse = _fine_modes_moffat(obs.psf, ny, nx, cfg.alias_oversampling, obs.psf_moffat,
+                                               cfg.psf_mode_tolerance, Ps=pre.get("Ps"), offset=obs.offset)
+    else:
+        ky, kx, T, coarse = _fine_modes_from_psf(obs.psf, s, ny, nx)
+        aT = np.abs(T)
+        keep = aT > cfg.psf_mode_tolerance * aT.max()
+        ky, kx, T, coarse = ky[keep], kx[keep], T[keep], coarse[keep]
+        # the object's nominal position sits at (stamp centre + offset)
+        dx, dy = obs.offset
+        T = T * np.exp(-1j * (kx * dx + ky * dy))
+    T = T * obs.flux_scale
+    # sky wavevector K = J^-T k
+    Jinv_T = inv2(obs.jacobian).T
+    Kx = Jinv_T[0, 0] * kx + Jinv_T[0, 1] * ky
+    Ky = Jinv_T[1, 0] * kx + Jinv_T[1, 1] * ky
+    cweight = _rfft_weights(ny, nx).ravel()
+    sigma2, data_ft, yy, npix = _data_modes(obs, ny, nx, pre.get("y"), pre.get("data_ft")) if with_data \
+        else (1.0, None, 0.0, 0)
+    return ExposureModes(shape=(ny, nx), kx=Kx, ky=Ky, transfer=T, coarse=coarse, cweight=cweight,
+                         data_ft=data_ft, sigma2=sigma2, yy=yy, npix=npix, pixel_scale=obs.pixel_scale)
+
+
+def model_ft(modes: ExposureModes, profile, e1, e2, r):
+    """Model DFT on the rfft grid of ``modes.shape`` for unit flux of one component."""
+    c11, c12, c22 = shape_matrix(e1, e2)
+    rho2 = r * r * (c11 * modes.kx ** 2 + 2 * c12 * modes.kx * modes.ky + c22 * modes.ky ** 2)
+    vals = modes.transfer * profile.ft_rho2(rho2)
+    ny, nx = modes.shape
+    M = np.zeros(ny * (nx // 2 + 1), dtype=complex)
+    np.add.at(M, modes.coarse, vals)
+    return M.reshape(ny, nx // 2 + 1)
+
+
+def render_object(obs: Observation, e1, e2, scalelength, bulge_fraction, flux, config=None):
+    """The PSF-convolved, pixelised model of a bulge+disk galaxy on ``obs``'s stamp.
+
+    The model is computed on a grid padded so that the truncated profile and
+    the PSF do not wrap around, then cut to the stamp. Returns counts: total
+    ``flux * obs.flux_scale`` (before the cut).
+    """
+    from .profiles import de_vaucouleurs, exponential_disk
+
+    from ..config import as_config
+
+    cfg = as_config(config)
+    ny, nx = obs.shape
+    pix = obs.pixel_scale
+    extent = cfg.truncation * scalelength * max(1.0, cfg.bulge_size_ratio) / pix
+    psf_half = max(obs.psf.shape) / obs.psf_oversampling / 2
+    need = int(np.ceil(2 * (extent + psf_half + np.abs(obs.offset).max()) + 4))
+    n = max(ny, nx, need)
+    n += n % 2
+    modes = prepare_exposure(obs, cfg, grid_shape=(n, n), with_data=False)
+    disk = exponential_disk(cfg.truncation)
+    bulge = de_vaucouleurs(cfg.truncation)
+    M = (1.0 - bulge_fraction) * model_ft(modes, disk, e1, e2, scalelength)
+    if bulge_fraction != 0:
+        M = M + bulge_fraction * model_ft(modes, bulge, e1, e2, scalelength * cfg.bulge_size_ratio)
+    img = np.fft.fftshift(np.fft.irfft2(M, s=(n, n))) * flux
+    return _pad_center(img, (ny, nx))

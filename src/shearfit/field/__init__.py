@@ -1,1 +1,0 @@
-"""Reading a field (exposures, weights, catalogues and its YAML config), cutting postage stamps and writing the shear catalogue."""

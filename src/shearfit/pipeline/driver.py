@@ -1,0 +1,621 @@
+"""The field pipeline: exposures + catalogue -> shear catalogue (``shearfit measure``).
+
+Per object (sec. 3.6, 4, 6 of the paper):
+
+1. every CCD of every exposure that holds it (``locate_all``);
+2. on each, a stamp cut at the integer pixel nearest the catalogue position,
+   the sub-pixel remainder carried to the model as a phase (``Observation.offset``),
+   never interpolated;
+3. the local Jacobian of the WCS at the object: the affine map applied to the
+   models before the PSF, so ellipticities come out in the (u, v) frame of
+   INTERFACE.md whatever the pixel grid's rotation, flip or distortion;
+4. the exposure's PSF at the object (a given image per CCD, or a PSFEx model);
+5. the photometric scale from MAGZP, one flux for all exposures;
+6. the joint fit (:func:`shearfit.measure_object`), and one catalogue row.
+
+Sec. 3.6 (:mod:`.blends`): on the co-added stamp smoothed by the PSF (built on the
+first exposure's pixel grid; an exposure rotated, flipped or distorted against it is
+carried onto that grid, and the masks back, to the nearest pixel through the local
+Jacobians), neighbours whose 2-sigma isophotes do not touch the object's are masked (set to
+background); several significant maxima inside the isophote flag the object
+blended or complex (-3); an isophote centroid more than 4 pixels from the input
+position flags it (-5); an exposure with a bad pixel inside the isophote is
+dropped, bad pixels elsewhere are background.
+"""
+
+from __future__ import annotations
+
+import functools
+import hashlib
+import json
+import logging
+import os
+import shutil
+from dataclasses import dataclass, field, replace
+from typing import Optional
+
+import numpy as np
+import yaml
+from astropy.table import Table
+
+from ..version import __version__
+from ..workers import process_pool
+from ..files import atomic_path
+from ..errors import (FITCLASS_FEW_EXPOSURES, FITCLASS_FIT_FAILED, FITCLASS_OFF_EXPOSURES, ShearfitIOError,
+                      ShearfitValueError)
+from ..calib.calibrate import PAPER_ALPHA, PAPER_BETA, CalibrationModel, calibration_m, load_calibration
+from ..engine.measure import measure_object
+from ..engine.model import psf_moffat
+from ..observation import Observation
+from ..io.fieldconfig import CALIBRATION_MODES, FieldConfig
+from ..io.fits import (METACAL_QUANTITIES, attach_pixels, detached, empty_output_table, provenance_cards, read_catalog,
+                 read_exposure, release_pages, write_catalog_atomic)
+from ..io.psfinput import PSFExModel, read_psf_fits
+from ..io.stamps import cut_stamp, locate_all
+from .blends import analyse_stamps
+from ..io.wcs import local_jacobian, pixel_to_sky
+from ..psf.build import (FieldFrame, build_exposure_psf, is_psf_model_file, read_psf_model,
+                         stellar_locus)
+
+log = logging.getLogger(__name__)
+
+__all__ = ["measure_field", "calibration_m", "psf_ellipticity"]
+
+def psf_moments(psf):
+    """Adaptive moments of a PSF image: (sigma in array pixels, reduced shear (g1, g2)), or None if HSM fails."""
+    import galsim
+
+    try:
+        mom = galsim.hsm.FindAdaptiveMom(galsim.Image(np.ascontiguousarray(psf, dtype=np.float64), scale=1.0))
+    except Exception:   # noqa: BLE001 - HSM fails on pathological images
+        return None
+    return mom.moments_sigma, (mom.observed_shape.g1, mom.observed_shape.g2)
+
+
+def psf_ellipticity(psf, jacobian, oversampling=1, moments=None):
+    """Ellipticity (a-b)/(a+b) of a PSF image in the (u, v) frame, from its adaptive moments.
+
+    The moment matrix found in pixels is carried to the sky by the Jacobian
+    (M_sky = J M J^T), then turned into the reduced-shear ellipticity.
+    ``moments`` (from :func:`psf_moments`) avoids measuring them again.
+    """
+    import galsim
+
+    moments = psf_moments(psf) if moments is None else moments
+    if moments is None:
+        return np.nan, np.nan
+    s = moments[0] / oversampling
+    g1, g2 = moments[1]
+    # moment matrix of an elliptical Gaussian of size s and reduced shear g (det = s^4)
+    S = galsim.Shear(g1=g1, g2=g2).getMatrix()
+    M = (s * s) * S @ S.T
+    Ms = jacobian @ M @ jacobian.T
+    a, b, c = Ms[0, 0], Ms[1, 1], Ms[0, 1]
+    tr = a + b
+    det = a * b - c * c
+    # distortion (a-b, 2c)/tr -> reduced shear: g = e / (1 + sqrt(1 - |e|^2))
+    e1, e2 = (a - b) / tr, 2 * c / tr
+    den = 1 + np.sqrt(max(1 - e1 * e1 - e2 * e2, 0.0)) if det > 0 else np.nan
+    return e1 / den, e2 / den
+
+
+@dataclass
+class _ExposurePSF:
+    images: Optional[list] = None     # one (array, oversampling) per CCD
+    psfex: Optional[list] = None      # one PSFExModel per CCD
+    fitted: Optional[object] = None   # a shearfit.psf PixelPSF fitted to the exposure's stars
+    ccds: Optional[list] = None
+    _frame: Optional[FieldFrame] = None
+    _moffat: dict = field(default_factory=dict)    # per-CCD Moffat fits; copies made by replace() share it
+
+    def moffat(self, ccd_index, shape):
+        """The CCD's above-Nyquist Moffat (rs, beta), fitted once to its PSF at the CCD centre (App. A).
+
+        None for an oversampled PSF (it needs none) or where the centre has no PSF.
+        """
+        if ccd_index not in self._moffat:
+            ny, nx = shape
+            got = self.at(ccd_index, 0.5 * (nx - 1), 0.5 * (ny - 1))
+            self._moffat[ccd_index] = psf_moffat(got[0]) if got is not None and got[1] == 1 else None
+        return self._moffat[ccd_index]
+
+    def at(self, ccd_index, x, y):
+        """(PSF image, oversampling) at CCD pixel (x, y), or None where the model has no stars."""
+        if self.fitted is not None:
+            if not self.fitted.ccd_used[ccd_index]:
+                return None
+            if self._frame is None:
+                self._frame = FieldFrame(**self.fitted.frame)
+            ra, dec = pixel_to_sky(self.ccds[ccd_index].wcs, x, y)
+            u, v = self._frame.uv(ra, dec)
+            return self.fitted.image(ccd_index, float(u), float(v)), self.fitted.oversampling
+        if self.images is not None:
+            return self.images[ccd_index]
+        return self.psfex[ccd_index].image_at(x, y)
+
+    def shift(self, ccd_index, x, y):
+        """Astrometric registration offset (dx, dy) pixels at (x, y) (sec. 4); 0 for a given PSF."""
+        if self.fitted is None:
+            return 0.0, 0.0
+        return self.fitted.registration_shift(ccd_index, x, y)
+
+
+def _load_psf(spec, n_ccd, index, ccds=None, fit=None):
+    """The exposure's PSF: the given file (FITS images, PSFEx, or a shearfit model), else ``fit()``."""
+    if spec.psf is None:
+        if fit is None:
+            raise ShearfitValueError(f"exposure {index} ({spec.image}) has no psf and no stars to fit one")
+        return _ExposurePSF(fitted=fit(), ccds=ccds)
+    if is_psf_model_file(spec.psf):
+        model = read_psf_model(spec.psf)
+        if model.n_ccd != n_ccd:
+            raise ShearfitValueError(f"{spec.psf}: PSF model of {model.n_ccd} CCDs for {n_ccd} in {spec.image}")
+        return _ExposurePSF(fitted=model, ccds=ccds)
+    if str(spec.psf).endswith(".psf"):
+        if n_ccd != 1:
+            raise ShearfitValueError(f"{spec.psf}: a PSFEx .psf file describes one CCD, but {spec.image} has "
+                                     f"{n_ccd}; give a FITS file with one PSF HDU per CCD")
+        return _ExposurePSF(psfex=[PSFExModel(spec.psf)])
+    from astropy.io import fits
+
+    with fits.open(spec.psf) as hdul:
+        idx = [i for i, h in enumerate(hdul) if getattr(h, "data", None) is not None and h.data.ndim == 2]
+    if len(idx) != n_ccd:
+        raise ShearfitValueError(f"{spec.psf}: {len(idx)} PSF image HDUs for {n_ccd} CCDs in {spec.image}")
+    return _ExposurePSF(images=[read_psf_fits(spec.psf, i) for i in idx])
+
+
+def psf_star_positions(cfg: FieldConfig, cat, ccds):
+    """(ra, dec) of the PSF stars of one exposure: the star catalogue, else the stellar locus of ``cat``."""
+    if cfg.stars is not None:
+        stars = read_catalog(cfg.stars)
+        return np.asarray(stars["ra"], float), np.asarray(stars["dec"], float)
+    rows = stellar_locus(ccds, cat, cfg.pipeline, FieldFrame.of_exposure(ccds))
+    return np.asarray(cat["ra"], float)[rows], np.asarray(cat["dec"], float)[rows]
+
+
+def fit_exposure_psf(cfg: FieldConfig, cat, ccds, label):
+    """Fit one exposure's pixel PSF model from its stars (sec. 5)."""
+    sra, sdec = psf_star_positions(cfg, cat, ccds)
+    ora = np.concatenate([np.asarray(cat["ra"], float), sra])
+    odec = np.concatenate([np.asarray(cat["dec"], float), sdec])
+    res = build_exposure_psf(ccds, sra, sdec, ora, odec, cfg.pipeline, label=label)
+    for note in res.notes:
+        log.warning(note)
+    return res
+
+
+def _psf_fwhm_pixels(moments, k):
+    # Gaussian-equivalent FWHM from the adaptive sigma; a typical ground-based PSF if HSM failed
+    return 2.3548 * moments[0] / k if moments is not None else 3.5
+
+
+@functools.lru_cache(maxsize=8)
+def _centred_offsets(shape):
+    """Pixel offsets (dx, dy) from the centre pixel ``(ny // 2, nx // 2)`` of a stamp of ``shape``."""
+    ny, nx = shape
+    yy, xx = np.indices(shape)
+    return xx - nx // 2, yy - ny // 2
+
+
+def _nearest_map(A, shape):
+    """Where each pixel of a stamp lands on another stamp of the same shape under the linear map ``A``.
+
+    Offsets from the centre pixel are mapped by ``A`` and rounded to the nearest pixel (no
+    interpolation). Returns the flat indices into the other stamp and a mask of the pixels that
+    land inside it; None where every pixel lands on itself (the grids are aligned to well under half
+    a pixel across the stamp, as for dithered exposures of one camera orientation).
+    """
+    ny, nx = shape
+    if np.abs(A - np.eye(2)).max() * (nx + ny) < 1.0:
+        return None
+    dx, dy = _centred_offsets(shape)
+    px = np.rint(A[0, 0] * dx + A[0, 1] * dy).astype(np.int64) + nx // 2
+    py = np.rint(A[1, 0] * dx + A[1, 1] * dy).astype(np.int64) + ny // 2
+    inside = (px >= 0) & (px < nx) & (py >= 0) & (py < ny)
+    return np.where(inside, py * nx + px, 0), inside
+
+
+def _carry(a, m):
+    """Stamp ``a`` carried through a :func:`_nearest_map` ``m`` (0 where it has no pixel); ``a`` if None."""
+    return a if m is None else np.where(m[1], a.ravel()[m[0]], 0)
+
+
+def _isophote_analysis(cuts, pc) -> int:
+    """Sec. 3.6 on the co-added, smoothed stamp: neighbour masks, dropped exposures, blend/centroid flags.
+
+    The co-add is built on the first exposure's pixel grid, every other stamp carried onto it to
+    the nearest pixel (never interpolated). For exposures on the same grid, as the paper's were,
+    that is the stamps as cut; a rotated, flipped or differently distorted exposure is carried
+    through its local Jacobian (a reference pixel takes the value and weight of the exposure's
+    pixel nearest to the same sky position; where the exposure has none, weight 0). Neighbour
+    masks and the isophote go back to each exposure the same way, so every exposure gets its
+    neighbours masked and its bad pixels judged against the same isophote.
+    """
+    J0 = cuts[0]["J"]
+    shape = cuts[0]["image"].shape
+    to_ref, from_ref, offsets = [], [], []
+    for c in cuts:
+        A = np.linalg.solve(c["J"], J0)          # reference-pixel offsets -> this exposure's
+        B = np.linalg.inv(A)
+        to_ref.append(_nearest_map(A, shape))
+        from_ref.append(_nearest_map(B, shape))
+        offsets.append(B @ np.asarray(c["offset"], float))   # where its object lands on the reference grid
+    fwhm = float(np.mean([_psf_fwhm_pixels(c["moments"], c["k"]) for c in cuts]))
+    res = analyse_stamps([_carry(c["image"], m) for c, m in zip(cuts, to_ref)],
+                         [_carry(c["weight"], m) for c, m in zip(cuts, to_ref)], offsets, fwhm,
+                         nsigma=pc.isophote_nsigma, min_region_pixels=pc.deblend_min_pixels,
+                         centroid_max_shift=pc.isophote_centroid_max_shift, neighbour_mask=pc.neighbour_mask)
+    for c, mask, keep, m in zip(cuts, res.masks, res.keep_exposure, from_ref):
+        if m is not None and res.isophote.any():
+            # a bad pixel of this exposure's own stamp inside the isophote drops it (reference pixels
+            # beyond a rotated stamp's corners hold no data from it, but are not its bad pixels)
+            keep = not bool(np.any(_carry(res.isophote, m) & (c["weight"] <= 0)))
+        c["keep"] = True
+        if pc.neighbour_mask and mask is not None and np.any(mask):
+            c["weight"] = np.where(_carry(mask, m), 0.0, c["weight"])
+        if pc.drop_masked_exposures and not keep:
+            c["keep"] = False
+    return int(res.flag)
+
+
+def measure_field(cfg: FieldConfig, out_path=None, progress=False, processes=1, restart=False, scheduler=None,
+                  executor="dask", memory_limit="auto") -> Table:
+    """Measure every catalogue object on the field's exposures; write and return the catalogue.
+
+    Objects are measured in chunks of ``chunk_size`` neighbouring objects;
+    finished chunks are kept in ``OUTPUT.parts/`` (see :class:`Checkpoint`),
+    so rerunning after an interruption resumes, and the final catalogue is
+    the same as an uninterrupted run's. ``restart`` discards a checkpoint.
+
+    Chunks run on Dask: on ``processes`` workers of a local cluster, or on
+    the distributed scheduler at ``scheduler`` (its workers must see the
+    same files); ``executor="fork"`` uses a plain process pool instead (:mod:`shearfit.workers`). The
+    catalogue does not depend on either. ``memory_limit`` is the local
+    cluster's per worker (Dask's format: ``"2GB"``, bytes, or ``"auto"``).
+    """
+    out_path = out_path or cfg.output
+    if out_path is None:
+        raise ShearfitValueError("no output path: give --out or output: in the config")
+    out_dir = os.path.dirname(os.path.abspath(out_path))
+    if not os.path.isdir(out_dir) or not os.access(out_dir, os.W_OK):
+        raise ShearfitValueError(f"cannot write the output: directory {out_dir} does not exist or is not writable")
+    # a bad calibration file fails here, not after every object is measured
+    calibration = load_calibration(cfg.calibration) if cfg.calibration not in CALIBRATION_MODES else None
+    cat = read_catalog(cfg.catalog)
+    exposures = []
+    for k, spec in enumerate(cfg.exposures):
+        ccds = read_exposure(spec.image, spec.weight)
+        fit = functools.partial(_fitted_psf, cfg, cat, ccds, f"exposure {k} ({spec.image})")
+        exposures.append((ccds, _load_psf(spec, len(ccds), k, ccds=ccds, fit=fit)))
+    flat = [(e, c) for e, (ccds, _) in enumerate(exposures) for c in range(len(ccds))]
+    hits = locate_all([exposures[e][0][c] for e, c in flat], np.asarray(cat["ra"]), np.asarray(cat["dec"]))
+    # from here on the pixels are opened per chunk (memory-mapped), by whichever process measures it, and
+    # the pages each object read are released after it: memory does not grow with the field or the run
+    exposures = _detached_exposures(exposures)
+    metacal = cfg.calibration == "metacal"
+    table = empty_output_table(cat, metacal=metacal)
+    tasks = [[] for _ in range(len(cat))]
+    for obj, k, x, y in zip(hits.object, hits.ccd, hits.x, hits.y):
+        tasks[obj].append((flat[k][0], flat[k][1], float(x), float(y)))
+    mags = np.asarray(cat["mag"], float)
+    chunks = sky_chunks(cat, cfg.pipeline.chunk_size)
+    ckpt = Checkpoint(out_path, cfg, cat, len(chunks), restart=restart)
+    for k in ckpt.finished():
+        ckpt.load(k, table)
+    todo = [k for k in range(len(chunks)) if not ckpt.is_done(k)]
+    if todo and len(todo) < len(chunks):
+        log.info("resuming: %d of %d chunks already measured (%s)", len(chunks) - len(todo), len(chunks), ckpt.dir)
+    global _STATE
+    ids = np.asarray(cat["id"])
+    _STATE = (tasks, exposures, mags, cfg, chunks, ids)
+    bar = _progress_bar(sum(len(chunks[k]) for k in todo), progress)
+    try:
+        if todo and (scheduler is not None or (processes and processes > 1 and executor == "dask")):
+            _run_dask(cfg, exposures, tasks, mags, ids, chunks, todo, table, ckpt, bar, processes, scheduler,
+                      memory_limit)
+        elif processes and processes > 1 and len(todo) > 1:
+            # the workers get the field's state once (inherited with fork, pickled with spawn); each returns
+            # one chunk's rows, which the parent writes to the checkpoint as they come (a kill loses at most
+            # the chunks in flight)
+            with process_pool(processes, initializer=_set_state, initargs=(_STATE,)) as pool:
+                for k, rows in pool.imap_unordered(_measure_chunk, todo):
+                    _store_chunk(table, chunks[k], rows, ckpt, k, bar)
+        else:
+            for k in todo:
+                _store_chunk(table, chunks[k], _measure_chunk(k)[1], ckpt, k, bar)
+    finally:
+        _STATE = None
+        if bar is not None:
+            bar.close()
+    measured = np.asarray(table["fitclass"]) >= 0
+    cards = list(provenance_cards(cfg.to_dict(), __version__))
+    if metacal:
+        # the response is measured per galaxy (R11 .. R22): no simulation-based m
+        table["m"] = np.where(measured, 0.0, np.nan)
+        cards += [("CALMODE", "metacal", "shear response: metacal (R columns)"),
+                  ("MCDELTA", cfg.pipeline.metacal_delta, "metacal shear step")]
+    else:
+        if calibration is not None:
+            src = os.path.basename(cfg.calibration)
+        else:
+            calibration, src = CalibrationModel(PAPER_ALPHA, PAPER_BETA), "paper default"
+        alpha, beta = calibration.alpha, calibration.beta
+        table["m"] = np.where(measured, calibration.m(table["snr"], table["scalelength"]), np.nan)
+        cards += [("CALMODE", "simulations", "m(snr, size) from simulations"),
+                  ("CALMODEL", calibration.kind, "m from the bins' table or the paper's form"),
+                  ("CALALPHA", alpha, f"calibration alpha ({src})"), ("CALBETA", beta, f"calibration beta ({src})")]
+    write_catalog_atomic(table, out_path, cards)
+    ckpt.remove()
+    return table
+
+
+def _fitted_psf(cfg, cat, ccds, name):
+    """The PSF model fitted from the stars of one exposure (called only where no PSF is given)."""
+    return fit_exposure_psf(cfg, cat, ccds, name).model
+
+
+def sky_chunks(cat, size):
+    """Catalogue indices in chunks of ``size`` neighbouring objects (cells of 2 arcmin, then input order).
+
+    Deterministic: the same catalogue and size give the same chunks, so a
+    resumed run and an uninterrupted one measure the same objects per chunk;
+    the results do not depend on the chunking anyway (each object is fitted
+    on its own).
+    """
+    ra = np.asarray(cat["ra"], float)
+    dec = np.asarray(cat["dec"], float)
+    n = ra.size
+    if n == 0:
+        return []
+    cell = 2.0 / 60.0
+    cosd = np.cos(np.radians(np.median(dec)))
+    ra_c = ((ra - np.median(ra) + 180.0) % 360.0) * cosd
+    order = np.lexsort((np.arange(n), np.floor(ra_c / cell), np.floor(dec / cell)))
+    return [order[i:i + size] for i in range(0, n, size)]
+
+
+def _progress_bar(total, show):
+    if not show or total == 0:
+        return None
+    from tqdm import tqdm
+    return tqdm(total=total, desc="measuring", unit="obj")
+
+
+def _detached_exposures(exposures):
+    """The exposures with their CCDs' pixels dropped (WCS, keywords and PSF models kept)."""
+    out = []
+    for ccds, p in exposures:
+        meta = detached(ccds)
+        out.append((meta, p if p.ccds is None else replace(p, ccds=meta)))
+    return out
+
+
+def _attached(exposures):
+    """The exposures with their pixels memory-mapped and their WCS read again, for one chunk."""
+    out = []
+    for ccds, p in exposures:
+        ccds = attach_pixels(ccds)
+        out.append((ccds, p if p.ccds is None else replace(p, ccds=ccds)))
+    return out
+
+
+def _measure_objects(exposures, hits, mags, ids, cfg):
+    """One chunk's objects: the exposures' memory maps opened once, the pages each object read released after
+    it (an object touches about 5 MB of pages on 7 exposures; kept, a chunk's would add up)."""
+    opened = _attached(exposures)
+    rows = []
+    for h, m, i in zip(hits, mags, ids):
+        rows.append(_measure_one(h, opened, m, cfg, cfg.pipeline, i))
+        for ccds, _ in opened:
+            release_pages(ccds)
+    return rows
+
+
+def _set_state(state):
+    """Worker initializer: the field's state for :func:`_measure_chunk`."""
+    global _STATE
+    _STATE = state
+
+
+def _measure_chunk(k):
+    tasks, exposures, mags, cfg, chunks, ids = _STATE
+    idx = chunks[k]
+    return k, _measure_objects(exposures, [tasks[i] for i in idx], mags[idx], ids[idx], cfg)
+
+
+def _dask_chunk(run, k, hits, mags, ids):
+    """One chunk on a Dask worker: its objects' pixels read through memory maps opened for this chunk."""
+    cfg, exposures = run
+    return k, _measure_objects(exposures, hits, mags, ids, cfg)
+
+
+def _run_dask(cfg, exposures, tasks, mags, ids, chunks, todo, table, ckpt, bar, processes, scheduler,
+              memory_limit="auto"):
+    """Submit the chunks to Dask and checkpoint each as it completes."""
+    from dask.distributed import Client, LocalCluster, as_completed
+
+    # Dask's own progress messages are not the user's business at the default verbosity
+    logging.getLogger("distributed").setLevel(max(logging.WARNING, log.getEffectiveLevel()))
+    cluster = None
+    if scheduler is None:
+        try:
+            cluster = LocalCluster(n_workers=int(processes), threads_per_worker=1, processes=True,
+                                   dashboard_address=":0", silence_logs=logging.WARNING, memory_limit=memory_limit)
+        except (ValueError, TypeError) as exc:
+            raise ShearfitValueError(f"--memory-limit {memory_limit!r}: {exc}") from None
+        client = Client(cluster)
+    else:
+        try:
+            client = Client(scheduler, timeout="10s")
+        except (OSError, TimeoutError) as exc:
+            raise ShearfitValueError(f"cannot reach the Dask scheduler at {scheduler}: {exc}") from None
+    try:
+        # one copy of the run's settings, CCD metadata and PSF models per worker (a list of one: scatter sends
+        # it whole); the PSF models' caches are rebuilt there
+        portable = [(ccds, replace(p, _frame=None, _moffat={})) for ccds, p in exposures]
+        [run] = client.scatter([(cfg, portable)], broadcast=True)
+        futures = [client.submit(_dask_chunk, run, k, [tasks[i] for i in chunks[k]], mags[chunks[k]], ids[chunks[k]],
+                                 pure=False) for k in todo]
+        for fut in as_completed(futures):
+            k, rows = fut.result()
+            _store_chunk(table, chunks[k], rows, ckpt, k, bar)
+    finally:
+        client.close()
+        if cluster is not None:
+            cluster.close()
+
+
+def _store_chunk(table, idx, rows, ckpt, k, bar):
+    for i, row in zip(idx, rows):
+        for key, val in row.items():
+            table[key][i] = val
+    ckpt.save(k, table, idx)
+    if bar is not None:
+        bar.update(len(idx))
+
+
+class Checkpoint:
+    """Finished chunks of a run, kept beside its output in ``OUTPUT.parts/`` until the catalogue is written.
+
+    ``manifest.yaml`` identifies the run (software version, the resolved
+    configuration, the catalogue's ids and positions, the number of chunks);
+    each ``chunk_NNNNNN.fits`` holds the measured rows of one chunk and is
+    written atomically, so a kill leaves whole chunks or none. A rerun of the
+    same command loads them instead of measuring again; a checkpoint of a
+    different run is refused (``--restart`` discards it).
+    """
+
+    def __init__(self, out_path, cfg, cat, n_chunks, restart=False):
+        self.dir = os.fspath(out_path) + ".parts"
+        h = hashlib.sha256()
+        h.update(json.dumps(cfg.to_dict(), sort_keys=True, default=str).encode())
+        for col in ("id", "ra", "dec", "mag"):
+            h.update(np.ascontiguousarray(np.asarray(cat[col])).tobytes())
+        self.manifest = {"shearfit_version": __version__, "run": h.hexdigest(), "n_objects": len(cat),
+                         "n_chunks": int(n_chunks)}
+        mpath = os.path.join(self.dir, "manifest.yaml")
+        if restart and os.path.isdir(self.dir):
+            shutil.rmtree(self.dir)
+        if os.path.isdir(self.dir):
+            try:
+                with open(mpath) as f:
+                    old = yaml.safe_load(f)
+            except (OSError, yaml.YAMLError):
+                old = None
+            if old != self.manifest:
+                raise ShearfitValueError(f"{self.dir}: a checkpoint of a different run (configuration, catalogue, "
+                                         "chunk size or version changed); remove it or rerun with --restart")
+        self._mpath = mpath
+        self._done = {k for k in range(n_chunks) if os.path.exists(self._path(k))}
+
+    def _path(self, k):
+        return os.path.join(self.dir, f"chunk_{k:06d}.fits")
+
+    def finished(self):
+        return sorted(self._done)
+
+    def is_done(self, k):
+        return k in self._done
+
+    def save(self, k, table, idx):
+        try:
+            if not os.path.isdir(self.dir):   # created with the first finished chunk: a run that fails first leaves nothing
+                os.makedirs(self.dir)
+                with atomic_path(self._mpath) as tmp, open(tmp, "w") as f:
+                    yaml.safe_dump(self.manifest, f)
+            part = table[idx]
+            part["row"] = np.asarray(idx, np.int64)
+            with atomic_path(self._path(k)) as tmp:
+                part.write(tmp, format="fits")
+        except OSError as exc:
+            raise ShearfitIOError(f"{self._path(k)}: cannot write the checkpoint: {exc.strerror or exc}") from None
+        self._done.add(k)
+
+    def load(self, k, table):
+        try:
+            part = Table.read(self._path(k), format="fits")
+        except (OSError, ValueError) as exc:
+            raise ShearfitValueError(f"{self._path(k)}: unreadable checkpoint chunk ({exc}); remove it or rerun "
+                                     "with --restart") from None
+        idx = np.asarray(part["row"], np.int64)
+        for col in table.colnames:
+            if col in part.colnames:
+                table[col][idx] = part[col]
+
+    def remove(self):
+        shutil.rmtree(self.dir, ignore_errors=True)
+
+
+_STATE = None
+
+
+_U64 = (1 << 64) - 1
+
+
+def _measure_one(hits, exposures, mag, cfg, pc, obj_id=0) -> dict:
+    if not hits:
+        return {"fitclass": FITCLASS_OFF_EXPOSURES}
+    # one stamp per exposure: where dithers put an object on two CCDs of one exposure, the CCD
+    # where it lies furthest from the edge
+    best = {}
+    for e, c, x, y in hits:
+        ny, nx = exposures[e][0][c].shape
+        margin = min(x, y, nx - 1 - x, ny - 1 - y)
+        if e not in best or margin > best[e][0]:
+            best[e] = (margin, c, x, y)
+    cuts = []
+    for e, (margin, c, x, y) in sorted(best.items()):
+        ccd = exposures[e][0][c]
+        epsf = exposures[e][1]
+        got = epsf.at(c, x, y)
+        if got is None:   # a CCD without enough PSF stars
+            continue
+        psf, k = got
+        # where the stars say the WCS is off, the object is where they put it (registration, sec. 4)
+        dx, dy = epsf.shift(c, x, y)
+        st = cut_stamp(ccd.image, ccd.pixel_weight, x + dx, y + dy, pc.stamp_size)
+        if st is None:
+            continue
+        cuts.append(dict(e=e, ccd=ccd, image=np.array(st.image, float), weight=np.array(st.weight, float),
+                         offset=st.offset, J=local_jacobian(ccd.wcs, x, y), psf=psf, k=k, moments=psf_moments(psf),
+                         moffat=epsf.moffat(c, ccd.image.shape) if k == 1 else None))
+    if not cuts:
+        return {"fitclass": FITCLASS_FEW_EXPOSURES, "n_exposures_used": 0}
+    flag = _isophote_analysis(cuts, pc)
+    if flag != 0:
+        return {"fitclass": flag, "n_exposures_used": 0}
+    obs, psf_e = [], []
+    for cut in cuts:
+        if not cut["keep"]:
+            continue
+        try:
+            obs.append(Observation(image=cut["image"], weight=cut["weight"], psf=cut["psf"], psf_oversampling=cut["k"],
+                                   jacobian=cut["J"], offset=tuple(cut["offset"]), flux_scale=cut["ccd"].flux_scale,
+                                   psf_moffat=cut["moffat"]))
+        except ShearfitValueError as exc:
+            log.warning("exposure %d CCD %s skipped for an object: %s", cut["e"], cut["ccd"].label, exc)
+            continue
+        psf_e.append(psf_ellipticity(cut["psf"], cut["J"], cut["k"], moments=cut["moments"]))
+    if len(obs) < max(pc.min_exposures, 1):
+        return {"fitclass": FITCLASS_FEW_EXPOSURES, "n_exposures_used": len(obs)}
+    if cfg.calibration == "metacal":
+        from ..calib.metacal import SHEARED, measure_metacal   # GalSim is imported only for metacal runs
+
+        rng = np.random.default_rng([int(pc.metacal_seed) & _U64, int(obj_id) & _U64])
+        mc = measure_metacal(obs, mag, cfg.fit, pc.metacal_delta, rng)
+        res = mc.noshear
+        extra = {f"{q}_{v}": getattr(mc.results[v], q) for v in SHEARED for q, _, _ in METACAL_QUANTITIES}
+        extra.update({f"R{i + 1}{j + 1}": float(mc.R[i, j]) for i in range(2) for j in range(2)})
+    else:
+        res = measure_object(obs, mag, cfg.fit)
+        extra = {}
+    row = {"e1": res.e1, "e2": res.e2, "weight": res.weight, "e_var": res.e_var, "fitclass": res.fitclass,
+           "snr": res.snr, "scalelength": res.scalelength, "bulge_fraction": res.bulge_fraction,
+           "model_flux": res.model_flux, "n_exposures_used": res.n_exposures_used, "star_pvalue": res.star_pvalue}
+    row.update(extra)
+    pe = np.array(psf_e, float)
+    row["psf_e1"], row["psf_e2"] = np.nanmean(pe[:, 0]), np.nanmean(pe[:, 1])
+    if res.fitclass == FITCLASS_FIT_FAILED:
+        log.debug("fit failed: %s", res.message)
+    return row
