@@ -110,17 +110,21 @@ def run_field_demo(out_dir=None, processes=None, seed=1, quiet=False, psf="fitte
                    n_galaxies=n_pairs, n_classified_galaxies=int(gal.sum()), n_stars_as_galaxies=n_star_as_gal,
                    psf=psf, seed=seed, wall_s=time.time() - t0, processes=processes)
     say("")
-    say(f"input shear       g1 = {shear[0]:+.4f}            g2 = {shear[1]:+.4f}")
-    say(f"recovered shear   g1 = {rec[0]:+.4f} +- {rec_err[0]:.4f}  g2 = {rec[1]:+.4f} +- {rec_err[1]:.4f}   "
-        f"(weighted mean e of the {int(gal.sum())} objects classified as galaxies, {n_star_as_gal} of them "
-        f"simulated stars; field +g)")
+    say(f"input shear       g1 = {shear[0]:+.4f}             g2 = {shear[1]:+.4f}")
+    say(f"recovered shear   g1 = {rec[0]:+.4f} +- {rec_err[0]:.4f}   g2 = {rec[1]:+.4f} +- {rec_err[1]:.4f}   "
+        f"weighted mean e, field +g")
     say(f"multiplicative    m1 = {mc1:+.4f} +- {sm1 / (1 + K):.4f}   m2 = {mc2:+.4f} +- {sm2 / (1 + K):.4f}   "
-        f"calibrated: divided by 1 + K, K = {K:+.4f} the weighted mean of the catalogue's m(snr, size)")
-    say(f"                  m1 = {m1:+.4f} +- {sm1:.4f}   m2 = {m2:+.4f} +- {sm2:.4f}   "
-        "raw: before the noise-bias calibration (lensfit's likelihood-mean estimator is biased low at low SNR)")
-    say(f"additive          c1 = {c1:+.5f} +- {sc1:.5f} c2 = {c2:+.5f} +- {sc2:.5f}")
-    say(f"   ({n_pairs} simulated galaxies measured in both the +g and -g fields; errors: bootstrap over "
-        "90-degree pairs)")
+        f"calibrated (1 + K = {1 + K:.4f})")
+    say(f"                  m1 = {m1:+.4f} +- {sm1:.4f}   m2 = {m2:+.4f} +- {sm2:.4f}   raw")
+    say(f"additive          c1 = {c1:+.4f} +- {sc1:.4f}   c2 = {c2:+.4f} +- {sc2:.4f}")
+    say("")
+    say(f"- recovered shear: the weighted mean ellipticity of the {int(gal.sum())} objects classified as "
+        f"galaxies ({n_star_as_gal} of them simulated stars); its error is mostly shape noise")
+    say(f"- m and c: the {n_pairs} simulated galaxies measured in both the +g and -g fields, their intrinsic "
+        "ellipticity subtracted (errors: bootstrap over 90-degree pairs)")
+    say("- raw m is lensfit's noise bias (the likelihood-mean estimator is biased low at low SNR); the catalogue's "
+        "m column holds the calibration m(snr, scalelength), and dividing by 1 + K, K its weighted mean, "
+        "calibrates it")
     say(f"outputs: {out_dir}/field_plus and field_minus (exposures, field.yaml, truth.fits, shear.fits); "
         f"total {time.time() - t0:.0f} s on {processes} process(es)")
     return summary

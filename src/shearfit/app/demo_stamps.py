@@ -1,4 +1,4 @@
-"""The ``shearfit demo``: recover a known shear from GalSim-simulated exposures.
+"""``shearfit demo --stamps``: recover a known shear from GalSim-simulated exposures.
 
 :func:`run_demo` simulates a small CFHTLenS-like ring test with GalSim (the
 independent renderer of :mod:`shearfit.simulate.stamps`): galaxies of the
@@ -9,9 +9,9 @@ once by ``-g`` with identical noise. Every object is measured with
 mean shear and the multiplicative and additive biases m and c (with bootstrap
 errors over galaxies, :mod:`shearfit.calib.bias`) are printed.
 
-This demonstrates the single-object engine on postage stamps. It will be
-replaced by a demonstration of the full field pipeline (detection catalogue,
-exposures, PSF models and catalogue output) in a later issue.
+This demonstrates the single-object engine on postage stamps
+(``shearfit demo --stamps``); ``shearfit demo`` runs the whole field pipeline
+(:mod:`shearfit.app.demo`).
 """
 
 from __future__ import annotations
@@ -29,7 +29,7 @@ from ..files import atomic_path
 from ..workers import process_pool, single_threaded
 from ..errors import FITCLASS_GALAXY, FITCLASS_NAMES, FITCLASS_STAR, ShearfitValueError
 
-__all__ = ["run_demo", "main", "OBJECTS_FILE", "SUMMARY_FILE"]
+__all__ = ["run_demo", "OBJECTS_FILE", "SUMMARY_FILE"]
 
 #: Name of the per-object table written into ``out_dir``.
 OBJECTS_FILE = "demo_objects.fits"
@@ -444,34 +444,3 @@ def _isatty(stream):
         return bool(stream.isatty())
     except (AttributeError, ValueError):
         return False
-
-
-# ----------------------------------------------------------------------------- command line
-
-def main(argv=None) -> int:
-    """``python -m shearfit.app.demo_stamps [--out-dir DIR] [...]``: run :func:`run_demo` from the command line."""
-    import argparse
-
-    p = argparse.ArgumentParser(prog="python -m shearfit.app.demo_stamps", description=run_demo.__doc__.split("\n\n")[0],
-                                formatter_class=argparse.ArgumentDefaultsHelpFormatter)
-    p.add_argument("--out-dir", help="write demo_objects.fits and demo_summary.yaml here")
-    p.add_argument("--n-galaxies", type=int, default=24)
-    p.add_argument("--n-rotations", type=int, default=4)
-    p.add_argument("--n-exposures", type=int, default=7)
-    p.add_argument("--snr", type=float, nargs=2, default=[20.0, 60.0], metavar=("MIN", "MAX"))
-    p.add_argument("--shear", type=float, nargs=2, default=[0.03, -0.02], metavar=("G1", "G2"))
-    p.add_argument("--processes", type=int, default=None, help="default: all CPUs; 0: in this process")
-    p.add_argument("--seed", type=int, default=1)
-    p.add_argument("--quiet", action="store_true")
-    a = p.parse_args(argv)
-    try:
-        run_demo(out_dir=a.out_dir, n_galaxies=a.n_galaxies, n_rotations=a.n_rotations, n_exposures=a.n_exposures,
-                 snr_range=tuple(a.snr), shear=tuple(a.shear), processes=a.processes, seed=a.seed, quiet=a.quiet)
-    except ShearfitValueError as exc:
-        print(f"shearfit demo: error: {exc}", file=sys.stderr)
-        return 2
-    return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())
