@@ -1,15 +1,16 @@
 #!/usr/bin/env python
-"""Throughput of ``shearfit measure`` against the engine's, and where the difference goes (issue 3, item 5).
+"""Throughput of ``shearfit measure`` against the engine's, and where the difference goes.
 
 Simulates a field with ``shearfit.simulate`` (preset ``small`` by default:
-7 exposures of 2 CCDs, stars, bad columns and cosmic rays), runs the field
-pipeline on one process under the profiler, and prints objects per second
-for the whole command and for ``measure_object`` alone, then the time of
-each pipeline stage. With ``--psf fitted`` the PSF models are fitted from the
-stars first (their time is a stage too).
+7 dithered exposures of 2 CCDs, each with its own PSF, stars, bad columns and
+cosmic rays), runs the field pipeline on one process (``-j 1``), once with
+the true PSF images given and once with PSF models fitted from the stars, and
+prints objects per CPU-second of each, the share of the PSF stage, and the
+peak memory; then, under the profiler, the time of each pipeline stage and of
+``measure_object`` alone.
 
-    python benchmarks/pipeline_profile.py                   # true PSF given
-    python benchmarks/pipeline_profile.py --psf fitted      # PSF fitted from the field's stars
+    python benchmarks/pipeline_profile.py                   # given and fitted PSFs, then the profile
+    python benchmarks/pipeline_profile.py --psf fitted      # only PSF models fitted from the stars
 """
 
 from __future__ import annotations
@@ -23,6 +24,7 @@ import argparse  # noqa: E402
 import cProfile  # noqa: E402
 import pstats  # noqa: E402
 import resource  # noqa: E402
+import sys  # noqa: E402
 import tempfile  # noqa: E402
 import time  # noqa: E402
 
@@ -34,42 +36,74 @@ from shearfit.simulate.field import simulate_field, simulation_config  # noqa: E
 
 # (label, file suffix, function): cumulative time of each
 STAGES = [
-    ("read exposures and weights (FITS)", "field/io.py", "read_exposure"),
-    ("read the catalogue", "field/io.py", "read_catalog"),
-    ("fit PSF models from stars", "field/pipeline.py", "fit_exposure_psf"),
-    ("locate objects on CCDs (WCS)", "field/stamps.py", "locate_all"),
-    ("cut stamps", "field/stamps.py", "cut_stamp"),
-    ("local WCS Jacobians", "field/wcs.py", "local_jacobian"),
-    ("PSF at the object", "field/pipeline.py", "at"),
-    ("PSF adaptive moments (FWHM, psf_e)", "field/pipeline.py", "psf_moments"),
-    ("above-Nyquist Moffat per CCD", "field/pipeline.py", "moffat"),
-    ("isophotes, neighbours, blends (sec. 3.6)", "field/pipeline.py", "_isophote_analysis"),
-    ("the engine: measure_object", "shearfit/measure.py", "measure_object"),
-    ("write the catalogue", "field/io.py", "write_catalog_atomic"),
+    ("read exposures and weights (FITS)", "io/fits.py", "read_exposure"),
+    ("read the catalogue", "io/fits.py", "read_catalog"),
+    ("fit PSF models from stars", "pipeline/driver.py", "fit_exposure_psf"),
+    ("locate objects on CCDs (WCS)", "io/stamps.py", "locate_all"),
+    ("cut stamps", "io/stamps.py", "cut_stamp"),
+    ("local WCS Jacobians", "io/wcs.py", "local_jacobian"),
+    ("PSF at the object", "pipeline/driver.py", "at"),
+    ("PSF adaptive moments (FWHM, psf_e)", "pipeline/driver.py", "psf_moments"),
+    ("above-Nyquist Moffat per CCD", "pipeline/driver.py", "moffat"),
+    ("isophotes, neighbours, blends (sec. 3.6)", "pipeline/driver.py", "_isophote_analysis"),
+    ("the engine: measure_object", "engine/measure.py", "measure_object"),
+    ("write the catalogue", "io/fits.py", "write_catalog_atomic"),
 ]
+
+
+def _cpu_seconds():
+    r = resource.getrusage(resource.RUSAGE_SELF)
+    return r.ru_utime + r.ru_stime
 
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--preset", default="small")
     ap.add_argument("--seed", type=int, default=3)
-    ap.add_argument("--psf", choices=["true", "fitted"], default="true")
+    ap.add_argument("--psf", choices=["true", "fitted", "both"], default="both")
+    ap.add_argument("--no-profile", action="store_true", help="skip the profiled run (stages)")
     ap.add_argument("--keep", default=None, help="keep the field in this directory")
     args = ap.parse_args(argv)
+    from shearfit.engine.kernel import kernel_info
+
+    sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+    from speed import cpu_name
+
+    info = kernel_info()
+    print(f"CPU: {cpu_name()}; inner loops: {info['path']} ({info['isa']})")
+    modes = ["true", "fitted"] if args.psf == "both" else [args.psf]
     with tempfile.TemporaryDirectory() as tmp:
         d = args.keep or tmp
         sc = simulation_config({"preset": args.preset, "seed": args.seed})
         t0 = time.perf_counter()
-        info = simulate_field(sc, d)
+        simulate_field(sc, d)
         print(f"simulated preset {args.preset} in {time.perf_counter() - t0:.0f} s")
-        cfg = load_field_config(os.path.join(d, "field_truepsf.yaml" if args.psf == "true" else "field.yaml"))
+        rates = {}
+        for mode in modes:
+            cfg = load_field_config(os.path.join(d, "field_truepsf.yaml" if mode == "true" else "field.yaml"))
+            c0, t0 = _cpu_seconds(), time.perf_counter()
+            table = measure_field(cfg, out_path=os.path.join(d, f"shear_{mode}.fits"), processes=1)
+            cpu, wall = _cpu_seconds() - c0, time.perf_counter() - t0
+            rates[mode] = (len(table), cpu)
+            fc = np.asarray(table["fitclass"])
+            print(f"\nPSF {'given (true images)' if mode == 'true' else 'fitted from the stars'}: {len(table)} objects "
+                  f"({int((fc == 0).sum())} galaxies, {int((fc == 1).sum())} stars, {int((fc < 0).sum())} flagged or "
+                  f"unmeasured), {len(cfg.exposures)} exposures, one process: {len(table) / cpu:.2f} objects per "
+                  f"CPU-second ({cpu:.1f} CPU-s, {wall:.1f} s wall)")
+        if len(rates) == 2:
+            extra = rates["fitted"][1] - rates["true"][1]
+            print(f"\nPSF stage (fitted minus given): {extra:.1f} CPU-s, {100 * extra / rates['fitted'][1]:.0f} % of the "
+                  "run with fitted PSFs")
+        peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+        print(f"peak memory (max RSS of this process): {peak:.0f} MB")
+        if args.no_profile:
+            return
+        mode = modes[-1]
+        cfg = load_field_config(os.path.join(d, "field_truepsf.yaml" if mode == "true" else "field.yaml"))
         prof = cProfile.Profile()
-        t0 = time.perf_counter()
         prof.enable()
-        table = measure_field(cfg, out_path=os.path.join(d, "shear.fits"), processes=1)
+        table = measure_field(cfg, out_path=os.path.join(d, "shear_profiled.fits"), processes=1)
         prof.disable()
-        wall = time.perf_counter() - t0
-    del info
     st = pstats.Stats(prof).stats
     total = sum(v[2] for v in st.values())
 
@@ -77,20 +111,14 @@ def main(argv=None):
         return sum(v[3] for k, v in st.items() if k[0].endswith(fname) and k[2] == func)
 
     n = len(table)
-    fc = np.asarray(table["fitclass"])
-    engine = cum("shearfit/measure.py", "measure_object")
-    print(f"\n{n} objects ({int((fc == 0).sum())} galaxies, {int((fc == 1).sum())} stars, {int((fc < 0).sum())} "
-          f"flagged or unmeasured), {len(cfg.exposures)} exposures, PSF {args.psf}, one process:")
-    print(f"  whole command: {n / wall:.2f} objects/s/core ({wall:.1f} s wall, profiled)")
-    print(f"  engine alone:  {n / engine:.2f} objects/s/core over the same objects "
+    engine = cum("engine/measure.py", "measure_object")
+    print(f"\nprofiled run (PSF {mode}): the engine alone {n / engine:.2f} objects/s/core over the same objects "
           f"(measure_object: {engine:.1f} s, {100 * engine / total:.0f} % of the profiled time)")
-    print(f"\n  where the time goes (cumulative, % of {total:.1f} s profiled):")
+    print(f"  where the time goes (cumulative, % of {total:.1f} s profiled):")
     for label, fname, func in STAGES:
         t = cum(fname, func)
         if t > 0:
             print(f"    {label:44s} {t:7.2f} s  {100 * t / total:5.1f} %")
-    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
-    print(f"\npeak memory (max RSS of this process): {peak:.0f} MB")
 
 
 if __name__ == "__main__":

@@ -1,19 +1,26 @@
 #!/usr/bin/env python
 """Throughput of the single-object engine: galaxies per second per core, and where the time goes.
 
-Simulates a CFHTLenS-like set of galaxies with GalSim (the paper's population,
-magnitudes 21-24.7, SNR 10-60, elliptical Moffat PSFs, 48-pixel stamps) and
-times ``shearfit.measure_object`` on one core (BLAS limited to one thread),
-for 7 exposures and, with --scaling, for 1-14 exposures and several stamp
-sizes. Prints a profile grouped by stage and the process's peak memory.
+Simulates CFHTLenS-like galaxies with GalSim (the paper's population,
+magnitudes 21-24.7, SNR 10-40, 48-pixel stamps) and times
+``shearfit.measure_object`` on one core (BLAS limited to one thread). The
+default is the realistic case of a camera: 7 exposures, each with its own
+Jacobian (its own rotation of the pixel grid, and 1 % rms distortion) and its
+own elliptical Moffat PSF image, the App. A Moffat fitted to each, and new
+galaxies in every timed pass. GalSim's HSM (REGAUSS) measures the same stamps
+in the same process, as a peer. Prints the CPU, the instruction-set level of
+the compiled loops (``SHEARFIT_ISA=avx2``, ``baseline`` or ``numpy`` forces
+one), a profile grouped by stage and the process's peak memory.
 
-    python benchmarks/speed.py                 # 7 exposures, profile (a Moffat fitted to every PSF)
-    python benchmarks/speed.py --moffat-per-exposure   # one App. A Moffat per exposure, as the pipeline
-    python benchmarks/speed.py --constant-psf  # one PSF image for all (a Moffat fitted once, remembered)
-    python benchmarks/speed.py --scaling       # growth with exposures and stamp size
-    python benchmarks/speed.py --check         # how far the speed settings move the estimates
-    python benchmarks/speed.py --rotate-exposures   # exposures whose Fourier modes cannot merge
-    python benchmarks/speed.py --jacobian-jitter 1e-3   # Jacobians as a camera's distortion makes them
+    python benchmarks/speed.py                     # the realistic case
+    SHEARFIT_ISA=baseline python benchmarks/speed.py   # the portable loops on the same CPU
+    python benchmarks/speed.py --one-jacobian      # exposures sharing one Jacobian (modes merge exactly)
+    python benchmarks/speed.py --moffat-per-exposure   # one App. A Moffat per exposure, as the pipeline fits one per CCD
+    python benchmarks/speed.py --constant-psf      # one PSF image for all (a Moffat fitted once, remembered)
+    python benchmarks/speed.py --same-galaxies     # every pass on the same galaxies (warm caches)
+    python benchmarks/speed.py --scaling           # growth with exposures and stamp size
+    python benchmarks/speed.py --workers 2         # 2 worker processes against one
+    python benchmarks/speed.py --check             # how far the speed settings move the estimates
 """
 
 from __future__ import annotations
@@ -32,7 +39,6 @@ import time  # noqa: E402
 import numpy as np  # noqa: E402
 
 import shearfit  # noqa: E402
-from shearfit.engine import likelihood  # noqa: E402
 from shearfit.engine.model import psf_moffat  # noqa: E402
 from shearfit.observation import Observation  # noqa: E402
 from shearfit.simulate.stamps import ring_set  # noqa: E402
@@ -49,12 +55,58 @@ STAGES = {
 }
 
 
+SNR_RANGE = (10, 40)
+
+
 def simulate(n, n_exp, stamp, seed, rotate=False, jitter=0.0, constant_psf=False):
     rng = np.random.default_rng(seed)
     # a constant PSF: one round Moffat (FWHM 0.65", beta 3) for every exposure of every galaxy
     psf = dict(psf_fwhm_range=(0.65, 0.65), psf_beta_range=(3.0, 3.0), psf_e_max=0.0) if constant_psf else {}
-    return ring_set(n, (0.0, 0.0), rng, n_rotations=1, n_exposures=n_exp, snr_range=(10, 60),
+    return ring_set(n, (0.0, 0.0), rng, n_rotations=1, n_exposures=n_exp, snr_range=SNR_RANGE,
                     mag_range=(21.0, 24.7), stamp_size=stamp, rotate_exposures=rotate, jacobian_jitter=jitter, **psf)
+
+
+def cpu_name():
+    """The CPU's model name (Linux: /proc/cpuinfo), else what platform says."""
+    import platform
+
+    try:
+        with open("/proc/cpuinfo") as f:
+            for line in f:
+                if line.lower().startswith("model name"):
+                    return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
+
+
+def hsm_time(objs):
+    """Seconds per galaxy of GalSim's HSM REGAUSS on the same stamps (every exposure), and its failures."""
+    import galsim
+
+    t0 = time.perf_counter()
+    fails = 0
+    for obs, _ in objs:
+        for o in obs:
+            scale = float(np.sqrt(abs(np.linalg.det(o.jacobian))))
+            res = galsim.hsm.EstimateShear(galsim.Image(np.asarray(o.image, np.float64), scale=scale),
+                                           galsim.Image(np.asarray(o.psf, np.float64), scale=scale),
+                                           weight=galsim.Image((np.asarray(o.weight) > 0).astype(np.int32)),
+                                           shear_est="REGAUSS", strict=False)
+            fails += bool(res.error_message)
+    return (time.perf_counter() - t0) / len(objs), fails
+
+
+def workers_report(objs, cfg, n_workers):
+    """Galaxies per second with ``n_workers`` worker processes against one, on the same galaxies."""
+    t0 = time.perf_counter()
+    shearfit.measure_objects([o for o, _ in objs], [t["mag"] for _, t in objs], config=cfg, processes=1)
+    one = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    shearfit.measure_objects([o for o, _ in objs], [t["mag"] for _, t in objs], config=cfg, processes=n_workers)
+    many = time.perf_counter() - t0
+    print(f"\n{n_workers} worker processes against one, {len(objs)} galaxies (pool start-up included): "
+          f"{len(objs) / one:.2f} -> {len(objs) / many:.2f} galaxies / s, x{one / many:.2f}")
 
 
 def one_moffat_per_exposure(objs):
@@ -197,13 +249,18 @@ def main(argv=None):
     ap.add_argument("--moffat-per-exposure", action="store_true",
                     help="fit the above-Nyquist Moffat (App. A) once per exposure, as shearfit measure does per "
                          "CCD, instead of once per object and exposure")
-    ap.add_argument("--rotate-exposures", action="store_true",
-                    help="give every exposure's pixel grid its own random rotation, so that no two exposures sample "
-                         "the same sky wavevectors and none of their Fourier modes merge (the default exposures "
-                         "share one Jacobian, as dithered exposures of one camera orientation nearly do)")
-    ap.add_argument("--jacobian-jitter", type=float, default=0.0, metavar="RMS",
+    ap.add_argument("--one-jacobian", action="store_true",
+                    help="every exposure with the same Jacobian, so that their Fourier modes coincide and merge "
+                         "(exactly); the default gives each exposure's pixel grid its own rotation, and "
+                         "--jacobian-jitter its distortion, so that none merge, as on a real camera")
+    ap.add_argument("--jacobian-jitter", type=float, default=0.01, metavar="RMS",
                     help="multiply each exposure's Jacobian by 1 + A, A of normal deviates of this rms (a camera's "
-                         "distortion differs by about 1e-4 to 1e-3 between the dithered positions of one object)")
+                         "distortion; default 0.01)")
+    ap.add_argument("--same-galaxies", action="store_true",
+                    help="time every pass on the same galaxies (by default each pass measures new ones)")
+    ap.add_argument("--workers", type=int, default=0, metavar="N",
+                    help="also time N worker processes (shearfit.measure_objects) against one")
+    ap.add_argument("--no-hsm", action="store_true", help="do not time GalSim's HSM on the same stamps")
     ap.add_argument("--constant-psf", action="store_true",
                     help="one PSF image for every exposure of every galaxy (as the GREAT challenges' constant-PSF "
                          "branches): the App. A Moffat is fitted once and remembered")
@@ -226,12 +283,21 @@ def main(argv=None):
                 pass
         cfg[k] = v
     cfg = shearfit.fit_config_from_mapping(cfg)
-    print(f"shearfit {shearfit.__version__}; compiled kernel: {'yes' if likelihood.USE_KERNEL else 'NO (numpy)'}; "
+    from shearfit.engine.kernel import kernel_info
+
+    info = kernel_info()
+    rotate = not args.one_jacobian
+    jitter = 0.0 if args.one_jacobian else args.jacobian_jitter
+    print(f"shearfit {shearfit.__version__}; CPU: {cpu_name()}; inner loops: {info['path']} "
+          f"({info['isa']}; the CPU runs {', '.join(info['cpu_levels']) or '-'}"
+          f"{'; SHEARFIT_ISA=' + info['requested'] if info['requested'] else ''}); "
           f"sampling={cfg.sampling}, alias_correction={cfg.alias_correction}")
-    objs = simulate(args.n_galaxies, 7, 48, args.seed, args.rotate_exposures, args.jacobian_jitter,
-                    args.constant_psf)
+    n_sets = 1 if args.same_galaxies else max(args.passes, 1) + 1
+    sets = [simulate(args.n_galaxies, 7, 48, args.seed + 1000 * k, rotate, jitter, args.constant_psf)
+            for k in range(n_sets)]
     if args.moffat_per_exposure:
-        objs = one_moffat_per_exposure(objs)
+        sets = [one_moffat_per_exposure(s) for s in sets]
+    objs = sets[0]
     timed(objs[:2], cfg)   # build the profile tables once, outside the timing
     prof = cProfile.Profile()
     prof.enable()
@@ -239,19 +305,32 @@ def main(argv=None):
     prof.disable()
     n_models = np.mean([getattr(r, "n_models", np.nan) for r in res])
     n_samp = np.mean([r.n_samples for r in res])
-    # the profiler slows Python-level code; time again without it, pass after pass
-    times = []
-    for _ in range(max(args.passes, 1)):
-        dt, res = timed(objs, cfg)
-        times.append(dt)
-    dt = float(np.median(times))
-    jacobians = ("each its own rotation" if args.rotate_exposures else
-                 f"Jacobians differing by {args.jacobian_jitter:g} rms" if args.jacobian_jitter > 0 else "one Jacobian")
-    print(f"\n7 exposures ({jacobians}), 48-pixel stamps, {len(objs)} galaxies (SNR 10-60, mag 21-24.7):")
-    print(f"  {len(objs) / dt:.2f} galaxies / s / core   ({1e3 * dt / len(objs):.1f} ms per galaxy; "
+    # the profiler slows Python-level code; time again without it, pass after pass (new galaxies each time)
+    times, peer = [], []
+    for k in range(max(args.passes, 1)):
+        s = sets[(k + 1) % len(sets)]
+        dt, _ = timed(s, cfg)
+        times.append(dt / len(s))
+        if not args.no_hsm:
+            peer.append(hsm_time(s))
+    per = float(np.median(times))
+    jacobians = ("one Jacobian" if args.one_jacobian else
+                 f"each its own rotation and {jitter:g} rms distortion")
+    psfs = ("one constant PSF" if args.constant_psf else "each its own elliptical Moffat PSF") + (
+        ", App. A Moffat fitted once per exposure" if args.moffat_per_exposure else
+        ", App. A Moffat fitted to every PSF")
+    print(f"\n7 exposures ({jacobians}; {psfs}), 48-pixel stamps, {len(objs)} galaxies per pass "
+          f"({'the same' if args.same_galaxies else 'new'} galaxies every pass; SNR {SNR_RANGE[0]}-{SNR_RANGE[1]}, "
+          f"mag 21-24.7):")
+    print(f"  {1 / per:.2f} galaxies / s / core   ({1e3 * per:.1f} ms per galaxy; "
           f"{n_samp:.0f} ellipticity samples and {n_models:.0f} (e, r) models per galaxy on average)")
-    print(f"  median of {len(times)} timed passes; slowest {len(objs) / max(times):.2f}, fastest "
-          f"{len(objs) / min(times):.2f} galaxies / s")
+    print(f"  median of {len(times)} timed passes; slowest {1 / max(times):.2f}, fastest "
+          f"{1 / min(times):.2f} galaxies / s")
+    if peer:
+        hsm = float(np.median([p[0] for p in peer]))
+        print(f"  peer: GalSim HSM REGAUSS on the same 7 stamps per galaxy, same process: {1e3 * hsm:.1f} ms per "
+              f"galaxy ({1 / hsm:.1f} galaxies / s; {sum(p[1] for p in peer)} failed stamps); "
+              f"shearfit / HSM time: {per / hsm:.2f}")
     stage_report(pstats.Stats(prof))
     print("\n  top functions by internal time:")
     pstats.Stats(prof).sort_stats("tottime").print_stats(8)
@@ -260,12 +339,13 @@ def main(argv=None):
         metacal_image_profile(objs)
     if args.check:
         check_report(objs, cfg, res, args.seed)
+    if args.workers > 1:
+        workers_report([g for s in sets[:2] for g in s], cfg, args.workers)
     if args.scaling:
         print("growth with the number of exposures (48-pixel stamps):")
         base = None
         for n_exp in (1, 2, 4, 7, 14):
-            o = simulate(max(args.n_galaxies // 2, 6), n_exp, 48, args.seed + n_exp, args.rotate_exposures,
-                         args.jacobian_jitter)
+            o = simulate(max(args.n_galaxies // 2, 6), n_exp, 48, args.seed + n_exp, rotate, jitter)
             if args.moffat_per_exposure:
                 o = one_moffat_per_exposure(o)
             d, _ = timed(o, cfg)
@@ -274,8 +354,7 @@ def main(argv=None):
             print(f"  {n_exp:3d} exposures: {1 / per:7.2f} galaxies/s/core  ({1e3 * per:7.1f} ms, x{per / base:.2f})")
         print("growth with the stamp size (7 exposures):")
         for stamp in (32, 48, 64):
-            o = simulate(max(args.n_galaxies // 2, 6), 7, stamp, args.seed + stamp, args.rotate_exposures,
-                         args.jacobian_jitter)
+            o = simulate(max(args.n_galaxies // 2, 6), 7, stamp, args.seed + stamp, rotate, jitter)
             if args.moffat_per_exposure:
                 o = one_moffat_per_exposure(o)
             d, _ = timed(o, cfg)

@@ -35,31 +35,25 @@
 
 /* table rows are [value_f, slope_f, value_g, slope_g] in float32; the last row is zero */
 /* Models are processed NB at a time: each mode's data is loaded once for the block, and the
- * per-model arithmetic (independent across the block) vectorises. On x86-64 Linux with GCC the
- * block loop is compiled for several instruction sets and the best one the CPU has is chosen at
- * run time (target_clones), so the build stays portable. Eight models fill one AVX-512 register
+ * per-model arithmetic (independent across the block) vectorises (the module is built for several
+ * instruction-set levels, see below). Eight models fill one AVX-512 register
  * (8 % faster per galaxy than four, benchmarks/speed.py). */
 #define NB 8
-/* target_clones needs GCC and the ifunc resolver of glibc (musl has none); the x86-64-v4 / v3 level names
- * need GCC >= 12, and GCC 6-11 get the same two levels by the CPUs that define them. Elsewhere (clang,
- * musl, other architectures) one portable version is compiled; kernel_isa() says which one runs. */
-#if defined(__GNUC__) && !defined(__clang__) && defined(__x86_64__) && defined(__linux__) && defined(__GLIBC__)
-#if __GNUC__ >= 12
-#define MULTIVERSION __attribute__((target_clones("arch=x86-64-v4", "arch=x86-64-v3", "default")))
-#define MV_LEVELS "x86-64-v4,x86-64-v3,default"
-#define MV_HAS_V4() __builtin_cpu_supports("x86-64-v4")
-#define MV_HAS_V3() __builtin_cpu_supports("x86-64-v3")
-#elif __GNUC__ >= 6
-#define MULTIVERSION __attribute__((target_clones("arch=skylake-avx512", "arch=haswell", "default")))
-#define MV_LEVELS "skylake-avx512,haswell,default"
-#define MV_HAS_V4() __builtin_cpu_is("skylake-avx512")
-#define MV_HAS_V3() (__builtin_cpu_supports("avx2") && __builtin_cpu_supports("fma"))
+/* The module is compiled once per instruction-set level (setup.py: _kernels for the compiler's baseline,
+ * _kernels_v3 with -march=x86-64-v3 (AVX2, FMA), _kernels_v4 with -march=x86-64-v4 (AVX-512)), each file
+ * whole, so that every loop is vectorised for its level; shearfit.engine.kernel imports the best one the CPU
+ * runs, or the one SHEARFIT_ISA names. No run-time dispatch inside the module (no ifunc: musl and clang build
+ * it too). KERNEL_MODULE names the module, KERNEL_LEVEL its level. */
+#ifndef KERNEL_MODULE
+#define KERNEL_MODULE _kernels
 #endif
+#ifndef KERNEL_LEVEL
+#define KERNEL_LEVEL "baseline"
 #endif
-#ifndef MULTIVERSION
-#define MULTIVERSION
-#define MV_LEVELS "none"
-#endif
+#define K_CAT_(a, b) a##b
+#define K_CAT(a, b) K_CAT_(a, b)
+#define K_STR_(a) #a
+#define K_STR(a) K_STR_(a)
 
 /* glibc's vector exp and log (libmvec, linked with libm): simple loops over arrays of them vectorise,
  * 8 at a time with AVX-512. Only where they exist (glibc on x86-64 with GCC); elsewhere the loops stay
@@ -74,13 +68,11 @@ double erfc(double) __attribute__((simd("notinbranch")));
 #endif
 
 /* out[i] = exp(x[i] - shift) and out[i] = log(x[i]), vectorised where the CPU allows */
-MULTIVERSION
 static void vexp_shift(const double *x, double shift, double *out, Py_ssize_t n)
 {
     for (Py_ssize_t i = 0; i < n; i++) out[i] = exp(x[i] - shift);
 }
 
-MULTIVERSION
 static void vlog(const double *x, double *out, Py_ssize_t n)
 {
     for (Py_ssize_t i = 0; i < n; i++) out[i] = log(x[i]);
@@ -208,7 +200,6 @@ static inline __attribute__((always_inline)) void block_body(
     }
 }
 
-MULTIVERSION
 static void block_sums(const double *a0, const double *a1, const double *a2, const double *M,
                        Py_ssize_t n_single, Py_ssize_t n_groups, const long long *gsz, const long long *grank,
                        const double *fac, vnb *scratch, const float *T, double nmax, double c, double inv_du, double ratio2, int same,
@@ -320,7 +311,6 @@ static PyObject *model_sums(PyObject *self, PyObject *args)
    interpolation at x between them (w4: four arrays of n_single), so that a function cubic in log K^T C K over
    four bins is summed exactly.
    Returns the lowest and highest bin; the DC mode (K = 0) gets the bin LLONG_MIN */
-MULTIVERSION
 static void bin_index(const float *B3, Py_ssize_t n_single, double a0, double a1, double a2, int nb,
                       double *restrict xs, long long *restrict idx, double *restrict w4, long long *lo_out,
                       long long *hi_out)
@@ -372,7 +362,6 @@ static inline __attribute__((always_inline)) void add_run(double *A, long long c
     for (int q = 0; q < 4; q++) row[q] += acc[q];
 }
 
-MULTIVERSION
 static void bin_scatter(const float *C8, Py_ssize_t n_single, const long long *idx, const double *w4,
                         long long lo, Py_ssize_t nbin, double *A)
 {
@@ -523,7 +512,6 @@ static inline double hsum8(v8u v)
 
 /* the sums of one model from its ellipticity's bins (W: NCH channels of npad), transforms rf, rg there, and
    the DC bin (dcw, at the transforms' values at 0, r0f and r0g): the output row o of NOUT, as block_body's */
-MULTIVERSION
 static void sums_from_bins(const double *restrict W, Py_ssize_t npad, const double *restrict rf,
                            const double *restrict rg, const double *dcw, double r0f, double r0g, double *o)
 {
@@ -778,7 +766,6 @@ static double log_ei(double x)
 
 /* the position integral (likelihood._position_integral) of n elements: val = log integral, -inf where the
    curvature is unusable; w: scratch of 7 x MB_L */
-MULTIVERSION
 static void position_vec(Py_ssize_t n, const double *restrict lpr, const double *restrict lp0,
                          const double *restrict g1, const double *restrict g2, const double *restrict H0,
                          const double *restrict H1, const double *restrict H2, const MargPar *P,
@@ -828,7 +815,6 @@ static void position_vec(Py_ssize_t n, const double *restrict lpr, const double 
    erfcx is used, one element at a time: -u^2 + log(erfcx(u) - erfcx(v) e^(u^2 - v^2)).
    w: scratch of 4 x MB_L */
 #define ERFC_SAFE 25.0
-MULTIVERSION
 static void log_erf_diff_vec(Py_ssize_t n, const double *restrict a, const double *restrict b,
                              double *restrict out, double *restrict w)
 {
@@ -859,7 +845,6 @@ static void log_erf_diff_vec(Py_ssize_t n, const double *restrict a, const doubl
    log P at (hf, hg) and at h = 0 (the pedestal, which shares theta), <B>, and the position's gradient and
    Hessian mixed by <B> (g: 5 x MB_L). x: each element's model sums (15, see marginal); w: scratch of
    14 x MB_L */
-MULTIVERSION
 static void disk_vec(Py_ssize_t n, const double *restrict S, const double *const *restrict x, const MargPar *P,
                      double *restrict lp, double *restrict lp0, double *restrict mb, double *restrict g,
                      double *restrict w)
@@ -901,7 +886,6 @@ static void disk_vec(Py_ssize_t n, const double *restrict S, const double *const
 }
 
 /* the bulge population (B = 1): log P at hg and at h = 0, and the position's gradient and Hessian */
-MULTIVERSION
 static void bulge_vec(Py_ssize_t n, const double *restrict S, const double *const *restrict x,
                       double *restrict lp, double *restrict lp0, double *restrict g)
 {
@@ -918,7 +902,6 @@ static void bulge_vec(Py_ssize_t n, const double *restrict S, const double *cons
 #define MAXF 64
 
 /* out[q] = sum_k v[k] M[k, q] (M: nk x nq), summed over k in order as the scalar loop did */
-MULTIVERSION
 static void spline_rows(const double *restrict v, const double *restrict M, Py_ssize_t nk, Py_ssize_t nq,
                         double *restrict out)
 {
@@ -1139,17 +1122,28 @@ static PyObject *size_marginal(PyObject *self, PyObject *args)
     Py_RETURN_NONE;
 }
 
-/* which of the multiversioned loops the CPU runs, as the ifunc resolver chooses them (the most capable
- * level first), and how the module was built */
+/* the instruction-set level this module was compiled for */
 static PyObject *kernel_isa(PyObject *self, PyObject *args)
 {
-#ifdef MV_HAS_V4
+    return PyUnicode_FromString(KERNEL_LEVEL);
+}
+
+/* the instruction-set levels the CPU supports, as x86-64 micro-architecture levels (GCC and clang on
+ * x86-64; elsewhere an empty tuple: only the baseline module exists) */
+static PyObject *cpu_levels(PyObject *self, PyObject *args)
+{
+#if defined(__x86_64__) && (defined(__GNUC__) || defined(__clang__))
     __builtin_cpu_init();
-    if (MV_HAS_V4()) return PyUnicode_FromString("x86-64-v4 (AVX-512)");
-    if (MV_HAS_V3()) return PyUnicode_FromString("x86-64-v3 (AVX2)");
-    return PyUnicode_FromString("x86-64 baseline");
+    int v3 = __builtin_cpu_supports("avx2") && __builtin_cpu_supports("fma") && __builtin_cpu_supports("bmi2")
+             && __builtin_cpu_supports("avx") && __builtin_cpu_supports("f16c") && __builtin_cpu_supports("movbe");
+    int v4 = v3 && __builtin_cpu_supports("avx512f") && __builtin_cpu_supports("avx512bw")
+             && __builtin_cpu_supports("avx512cd") && __builtin_cpu_supports("avx512dq")
+             && __builtin_cpu_supports("avx512vl");
+    if (v4) return Py_BuildValue("(sss)", "baseline", "x86-64-v3", "x86-64-v4");
+    if (v3) return Py_BuildValue("(ss)", "baseline", "x86-64-v3");
+    return Py_BuildValue("(s)", "baseline");
 #else
-    return PyUnicode_FromString("portable (not multiversioned)");
+    return Py_BuildValue("(s)", "baseline");
 #endif
 }
 
@@ -1160,12 +1154,13 @@ static PyObject *build_info(PyObject *self, PyObject *args)
 #else
     const char *compiler = "unknown";
 #endif
-    return Py_BuildValue("{s:s,s:s}", "compiler", compiler, "multiversion", MV_LEVELS);
+    return Py_BuildValue("{s:s,s:s}", "compiler", compiler, "level", KERNEL_LEVEL);
 }
 
 static PyMethodDef methods[] = {
-    {"kernel_isa", kernel_isa, METH_NOARGS, "kernel_isa() -> the instruction-set level of the loops in use"},
-    {"build_info", build_info, METH_NOARGS, "build_info() -> {'compiler': ..., 'multiversion': levels}"},
+    {"kernel_isa", kernel_isa, METH_NOARGS, "kernel_isa() -> the instruction-set level this module was built for"},
+    {"cpu_levels", cpu_levels, METH_NOARGS, "cpu_levels() -> the instruction-set levels this CPU runs"},
+    {"build_info", build_info, METH_NOARGS, "build_info() -> {'compiler': ..., 'level': ...}"},
     {"model_sums", model_sums, METH_VARARGS,
      "model_sums(coef, modes, table, c, inv_du, ratio2, n_single, group_sizes, group_ranks, group_factors, out)"},
     {"set_special", set_special, METH_VARARGS, "set_special(erfcx_capsule, expi_capsule)"},
@@ -1180,7 +1175,7 @@ static PyMethodDef methods[] = {
      "group_ranks, group_factors, out)"},
     {NULL, NULL, 0, NULL}};
 
-static struct PyModuleDef module = {PyModuleDef_HEAD_INIT, "_kernels",
+static struct PyModuleDef module = {PyModuleDef_HEAD_INIT, K_STR(KERNEL_MODULE),
                                     "Compiled inner loop of the shearfit likelihood.", -1, methods};
 
-PyMODINIT_FUNC PyInit__kernels(void) { return PyModule_Create(&module); }
+PyMODINIT_FUNC K_CAT(PyInit_, KERNEL_MODULE)(void) { return PyModule_Create(&module); }
