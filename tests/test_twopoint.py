@@ -12,7 +12,7 @@ import treecorr
 from shearfit.calib.calibrate import calibration_samples
 from shearfit.app.cli import main
 from shearfit.errors import ShearfitIOError, ShearfitValueError
-from shearfit.stats.twopoint import parse_selection, read_shear_catalog, xipm
+from shearfit.stats.twopoint import DEFAULT_ANGLE_SLOP, parse_selection, read_shear_catalog, xipm
 
 RA0, DEC0 = 35.0, -4.0
 
@@ -61,7 +61,8 @@ def test_calibrated_xip_is_the_input_fields():
     tab, g1, g2 = _field()
     out, cov = xipm(tab, min_sep=2.0, max_sep=40.0, nbins=6)
     assert cov is None
-    ref = treecorr.GGCorrelation(min_sep=2.0, max_sep=40.0, nbins=6, sep_units="arcmin")
+    ref = treecorr.GGCorrelation(min_sep=2.0, max_sep=40.0, nbins=6, sep_units="arcmin", bin_slop=0,
+                               angle_slop=DEFAULT_ANGLE_SLOP)   # xipm's default
     ref.process(treecorr.Catalog(ra=tab["ra"], dec=tab["dec"], ra_units="deg", dec_units="deg", g1=g1, g2=g2,
                                  w=tab["weight"]))
     np.testing.assert_allclose(out["xip"], ref.xip, rtol=0.03)
@@ -143,3 +144,126 @@ def test_cli(tmp_path, capsys):
     assert "no pairs" in text and "nan" not in text.lower()
     assert main(["xipm", str(p), "--out", str(tmp_path / "x2.fits"), "--min-sep", "5", "--max-sep", "2"]) != 0
     assert not (tmp_path / "x2.fits").exists()
+
+
+def _two_bin_catalogue(tmp_path, n=1200, seed=5):
+    """One shear field, two redshift bins (z below / above 0.75) with a different m each (-0.2 and -0.05)."""
+    tab, g1, g2 = _field(n=n, seed=seed)
+    hi = np.asarray(tab["z"]) >= 0.75
+    tab["m"] = np.where(hi, -0.05, -0.2)
+    tab["e1"], tab["e2"] = (1 + tab["m"]) * g1, (1 + tab["m"]) * g2
+    tab["zbin"] = hi.astype(int)
+    p = tmp_path / "shear.fits"
+    tab.write(p)
+    return p, tab, g1, g2
+
+
+XI_ARGS = ["--min-sep", "2", "--max-sep", "30", "--nbins", "4", "--quiet"]
+
+
+def test_tomographic_bins_every_pair_with_its_header(tmp_path):
+    p, tab, _, _ = _two_bin_catalogue(tmp_path, n=900)
+    tab["zbin"] = np.digitize(tab["z"], [0.5, 1.0])          # three bins: 0, 1, 2
+    tab.write(p, overwrite=True)
+    out = tmp_path / "xi.fits"
+    assert main(["xipm", str(p), "--out", str(out), "--bins", "zbin:0,1,2,3", *XI_ARGS]) == 0
+    counts = [int(np.sum(tab["zbin"] == k)) for k in range(3)]
+    with fits.open(out) as h:
+        names = [x.name for x in h[1:]]
+        assert names == ["XIPM_0_0", "XIPM_0_1", "XIPM_0_2", "XIPM_1_1", "XIPM_1_2", "XIPM_2_2"]
+        assert h[0].header["BINCOL"] == "zbin" and h[0].header["NTOMO"] == 3
+        for name in names:
+            i, j = (int(x) for x in name.split("_")[1:])
+            hd = h[name].header
+            assert hd["PAIR"] == f"{i}_{j}" and (hd["BIN1"], hd["BIN2"]) == (i, j) and hd["BINCOL"] == "zbin"
+            assert (hd["BIN1LO"], hd["BIN1HI"], hd["BIN2LO"], hd["BIN2HI"]) == (i, i + 1, j, j + 1)
+            assert (hd["NGAL1"], hd["NGAL2"]) == (counts[i], counts[j])
+            assert hd["CALIB"] == "catalogue m column"
+            assert {"theta", "xip", "xim", "xip_raw", "xim_raw", "one_plus_k", "sigma_xip", "sigma_xim",
+                    "npairs"} <= set(h[name].columns.names)
+            assert len(h[name].data) == 4
+
+
+def test_auto_pair_is_the_selected_bins_run(tmp_path):
+    """XIPM_1_1 of --bins is, number for number, a --select run on that bin; --select applies before --bins."""
+    p, tab, _, _ = _two_bin_catalogue(tmp_path)
+    a, b = tmp_path / "bins.fits", tmp_path / "sel.fits"
+    assert main(["xipm", str(p), "--out", str(a), "--bins", "z:0,0.75,1.5", "--select", "snr:20:", *XI_ARGS]) == 0
+    assert main(["xipm", str(p), "--out", str(b), "--select", "z:0.75:1.5", "--select", "snr:20:", *XI_ARGS]) == 0
+    with fits.open(a) as ha, fits.open(b) as hb:
+        assert [x.name for x in hb] == ["PRIMARY", "XIPM"]      # without --bins: as before
+        for col in ("theta", "xip", "xim", "xip_raw", "xim_raw", "one_plus_k", "sigma_xip", "sigma_xim", "npairs"):
+            # the same up to TreeCorr's threaded summation order
+            np.testing.assert_allclose(ha["XIPM_1_1"].data[col], hb["XIPM"].data[col], rtol=1e-12, atol=1e-18)
+        assert ha["XIPM_1_1"].header["NGAL1"] == hb["XIPM"].header["NGAL"]
+        assert hb["XIPM"].header["NGAL"] == int(np.sum((tab["z"] >= 0.75) & (tab["snr"] >= 20)))
+
+
+def test_cross_pair_of_one_shear_field(tmp_path):
+    """Two bins of the same (noise-free) shear field: the cross pair's 1 + K is (1 + m_0)(1 + m_1), its calibrated
+    xi+- is TreeCorr's cross-correlation of the two bins' true shears, and all three pairs measure the field's xi+."""
+    p, tab, g1, g2 = _two_bin_catalogue(tmp_path, n=3000)
+    out = tmp_path / "xi.fits"
+    assert main(["xipm", str(p), "--out", str(out), "--bins", "zbin:0,1,2", *XI_ARGS]) == 0
+    cfg = dict(min_sep=2.0, max_sep=30.0, nbins=4, sep_units="arcmin", bin_slop=0, angle_slop=DEFAULT_ANGLE_SLOP)
+
+    def cat(s):
+        return treecorr.Catalog(ra=tab["ra"][s], dec=tab["dec"][s], ra_units="deg", dec_units="deg", g1=g1[s],
+                                g2=g2[s], w=tab["weight"][s])
+
+    ref, cross = treecorr.GGCorrelation(**cfg), treecorr.GGCorrelation(**cfg)
+    ref.process(cat(np.ones(len(tab), bool)))
+    cross.process(cat(tab["zbin"] == 0), cat(tab["zbin"] == 1))
+    with fits.open(out) as h:
+        x = {k: Table(h[f"XIPM_{k}"].data) for k in ("0_0", "0_1", "1_1")}
+    np.testing.assert_allclose(x["0_0"]["one_plus_k"], 0.8 ** 2, rtol=1e-7)
+    np.testing.assert_allclose(x["1_1"]["one_plus_k"], 0.95 ** 2, rtol=1e-7)
+    np.testing.assert_allclose(x["0_1"]["one_plus_k"], 0.8 * 0.95, rtol=1e-7)
+    np.testing.assert_allclose(x["0_1"]["xip"], cross.xip, rtol=1e-6)
+    np.testing.assert_allclose(x["0_1"]["xim"], cross.xim, rtol=1e-6)
+    np.testing.assert_allclose(x["0_1"]["npairs"], cross.npairs)
+    for k in ("0_0", "0_1", "1_1"):
+        np.testing.assert_allclose(x[k]["xip"], ref.xip, atol=0.1 * np.max(np.abs(ref.xip)))
+
+
+def test_jackknife_covariance_and_plot(tmp_path):
+    p, tab, _, _ = _two_bin_catalogue(tmp_path, n=1500)
+    tab["e1"] += np.random.default_rng(3).normal(0, 0.26, len(tab))
+    tab["e2"] += np.random.default_rng(4).normal(0, 0.26, len(tab))
+    tab.write(p, overwrite=True)
+    out, png = tmp_path / "xi.fits", tmp_path / "xi.png"
+    assert main(["xipm", str(p), "--out", str(out), "--bins", "zbin:0,1,2", "--patches", "6", "--plot", str(png),
+                 *XI_ARGS]) == 0
+    with fits.open(out) as h:
+        cov = h["COV"].data
+        assert cov.shape == (3 * 2 * 4, 3 * 2 * 4)
+        hc = h["COV"].header
+        assert hc["NPATCH"] == 6 and hc["NTHETA"] == 4 and hc["NPAIRBIN"] == 3
+        assert [hc[f"PAIR{k}"] for k in range(3)] == ["0_0", "0_1", "1_1"]
+        for k, name in enumerate(("XIPM_0_0", "XIPM_0_1", "XIPM_1_1")):
+            d = h[name].data
+            blk = np.diag(cov)[8 * k:8 * (k + 1)]
+            np.testing.assert_allclose(blk[:4], d["sigma_xip_jk"] ** 2, rtol=1e-12)
+            np.testing.assert_allclose(blk[4:], d["sigma_xim_jk"] ** 2, rtol=1e-12)
+            # the jackknife errors are of the shape noise's size (a few patches: a loose check)
+            assert np.all(d["sigma_xip_jk"] > 0.2 * d["sigma_xip"]) and np.all(d["sigma_xip_jk"] < 5 * d["sigma_xip"])
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    # seeded patches: the same covariance again; one sample: COV of (xip, xim) and the columns in XIPM
+    out2 = tmp_path / "one.fits"
+    assert main(["xipm", str(p), "--out", str(out2), "--patches", "6", *XI_ARGS]) == 0
+    with fits.open(out2) as h:
+        assert h["COV"].data.shape == (8, 8) and "sigma_xim_jk" in h["XIPM"].columns.names
+        np.testing.assert_allclose(np.diag(h["COV"].data)[:4], h["XIPM"].data["sigma_xip_jk"] ** 2, rtol=1e-12)
+
+
+@pytest.mark.parametrize("spec, needle", [("zphot:0,1", "'zphot'"), ("z:0.5,0.2", "'z:0.5,0.2'"),
+                                          ("z:0,0.5,0.5", "'z:0,0.5,0.5'"), ("z", "'z'"), ("z:0,a", "'z:0,a'")])
+def test_bad_bins_spec_is_a_one_line_error(tmp_path, capsys, spec, needle):
+    tab, _, _ = _field(n=100)
+    p = tmp_path / "shear.fits"
+    tab.write(p)
+    out = tmp_path / "xi.fits"
+    assert main(["xipm", str(p), "--out", str(out), "--bins", spec, *XI_ARGS]) == 1
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("shearfit: error:") and needle in err and "\n" not in err
+    assert not out.exists() and list(tmp_path.iterdir()) == [p]

@@ -34,6 +34,7 @@ FITCLASS_BLENDED = -3
 FITCLASS_TOO_LARGE = -4
 FITCLASS_CENTROID = -5
 FITCLASS_OFF_EXPOSURES = -6
+FITCLASS_BAD_INPUT = -7
 
 FITCLASS_NAMES = {
     FITCLASS_GALAXY: "galaxy",
@@ -44,4 +45,5 @@ FITCLASS_NAMES = {
     FITCLASS_TOO_LARGE: "too large for the stamp",
     FITCLASS_CENTROID: "centroid too far from the input position",
     FITCLASS_OFF_EXPOSURES: "off every exposure",
+    FITCLASS_BAD_INPUT: "bad catalogue row (ra, dec or mag not finite, or dec outside [-90, 90])",
 }

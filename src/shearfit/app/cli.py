@@ -71,34 +71,97 @@ def _cmd_systematics(args):
 
 
 def _cmd_xipm(args):
-    from ..stats.twopoint import measured, metacal_response_of, parse_selection, read_shear_catalog, write_xipm, xipm
+    from ..stats.twopoint import (bin_pairs, measured, metacal_response_of, parse_bins, parse_selection, plot_xipm,
+                                  read_shear_catalog, split_bins, write_xipm_file, xipm_bins)
 
     if not (0 < args.min_sep < args.max_sep) or args.nbins < 1:
         raise ShearfitError("--min-sep must be positive and below --max-sep, --nbins at least 1")
+    if args.bin_slop < 0 or args.angle_slop < 0:
+        raise ShearfitError("--bin-slop and --angle-slop must be at least 0")
+    if args.patches and args.patches < 2:
+        raise ShearfitError(f"--patches {args.patches}: a jackknife needs at least 2 patches")
+    if args.plot is not None and not args.plot.lower().endswith(".png"):
+        raise ShearfitError(f"--plot {args.plot}: expected a .png file name")
     sel = [parse_selection(t) for t in args.select]
+    spec = parse_bins(args.bins) if args.bins is not None else None
     full = read_shear_catalog(args.catalog, sel, measured_only=False)
-    tab = measured(full)
-    R = metacal_response_of(full, args.catalog) if args.calibration is None else None
-    table, cov = xipm(tab, args.min_sep, args.max_sep, args.nbins, calibration=args.calibration,
-                      n_sys=args.n_sys, seed=args.seed, bin_slop=args.bin_slop, response=R)
-    calib = args.calibration or ("metacal response" if R is not None else "catalogue m column")
-    cards = [("NGAL", len(tab), "galaxies used"), ("CALIB", calib, "calibration used")]
-    if R is not None:
-        cards += [(f"MCR{i + 1}{j + 1}", float(R[i][j]), "metacal ensemble response (shear + selection)")
-                  for i in range(2) for j in range(2)]
-    cards += [(f"SELECT{i}", t, "selection") for i, t in enumerate(args.select)]
-    write_xipm(table, cov, args.out, cards)
+    if spec is not None:
+        col, edges = spec
+        fulls = split_bins(full, col, edges, args.catalog)
+        names = [f"bin {k} ({col} {lo:g}-{hi:g})" for k, (lo, hi) in enumerate(zip(edges[:-1], edges[1:]))]
+    else:
+        fulls, names = [full], ["the selected catalogue"]
+    tabs = [measured(f) for f in fulls]
+    Rs = [metacal_response_of(f, args.catalog) if args.calibration is None else None for f in fulls]
+    results, cov, jk = xipm_bins(tabs, args.min_sep, args.max_sep, args.nbins, calibration=args.calibration,
+                                 n_sys=args.n_sys, seed=args.seed, bin_slop=args.bin_slop, responses=Rs,
+                                 npatch=args.patches or 0, names=names, angle_slop=args.angle_slop)
+    metacal = any(R is not None for R in Rs)
+    calib = args.calibration or ("metacal response" if metacal else "catalogue m column")
+    common = [("CALIB", calib, "calibration used"),
+              ("BINSLOP", float(args.bin_slop), "TreeCorr bin_slop (0: exact pair binning)"),
+              ("ANGSLOP", float(args.angle_slop), "TreeCorr angle_slop (rad)")]
+    common += [(f"SELECT{i}", t, "selection") for i, t in enumerate(args.select)]
+    if args.patches:
+        common += [("NPATCH", int(args.patches), "jackknife patches (k-means, seeded by SEED)"),
+                   ("SEED", int(args.seed), "random seed (patches, calibration draws)")]
+
+    def mcr(prefix, R, what):
+        return [] if R is None else [(f"{prefix}{a + 1}{b + 1}", float(R[a][b]), f"metacal response{what}")
+                                     for a in range(2) for b in range(2)]
+
+    if spec is None:
+        hdu_names = ["XIPM"]
+        cards = [[("NGAL", len(tabs[0]), "galaxies used")] + common[:1] + mcr("MCR", Rs[0], " (shear + selection)")
+                 + common[1:]]
+        labels = {(0, 0): "all galaxies"}
+        primary = []
+    else:
+        col, edges = spec
+        hdu_names, cards, labels = [], [], {}
+        for i, j in bin_pairs(len(tabs)):
+            hdu_names.append(f"XIPM_{i}_{j}")
+            c = [("PAIR", f"{i}_{j}", "pair of bins (i, j)"), ("BIN1", i, "first bin"), ("BIN2", j, "second bin"),
+                 ("BINCOL", col, "catalogue column of the bins (lo <= value < hi)")]
+            for key, k in (("1", i), ("2", j)):
+                c += [(f"BIN{key}LO", float(edges[k]), f"bin {k} lower edge"),
+                      (f"BIN{key}HI", float(edges[k + 1]), f"bin {k} upper edge"),
+                      (f"NGAL{key}", len(tabs[k]), f"galaxies in bin {k}")]
+            c += common[:1] + mcr("MCRA", Rs[i], f" of bin {i}") + mcr("MCRB", Rs[j], f" of bin {j}") + common[1:]
+            cards.append(c)
+            labels[(i, j)] = f"{col} [{edges[i]:g},{edges[i + 1]:g}) x [{edges[j]:g},{edges[j + 1]:g})"
+        primary = [("BINCOL", col, "catalogue column of the tomographic bins"), ("NTOMO", len(tabs), "bins"),
+                   ("BINS", args.bins, "--bins")]
+        primary += [(f"EDGE{k}", float(e), "bin edge") for k, e in enumerate(edges)]
+        primary += [(f"NGAL{k}", len(t), f"galaxies in bin {k}") for k, t in enumerate(tabs)]
+    cov_cards = [("NPATCH", int(args.patches or 0), "jackknife patches"),
+                 ("CPWEIGHT", "match", "TreeCorr cross_patch_weight")]
+    write_xipm_file(args.out, [t for _, t in results], hdu_names, cards, syscov=cov, jkcov=jk,
+                    pairs=[p for p, _ in results], nbins=args.nbins, cov_cards=cov_cards, primary_cards=primary)
+    if args.plot is not None:
+        plot_xipm(results, args.plot, labels=labels, title=args.catalog)
     if not args.quiet:
-        print(f"xi+/xi- of {len(tab)} galaxies in {args.nbins} bins, {args.min_sep}-{args.max_sep} arcmin: "
-              f"{args.out}" + (" (with the systematic covariance)" if cov is not None else ""))
-        for row in table:
-            if row["npairs"] == 0:
-                # a bin wider than the field: kept in the file (NaN), named here rather than printed as NaN
-                print(f"  theta {row['theta']:8.3f}'  no pairs (the catalogue spans less than this)")
-                continue
-            print(f"  theta {row['theta']:8.3f}'  xi+ {row['xip']:+.3e} +/- {row['sigma_xip']:.1e}  "
-                  f"xi- {row['xim']:+.3e} +/- {row['sigma_xim']:.1e}  1+K {row['one_plus_k']:.4f}  "
-                  f"pairs {row['npairs']:.0f}")
+        extra = [" (with the systematic covariance)" if cov is not None else "",
+                 f" (jackknife covariance over {args.patches} patches: HDU COV)" if jk is not None else ""]
+        ngal = sum(len(t) for t in tabs)
+        what = f" in {len(tabs)} bins of {spec[0]}, {len(results)} pairs" if spec is not None else ""
+        print(f"xi+/xi- of {ngal} galaxies{what}, {args.nbins} angular bins, {args.min_sep}-{args.max_sep} arcmin: "
+              f"{args.out}" + "".join(extra) + (f"; plot {args.plot}" if args.plot else ""))
+        jkcol = jk is not None
+        for (i, j), table in results:
+            if spec is not None:
+                print(f" {hdu_names[bin_pairs(len(tabs)).index((i, j))]}: {labels[(i, j)]}, "
+                      f"{len(tabs[i])} x {len(tabs[j])} galaxies")
+            for row in table:
+                if row["npairs"] == 0:
+                    # a bin wider than the field: kept in the file (NaN), named here rather than printed as NaN
+                    print(f"  theta {row['theta']:8.3f}'  no pairs (the catalogue spans less than this)")
+                    continue
+                jp = f" (jk {row['sigma_xip_jk']:.1e})" if jkcol else ""
+                jm = f" (jk {row['sigma_xim_jk']:.1e})" if jkcol else ""
+                print(f"  theta {row['theta']:8.3f}'  xi+ {row['xip']:+.3e} +/- {row['sigma_xip']:.1e}{jp}  "
+                      f"xi- {row['xim']:+.3e} +/- {row['sigma_xim']:.1e}{jm}  1+K {row['one_plus_k']:.4f}  "
+                      f"pairs {row['npairs']:.0f}")
     return 0
 
 
@@ -295,21 +358,38 @@ def build_parser():
     p.set_defaults(func=_cmd_systematics)
 
     p = sub.add_parser("xipm", help="calibrated shear two-point functions xi+ and xi- (TreeCorr)",
-                       description="xi+ and xi- of the weighted ellipticities (TreeCorr), the calibration term "
-                                   "1+K as the weighted pair average of (1+m_i)(1+m_j), xi/(1+K); with a "
-                                   "calibration file, the systematic covariance from its (alpha, beta) likelihood.")
+                       description="xi+ and xi- of the weighted ellipticities (TreeCorr, exact pair binning by "
+                                   "default), the calibration term 1+K as the weighted pair average of "
+                                   "(1+m_i)(1+m_j), xi/(1+K); with a calibration file, the systematic covariance "
+                                   "from its (alpha, beta) likelihood; with --bins, every auto and cross pair of "
+                                   "tomographic bins in one file; with --patches, the jackknife covariance.")
     p.add_argument("catalog", help="shear catalogue (shearfit measure)")
-    p.add_argument("--out", required=True, help="output FITS table")
+    p.add_argument("--out", required=True, help="output FITS file")
     p.add_argument("--min-sep", type=float, default=1.0, help="arcmin")
     p.add_argument("--max-sep", type=float, default=100.0, help="arcmin")
-    p.add_argument("--nbins", type=int, default=10)
+    p.add_argument("--nbins", type=int, default=10, help="angular (logarithmic) bins")
     p.add_argument("--calibration", default=None,
                    help="calibration YAML (shearfit calibrate): m from its alpha, beta and the systematic covariance")
     p.add_argument("--n-sys", type=int, default=100, help="(alpha, beta) draws for the systematic covariance")
     p.add_argument("--select", action="append", default=[], metavar="COLUMN:MIN:MAX",
-                   help="keep objects with MIN <= COLUMN < MAX (e.g. a photometric-redshift bin); repeatable")
-    p.add_argument("--bin-slop", type=float, default=None, help="TreeCorr's bin_slop (default: TreeCorr's)")
-    p.add_argument("--seed", type=int, default=0)
+                   help="keep objects with MIN <= COLUMN < MAX (e.g. a photometric-redshift bin); repeatable; "
+                        "applied before --bins")
+    p.add_argument("--bins", default=None, metavar="COLUMN:EDGES",
+                   help="tomographic bins EDGE_k <= COLUMN < EDGE_k+1 (e.g. z_b:0.2,0.5,0.9,1.3 or zbin:0,1,2): "
+                        "xi+- of every pair i <= j, one table HDU XIPM_i_j each")
+    p.add_argument("--patches", type=int, default=0, metavar="N",
+                   help="jackknife covariance over N TreeCorr patches (k-means on positions, seeded by --seed): "
+                        "HDU COV and columns sigma_xip_jk, sigma_xim_jk")
+    p.add_argument("--plot", default=None, metavar="FILE.png", help="plot theta*xi+- of every pair of bins")
+    # 0.0 = shearfit.stats.twopoint.DEFAULT_BIN_SLOP (not imported here: the parser stays free of TreeCorr)
+    p.add_argument("--bin-slop", type=float, default=0.0,
+                   help="TreeCorr's bin_slop (default 0: exact pair binning; benchmarks/xipm_binning.py)")
+    # 0.02 = shearfit.stats.twopoint.DEFAULT_ANGLE_SLOP
+    p.add_argument("--angle-slop", type=float, default=0.02,
+                   help="TreeCorr's angle_slop in radians (default 0.02: xi- within 0.03 sigma of brute force; "
+                        "TreeCorr's own 0.1 moves it by up to 0.2 sigma; 0 is brute force, N^2; "
+                        "benchmarks/xipm_binning.py)")
+    p.add_argument("--seed", type=int, default=0, help="random seed: calibration draws and patches")
     _add_common(p)
     p.set_defaults(func=_cmd_xipm)
 

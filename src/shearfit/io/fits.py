@@ -7,7 +7,11 @@ it is.
 
 Image and weight arrays are memory-mapped where FITS allows it (unscaled
 data): a field of tens of exposures of tens of CCDs would not fit in memory,
-and only the postage stamps are ever needed from it.
+and only the postage stamps are ever needed from it. Tile-compressed HDUs
+(``fpack``, ``.fits.fz``) and scaled integers (``BSCALE``/``BZERO``) cannot
+be mapped as they lie on disk: their pixels are read on demand instead, only
+the part a stamp or a block of rows asks for, decompressed and scaled to
+float (:class:`HDUPixels`), which bounds memory the same way.
 """
 
 from __future__ import annotations
@@ -34,9 +38,11 @@ from ..errors import (FITCLASS_FIT_FAILED, ShearfitError, ShearfitIOError, Shear
 __all__ = [
     "COMMON_ZEROPOINT",
     "ExposureCCD",
+    "HDUPixels",
     "OutputColumn",
     "metacal_columns",
     "read_catalog",
+    "bad_rows",
     "read_exposure",
     "detached",
     "attach_pixels",
@@ -84,13 +90,19 @@ def _hdu_label(path: str, index: int, hdu) -> str:
 
 # --- catalogues -----------------------------------------------------------------------
 
-def read_catalog(path) -> Table:
+def read_catalog(path, strict: bool = True) -> Table:
     """Read an object (or star) catalogue.
 
     Parameters
     ----------
     path : str or os.PathLike
         A FITS file; the first table HDU is read.
+    strict : bool
+        With False, rows whose ``ra`` or ``dec`` is not finite (NaN, inf or
+        masked) or whose ``dec`` lies outside [-90, 90] are kept (as NaN or
+        as they are) instead of failing the read: the field pipeline gives
+        such rows, and rows without a finite ``mag``, fitclass -7
+        (:func:`bad_rows` finds them).
 
     Returns
     -------
@@ -108,7 +120,8 @@ def read_catalog(path) -> Table:
         A required column is missing.
     ShearfitValueError
         No table HDU, an empty table, non-finite or out-of-range ``ra`` or
-        ``dec``, duplicate ``id`` values, or two columns differing only in case.
+        ``dec`` (``strict`` only), duplicate ``id`` values (the message lists
+        them), or two columns differing only in case.
     """
     path = os.fspath(path)
     # Catalogues are small next to images; reading them into memory lets the file be closed at once.
@@ -154,11 +167,12 @@ def read_catalog(path) -> Table:
         table[name] = Column(values, name=name, unit=col.unit, description=col.description)
     for name in ("ra", "dec"):
         bad = np.flatnonzero(~np.isfinite(table[name]))
-        if bad.size:
+        if bad.size and strict:
             raise ShearfitValueError(f"{where}: column {name!r} is not finite (NaN, inf or masked) in "
                                      f"{bad.size} rows, the first row {bad[0]}")
-    bad = np.flatnonzero(np.abs(table["dec"]) > 90)
-    if bad.size:
+    with np.errstate(invalid="ignore"):
+        bad = np.flatnonzero(np.abs(table["dec"]) > 90)
+    if bad.size and strict:
         raise ShearfitValueError(f"{where}: column 'dec' lies outside [-90, 90] degrees in {bad.size} rows, "
                                  f"the first row {bad[0]} (dec={table['dec'][bad[0]]})")
 
@@ -169,14 +183,43 @@ def read_catalog(path) -> Table:
     ids = np.asarray(ids)
     _, first, counts = np.unique(ids, return_index=True, return_counts=True)
     if np.any(counts > 1):
-        # Name the duplicate that occurs first in the file: that is where a user will look.
-        dup_first = np.sort(first[counts > 1])[0]
+        # Name the duplicate that occurs first in the file: that is where a user will look; then the others.
+        firsts = np.sort(first[counts > 1])
+        dup_first = firsts[0]
         again = np.flatnonzero(ids == ids[dup_first])[1]
-        dup = ids[dup_first].item()
-        dup = dup.decode(errors="replace") if isinstance(dup, bytes) else dup
-        raise ShearfitValueError(f"{where}: duplicate id {dup!r} in column 'id' "
-                                 f"(rows {dup_first} and {again}); ids must be unique")
+
+        def _value(i):
+            v = ids[i].item()
+            return v.decode(errors="replace") if isinstance(v, bytes) else v
+
+        more = ""
+        if firsts.size > 1:
+            shown = ", ".join(repr(_value(i)) for i in firsts[:10]) + (", ..." if firsts.size > 10 else "")
+            more = f"; {firsts.size} ids occur more than once: {shown}"
+        raise ShearfitValueError(f"{where}: duplicate id {_value(dup_first)!r} in column 'id' "
+                                 f"(rows {dup_first} and {again}){more}; ids must be unique")
     return table
+
+
+def bad_rows(catalog: Table) -> dict:
+    """Rows of a catalogue read with ``strict=False`` that cannot be measured, by column.
+
+    Returns
+    -------
+    dict
+        ``{"ra": rows, "dec": rows, "mag": rows}``: the rows (indices, in
+        file order) whose value is NaN, infinite or masked, for ``dec`` also
+        outside [-90, 90] degrees. A row may appear under several columns.
+    """
+    out = {}
+    for name in ("ra", "dec", "mag"):
+        values = np.asarray(catalog[name], dtype=np.float64)
+        bad = ~np.isfinite(values)
+        if name == "dec":
+            with np.errstate(invalid="ignore"):
+                bad |= np.abs(values) > 90
+        out[name] = np.flatnonzero(bad)
+    return out
 
 
 # --- exposures ------------------------------------------------------------------------
@@ -187,14 +230,16 @@ class ExposureCCD:
 
     Attributes
     ----------
-    image : 2D array or None
-        Background-subtracted counts, read-only (memory-mapped where the file
-        allows). May hold NaN/inf where the file does: :func:`cut_stamp`
-        gives them weight 0. None in a :func:`detached` copy.
-    weight : 2D array or None
+    image : 2D array, HDUPixels or None
+        Background-subtracted counts, read-only: memory-mapped where the file
+        allows, else (a tile-compressed or scaled-integer HDU) an
+        :class:`HDUPixels` that reads what is sliced from it. May hold
+        NaN/inf where the file does: :func:`cut_stamp` gives them weight 0.
+        None in a :func:`detached` copy.
+    weight : 2D array, HDUPixels or None
         Inverse variance per pixel, counts^-2, 0 for unusable pixels
-        (memory-mapped). None when no weight file was given: then
-        :attr:`noise_ivar` holds everywhere.
+        (memory-mapped, or as ``image``). None when no weight file was given:
+        then :attr:`noise_ivar` holds everywhere.
     wcs : astropy.wcs.WCS
         The celestial WCS of the CCD.
     magzp, gain, saturate : float
@@ -219,6 +264,16 @@ class ExposureCCD:
         (ny, nx), which :attr:`shape` gives also when the pixels are detached.
     weight_hdu : int or None
         Index of the CCD's HDU in the weight file.
+    usable : bool
+        False where the CCD has no usable pixel (every weight 0, every pixel
+        NaN, or no weight file and no scatter to estimate the noise from):
+        the field pipeline leaves it out.
+    ccd_index : int
+        Position of the CCD among the image file's CCD HDUs (0-based): the
+        given PSF's HDU that belongs to it. Equals the position in the list
+        :func:`read_exposure` returns unless CCDs without a WCS were left out.
+    n_file_ccds : int
+        CCD HDUs in the image file, left-out ones included.
     """
 
     image: np.ndarray = field(repr=False)
@@ -236,6 +291,9 @@ class ExposureCCD:
     header: Optional[fits.Header] = field(default=None, repr=False)
     dims: tuple = ()
     weight_hdu: Optional[int] = None
+    usable: bool = True
+    ccd_index: int = 0
+    n_file_ccds: int = 1
 
     @property
     def shape(self) -> tuple:
@@ -254,6 +312,147 @@ class ExposureCCD:
     @property
     def label(self) -> str:
         return f"{self.path}, HDU {self.hdu}" + (f" ({self.extname})" if self.extname else "")
+
+
+def _memmappable(hdu) -> bool:
+    """Whether astropy can memory-map the HDU's pixels as they lie on disk (no compression, no scaling)."""
+    if isinstance(hdu, fits.CompImageHDU):
+        return False
+    h = hdu.header
+    if h.get("BSCALE", 1) != 1 or h.get("BZERO", 0) != 0:
+        return False
+    return not (h.get("BITPIX", -32) > 0 and "BLANK" in h)
+
+
+class HDUPixels:
+    """The pixels of a tile-compressed or scaled-integer image HDU, read where they are sliced.
+
+    Such HDUs cannot be memory-mapped: the bytes on disk are not the values.
+    Reading the whole CCD into memory for every chunk of objects would undo
+    what the memory maps bound, so this reads, through astropy's
+    ``section``, only the rows (scaled integers) or tiles (compressed) that
+    hold the slice asked for, decompressed and scaled to float (float32 for
+    ``BITPIX`` 8, 16 and -32, else float64), and keeps nothing but an open
+    file handle. Slicing returns a read-only numpy array, as a memory map's
+    read-only view would; ``np.asarray`` reads the whole image.
+
+    Parameters
+    ----------
+    path : str
+        The FITS file.
+    index : int
+        The HDU's index in it.
+    shape : tuple
+        (ny, nx).
+    bitpix : int
+        The image's ``BITPIX`` (for a compressed HDU, that of the image it holds).
+    """
+
+    ndim = 2
+
+    def __init__(self, path: str, index: int, shape, bitpix: int):
+        self.path = path
+        self.index = int(index)
+        self.shape = tuple(int(n) for n in shape)
+        self.dtype = np.dtype(np.float32 if int(bitpix) in (8, 16, -32) else np.float64)
+        self._hdul = None
+
+    @property
+    def size(self) -> int:
+        return int(np.prod(self.shape))
+
+    def __len__(self) -> int:
+        return self.shape[0]
+
+    def __repr__(self):
+        return f"HDUPixels({self.path!r}, HDU {self.index}, shape={self.shape}, dtype={self.dtype})"
+
+    def _section(self):
+        if self._hdul is None:
+            # no memory map: astropy cannot map these HDUs, and a section read through a file handle keeps nothing
+            self._hdul = fits.open(self.path, memmap=False)
+        return self._hdul[self.index].section
+
+    def close(self) -> None:
+        """Close the file handle (it opens again at the next read)."""
+        if self._hdul is not None:
+            self._hdul.close()
+            self._hdul = None
+
+    def __del__(self):
+        try:
+            self.close()
+        except Exception:  # noqa: BLE001 - interpreter shutdown
+            pass
+
+    def __getstate__(self):
+        state = dict(self.__dict__)
+        state["_hdul"] = None
+        return state
+
+    def __getitem__(self, key):
+        if not isinstance(key, tuple):
+            key = (key,)
+        if any(k is Ellipsis for k in key):
+            i = next(j for j, k in enumerate(key) if k is Ellipsis)
+            key = key[:i] + (slice(None),) * (2 - len(key) + 1) + key[i + 1:]
+        if len(key) > 2:
+            raise IndexError(f"too many indices for a 2D image: {len(key)}")
+        key = key + (slice(None),) * (2 - len(key))
+        box, sub, scalar, simple = [], [], [], True
+        for k, n in zip(key, self.shape):
+            if isinstance(k, slice):
+                start, stop, step = k.indices(n)
+                if step == 1:
+                    stop = max(stop, start)
+                    box.append(slice(start, stop))
+                    sub.append(np.arange(stop - start))
+                    scalar.append(False)
+                    continue
+                idx = np.arange(start, stop, step)
+                scalar.append(False)
+            elif isinstance(k, (int, np.integer)) and not isinstance(k, bool):
+                i = int(k) + (n if int(k) < 0 else 0)
+                if not 0 <= i < n:
+                    raise IndexError(f"index {int(k)} is out of bounds for axis of size {n}")
+                idx = np.array([i])
+                scalar.append(True)
+            else:
+                raise TypeError(f"HDUPixels takes integers and slices, not {type(k).__name__}")
+            simple = False
+            lo = int(idx.min()) if idx.size else 0
+            hi = int(idx.max()) + 1 if idx.size else 0
+            box.append(slice(lo, hi))
+            sub.append(idx - lo)
+        if any(b.stop <= b.start for b in box):
+            out = np.zeros(tuple(len(s) for s, sc in zip(sub, scalar) if not sc), dtype=self.dtype)
+        else:
+            try:
+                data = np.asarray(self._section()[tuple(box)], dtype=self.dtype)
+            except (OSError, ValueError, TypeError, IndexError) as exc:
+                raise ShearfitIOError(f"{self.path}, HDU {self.index}: cannot read the pixels "
+                                      f"({_first_line(exc)})") from None
+            out = data if simple else data[np.ix_(*sub)]
+            if any(scalar):
+                out = out[tuple(0 if sc else slice(None) for sc in scalar)]
+        if isinstance(out, np.ndarray) and out.ndim:
+            out.flags.writeable = False
+        return out
+
+    def __array__(self, dtype=None, copy=None):
+        out = np.array(self[:, :])
+        return out if dtype is None else out.astype(dtype, copy=False)
+
+
+def _pixels(hdul, path: str, index: int, label: str):
+    """The pixels of HDU ``index``: memory-mapped where the HDU allows, else an :class:`HDUPixels`."""
+    hdu = hdul[index]
+    if not _memmappable(hdu):
+        return HDUPixels(path, index, hdu.shape, hdu.header.get("BITPIX", -32))
+    try:
+        return _readonly(hdu.data)
+    except Exception as exc:
+        raise ShearfitIOError(f"{label}: cannot read the pixels ({_first_line(exc)})") from None
 
 
 def _ccd_indices(hdul) -> list:
@@ -352,20 +551,31 @@ def estimate_noise(image: np.ndarray, max_pixels: int = 1_000_000) -> float:
     return float(mad_std(clipped))
 
 
-def read_exposure(image_path, weight_path=None) -> list:
+def read_exposure(image_path, weight_path=None, skip_unusable: bool = False) -> list:
     """Read one exposure: every CCD's pixels, weights, WCS and keywords.
 
     Parameters
     ----------
     image_path : str or os.PathLike
         FITS file; each CCD is one image HDU (the primary if it has data,
-        else each image extension). Each CCD header needs a celestial WCS and
+        else each image extension: for a tile-compressed ``.fits.fz`` file,
+        the compressed extensions). Each CCD header needs a celestial WCS and
         the keywords ``MAGZP``, ``GAIN`` and ``SATURATE`` (looked up in the
-        primary header too).
+        primary header too). Pixels may be floats or scaled integers
+        (``BSCALE``/``BZERO``), compressed or not.
     weight_path : str or os.PathLike, optional
         FITS file of inverse variances with the same HDU layout and shapes.
         Without it a constant inverse variance per CCD is estimated from the
         image (:func:`estimate_noise`) and logged.
+    skip_unusable : bool
+        What the field pipeline asks for: a CCD without a usable WCS (none,
+        not celestial, unreadable, or failing at the CCD centre) is left out
+        of the list with a warning naming its file and HDU, instead of
+        failing the read; a CCD without a usable pixel (every weight 0, every
+        pixel NaN, or no weight file and no scatter) is returned with
+        ``usable=False`` and a warning (without ``skip_unusable`` such a CCD
+        is returned marked too, with no warning, and one without scatter
+        fails as before).
 
     Returns
     -------
@@ -379,9 +589,10 @@ def read_exposure(image_path, weight_path=None) -> list:
     ShearfitKeyError
         A required header keyword is missing.
     ShearfitValueError
-        No image HDU, a non-2D image, an unreadable or non-celestial WCS, a
-        weight file whose layout or shapes differ, negative, NaN or infinite
-        weights, or an image whose noise cannot be estimated.
+        No image HDU, a non-2D image, an unreadable or non-celestial WCS
+        (unless ``skip_unusable``), a weight file whose layout or shapes
+        differ, negative, NaN or infinite weights, or an image whose noise
+        cannot be estimated (unless ``skip_unusable``).
     """
     image_path = os.fspath(image_path)
     weight_path = None if weight_path is None else os.fspath(weight_path)
@@ -415,12 +626,16 @@ def read_exposure(image_path, weight_path=None) -> list:
             magzp = _keyword(hdul, index, "MAGZP", label)
             gain = _keyword(hdul, index, "GAIN", label)
             saturate = _keyword(hdul, index, "SATURATE", label)
-            wcs = _read_wcs(hdul, index, label)
             try:
-                image = hdu.data
-            except Exception as exc:
-                raise ShearfitIOError(f"{label}: cannot read the pixels ({_first_line(exc)})") from None
-            n_bad = _count_blocks(scan[index], label, lambda b: ~np.isfinite(b))
+                wcs = _read_wcs(hdul, index, label)
+            except ShearfitValueError as exc:
+                if not skip_unusable:
+                    raise
+                logger.warning("%s; the CCD is left out", exc)
+                continue
+            image = _pixels(hdul, image_path, index, label)
+            n_bad, = _scan_blocks(scan[index], label, [lambda b: ~np.isfinite(b)])
+            unusable = "every pixel is NaN or infinite" if n_bad == image.size else None
 
             weight = None
             noise_ivar = None
@@ -432,35 +647,42 @@ def read_exposure(image_path, weight_path=None) -> list:
                 if whdu.shape != hdu.shape:
                     raise ShearfitValueError(f"{wlabel} has shape {whdu.shape} but {label} has {hdu.shape}; "
                                              f"the weight file must match the image")
-                try:
-                    weight = whdu.data
-                except Exception as exc:
-                    raise ShearfitIOError(f"{wlabel}: cannot read the pixels ({_first_line(exc)})") from None
+                weight = _pixels(whdul, weight_path, windex, wlabel)
                 # NaN fails ">= 0", so this one test catches NaN, negative and infinite weights.
-                n_invalid = _count_blocks(wscan[windex], wlabel, lambda b: ~((b >= 0) & (b < np.inf)))
+                n_invalid, n_positive = _scan_blocks(wscan[windex], wlabel,
+                                                     [lambda b: ~((b >= 0) & (b < np.inf)), lambda b: b > 0])
                 if n_invalid:
                     raise ShearfitValueError(
                         f"{wlabel}: {n_invalid} weights are negative, NaN or infinite; weights are inverse "
                         f"variances, 0 for unusable pixels")
+                if n_positive == 0:
+                    unusable = unusable or f"every weight in {wlabel} is 0"
             else:
                 sigma = estimate_noise(image)
-                if not (np.isfinite(sigma) and sigma > 0):
+                if np.isfinite(sigma) and sigma > 0:
+                    noise_ivar = 1.0 / sigma**2
+                    estimated.append(f"HDU {index} sigma={sigma:.4g}")
+                elif skip_unusable:
+                    # weight 0 everywhere: stamps and star cuts see no usable pixel
+                    noise_ivar = 0.0
+                    unusable = unusable or "no weight file and no scatter in the image to estimate the noise from"
+                else:
                     raise ShearfitValueError(f"{label}: cannot estimate the noise without a weight file: "
                                              f"the image has no scatter")
-                noise_ivar = 1.0 / sigma**2
-                estimated.append(f"HDU {index} sigma={sigma:.4g}")
-            if n_bad:
+            if unusable and skip_unusable:
+                logger.warning("%s: %s; the CCD is left out", label, unusable)
+            elif n_bad:
                 logger.warning("%s: %d NaN or infinite pixels; their weight is set to 0", label, n_bad)
 
             ccds.append(ExposureCCD(
-                image=_readonly(image),
-                weight=None if weight is None else _readonly(weight),
+                image=image, weight=weight,
                 wcs=wcs, magzp=magzp, gain=gain, saturate=saturate,
                 path=image_path, hdu=index, extname=str(hdu.header.get("EXTNAME", "")).strip(),
                 weight_path=weight_path, noise_ivar=noise_ivar, n_bad_pixels=n_bad,
                 header=hdu.header.copy(), dims=tuple(hdu.shape), weight_hdu=windex,
+                usable=unusable is None, ccd_index=k, n_file_ccds=len(indices),
             ))
-        if weight_path is None:
+        if weight_path is None and estimated:
             logger.info("%s: no weight file; a constant noise per CCD was estimated from the image "
                         "(sigma-clipped MAD): %s", image_path, ", ".join(estimated))
         return ccds
@@ -471,12 +693,18 @@ def read_exposure(image_path, weight_path=None) -> list:
                 h.close()
 
 
-def _count_blocks(hdu, label, bad, rows=256) -> int:
-    """Pixels where ``bad(block)`` holds, read in blocks of ``rows`` rows (nothing kept in memory)."""
-    n = 0
+def _scan_blocks(hdu, label, tests, rows=256) -> list:
+    """For each function in ``tests``, the pixels where ``test(block)`` holds, read in blocks of ``rows`` rows.
+
+    Nothing is kept in memory; each block is read once for all the tests. ``hdu.section`` reads
+    plain, scaled and tile-compressed images alike (a handle opened without a memory map).
+    """
+    n = [0] * len(tests)
     try:
         for y0 in range(0, hdu.shape[0], rows):
-            n += int(np.count_nonzero(bad(hdu.section[y0:y0 + rows, :])))
+            block = hdu.section[y0:y0 + rows, :]
+            for i, test in enumerate(tests):
+                n[i] += int(np.count_nonzero(test(block)))
     except (OSError, ValueError, TypeError, IndexError) as exc:
         raise ShearfitIOError(f"{label}: cannot read the pixels ({_first_line(exc)})") from None
     return n
@@ -498,7 +726,9 @@ def release_pages(ccds) -> None:
 
     They stay in the operating system's file cache, so reading them again is
     cheap; the process's own memory then holds no more than the stamps of
-    the object in hand, however many objects it has measured.
+    the object in hand, however many objects it has measured. Pixels read on
+    demand (:class:`HDUPixels`: compressed or scaled HDUs) hold no pages and
+    are passed over.
     """
     advice = getattr(mmap, "MADV_DONTNEED", None)
     if advice is None:
@@ -521,6 +751,8 @@ def attach_pixels(ccds) -> list:
 
     The maps close when the returned CCDs are dropped, and with them the
     pages read: a worker that attaches per chunk holds only that chunk's.
+    Compressed or scaled HDUs get an :class:`HDUPixels` again, as in
+    :func:`read_exposure`.
     The WCS is read from the image header as :func:`read_exposure` reads it.
     """
     handles = {}
@@ -530,14 +762,13 @@ def attach_pixels(ccds) -> list:
             for path in (c.path, c.weight_path):
                 if path is not None and path not in handles:
                     handles[path] = _open_fits(path, memmap=True)
-            try:
-                image = handles[c.path][c.hdu].data
-                weight = None if c.weight_path is None else handles[c.weight_path][c.weight_hdu].data
-            except Exception as exc:
-                raise ShearfitIOError(f"{c.label}: cannot read the pixels ({_first_line(exc)})") from None
+            image = _pixels(handles[c.path], c.path, c.hdu, c.label)
+            weight = None
+            if c.weight_path is not None:
+                weight = _pixels(handles[c.weight_path], c.weight_path, c.weight_hdu,
+                                 _hdu_label(c.weight_path, c.weight_hdu, handles[c.weight_path][c.weight_hdu]))
             wcs = _read_wcs(handles[c.path], c.hdu, c.label)
-            out.append(replace(c, image=_readonly(image), weight=None if weight is None else _readonly(weight),
-                               wcs=wcs))
+            out.append(replace(c, image=image, weight=weight, wcs=wcs))
         return out
     finally:
         for h in handles.values():

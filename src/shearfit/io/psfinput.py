@@ -5,7 +5,8 @@ Two forms are read:
 * a FITS image per CCD (:func:`read_psf_fits`): the PSF including the pixel
   response, summing to one, centred on array index ``(ny // 2, nx // 2)``,
   sampled every ``1/k`` image pixel where ``k`` is the header's ``OVERSAMP``
-  (default 1);
+  (default 1); floats or scaled integers (``BSCALE``/``BZERO``), plain or
+  tile-compressed (``.fits.fz``: :func:`psf_image_hdus` finds the HDUs);
 * a PSFEx ``.psf`` file (:class:`PSFExModel`): a pixel basis whose every
   pixel is a polynomial in the position on the CCD.
 
@@ -25,7 +26,7 @@ from astropy.io import fits
 
 from ..errors import ShearfitIOError, ShearfitKeyError, ShearfitValueError
 
-__all__ = ["PSFImage", "read_psf_fits", "PSFExModel", "is_psfex_file", "resample_matrix", "INTERPOLANTS"]
+__all__ = ["PSFImage", "read_psf_fits", "psf_image_hdus", "PSFExModel", "is_psfex_file", "resample_matrix", "INTERPOLANTS"]
 
 
 class PSFImage(NamedTuple):
@@ -77,8 +78,28 @@ def _select_hdu(hdul, path, hdu, what):
             f"{what} file '{path}' has no HDU {hdu!r} (it has: {_hdu_list_text(hdul)})") from None
 
 
+def psf_image_hdus(path):
+    """Indices of the PSF image HDUs of a given-PSF FITS file: every HDU holding a 2D image, in file order.
+
+    An empty primary HDU (as in a multi-extension or a tile-compressed file)
+    and table HDUs are not PSF images. Only headers are read.
+
+    Raises
+    ------
+    ShearfitIOError
+        The file is missing or is not FITS.
+    """
+    with _open_fits(path, "PSF") as hdul:
+        return [i for i, h in enumerate(hdul)
+                if getattr(h, "is_image", False) and h.header.get("NAXIS", 0) == 2
+                and all(h.header.get(f"NAXIS{j}", 0) > 0 for j in (1, 2))]
+
+
 def read_psf_fits(path, hdu=0):
     """Read one PSF image from a FITS file, validate it and normalise it to sum 1.
+
+    The pixels may be floats or scaled integers (``BSCALE``/``BZERO``, scaled
+    to float here), in a plain or a tile-compressed (``CompImageHDU``) HDU.
 
     Parameters
     ----------

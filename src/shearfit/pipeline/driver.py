@@ -41,20 +41,20 @@ from astropy.table import Table
 from ..version import __version__
 from ..workers import process_pool
 from ..files import atomic_path
-from ..errors import (FITCLASS_FEW_EXPOSURES, FITCLASS_FIT_FAILED, FITCLASS_OFF_EXPOSURES, ShearfitIOError,
-                      ShearfitValueError)
+from ..errors import (FITCLASS_BAD_INPUT, FITCLASS_FEW_EXPOSURES, FITCLASS_FIT_FAILED, FITCLASS_OFF_EXPOSURES,
+                      ShearfitIOError, ShearfitValueError)
 from ..calib.calibrate import PAPER_ALPHA, PAPER_BETA, CalibrationModel, calibration_m, load_calibration
 from ..engine.measure import measure_object
 from ..engine.model import psf_moffat
 from ..observation import Observation
 from ..io.fieldconfig import CALIBRATION_MODES, FieldConfig
-from ..io.fits import (METACAL_QUANTITIES, attach_pixels, detached, empty_output_table, provenance_cards, read_catalog,
-                 read_exposure, release_pages, write_catalog_atomic)
-from ..io.psfinput import PSFExModel, read_psf_fits
+from ..io.fits import (METACAL_QUANTITIES, attach_pixels, bad_rows, detached, empty_output_table, provenance_cards,
+                       read_catalog, read_exposure, release_pages, write_catalog_atomic)
+from ..io.psfinput import PSFExModel, psf_image_hdus, read_psf_fits
 from ..io.stamps import cut_stamp, locate_all
 from .blends import analyse_stamps
 from ..io.wcs import local_jacobian, pixel_to_sky
-from ..psf.build import (FieldFrame, build_exposure_psf, is_psf_model_file, read_psf_model,
+from ..psf.build import (FieldFrame, TooFewStarsError, build_exposure_psf, is_psf_model_file, read_psf_model,
                          stellar_locus)
 
 log = logging.getLogger(__name__)
@@ -105,6 +105,7 @@ class _ExposurePSF:
     psfex: Optional[list] = None      # one PSFExModel per CCD
     fitted: Optional[object] = None   # a shearfit.psf PixelPSF fitted to the exposure's stars
     ccds: Optional[list] = None
+    model_ccd: Optional[list] = None  # per CCD of ``ccds``, its index in ``fitted`` (a model file: CCDs may be left out)
     _frame: Optional[FieldFrame] = None
     _moffat: dict = field(default_factory=dict)    # per-CCD Moffat fits; copies made by replace() share it
 
@@ -119,29 +120,40 @@ class _ExposurePSF:
             self._moffat[ccd_index] = psf_moffat(got[0]) if got is not None and got[1] == 1 else None
         return self._moffat[ccd_index]
 
+    def _model(self, ccd_index):
+        return ccd_index if self.model_ccd is None else self.model_ccd[ccd_index]
+
     def at(self, ccd_index, x, y):
-        """(PSF image, oversampling) at CCD pixel (x, y), or None where the model has no stars."""
+        """(PSF image, oversampling) at CCD pixel (x, y), or None where the model has no stars (or no PSF at all)."""
         if self.fitted is not None:
-            if not self.fitted.ccd_used[ccd_index]:
+            m = self._model(ccd_index)
+            if not self.fitted.ccd_used[m]:
                 return None
             if self._frame is None:
                 self._frame = FieldFrame(**self.fitted.frame)
             ra, dec = pixel_to_sky(self.ccds[ccd_index].wcs, x, y)
             u, v = self._frame.uv(ra, dec)
-            return self.fitted.image(ccd_index, float(u), float(v)), self.fitted.oversampling
+            return self.fitted.image(m, float(u), float(v)), self.fitted.oversampling
         if self.images is not None:
             return self.images[ccd_index]
-        return self.psfex[ccd_index].image_at(x, y)
+        if self.psfex is not None:
+            return self.psfex[ccd_index].image_at(x, y)
+        return None   # an exposure left out: too few stars for a PSF model
 
     def shift(self, ccd_index, x, y):
         """Astrometric registration offset (dx, dy) pixels at (x, y) (sec. 4); 0 for a given PSF."""
         if self.fitted is None:
             return 0.0, 0.0
-        return self.fitted.registration_shift(ccd_index, x, y)
+        return self.fitted.registration_shift(self._model(ccd_index), x, y)
 
 
 def _load_psf(spec, n_ccd, index, ccds=None, fit=None):
-    """The exposure's PSF: the given file (FITS images, PSFEx, or a shearfit model), else ``fit()``."""
+    """The exposure's PSF: the given file (FITS images, PSFEx, or a shearfit model), else ``fit()``.
+
+    ``n_ccd`` is the number of CCD HDUs in the image file; ``ccds`` the CCDs read from it, of which
+    those without a WCS may have been left out (their ``ccd_index`` says which PSF HDU is theirs).
+    """
+    positions = list(range(n_ccd)) if ccds is None else [c.ccd_index for c in ccds]
     if spec.psf is None:
         if fit is None:
             raise ShearfitValueError(f"exposure {index} ({spec.image}) has no psf and no stars to fit one")
@@ -149,20 +161,24 @@ def _load_psf(spec, n_ccd, index, ccds=None, fit=None):
     if is_psf_model_file(spec.psf):
         model = read_psf_model(spec.psf)
         if model.n_ccd != n_ccd:
-            raise ShearfitValueError(f"{spec.psf}: PSF model of {model.n_ccd} CCDs for {n_ccd} in {spec.image}")
-        return _ExposurePSF(fitted=model, ccds=ccds)
+            raise ShearfitValueError(f"{spec.psf}: PSF model of {model.n_ccd} CCDs, but {spec.image} has {n_ccd} "
+                                     f"CCDs; the model must be of this exposure")
+        return _ExposurePSF(fitted=model, ccds=ccds, model_ccd=None if positions == list(range(n_ccd)) else positions)
+    if str(spec.psf).lower().endswith(".piff"):   # a Piff model: the optional piff package is imported only here
+        from ..io.piffpsf import PiffModel
+
+        model = PiffModel(spec.psf, n_ccd=n_ccd, headers={c.ccd_index: c.header for c in ccds or ()})
+        return _ExposurePSF(psfex=[model.for_ccd(p) for p in positions])
     if str(spec.psf).endswith(".psf"):
         if n_ccd != 1:
             raise ShearfitValueError(f"{spec.psf}: a PSFEx .psf file describes one CCD, but {spec.image} has "
                                      f"{n_ccd}; give a FITS file with one PSF HDU per CCD")
         return _ExposurePSF(psfex=[PSFExModel(spec.psf)])
-    from astropy.io import fits
-
-    with fits.open(spec.psf) as hdul:
-        idx = [i for i, h in enumerate(hdul) if getattr(h, "data", None) is not None and h.data.ndim == 2]
+    idx = psf_image_hdus(spec.psf)
     if len(idx) != n_ccd:
-        raise ShearfitValueError(f"{spec.psf}: {len(idx)} PSF image HDUs for {n_ccd} CCDs in {spec.image}")
-    return _ExposurePSF(images=[read_psf_fits(spec.psf, i) for i in idx])
+        raise ShearfitValueError(f"{spec.psf} has {len(idx)} PSF image HDUs but {spec.image} has {n_ccd} CCDs; "
+                                 f"a given PSF needs one image HDU per CCD, in the image's order")
+    return _ExposurePSF(images=[read_psf_fits(spec.psf, idx[p]) for p in positions])
 
 
 def psf_star_positions(cfg: FieldConfig, cat, ccds):
@@ -282,24 +298,30 @@ def measure_field(cfg: FieldConfig, out_path=None, progress=False, processes=1, 
         raise ShearfitValueError(f"cannot write the output: directory {out_dir} does not exist or is not writable")
     # a bad calibration file fails here, not after every object is measured
     calibration = load_calibration(cfg.calibration) if cfg.calibration not in CALIBRATION_MODES else None
-    cat = read_catalog(cfg.catalog)
-    exposures = []
-    for k, spec in enumerate(cfg.exposures):
-        ccds = read_exposure(spec.image, spec.weight)
-        fit = functools.partial(_fitted_psf, cfg, cat, ccds, f"exposure {k} ({spec.image})")
-        exposures.append((ccds, _load_psf(spec, len(ccds), k, ccds=ccds, fit=fit)))
+    # a duplicate id stops the run here, before any work; a row without a finite position or magnitude only
+    # costs itself (fitclass -7)
+    cat = read_catalog(cfg.catalog, strict=False)
+    bad = _bad_catalogue_rows(cat, cfg.catalog)
+    good = np.flatnonzero(~bad)
+    exposures = _read_exposures(cfg, cat[good])
     flat = [(e, c) for e, (ccds, _) in enumerate(exposures) for c in range(len(ccds))]
-    hits = locate_all([exposures[e][0][c] for e, c in flat], np.asarray(cat["ra"]), np.asarray(cat["dec"]))
+    ra = np.where(bad, np.nan, np.asarray(cat["ra"], float))
+    dec = np.where(bad, np.nan, np.asarray(cat["dec"], float))
+    hits = locate_all([exposures[e][0][c] for e, c in flat], ra, dec)
     # from here on the pixels are opened per chunk (memory-mapped), by whichever process measures it, and
     # the pages each object read are released after it: memory does not grow with the field or the run
     exposures = _detached_exposures(exposures)
     metacal = cfg.calibration == "metacal"
     table = empty_output_table(cat, metacal=metacal)
+    for name in table.colnames:
+        if name == "fitclass" or name.startswith("fitclass_"):
+            table[name][bad] = FITCLASS_BAD_INPUT
     tasks = [[] for _ in range(len(cat))]
     for obj, k, x, y in zip(hits.object, hits.ccd, hits.x, hits.y):
         tasks[obj].append((flat[k][0], flat[k][1], float(x), float(y)))
     mags = np.asarray(cat["mag"], float)
-    chunks = sky_chunks(cat, cfg.pipeline.chunk_size)
+    # the bad rows are in no chunk: they are not measured
+    chunks = [good[c] for c in sky_chunks(cat[good], cfg.pipeline.chunk_size)]
     ckpt = Checkpoint(out_path, cfg, cat, len(chunks), restart=restart)
     for k in ckpt.finished():
         ckpt.load(k, table)
@@ -348,6 +370,54 @@ def measure_field(cfg: FieldConfig, out_path=None, progress=False, processes=1, 
     write_catalog_atomic(table, out_path, cards)
     ckpt.remove()
     return table
+
+
+def _bad_catalogue_rows(cat, path):
+    """Rows of the catalogue that cannot be measured (non-finite ra, dec or mag; dec beyond the poles), logged."""
+    bad = np.zeros(len(cat), bool)
+    for name, rows in bad_rows(cat).items():
+        if rows.size:
+            bad[rows] = True
+            what = "not finite or outside [-90, 90]" if name == "dec" else "not finite"
+            shown = ", ".join(str(r) for r in rows[:10]) + (", ..." if rows.size > 10 else "")
+            log.warning("%s: column %r is %s (NaN, inf or masked) in %d rows (%s); those rows are not measured "
+                        "(fitclass %d)", path, name, what, rows.size, shown, FITCLASS_BAD_INPUT)
+    return bad
+
+
+def _read_exposures(cfg: FieldConfig, cat):
+    """Every exposure's CCDs and PSF, leaving out, with a warning, what cannot be used.
+
+    A CCD without a usable WCS is left out (:func:`read_exposure`); one without a usable pixel is kept but
+    marked (its objects are measured on the other exposures); an exposure whose stars are too few for a PSF
+    model keeps its CCDs with no PSF (the same). Given PSF files are all read and checked against their
+    exposures before any PSF is fitted, so that a mismatch stops the run before that work.
+    """
+    read = []
+    for k, spec in enumerate(cfg.exposures):
+        ccds = read_exposure(spec.image, spec.weight, skip_unusable=True)
+        if not ccds:
+            log.warning("%s: no CCD with a usable WCS; exposure %d is left out", spec.image, k)
+            continue
+        given = _load_psf(spec, ccds[0].n_file_ccds, k, ccds=ccds) if spec.psf is not None else None
+        read.append((k, spec, ccds, given))
+    exposures = []
+    for k, spec, ccds, psf in read:
+        if psf is None:
+            hdus = ", ".join(str(c.hdu) for c in ccds)
+            if not any(c.usable for c in ccds):
+                log.warning("exposure %d (%s, HDU %s): no CCD has a usable pixel; the exposure is left out",
+                            k, spec.image, hdus)
+                psf = _ExposurePSF(ccds=ccds)
+            else:
+                fit = functools.partial(_fitted_psf, cfg, cat, ccds, f"exposure {k} ({spec.image})")
+                try:
+                    psf = _load_psf(spec, ccds[0].n_file_ccds, k, ccds=ccds, fit=fit)
+                except TooFewStarsError as exc:
+                    log.warning("%s; the exposure is left out (%s, HDU %s)", exc, spec.image, hdus)
+                    psf = _ExposurePSF(ccds=ccds)   # no PSF anywhere: its objects are measured on the others
+        exposures.append((ccds, psf))
+    return exposures
 
 
 def _fitted_psf(cfg, cat, ccds, name):
@@ -560,6 +630,8 @@ def _measure_one(hits, exposures, mag, cfg, pc, obj_id=0) -> dict:
     # where it lies furthest from the edge
     best = {}
     for e, c, x, y in hits:
+        if not exposures[e][0][c].usable:   # a CCD without a usable pixel, left out with a warning
+            continue
         ny, nx = exposures[e][0][c].shape
         margin = min(x, y, nx - 1 - x, ny - 1 - y)
         if e not in best or margin > best[e][0]:

@@ -28,10 +28,17 @@ from .pixelmodel import PixelPSF, StarSet, fit_pixel_psf
 
 log = logging.getLogger(__name__)
 
-__all__ = ["FieldFrame", "select_stars", "stellar_locus", "build_exposure_psf", "write_psf_model",
+__all__ = ["FieldFrame", "TooFewStarsError", "select_stars", "stellar_locus", "build_exposure_psf", "write_psf_model",
            "read_psf_model", "is_psf_model_file", "ExposurePSFResult"]
 
 APERTURE_RADIUS = 8.0   # pixels: the integrated SNR's aperture
+
+
+class TooFewStarsError(ShearfitValueError):
+    """No CCD of an exposure has ``psf_min_stars`` usable stars: no PSF model can be fitted to it.
+
+    ``shearfit psf`` stops on it; ``shearfit measure`` leaves the exposure out with a warning.
+    """
 
 
 @dataclass
@@ -195,7 +202,7 @@ def build_exposure_psf(ccds, star_ra, star_dec, others_ra, others_dec, pc, label
     keep = good_ccd[stars.ccd] if len(stars) else np.zeros(0, bool)
     stars = stars.subset(keep)
     if len(stars) == 0:
-        raise ShearfitValueError(f"{label}: no CCD has psf_min_stars={pc.psf_min_stars} usable stars "
+        raise TooFewStarsError(f"{label}: no CCD has psf_min_stars={pc.psf_min_stars} usable stars "
                                  f"({int(cand.sum())} stars on the exposure, {int(usable.sum())} pass the cuts)")
     model, used, info = fit_pixel_psf(
         stars, len(ccds), order=pc.psf_order, oversampling=pc.psf_oversampling, ccd_terms=True,
