@@ -20,6 +20,7 @@ one), a profile grouped by stage and the process's peak memory.
     python benchmarks/speed.py --same-galaxies     # every pass on the same galaxies (warm caches)
     python benchmarks/speed.py --scaling           # growth with exposures and stamp size
     python benchmarks/speed.py --workers 2         # 2 worker processes against one
+    python benchmarks/speed.py --isa-ab baseline   # the loops in use against the portable ones, interleaved
     python benchmarks/speed.py --check             # how far the speed settings move the estimates
 """
 
@@ -95,6 +96,42 @@ def hsm_time(objs):
                                            shear_est="REGAUSS", strict=False)
             fails += bool(res.error_message)
     return (time.perf_counter() - t0) / len(objs), fails
+
+
+def isa_ab_report(sets, cfg, level):
+    """The loops in use against those of another instruction-set level, galaxy by galaxy in one process
+    (alternating, so that both see the same machine: a shared machine's speed drifts by 10-30 % from minute
+    to minute, more than the levels differ)."""
+    import importlib
+
+    from shearfit.engine import kernel, likelihood, sampling
+
+    module = next(m for name, m, keys in kernel.LEVELS if level in keys or level == name)
+    other = importlib.import_module(f"shearfit.engine.{module}")
+    mine = kernel.KERNEL
+    if mine is None or other is mine:
+        print(f"\n--isa-ab {level}: nothing to compare (the loops in use are {kernel.kernel_info()['isa']})")
+        return
+
+    def use(mod):
+        likelihood.KERNEL = sampling.KERNEL = mod
+        likelihood._load_special()
+
+    t = {mine: 0.0, other: 0.0}
+    n = 0
+    try:
+        for s in sets[1:] or sets:
+            for o, tr in s:
+                for mod in ((mine, other) if n % 2 == 0 else (other, mine)):
+                    use(mod)
+                    t0 = time.perf_counter()
+                    shearfit.measure_object(o, mag=tr["mag"], config=cfg)
+                    t[mod] += time.perf_counter() - t0
+                n += 1
+    finally:
+        use(mine)
+    print(f"\n{mine.kernel_isa()} against {other.kernel_isa()}, {n} galaxies timed alternately in one process: "
+          f"{1e3 * t[mine] / n:.1f} against {1e3 * t[other] / n:.1f} ms per galaxy, x{t[other] / t[mine]:.2f}")
 
 
 def workers_report(objs, cfg, n_workers):
@@ -261,6 +298,9 @@ def main(argv=None):
     ap.add_argument("--workers", type=int, default=0, metavar="N",
                     help="also time N worker processes (shearfit.measure_objects) against one")
     ap.add_argument("--no-hsm", action="store_true", help="do not time GalSim's HSM on the same stamps")
+    ap.add_argument("--isa-ab", metavar="LEVEL", default=None,
+                    help="also time the loops in use against another level (avx512, avx2, baseline), galaxy by "
+                         "galaxy in this process")
     ap.add_argument("--constant-psf", action="store_true",
                     help="one PSF image for every exposure of every galaxy (as the GREAT challenges' constant-PSF "
                          "branches): the App. A Moffat is fitted once and remembered")
@@ -339,6 +379,8 @@ def main(argv=None):
         metacal_image_profile(objs)
     if args.check:
         check_report(objs, cfg, res, args.seed)
+    if args.isa_ab:
+        isa_ab_report(sets, cfg, args.isa_ab)
     if args.workers > 1:
         workers_report([g for s in sets[:2] for g in s], cfg, args.workers)
     if args.scaling:

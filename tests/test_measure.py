@@ -675,3 +675,16 @@ def test_tail_samples_skip_their_size_nodes_without_changing_the_estimate():
     crude = b != a
     assert crude.sum() > 10
     assert np.all(a[crude] < top - 20) and np.all(b[crude] < top - 20)
+
+
+def test_measure_objects_under_spawn(monkeypatch):
+    """measure_objects' worker pool started by spawn (shearfit.workers) gives the in-process results."""
+    import multiprocessing
+
+    from shearfit import workers
+
+    monkeypatch.setattr(workers, "mp_context", lambda: multiprocessing.get_context("spawn"))
+    objects = [_observations(0.3, (0.2, -0.1), seed=s) for s in (1, 2)]
+    one = shearfit.measure_objects(objects, 22.0, processes=1)
+    two = shearfit.measure_objects(objects, 22.0, processes=2)
+    assert [(r.e1, r.e2, r.fitclass) for r in one] == [(r.e1, r.e2, r.fitclass) for r in two]

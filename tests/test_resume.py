@@ -212,3 +212,19 @@ def test_memory_limit_per_worker(field, tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "--memory-limit" in err[0]
     assert not bad.exists()
+
+
+def test_process_pool_under_spawn_gives_the_same_catalogue(field, tmp_path, monkeypatch):
+    """The one worker policy (shearfit.workers) is spawn-safe: the plain process pool started by spawn (as on
+    macOS and Windows), whose workers get the field's state through the pool's initializer instead of
+    inheriting it, writes the same catalogue as one process."""
+    import multiprocessing
+
+    from shearfit import workers
+
+    monkeypatch.setattr(workers, "mp_context", lambda: multiprocessing.get_context("spawn"))
+    d, cfg, ref = field
+    out = tmp_path / "spawn.fits"
+    assert main(["measure", str(cfg), "chunk_size=6", "--out", str(out), "--quiet", "-j", "2",
+                 "--executor", "processes"]) == 0
+    _same(Table.read(out), ref)

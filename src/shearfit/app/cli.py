@@ -290,8 +290,9 @@ def build_parser():
     p.add_argument("--scheduler", default=None, metavar="ADDRESS",
                    help="run on an existing Dask distributed scheduler (e.g. tcp://host:8786; dask-jobqueue "
                         "clusters serve one); its workers must see the same files")
-    p.add_argument("--executor", choices=["dask", "fork"], default="dask",
-                   help="with -j N: a local Dask cluster (default) or a plain process pool (fork on Linux, spawn elsewhere)")
+    p.add_argument("--executor", choices=["dask", "processes", "fork"], default="dask",
+                   help="with -j N: a local Dask cluster (default) or a plain process pool ('processes'; "
+                        "'fork' is its old name: fork on Linux, spawn elsewhere)")
     p.add_argument("--memory-limit", default="auto", metavar="SIZE",
                    help="memory per worker of the local Dask cluster (e.g. 2GB; Dask pauses, then restarts, a "
                         "worker above it; default auto: the machine's memory shared by the workers)")

@@ -286,7 +286,8 @@ def measure_field(cfg: FieldConfig, out_path=None, progress=False, processes=1, 
 
     Chunks run on Dask: on ``processes`` workers of a local cluster, or on
     the distributed scheduler at ``scheduler`` (its workers must see the
-    same files); ``executor="fork"`` uses a plain process pool instead (:mod:`shearfit.workers`). The
+    same files); ``executor="processes"`` (or its old name ``"fork"``) uses a plain process pool instead
+    (:mod:`shearfit.workers`). The
     catalogue does not depend on either. ``memory_limit`` is the local
     cluster's per worker (Dask's format: ``"2GB"``, bytes, or ``"auto"``).
     """
