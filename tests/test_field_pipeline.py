@@ -210,3 +210,45 @@ def test_measure_applies_a_given_calibration(field):
     assert not np.any(np.isfinite(np.ma.filled(t["m"][~good], np.nan)))
     hdr = fits.getheader(out, 1)
     assert hdr["CALALPHA"] == 0.1 and hdr["CALBETA"] == -0.5 and "cal.yaml" in hdr.comments["CALALPHA"]
+
+
+def _large_galaxy_field(d, r=1.2, e=(0.25, -0.15)):
+    """One CCD, two exposures (the second rotated by 30 degrees), one galaxy of scalelength r arcsec: its model,
+    truncated at 4.5 r (29 pixels for 1.2"), does not fit half a 48-pixel stamp (24); no noise to speak of."""
+    n = 260
+    rng = np.random.default_rng(7)
+    specs = []
+    for x, (shift, ang) in enumerate([((0.0, 0.0), 0.0), ((2.3, -1.6), 30.0)]):
+        h = _header(n, shift, ang)
+        wcs = galsim.GSFitsWCS(header=h)
+        img = galsim.ImageD(n, n, wcs=wcs)
+        psf = moffat_psf(0.7, 3.0, 0.03, 0.02)
+        pos = wcs.toImage(galsim.CelestialCoord(RA0 * galsim.degrees, DEC0 * galsim.degrees))
+        prof = galsim.Convolve(galaxy_profile(r, 0.0, e[0], e[1], flux=1e6), psf)
+        stamp = prof.drawImage(wcs=wcs.local(pos), nx=200, ny=200, center=pos)
+        b = stamp.bounds & img.bounds
+        img[b] += stamp[b]
+        sigma = 0.5
+        fits.PrimaryHDU(img.array + rng.normal(0, sigma, img.array.shape), header=h).writeto(d / f"big{x}.fits")
+        fits.PrimaryHDU(np.full((n, n), 1 / sigma ** 2), header=h).writeto(d / f"big{x}.weight.fits")
+        pim = psf.drawImage(wcs=wcs.local(galsim.PositionD(n / 2, n / 2)), nx=48, ny=48, use_true_center=False).array
+        fits.PrimaryHDU(pim / pim.sum()).writeto(d / f"big{x}.psf.fits")
+        specs.append({"image": f"big{x}.fits", "weight": f"big{x}.weight.fits", "psf": f"big{x}.psf.fits"})
+    Table(rows=[(1, RA0, DEC0, 19.0)], names=("id", "ra", "dec", "mag")).write(d / "big.fits")
+    (d / "big.yaml").write_text(yaml.safe_dump({"exposures": specs, "catalog": "big.fits"}))
+    return d / "big.yaml"
+
+
+def test_stamps_grow_for_a_large_galaxy(tmp_path):
+    """A galaxy too large for the 48-pixel stamp is measured again on a larger stamp (64 pixels here) and
+    recovered, where the paper's fixed stamp (max_stamp_size=48) flags it -4."""
+    cfg = _large_galaxy_field(tmp_path)
+    fixed, grown = tmp_path / "fixed.fits", tmp_path / "grown.fits"
+    assert main(["measure", str(cfg), "max_stamp_size=48", "--out", str(fixed), "--quiet"]) == 0
+    assert main(["measure", str(cfg), "--out", str(grown), "--quiet"]) == 0
+    f, g = Table.read(fixed)[0], Table.read(grown)[0]
+    assert f["fitclass"] == -4 and f["stamp_size"] == 48 and f["weight"] == 0
+    assert g["fitclass"] == 0 and g["stamp_size"] == 64 and g["weight"] > 0   # 29 pixels fit half of 64
+    # intrinsic shape (0.25, -0.15), no shear: recovered at this SNR to a few times its likelihood width
+    assert abs(g["e1"] - 0.25) < 0.02 and abs(g["e2"] + 0.15) < 0.02, (g["e1"], g["e2"])
+    assert g["scalelength"] == pytest.approx(1.2, rel=0.1)

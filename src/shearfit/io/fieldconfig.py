@@ -51,6 +51,10 @@ class PipelineConfig:
     stamp_size: int = setting(
         48, "side of the square postage stamp cut around each object on each exposure, pixels",
         "sec. 3.6 (48 pixels, about 9 arcsec)")
+    max_stamp_size: int = setting(
+        128, "an object whose truncated model is too large for its stamp is cut and measured again on larger "
+        "stamps (64, 96, 128, 192, 256 pixels) up to this side; fitclass -4 only beyond it (stamp_size: the "
+        "paper's fixed stamp)", "sec. 3.6 (implementation)")
     isophote_nsigma: float = setting(
         2.0, "isophote level, in units of the smoothed pixel noise, that defines an object's extent for "
         "neighbour masking, blend detection and the centroid test", "sec. 3.6 (two-sigma isophote)")
@@ -113,6 +117,9 @@ class PipelineConfig:
             raise ShearfitValueError(f"setting psf_oversampling={self.psf_oversampling!r} must be 1 or odd")
         if self.stamp_size < 8:
             raise ShearfitValueError(f"setting stamp_size={self.stamp_size!r} must be at least 8 pixels")
+        if self.max_stamp_size < self.stamp_size:
+            raise ShearfitValueError(f"setting max_stamp_size={self.max_stamp_size!r} must be at least stamp_size "
+                                     f"({self.stamp_size})")
         for name in ("isophote_nsigma", "isophote_centroid_max_shift"):
             if not getattr(self, name) > 0:
                 raise ShearfitValueError(f"setting {name}={getattr(self, name)!r} must be positive")

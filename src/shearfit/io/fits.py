@@ -826,6 +826,8 @@ _OUTPUT_COLUMNS = (
     OutputColumn("m", "f8", "", "multiplicative calibration m(snr, scalelength)"),
     OutputColumn("star_pvalue", "f8", "", "F-test probability that the galaxy model's improvement over a point "
                                           "source is chance (sec. 3.2); large for stars"),
+    OutputColumn("stamp_size", "i2", "pix", "side of the stamps the object was measured on (larger than "
+                                            "stamp_size where its model needed it); 0 where none was cut"),
 )
 
 

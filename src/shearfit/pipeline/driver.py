@@ -42,7 +42,7 @@ from ..version import __version__
 from ..workers import process_pool
 from ..files import atomic_path
 from ..errors import (FITCLASS_BAD_INPUT, FITCLASS_FEW_EXPOSURES, FITCLASS_FIT_FAILED, FITCLASS_OFF_EXPOSURES,
-                      ShearfitIOError, ShearfitValueError)
+                      FITCLASS_TOO_LARGE, ShearfitIOError, ShearfitValueError)
 from ..calib.calibrate import PAPER_ALPHA, PAPER_BETA, CalibrationModel, calibration_m, load_calibration
 from ..engine.measure import measure_object
 from ..engine.model import psf_moffat
@@ -624,9 +624,30 @@ _STATE = None
 _U64 = (1 << 64) - 1
 
 
+#: the stamp sides an object too large for its stamp is measured again on (up to max_stamp_size)
+LARGER_STAMPS = (64, 96, 128, 192, 256)
+
+
+def stamp_ladder(pc) -> list:
+    """The stamp sides an object is measured on in turn: ``stamp_size``, then the larger of
+    :data:`LARGER_STAMPS` up to ``max_stamp_size``, while its truncated model is too large (fitclass -4)."""
+    return [pc.stamp_size] + [s for s in LARGER_STAMPS if pc.stamp_size < s <= pc.max_stamp_size]
+
+
 def _measure_one(hits, exposures, mag, cfg, pc, obj_id=0) -> dict:
+    """One object's catalogue row: measured on stamps of ``stamp_size``, and again on larger ones while its
+    truncated model does not fit (sec. 3.6: a Fourier model wraps around a stamp smaller than it)."""
     if not hits:
         return {"fitclass": FITCLASS_OFF_EXPOSURES}
+    for size in stamp_ladder(pc):
+        row = _measure_on_stamps(hits, exposures, mag, cfg, pc, obj_id, size)
+        if row.get("fitclass") != FITCLASS_TOO_LARGE:
+            break
+    row.setdefault("stamp_size", size)
+    return row
+
+
+def _measure_on_stamps(hits, exposures, mag, cfg, pc, obj_id, size) -> dict:
     # one stamp per exposure: where dithers put an object on two CCDs of one exposure, the CCD
     # where it lies furthest from the edge
     best = {}
@@ -647,14 +668,14 @@ def _measure_one(hits, exposures, mag, cfg, pc, obj_id=0) -> dict:
         psf, k = got
         # where the stars say the WCS is off, the object is where they put it (registration, sec. 4)
         dx, dy = epsf.shift(c, x, y)
-        st = cut_stamp(ccd.image, ccd.pixel_weight, x + dx, y + dy, pc.stamp_size)
+        st = cut_stamp(ccd.image, ccd.pixel_weight, x + dx, y + dy, size)
         if st is None:
             continue
         cuts.append(dict(e=e, ccd=ccd, image=np.array(st.image, float), weight=np.array(st.weight, float),
                          offset=st.offset, J=local_jacobian(ccd.wcs, x, y), psf=psf, k=k, moments=psf_moments(psf),
                          moffat=epsf.moffat(c, ccd.image.shape) if k == 1 else None))
     if not cuts:
-        return {"fitclass": FITCLASS_FEW_EXPOSURES, "n_exposures_used": 0}
+        return {"fitclass": FITCLASS_FEW_EXPOSURES, "n_exposures_used": 0, "stamp_size": 0}
     flag = _isophote_analysis(cuts, pc)
     if flag != 0:
         return {"fitclass": flag, "n_exposures_used": 0}
