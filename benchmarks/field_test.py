@@ -16,6 +16,8 @@ pipeline's throughput.
     python benchmarks/field_test.py --wcs plain turned flipped        # the rotations alone, the flips alone
     python benchmarks/field_test.py --wcs plain rotated --layout inner  # every galaxy on every exposure in both
     python benchmarks/field_test.py --n-galaxies 40 --psf both        # PSF fitted from stars vs the true one
+    python benchmarks/field_test.py --n-galaxies 40 --n-ccd 20 --spacing 96 --min-size 0.85 --max-extent 38
+                                                                      # large galaxies, on grown stamps
     python benchmarks/field_test.py --wcs plain rotated distorted     # all three on the same galaxies, differences
     python benchmarks/field_test.py --psf both --psf-fwhm 0.36 0.38 --true-psf-oversampling 3 \
         --fitted-oversampling 1 3 --star-snr 200 2000                 # undersampled: native vs 3x fitted model
@@ -188,6 +190,10 @@ def main(argv=None):
     ap.add_argument("--snr-min", type=float, default=100.0)
     ap.add_argument("--snr-max", type=float, default=200.0)
     ap.add_argument("--min-size", type=float, default=0.0, help="smallest scalelength drawn, arcsec")
+    ap.add_argument("--max-extent", type=float, default=20.0, metavar="PIX",
+                    help="largest truncated model drawn, 4.5 scalelengths in pixels (default 20: every model fits "
+                         "the 48-pixel stamp; raise it with --spacing to measure large galaxies on grown stamps)")
+    ap.add_argument("--spacing", type=int, default=SPACING, help="pixels between galaxies on the grid")
     ap.add_argument("--noise-free", action="store_true", help="noise-free images, weights of the SNR range")
     ap.add_argument("--shear", type=float, nargs=2, default=[0.03, -0.02])
     ap.add_argument("--seed", type=int, default=1)
@@ -232,13 +238,13 @@ def main(argv=None):
              for c in range(args.n_ccd)] for b, f, g1, g2 in base]
     stars = star_positions(args, np.random.default_rng(args.seed + 7)) if args.psf != "given" else None
     # galaxies on a grid over the CCDs (the dithers move them by < 30 pixels)
-    nx_side = (NPIX - 2 * SPACING) // SPACING
+    nx_side = (NPIX - 2 * args.spacing) // args.spacing
     slots = [(c, i, j) for c in range(args.n_ccd) for i in range(nx_side) for j in range(nx_side)]
     if args.layout == "inner":
         # the largest dither moves a CCD by 50 pixels and a stamp reaches 24 beyond its centre: a slot
         # within 176 pixels of the centre keeps its stamp 6 pixels inside the CCD at any rotation
         slots = [(c, i, j) for c, i, j in slots
-                 if np.hypot(i - nx_side / 2 + 0.5, j - nx_side / 2 + 0.5) * SPACING <= 176.0]
+                 if np.hypot(i - nx_side / 2 + 0.5, j - nx_side / 2 + 0.5) * args.spacing <= 176.0]
     if 4 * args.n_galaxies > len(slots):
         raise SystemExit(f"at most {len(slots) // 4} rings fit on {args.n_ccd} CCDs")
     order = rng.permutation(len(slots))
@@ -248,14 +254,14 @@ def main(argv=None):
     while len(gals) < 4 * args.n_galaxies:
         p = priors.sample_population(np.array([pop_mags[k % pop_mags.size]]), rng)[0]
         k += 1
-        if p["scalelength"] < args.min_size or 4.5 * p["scalelength"] / PIX > 20:
+        if p["scalelength"] < args.min_size or 4.5 * p["scalelength"] / PIX > args.max_extent:
             continue
         snr = rng.uniform(args.snr_min, args.snr_max)
         e = complex(p["e1"], p["e2"])
         for j in range(4):
             c, ix, iy = slots[order[len(gals)]]
-            du = ((c - 0.5) * (NPIX + 20) + (ix - nx_side / 2 + 0.5) * SPACING) * PIX / 3600.0
-            dv = (iy - nx_side / 2 + 0.5) * SPACING * PIX / 3600.0
+            du = ((c - 0.5) * (NPIX + 20) + (ix - nx_side / 2 + 0.5) * args.spacing) * PIX / 3600.0
+            dv = (iy - nx_side / 2 + 0.5) * args.spacing * PIX / 3600.0
             ej = e * np.exp(1j * np.pi * j / 2)
             gals.append(dict(ring=len(gals) // 4, ra=RA0 - du / np.cos(np.radians(DEC0)), dec=DEC0 + dv,
                              r=float(p["scalelength"]), B=float(p["bulge_fraction"]), is_bulge=bool(p["is_bulge"]),
