@@ -100,3 +100,34 @@ def test_every_instruction_set_level_measures_the_same(tmp_path):
     for level in levels[1:]:
         # the numpy loops evaluate every mode: they differ from the binned compiled loops by the binning's 1e-4
         assert np.max(np.abs(np.array(out[level]["e"]) - ref)) < 1e-4, level
+
+
+def test_missing_compiled_kernel_warns_once_and_runs_numpy(tmp_path):
+    """Without any compiled module (no C compiler at install time) import shearfit warns once, naming the
+    missing module, and the numpy loops run (kernel_info says so); the catalogue header would say 'numpy'."""
+    import os
+    import subprocess
+    import sys
+
+    code = """
+import sys, warnings
+class Block:
+    def find_spec(self, name, path=None, target=None):
+        if name.startswith("shearfit.engine._kernels"):
+            raise ImportError("blocked for the test: " + name)
+sys.meta_path.insert(0, Block())
+with warnings.catch_warnings(record=True) as w:
+    warnings.simplefilter("always")
+    import shearfit
+    from shearfit.engine.kernel import kernel_info
+    import shearfit.engine.likelihood, shearfit.engine.sampling
+msgs = [str(x.message) for x in w if "compiled kernel" in str(x.message)]
+print(len(msgs), kernel_info()["path"], kernel_info()["isa"])
+print(msgs[0] if msgs else "")
+"""
+    env = {k: v for k, v in os.environ.items() if k not in ("SHEARFIT_ISA", "SHEARFIT_NO_KERNEL")}
+    run = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True,
+                         cwd=tmp_path)
+    first, message = run.stdout.strip().splitlines()[:2]
+    assert first == "1 numpy numpy"
+    assert "shearfit.engine._kernels" in message and "numpy loops run instead" in message

@@ -84,6 +84,15 @@ KERNEL, _NOTE, _REQUEST = _load()
 USE_KERNEL = KERNEL is not None
 
 
+def _found(module) -> bool:
+    """Whether a compiled module is installed: found, not imported (a module built for a level this CPU lacks
+    must not be loaded)."""
+    try:
+        return importlib.util.find_spec(f"{__package__}.{module}") is not None
+    except (ImportError, ValueError):  # pragma: no cover - a broken or blocked installation
+        return False
+
+
 def kernel_info() -> dict:
     """The inner loops in use.
 
@@ -96,8 +105,7 @@ def kernel_info() -> dict:
         the value of ``SHEARFIT_ISA`` ('' for the default choice); ``note``, why
         a requested level was not taken or why the numpy loops run.
     """
-    # found, not imported: a module built for a level this CPU lacks must not be loaded
-    built = tuple(name for name, module, _ in LEVELS if importlib.util.find_spec(f"{__package__}.{module}"))
+    built = tuple(name for name, module, _ in LEVELS if _found(module))
     info = {"path": "compiled" if USE_KERNEL else "numpy", "isa": "numpy", "cpu_levels": (), "built": built,
             "compiler": "", "requested": _REQUEST, "note": _NOTE}
     if KERNEL is not None:
