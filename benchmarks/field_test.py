@@ -152,7 +152,7 @@ def make_field(d, sign, args, gals, psfs, sigma, stars=None, with_psf=True, wcs_
             if os_k == 1:
                 pim = psfs[k][c].drawImage(nx=48, ny=48, scale=1.0, method="auto", use_true_center=False).array
             else:
-                # the pixel-convolved PSF sampled every 1/k pixel (INTERFACE: header OVERSAMP = k)
+                # the pixel-convolved PSF sampled every 1/k pixel (docs/interface.rst: header OVERSAMP = k)
                 pim = galsim.Convolve(psfs[k][c], galsim.Pixel(1.0)).drawImage(
                     nx=48 * os_k, ny=48 * os_k, scale=1.0 / os_k, method="no_pixel", use_true_center=False).array
             phdu = fits.ImageHDU(pim / pim.sum())

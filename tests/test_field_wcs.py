@@ -216,7 +216,7 @@ def test_tan_rotation_and_flip(angle, flip, ra, dec):
 
 
 def test_north_up_east_left_is_the_uv_frame():
-    """INTERFACE: CD1_1 < 0, north up: +x is west, +y north, so J = diag(s, s)."""
+    """docs/interface.rst: CD1_1 < 0, north up: +x is west, +y north, so J = diag(s, s)."""
     h, _ = tan_header(scale=0.187, angle_deg=0.0, flip=False, ra=35.0, dec=-5.0)
     J = local_jacobian(h, h["CRPIX1"] - 1.0, h["CRPIX2"] - 1.0)
     np.testing.assert_allclose(J, np.diag([0.187, 0.187]), rtol=0, atol=1e-8 * 0.187)

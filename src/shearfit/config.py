@@ -4,7 +4,7 @@ Every number that the lensfit paper (Miller et al. 2013, "the paper" below)
 fixes is a default here, with the section or equation it comes from. The
 object is immutable and is written into every output for provenance.
 
-A YAML config (INTERFACE.md) may set any of these at its top level; an
+A YAML config (docs/interface.rst) may set any of these at its top level; an
 unknown key is an error that names it.
 """
 

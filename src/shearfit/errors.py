@@ -25,7 +25,7 @@ class ShearfitIOError(ShearfitError, OSError):
     """A file cannot be read or written."""
 
 
-# Catalogue codes of the ``fitclass`` column (see INTERFACE.md).
+# Catalogue codes of the ``fitclass`` column (see docs/interface.rst).
 FITCLASS_GALAXY = 0
 FITCLASS_STAR = 1
 FITCLASS_FEW_EXPOSURES = -1

@@ -1,6 +1,6 @@
 """One exposure of one object (:class:`Observation`) and a fit's result.
 
-Conventions (INTERFACE.md): arrays are indexed ``image[y, x]``; pixel centres
+Conventions (docs/interface.rst): arrays are indexed ``image[y, x]``; pixel centres
 sit at integer indices; the stamp centre is pixel ``(ny // 2, nx // 2)``. The
 Jacobian maps pixel offsets to the catalogue's tangent-plane frame (u, v) in
 arcsec, +u west, +v north::

@@ -282,7 +282,7 @@ def build_parser():
 
     p = sub.add_parser("measure", help="measure the shear of every catalogue object on a field's exposures",
                        description="PSF models (given), stamps, joint fits over exposures, shear catalogue.")
-    p.add_argument("config", help="the field's YAML config (INTERFACE.md)")
+    p.add_argument("config", help="the field's YAML config (docs/interface.rst)")
     p.add_argument("overrides", nargs="*", metavar="key=value", help="settings that override the config's")
     p.add_argument("--out", default=None, help="output catalogue (default: the config's output:)")
     p.add_argument("-j", "--processes", type=int, default=1,
@@ -305,7 +305,7 @@ def build_parser():
                        description="Star selection, centring, the pixel PSF model (polynomial over the field, "
                                    "constant and linear terms per CCD), astrometric registration; writes "
                                    "EXPOSURE.psfmodel.fits (usable as psf: in the config) and diagnostics.")
-    p.add_argument("config", help="the field's YAML config (INTERFACE.md)")
+    p.add_argument("config", help="the field's YAML config (docs/interface.rst)")
     p.add_argument("overrides", nargs="*", metavar="key=value", help="settings that override the config's")
     p.add_argument("--out", default=None, help="output directory (default: psf/ beside the config)")
     p.add_argument("--no-bootstrap", action="store_true", help="skip the bootstrap rms (faster)")

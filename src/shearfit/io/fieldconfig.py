@@ -1,6 +1,6 @@
 """The YAML config of a field: which files to read, and every setting of the run.
 
-A field config (INTERFACE.md, "Input: a field") names the exposures, the
+A field config (docs/interface.rst, "Input: a field") names the exposures, the
 object catalogue, optionally the PSF stars and the output, all relative to
 the config file; any other top-level key is a setting, either of the
 per-object engine (:class:`shearfit.config.FitConfig`) or of the field

@@ -1,6 +1,6 @@
 """Reading a field's files and writing the shear catalogue.
 
-Formats are those of INTERFACE.md ("Input: a field", "Output: the shear
+Formats are those of docs/interface.rst ("Input: a field", "Output: the shear
 catalogue"). Every error is one line naming the file and, where it applies,
 the HDU, column or header keyword, so that the command line can print it as
 it is.
@@ -58,7 +58,7 @@ __all__ = [
 
 logger = logging.getLogger(__name__)
 
-#: AB zero point of the common flux unit: ``model_flux`` is in counts at this zero point (INTERFACE.md).
+#: AB zero point of the common flux unit: ``model_flux`` is in counts at this zero point (docs/interface.rst).
 COMMON_ZEROPOINT = 30.0
 
 CATALOG_COLUMNS = ("id", "ra", "dec", "mag")
@@ -779,7 +779,7 @@ def photometric_scale(magzp, common_zp: float = COMMON_ZEROPOINT):
     """Counts in an exposure per unit of the common flux.
 
     A source of magnitude m gives ``10**(-0.4 (m - magzp))`` counts and has
-    common flux ``10**(-0.4 (m - common_zp))`` (INTERFACE: ``model_flux`` is
+    common flux ``10**(-0.4 (m - common_zp))`` (docs/interface.rst: ``model_flux`` is
     for an AB zero point of 30), so the ratio is
 
     .. math:: s = 10^{0.4\\,(\\mathrm{magzp} - \\mathrm{zp}_{\\rm common})}.
@@ -837,7 +837,7 @@ METACAL_QUANTITIES = (("e1", "f8", ""), ("e2", "f8", ""), ("weight", "f8", ""), 
 
 
 def metacal_columns() -> list:
-    """The extra columns of a metacal catalogue (``calibration: metacal``; INTERFACE terms).
+    """The extra columns of a metacal catalogue (``calibration: metacal``; the contract's terms).
 
     For each sheared version v in 1p, 1m, 2p, 2m (shear +-delta in component
     1 or 2, applied in the (u, v) frame) the fit's ``e1_v``, ``e2_v``,
@@ -858,7 +858,7 @@ def metacal_columns() -> list:
 
 
 def output_columns(include_input: bool = True) -> list:
-    """The shear catalogue's columns (INTERFACE.md), in order.
+    """The shear catalogue's columns (docs/interface.rst), in order.
 
     Parameters
     ----------
@@ -877,7 +877,7 @@ def output_columns(include_input: bool = True) -> list:
 def empty_result_row(fitclass: int = FITCLASS_FIT_FAILED) -> dict:
     """The measurement columns of an object not (yet) measured.
 
-    Floats are NaN except ``weight``, which is 0 (INTERFACE: "0 where not
+    Floats are NaN except ``weight``, which is 0 (docs/interface.rst: "0 where not
     measured"); ``n_exposures_used`` is 0. The input columns are not included:
     they are copied from the catalogue.
     """

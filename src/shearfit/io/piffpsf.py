@@ -1,4 +1,4 @@
-"""Piff PSF models given with a field (``psf: exp.piff``; INTERFACE.md, "Given PSF").
+"""Piff PSF models given with a field (``psf: exp.piff``; docs/interface.rst, "Given PSF").
 
 `Piff <https://github.com/rmjarvis/Piff>`_ (the Rubin/DES PSF code) writes its
 fitted models as ``.piff`` files. :class:`PiffModel` reads one and gives, per

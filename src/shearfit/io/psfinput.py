@@ -1,4 +1,4 @@
-"""PSF models given with a field instead of fitted (INTERFACE.md, ``psf:``).
+"""PSF models given with a field instead of fitted (docs/interface.rst, ``psf:``).
 
 Two forms are read:
 
@@ -30,7 +30,7 @@ __all__ = ["PSFImage", "read_psf_fits", "psf_image_hdus", "PSFExModel", "is_psfe
 
 
 class PSFImage(NamedTuple):
-    """A PSF image in the INTERFACE convention and its oversampling."""
+    """A PSF image in the contract's convention and its oversampling."""
 
     image: np.ndarray
     """2D float64 array, sums to 1, centred on ``(ny // 2, nx // 2)``."""
@@ -185,7 +185,7 @@ def resample_matrix(n_in, step_in, n_out, step_out, interpolant="sinc"):
 
     Input sample i sits at ``(i - n_in // 2) * step_in`` and output sample j
     at ``(j - n_out // 2) * step_out`` (same units): both grids are centred on
-    index ``n // 2``, the INTERFACE and PSFEx convention. Outside the input
+    index ``n // 2``, the convention of the contract and of PSFEx. Outside the input
     array the function is zero (PSFEx's model is zero there). A 2D image
     ``A`` resamples as ``W_y @ A @ W_x.T``.
 
@@ -259,7 +259,7 @@ class PSFExModel:
 
     Each PSFEx sample is ``PSF_SAMP`` image pixels wide, and the vignette's
     centre is sample ``(ny // 2, nx // 2)`` (PSFEx places it at ``size / 2``
-    in integer arithmetic: index 12 of 25), which is the INTERFACE
+    in integer arithmetic: index 12 of 25), which is the contract's
     convention. PSFEx builds its model from the stars as observed, so the
     pixel response is included.
 
@@ -379,7 +379,7 @@ class PSFExModel:
         return _normalised(img, f"PSFEx model '{self.path}' at (x, y) = ({x}, {y})")
 
     def image_at(self, x, y):
-        """The PSF at 0-based pixel position (x, y), in the INTERFACE convention.
+        """The PSF at 0-based pixel position (x, y), in the contract's convention.
 
         When ``PSF_SAMP = 1/k`` for an integer k the PSFEx samples are
         returned as they are, with ``oversampling = k``. Otherwise they are

@@ -13,7 +13,7 @@ module supplies that linear map, the Jacobian
 
 where (x, y) are 0-based numpy pixel coordinates (x along columns, FITS
 axis 1) and (u, v) is the gnomonic tangent plane centred on the object, +u
-west, +v north (INTERFACE.md; GalSim's ``CelestialCoord.project`` and
+west, +v north (docs/interface.rst; GalSim's ``CelestialCoord.project`` and
 TreeCorr). Because the tangent plane is centred on each object, ellipticities
 measured through J are relative to the local east-west and north-south axes,
 as the paper requires.

@@ -8,7 +8,7 @@ Per object (sec. 3.6, 4, 6 of the paper):
    never interpolated;
 3. the local Jacobian of the WCS at the object: the affine map applied to the
    models before the PSF, so ellipticities come out in the (u, v) frame of
-   INTERFACE.md whatever the pixel grid's rotation, flip or distortion;
+   docs/interface.rst whatever the pixel grid's rotation, flip or distortion;
 4. the exposure's PSF at the object (a given image per CCD, or a PSFEx model);
 5. the photometric scale from MAGZP, one flux for all exposures;
 6. the joint fit (:func:`shearfit.measure_object`), and one catalogue row.

@@ -1,4 +1,4 @@
-"""Simulated survey fields: GalSim images in the input format of INTERFACE.md, plus ``truth.fits`` (sec. 8).
+"""Simulated survey fields: GalSim images in the input format of docs/interface.rst, plus ``truth.fits`` (sec. 8).
 
 Two suites, as the paper's two independent simulation sets (sec. 8.1, 8.2):
 
@@ -377,7 +377,7 @@ def simulate_field(sc: SimulationConfig, out_dir, fit_cfg: FitConfig | None = No
             hdus.append(fits.ImageHDU(data.astype(np.float32), header=h))
             whdus.append(fits.ImageHDU(weight, header=h))
             if sc.give_psf:
-                # the PSF at the CCD centre in its pixel frame, 3x oversampled (INTERFACE: OVERSAMP = 3)
+                # the PSF at the CCD centre in its pixel frame, 3x oversampled (docs/interface.rst: OVERSAMP = 3)
                 cu = -((c - 0.5 * (sc.n_ccd - 1)) * (sc.ccd_nx + 20)) * sc.pixel_scale / wx   # CCDs run west
                 centre_psf = _psf_at(sc, psfp[k], cu, 0.0)
                 pim = galsim.Convolve(centre_psf, galsim.Pixel(1.0)).drawImage(

@@ -4,8 +4,8 @@ GalSim is the independent reference renderer here: nothing in this module
 uses shearfit's own model code, so a ring test built on it checks the engine
 against images it did not make.
 
-Conventions (INTERFACE.md, "Python API for one object")
--------------------------------------------------------
+Conventions (docs/interface.rst, "Python API for one object")
+-------------------------------------------------------------
 * Arrays are ``image[y, x]``; the stamp centre is index ``(ny // 2, nx // 2)``.
   ``offset=(dx, dy)`` puts the profile centre at ``x = nx // 2 + dx``,
   ``y = ny // 2 + dy``.
@@ -193,7 +193,7 @@ def draw_stamp(profile, psf, jacobian, offset=(0.0, 0.0), stamp_size=48, gsparam
     ny, nx = _shape2(stamp_size)
     conv = galsim.Convolve([profile, psf], gsparams=gsparams)
     # use_true_center=False centres on GalSim's image.center, which is 0-based index
-    # (nx // 2, ny // 2) for odd and even sizes alike: the convention of INTERFACE.md.
+    # (nx // 2, ny // 2) for odd and even sizes alike: the convention of docs/interface.rst.
     img = conv.drawImage(nx=nx, ny=ny, wcs=jacobian_wcs(jacobian), method="auto", use_true_center=False,
                          offset=(float(offset[0]), float(offset[1])), dtype=np.float64)
     return np.array(img.array, dtype=np.float64)

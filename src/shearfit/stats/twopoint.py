@@ -2,7 +2,7 @@
 
 xi+ and xi- of the lensfit-weighted ellipticities come from TreeCorr's
 ``GGCorrelation`` (the catalogue's e1, e2 are in TreeCorr's convention, see
-INTERFACE.md). The multiplicative calibration enters as the paper's
+docs/interface.rst). The multiplicative calibration enters as the paper's
 ensemble correction: with m_i the calibration of galaxy i,
 
     1 + K(theta) = sum_ij w_i w_j (1 + m_i)(1 + m_j) / sum_ij w_i w_j
@@ -350,7 +350,7 @@ def write_xipm_file(path, tables, names, table_cards, syscov=None, jkcov=None, p
 
 
 def write_xipm(table: Table, cov, path, header_cards=(), jkcov=None, cov_cards=()):
-    """The xipm FITS file: HDU 1 the bins (INTERFACE.md), HDU SYSCOV the systematic covariance if any,
+    """The xipm FITS file: HDU 1 the bins (docs/interface.rst), HDU SYSCOV the systematic covariance if any,
     HDU COV the jackknife covariance if any."""
     write_xipm_file(path, [table], ["XIPM"], [header_cards], syscov=cov, jkcov=jkcov, cov_cards=cov_cards)
 
