@@ -17,23 +17,9 @@ galsim = pytest.importorskip("galsim")
 
 from shearfit.app.cli import main  # noqa: E402
 from shearfit.simulate.stamps import galaxy_profile, moffat_psf  # noqa: E402
+from skyfield import DEC0, PIX, RA0, sky_header, write_dithered_exposure  # noqa: E402
 
-PIX = 0.187
-RA0, DEC0 = 150.0, 2.0
 G = (0.04, -0.03)
-
-
-def _header(n, crpix_shift, angle_deg):
-    th = np.radians(angle_deg)
-    # north up, east left (CD1_1 < 0), then rotated
-    cd = PIX / 3600.0 * np.array([[-np.cos(th), np.sin(th)], [np.sin(th), np.cos(th)]])
-    h = fits.Header()
-    h["CTYPE1"], h["CTYPE2"] = "RA---TAN", "DEC--TAN"
-    h["CRVAL1"], h["CRVAL2"] = RA0, DEC0
-    h["CRPIX1"], h["CRPIX2"] = n / 2 + crpix_shift[0], n / 2 + crpix_shift[1]
-    h["CD1_1"], h["CD1_2"], h["CD2_1"], h["CD2_2"] = cd[0, 0], cd[0, 1], cd[1, 0], cd[1, 1]
-    h["MAGZP"], h["GAIN"], h["SATURATE"] = 30.0, 1.0, 1e6
-    return h
 
 
 @pytest.fixture(scope="module")
@@ -51,7 +37,7 @@ def field(tmp_path_factory):
             gals.append(dict(id=10 * k + j, ra=ra, dec=dec, r=r, e1=ej.real, e2=ej.imag, mag=22.0))
     specs = []
     for x, (shift, ang, fwhm) in enumerate([((0.0, 0.0), 0.0, 0.65), ((3.3, -2.6), 30.0, 0.7)]):
-        h = _header(n, shift, ang)
+        h = sky_header(n, shift, ang)
         wcs = galsim.GSFitsWCS(header=h)
         img = galsim.ImageD(n, n, wcs=wcs)
         psf = moffat_psf(fwhm, 3.0, 0.05, -0.03)
@@ -144,7 +130,7 @@ def crowded(tmp_path_factory):
     }
     specs = []
     for x, shift in enumerate([(0.0, 0.0), (1.4, -0.8)]):
-        h = _header(n, shift, 0.0)
+        h = sky_header(n, shift, 0.0)
         wcs = galsim.GSFitsWCS(header=h)
         img = galsim.ImageD(n, n, wcs=wcs)
         psf = moffat_psf(0.7, 3.0, 0.02, 0.0)
@@ -219,21 +205,10 @@ def _large_galaxy_field(d, r=1.2, e=(0.25, -0.15)):
     rng = np.random.default_rng(7)
     specs = []
     for x, (shift, ang) in enumerate([((0.0, 0.0), 0.0), ((2.3, -1.6), 30.0)]):
-        h = _header(n, shift, ang)
-        wcs = galsim.GSFitsWCS(header=h)
-        img = galsim.ImageD(n, n, wcs=wcs)
-        psf = moffat_psf(0.7, 3.0, 0.03, 0.02)
-        pos = wcs.toImage(galsim.CelestialCoord(RA0 * galsim.degrees, DEC0 * galsim.degrees))
-        prof = galsim.Convolve(galaxy_profile(r, 0.0, e[0], e[1], flux=1e6), psf)
-        stamp = prof.drawImage(wcs=wcs.local(pos), nx=200, ny=200, center=pos)
-        b = stamp.bounds & img.bounds
-        img[b] += stamp[b]
-        sigma = 0.5
-        fits.PrimaryHDU(img.array + rng.normal(0, sigma, img.array.shape), header=h).writeto(d / f"big{x}.fits")
-        fits.PrimaryHDU(np.full((n, n), 1 / sigma ** 2), header=h).writeto(d / f"big{x}.weight.fits")
-        pim = psf.drawImage(wcs=wcs.local(galsim.PositionD(n / 2, n / 2)), nx=48, ny=48, use_true_center=False).array
-        fits.PrimaryHDU(pim / pim.sum()).writeto(d / f"big{x}.psf.fits")
-        specs.append({"image": f"big{x}.fits", "weight": f"big{x}.weight.fits", "psf": f"big{x}.psf.fits"})
+        spec, _ = write_dithered_exposure(d, f"big{x}", n, shift, ang,
+                                          [(RA0, DEC0, galaxy_profile(r, 0.0, e[0], e[1], flux=1e6))],
+                                          moffat_psf(0.7, 3.0, 0.03, 0.02), rng, stamp=200)
+        specs.append(spec)
     Table(rows=[(1, RA0, DEC0, 19.0)], names=("id", "ra", "dec", "mag")).write(d / "big.fits")
     (d / "big.yaml").write_text(yaml.safe_dump({"exposures": specs, "catalog": "big.fits"}))
     return d / "big.yaml"

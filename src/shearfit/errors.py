@@ -35,6 +35,7 @@ FITCLASS_TOO_LARGE = -4
 FITCLASS_CENTROID = -5
 FITCLASS_OFF_EXPOSURES = -6
 FITCLASS_BAD_INPUT = -7
+FITCLASS_MEMORY = -8
 
 FITCLASS_NAMES = {
     FITCLASS_GALAXY: "galaxy",
@@ -46,4 +47,5 @@ FITCLASS_NAMES = {
     FITCLASS_CENTROID: "centroid too far from the input position",
     FITCLASS_OFF_EXPOSURES: "off every exposure",
     FITCLASS_BAD_INPUT: "bad catalogue row (ra, dec or mag not finite, or dec outside [-90, 90])",
+    FITCLASS_MEMORY: "its fit would need more memory than max_object_memory_mb",
 }

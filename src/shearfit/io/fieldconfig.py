@@ -55,6 +55,12 @@ class PipelineConfig:
         128, "an object whose truncated model is too large for its stamp is cut and measured again on larger "
         "stamps (64, 96, 128, 192, 256 pixels) up to this side; fitclass -4 only beyond it (stamp_size: the "
         "paper's fixed stamp)", "sec. 3.6 (implementation)")
+    max_object_memory_mb: float = setting(
+        1024.0, "largest memory, MiB, one object's fit may need on one stamp size, estimated before the fit "
+        "from the stamp side, the exposures and their PSFs' FWHM (shearfit.pipeline.memory; an upper bound: "
+        "15 MiB for 7 exposures on 48-pixel stamps, 90 on 128-pixel ones, with 0.7-arcsec PSFs): an object "
+        "that would need more is not measured on that size (fitclass -8, weight 0) and the run goes on; "
+        "0: no limit", "implementation")
     isophote_nsigma: float = setting(
         2.0, "isophote level, in units of the smoothed pixel noise, that defines an object's extent for "
         "neighbour masking, blend detection and the centroid test", "sec. 3.6 (two-sigma isophote)")
@@ -127,6 +133,9 @@ class PipelineConfig:
             raise ShearfitValueError(f"setting min_exposures={self.min_exposures!r} must be at least 1")
         if self.deblend_min_pixels < 1:
             raise ShearfitValueError(f"setting deblend_min_pixels={self.deblend_min_pixels!r} must be at least 1")
+        if not self.max_object_memory_mb >= 0:
+            raise ShearfitValueError(f"setting max_object_memory_mb={self.max_object_memory_mb!r} must be a number "
+                                     f"of MiB, positive, or 0 for no limit")
         if self.chunk_size < 1:
             raise ShearfitValueError(f"setting chunk_size={self.chunk_size!r} must be at least 1")
 

@@ -41,8 +41,8 @@ from astropy.table import Table
 from ..version import __version__
 from ..workers import process_pool
 from ..files import atomic_path
-from ..errors import (FITCLASS_BAD_INPUT, FITCLASS_FEW_EXPOSURES, FITCLASS_FIT_FAILED, FITCLASS_OFF_EXPOSURES,
-                      FITCLASS_TOO_LARGE, ShearfitIOError, ShearfitValueError)
+from ..errors import (FITCLASS_BAD_INPUT, FITCLASS_FEW_EXPOSURES, FITCLASS_FIT_FAILED, FITCLASS_MEMORY,
+                      FITCLASS_OFF_EXPOSURES, FITCLASS_TOO_LARGE, ShearfitIOError, ShearfitValueError)
 from ..calib.calibrate import PAPER_ALPHA, PAPER_BETA, CalibrationModel, calibration_m, load_calibration
 from ..engine.measure import measure_object
 from ..engine.model import psf_moffat
@@ -53,6 +53,7 @@ from ..io.fits import (METACAL_QUANTITIES, attach_pixels, bad_rows, detached, em
 from ..io.psfinput import PSFExModel, psf_image_hdus, read_psf_fits
 from ..io.stamps import cut_stamp, locate_all
 from .blends import analyse_stamps
+from .memory import fit_memory_bytes
 from ..io.wcs import local_jacobian, pixel_to_sky
 from ..psf.build import (FieldFrame, TooFewStarsError, build_exposure_psf, is_psf_model_file, read_psf_model,
                          stellar_locus)
@@ -636,7 +637,9 @@ def stamp_ladder(pc) -> list:
 
 def _measure_one(hits, exposures, mag, cfg, pc, obj_id=0) -> dict:
     """One object's catalogue row: measured on stamps of ``stamp_size``, and again on larger ones while its
-    truncated model does not fit (sec. 3.6: a Fourier model wraps around a stamp smaller than it)."""
+    truncated model does not fit (sec. 3.6: a Fourier model wraps around a stamp smaller than it). A size
+    whose fit would need more than ``max_object_memory_mb`` is not measured: the object gets fitclass -8
+    there (also where a smaller stamp was too small), with ``stamp_size`` that size."""
     if not hits:
         return {"fitclass": FITCLASS_OFF_EXPOSURES}
     for size in stamp_ladder(pc):
@@ -645,6 +648,17 @@ def _measure_one(hits, exposures, mag, cfg, pc, obj_id=0) -> dict:
             break
     row.setdefault("stamp_size", size)
     return row
+
+
+_MIB = 2.0 ** 20
+
+
+def object_memory_bytes(cuts, size, cfg) -> float:
+    """The estimated memory of an object's fit on its stamps ``cuts`` of side ``size``
+    (:func:`shearfit.pipeline.memory.fit_memory_bytes`, each exposure's PSF FWHM from its adaptive moments)."""
+    fwhm = [np.nan if c["moments"] is None else 2.3548 * c["moments"][0] / c["k"] for c in cuts]
+    return fit_memory_bytes(size, len(cuts), cfg.fit, psf_fwhm=fwhm, psf_oversampling=[c["k"] for c in cuts],
+                            metacal=cfg.calibration == "metacal")
 
 
 def _measure_on_stamps(hits, exposures, mag, cfg, pc, obj_id, size) -> dict:
@@ -676,6 +690,13 @@ def _measure_on_stamps(hits, exposures, mag, cfg, pc, obj_id, size) -> dict:
                          moffat=epsf.moffat(c, ccd.image.shape) if k == 1 else None))
     if not cuts:
         return {"fitclass": FITCLASS_FEW_EXPOSURES, "n_exposures_used": 0, "stamp_size": 0}
+    if pc.max_object_memory_mb > 0:
+        need = object_memory_bytes(cuts, size, cfg)
+        if need > pc.max_object_memory_mb * _MIB:
+            log.info("object %s: its fit on %d-pixel stamps of %d exposures would need about %.0f MiB, more than "
+                     "max_object_memory_mb=%g; not measured (fitclass %d)", obj_id, size, len(cuts), need / _MIB,
+                     pc.max_object_memory_mb, FITCLASS_MEMORY)
+            return {"fitclass": FITCLASS_MEMORY, "n_exposures_used": 0, "weight": 0.0}
     flag = _isophote_analysis(cuts, pc)
     if flag != 0:
         return {"fitclass": flag, "n_exposures_used": 0}
