@@ -363,7 +363,7 @@ def test_joint_modes_with_other_data():
 def test_binned_modes_match_every_mode():
     """The modes summed in bins of log K^T C K (mode_bins_per_octave) give the sums of every mode to the
     order of the bins' width to the fourth (cubic interpolation), for models of several ellipticities and
-    sizes (the point source included) in one call, the DC mode and the alias fold included, with and
+    sizes (the point source included) in one call, the DC mode and the alias folds included, with and
     without a bulge size ratio; the estimate moves by far less than its error. The reference evaluates
     every mode on a u grid 20 times finer than the default: the bins' log table (7e-7) is closer to the
     profiles' transforms than the default u grid (3e-6), so the binned sums are too."""
@@ -392,9 +392,12 @@ def test_binned_modes_match_every_mode():
             errs[nb] = {f: np.max(np.abs(getattr(b, f) - getattr(truth, f))) / np.max(np.abs(getattr(truth, f)))
                         for f in fields}
         worst = {nb: max(e.values()) for nb, e in errs.items()}
-        assert worst[16] < 1e-5, worst
-        # fourth order in the width: 16 times per halving, less the tables' own interpolation
-        assert worst[4] / worst[8] > 4 and worst[8] / worst[16] > 8, worst
+        # (the fold groups' modes are binned too, their cross terms interpolated from the bins: the position
+        # gradient's sum, near zero at the centre, shows their error at 1.2e-5 of its largest value)
+        assert worst[16] < 2e-5, worst
+        # fourth order in the width: 16 times per halving, less the tables' own interpolation (from 4 to 8 per
+        # octave not yet: the alias modes' transforms are far from cubic over a quarter octave)
+        assert worst[4] / worst[8] > 3 and worst[8] / worst[16] > 8, worst
         # the quadratic sums, where the binning's error is smallest, show the log table's accuracy
         # (on the default u grid every mode's are 1.6e-6 - 2.5e-6 from the reference)
         assert max(errs[16][f] for f in ("ff", "gg", "fg")) < 3e-7, errs[16]
@@ -405,10 +408,9 @@ def test_binned_modes_match_every_mode():
 
 
 def test_mode_bins_do_not_depend_on_the_modes_order():
-    """Exposures whose Jacobians differ by a camera's distortion (1e-3) see one sky mode at near-equal K:
-    the binning orders the modes by K cells so that these follow each other, and the kernel sums runs of
-    modes with the same bins in registers. The bins are those of any other order of the modes (to rounding),
-    and the binned sums those of every mode to the binning's accuracy."""
+    """Exposures whose Jacobians differ by a camera's distortion (1e-3) see one sky mode at near-equal K, so
+    that many modes share their bins. The bins are those of any other order of the modes (to float32 rounding), and the
+    binned sums (the fold groups' cross terms included) are those of every mode to the binning's accuracy."""
     from shearfit.engine import likelihood
     from shearfit.engine.kernel import KERNEL
     from shearfit.engine.likelihood import _packed_bins, join_exposures, mode_bins, model_sums
@@ -422,7 +424,8 @@ def test_mode_bins_do_not_depend_on_the_modes_order():
     jac = [PIX * (np.eye(2) + rng.normal(0, 1e-3, (2, 2))) for _ in range(4)]
     obs = _observations(0.3, (0.2, 0.1), n_exp=4, jacobians=jac, noise=True, snr=60)
     jm = join_exposures([prepare_exposure(o, cfg) for o in obs], cfg.mode_chi2_tolerance)
-    b3, c8 = _packed_bins(jm)
+    b3, c8 = _packed_bins(jm)[:2]
+    assert jm.multi.size > 0                            # the fold groups' modes are binned too
     e1, e2 = rng.uniform(-0.7, 0.7, (2, 30))
     shape = np.ascontiguousarray(np.stack(shape_matrix(e1, e2), axis=1))
     ordered = KERNEL.make_bins(shape, b3, c8, 16)
@@ -430,13 +433,14 @@ def test_mode_bins_do_not_depend_on_the_modes_order():
     shuffled = KERNEL.make_bins(shape, np.ascontiguousarray(b3[perm]), np.ascontiguousarray(c8[perm]), 16)
     for a, b in zip(ordered[:2], shuffled[:2]):
         assert a == b                                   # the same bins for every ellipticity
+    # (the bins are summed in float32: another order rounds otherwise, at 1e-7 of the largest bin)
     ca, cb = np.frombuffer(ordered[2]), np.frombuffer(shuffled[2])
-    assert np.max(np.abs(ca - cb)) <= 1e-12 * np.max(np.abs(ca))
-    assert np.max(np.abs(np.frombuffer(ordered[3]) - np.frombuffer(shuffled[3]))) <= 1e-12 * np.max(np.abs(ca))
-    # the ordering gathers each sky mode's exposures: far fewer runs of one bin than modes
+    assert np.max(np.abs(ca - cb)) <= 1e-6 * np.max(np.abs(ca))
+    assert np.max(np.abs(np.frombuffer(ordered[3]) - np.frombuffer(shuffled[3]))) <= 1e-6 * np.max(np.abs(ca))
+    # many modes share their lowest bin with another mode
     kap = shape[:1] @ np.asarray(b3[:, :3], float).T
     x = np.floor(16 * np.log2(np.where(kap > 0, kap, 1.0)))[0]
-    assert 1 + np.count_nonzero(x[1:] != x[:-1]) < 0.5 * x.size
+    assert np.unique(x).size < 0.5 * x.size
     r = np.geomspace(0.05, 1.5, 6)
     E1, E2, R = np.repeat(e1, r.size), np.repeat(e2, r.size), np.tile(r, e1.size)
     every = model_sums(jm, E1, E2, R, fast_pair(), 0.8)

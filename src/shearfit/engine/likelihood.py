@@ -192,24 +192,35 @@ def _block_factors(A, sizes):
 
 
 def _packed_bins(jm):
-    """The modes alone on their sampled mode, compact for binning (cached): their basis [kx^2, 2 kx ky,
-    ky^2, 0] and their weights [lin0..lin5, q, 0], in float32 (the bins sum them in float64; 6e-8 relative
-    per mode is far below the binning's own error). They are ordered by cells of ``jm.k_cell`` in K, so that
-    near-equal wavevectors (one sky mode seen by exposures whose Jacobians differ by a camera's distortion)
-    follow each other: the binning kernel sums such runs in registers."""
+    """Every mode, compact for binning (cached): (b3, c8, pair_modes, pair_a, pair_b, pair_h).
+
+    b3: the basis [kx^2, 2 kx ky, ky^2, 0] and c8: the weights [lin0..lin5, q, 0] of every mode, in float32
+    (the bins sum them in float64; 6e-8 relative per mode is far below the binning's own error), the modes
+    alone on their sampled mode first, then the fold groups' (``jm.multi``), whose q is the diagonal of Re H.
+    The groups' cross terms are the pairs (a < b) of their modes with Re H_ab != 0: pair_h = 2 Re H_ab, and
+    pair_a, pair_b index pair_modes, the rows of b3 of the modes in a pair.
+    """
     cache = getattr(jm, "_bins32", None)
     if cache is None:
         packed, n_single = jm.packed()[:2]
-        rows = packed[:n_single]
-        if jm.k_cell > 0 and n_single > 1:
-            singles = jm.single_modes()             # the order of packed's single rows
-            kx, ky = jm.kx[singles], jm.ky[singles]
-            rows = rows[np.lexsort((np.rint(ky / jm.k_cell), np.rint(kx / jm.k_cell)))]
-        b3 = np.zeros((n_single, 4), np.float32)
-        b3[:, :3] = rows[:, :3]
-        c8 = np.zeros((n_single, 8), np.float32)
-        c8[:, :7] = rows[:, 3:10]
-        cache = jm._bins32 = (b3, c8)
+        n = packed.shape[0]
+        b3 = np.zeros((n, 4), np.float32)
+        b3[:, :3] = packed[:, :3]
+        c8 = np.zeros((n, 8), np.float32)
+        c8[:, :7] = packed[:, 3:10]
+        pa = pb = np.zeros(0, np.int64)
+        ph = np.zeros(0)
+        gsel = np.zeros(0, np.int64)
+        if jm.multi.size:
+            Hr = sparse.coo_matrix(sparse.csr_matrix(jm.H).real)
+            c8[n_single:, 6] = Hr.diagonal()
+            up = (Hr.row < Hr.col) & (Hr.data != 0)
+            rows, cols = Hr.row[up].astype(np.int64), Hr.col[up].astype(np.int64)
+            gsel, inv = np.unique(np.concatenate([rows, cols]), return_inverse=True)
+            pa, pb = np.ascontiguousarray(inv[:rows.size]), np.ascontiguousarray(inv[rows.size:])
+            ph = np.ascontiguousarray(2.0 * Hr.data[up])
+            gsel = np.ascontiguousarray(gsel + n_single, dtype=np.int64)
+        cache = jm._bins32 = (b3, c8, gsel, pa.astype(np.int64), pb.astype(np.int64), ph)
     return cache
 
 
@@ -539,13 +550,14 @@ class ModeBins:
 
 
 def mode_bins(jm: JointModes, e1, e2, bins_per_octave) -> ModeBins:
-    """Bin the modes alone on their sampled mode, for each ellipticity (e1[i], e2[i]), in K^T C K,
-    ``bins_per_octave`` bins per factor of 2, uniform in log K^T C K (each mode shared among four bins by
-    cubic interpolation). Models of any size at one of these
-    ellipticities then cost one evaluation per bin instead of per mode (:func:`model_sums`, ``bins``)."""
+    """Bin the modes for each ellipticity (e1[i], e2[i]), in K^T C K, ``bins_per_octave`` bins per factor of
+    2, uniform in log K^T C K (each mode shared among four bins by cubic interpolation). Models of any size
+    at one of these ellipticities then cost one evaluation per bin instead of per mode (:func:`model_sums`,
+    ``bins``); the fold groups' cross terms, one product per pair of modes, with the modes' transforms
+    interpolated from the bins' (see :func:`_packed_bins`)."""
     shape = np.ascontiguousarray(np.stack(shape_matrix(np.atleast_1d(np.asarray(e1, float)),
                                                        np.atleast_1d(np.asarray(e2, float))), axis=1))
-    b3, c8 = _packed_bins(jm)
+    b3, c8 = _packed_bins(jm)[:2]
     lo, offsets, columns, dc = KERNEL.make_bins(shape, b3, c8, int(bins_per_octave))
     return ModeBins(shape=shape, bins_per_octave=int(bins_per_octave), lo=lo, offsets=offsets, columns=columns,
                     dc=dc)
@@ -553,13 +565,12 @@ def mode_bins(jm: JointModes, e1, e2, bins_per_octave) -> ModeBins:
 
 def _model_sums_binned(jm, bins, e_index, r2, fast, ratio):
     out = np.empty((r2.size, 15))
-    packed, n_single, gsizes, granks, factors = jm.packed()
+    b3, _, gsel, pa, pb, ph = _packed_bins(jm)
     lt = fast.log_table(bins.bins_per_octave)
     KERNEL.binned_sums(bins.shape, np.ascontiguousarray(r2), np.ascontiguousarray(e_index, dtype=np.int64),
                          bins.lo, bins.offsets, bins.columns, bins.dc, bins.bins_per_octave, lt.rows[0], lt.rows[1],
                          lt.m, lt.n_col, lt.start, lt.per_octave, lt.low[0], lt.low[1], lt.zero[0], lt.zero[1],
-                         packed, fast.packed32, fast.C, 1.0 / fast.du, float(ratio) ** 2,
-                         n_single, gsizes, granks, factors, out)
+                         float(ratio) ** 2, np.ascontiguousarray(b3[gsel]), pa, pb, ph, out)
     return ModelSums.from_kernel(out)
 
 

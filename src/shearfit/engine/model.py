@@ -25,13 +25,13 @@ is exact.
 from __future__ import annotations
 
 import functools
-import hashlib
+from collections import OrderedDict
 
 from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy import fft as sfft
-from scipy import interpolate
+from scipy import special
 
 from ..config import FitConfig
 from ..errors import ShearfitValueError
@@ -126,13 +126,84 @@ def _rfft_weights(ny, nx):
     return w
 
 
+class ContentMemo:
+    """Results computed from an array (a PSF image that the objects of a CCD share, each object holding its
+    own copy), remembered by a fingerprint of the array (its shape, type and about 256 of its values) and
+    checked against a copy of its whole contents on every hit, so that an array that differs anywhere is
+    computed afresh: cheaper than hashing the contents, as safe. Least recently used entries go first beyond
+    ``max_bytes`` (copies and results) or ``max_entries``."""
+
+    def __init__(self, max_bytes, max_entries=4096):
+        self._d = OrderedDict()          # (fingerprint, serial) -> (copy, result, bytes)
+        self._by_fp = {}                 # fingerprint -> its keys in _d
+        self._serial = 0
+        self.max_bytes = max_bytes
+        self.max_entries = max_entries
+        self._nbytes = 0
+
+    def get(self, a, extra, make):
+        """``make()``'s result for array ``a`` and the hashable ``extra``, remembered."""
+        a = np.asarray(a)
+        flat = a.ravel()
+        fp = (a.shape, a.dtype.str, flat[::max(1, flat.size // 256)].tobytes(), extra)
+        for key in self._by_fp.get(fp, ()):
+            copy, value, _ = self._d[key]
+            if np.array_equal(copy, a):
+                self._d.move_to_end(key)
+                return value
+        value = make()
+        copy = np.array(a, copy=True)
+        size = copy.nbytes + sum(v.nbytes for v in (value if isinstance(value, tuple) else (value,))
+                                 if isinstance(v, np.ndarray))
+        self._serial += 1
+        key = (fp, self._serial)
+        self._d[key] = (copy, value, size)
+        self._by_fp.setdefault(fp, []).append(key)
+        self._nbytes += size
+        while (self._nbytes > self.max_bytes or len(self._d) > self.max_entries) and len(self._d) > 1:
+            old, (_, _, nb) = self._d.popitem(last=False)
+            self._nbytes -= nb
+            keys = self._by_fp[old[0]]
+            keys.remove(old)
+            if not keys:
+                del self._by_fp[old[0]]
+        return value
+
+    def __len__(self):
+        return len(self._d)
+
+    def values(self):
+        """The remembered results, least recently used first."""
+        return [v[1] for v in self._d.values()]
+
+    def clear(self):
+        self._d.clear()
+        self._by_fp.clear()
+        self._nbytes = 0
+
+
+#: _fine_modes_from_psf's results by the PSF image and the grid
+_FINE_PSF = ContentMemo(64 * 2 ** 20)
+
+
 def _fine_modes_from_psf(psf, s, ny, nx):
     """Fine wavevectors (rad per stamp pixel), PSF transform and coarse index.
 
     The PSF array is taken on a grid s times finer than the stamp, padded or
     cropped to (s ny, s nx); its DFT gives the PSF at wavevectors up to
-    s pi. Each fine mode folds onto the stamp's mode (m mod n).
+    s pi. Each fine mode folds onto the stamp's mode (m mod n). Remembered
+    (read-only arrays, :class:`ContentMemo`): the objects of a CCD with one
+    given PSF image share them (the same numbers as made afresh).
     """
+    def make():
+        got = _fine_modes_from_psf_made(psf, s, ny, nx)
+        for arr in got:
+            arr.setflags(write=False)
+        return got
+    return _FINE_PSF.get(psf, (int(s), int(ny), int(nx)), make)
+
+
+def _fine_modes_from_psf_made(psf, s, ny, nx):
     fy, fx = s * ny, s * nx
     p = _pad_center(psf, (fy, fx))
     P = np.fft.fft2(np.fft.ifftshift(p))
@@ -159,24 +230,15 @@ def _fit_moffat_rfft(Ps, ny, nx):
     return fit_moffat(Ps, 2 * np.pi * np.fft.fftfreq(ny), 2 * np.pi * np.fft.rfftfreq(nx))
 
 
-#: Moffats fitted to observations' own PSFs, by the PSF's bytes and the grid (see _own_moffat)
-_OWN_MOFFAT: dict = {}
-_OWN_MOFFAT_SIZE = 512
+#: Moffats fitted to observations' own PSFs (see _own_moffat)
+_OWN_MOFFAT = ContentMemo(16 * 2 ** 20, max_entries=512)
 
 
 def _own_moffat(psf, Ps, ny, nx):
-    """fit_moffat of a PSF without a given Moffat, remembered by the PSF's contents: objects handed the
-    same PSF image (a constant PSF per exposure, as in the GREAT challenges) fit it once and share its
-    alias tables. The same fit, bit for bit, as without the memory."""
-    a = np.ascontiguousarray(psf)
-    key = (a.shape, a.dtype.str, ny, nx, hashlib.blake2b(a.view(np.uint8), digest_size=16).digest())
-    got = _OWN_MOFFAT.get(key)
-    if got is None:
-        got = _fit_moffat_rfft(Ps, ny, nx)
-        if len(_OWN_MOFFAT) >= _OWN_MOFFAT_SIZE:
-            _OWN_MOFFAT.clear()
-        _OWN_MOFFAT[key] = got
-    return got
+    """fit_moffat of a PSF without a given Moffat, remembered by the PSF image (:class:`ContentMemo`):
+    objects handed the same PSF image (a constant PSF per exposure, as in the GREAT challenges) fit it once
+    and share its alias tables. The same fit, bit for bit, as without the memory."""
+    return _OWN_MOFFAT.get(psf, (ny, nx), lambda: _fit_moffat_rfft(Ps, ny, nx))
 
 
 #: aliases of the stamp's modes the Moffat is summed over, each way (beyond +-2 it is below 1e-8)
@@ -226,12 +288,12 @@ def _alias_geometry(ny, nx, s):
 def _moffat_table(k, rs, beta, x_exact=4.0, x_step=0.2, floor=1e-30):
     """moffat_ft on a uniform grid k, set to zero where it falls below ``floor``.
 
-    Exact up to x = k rs = ``x_exact``; beyond, a cubic spline of its
-    logarithm through exact nodes ``x_step`` apart (within 1e-7 of the exact
-    values: the logarithm of this exponentially falling function is smooth
-    there, where the transform itself has a cusp at x = 0 for beta < 3). The
-    transform decreases monotonically (its derivative is -c x^nu K_(nu-1)(x)),
-    so it is zero beyond the last node above the floor.
+    Exact up to x = k rs = ``x_exact``; beyond, the cubic Hermite interpolant of its logarithm through exact
+    nodes ``x_step`` apart, with the exact slopes d log f / dx = -K_(nu-1)(x) / K_nu(x) there (within 1e-7
+    of the exact values, as the not-a-knot spline it replaces, whose construction cost half the table: the
+    logarithm of this exponentially falling function is smooth there, where the transform itself has a cusp
+    at x = 0 for beta < 3). The transform decreases monotonically (its derivative is -c x^nu K_(nu-1)(x)), so
+    it is zero beyond the last node above the floor.
     """
     n = k.size
     dx = (k[1] - k[0]) * rs
@@ -246,7 +308,18 @@ def _moffat_table(k, rs, beta, x_exact=4.0, x_step=0.2, floor=1e-30):
             out[:j] = moffat_ft(k[:j], rs, beta)
             nodes, v = nodes[:m], v[:m]
             last = nodes[-1] + 1
-            out[j:last] = np.exp(interpolate.CubicSpline(k[nodes], np.log(v))(k[j:last]))
+            nu = beta - 1.0
+            xn = k[nodes] * rs
+            slope = -rs * special.kv(nu - 1.0, xn) / special.kv(nu, xn)   # d log f / dk at the nodes
+            lv = np.log(v)
+            idx = np.arange(j, last)
+            seg = np.minimum(np.searchsorted(nodes, idx, side="right") - 1, m - 2)
+            k0, k1 = k[nodes[seg]], k[nodes[seg + 1]]
+            h = k1 - k0
+            t = (k[idx] - k0) / h
+            t2, t3 = t * t, t * t * t
+            out[j:last] = np.exp((2 * t3 - 3 * t2 + 1) * lv[seg] + (t3 - 2 * t2 + t) * h * slope[seg]
+                                 + (-2 * t3 + 3 * t2) * lv[seg + 1] + (t3 - t2) * h * slope[seg + 1])
             out[nodes] = v
             return out
     out = moffat_ft(k, rs, beta)

@@ -8,6 +8,8 @@ that fit; the alias correction that uses them is in :mod:`.model`.
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 from scipy import special
 
@@ -75,10 +77,7 @@ def fit_moffat(psf_ft_coarse, ky, kx, max_iter=100, ftol=1e-10, xtol=1e-8):
     vr = (np.bincount(idx, weights=np.abs(psf_ft_coarse)[sel] / pix[sel], minlength=edges.size)[1:]
           / np.maximum(count, 1))[used]
 
-    # starting size from the half-power wavenumber of a Gaussian of similar width
-    khalf = kr[np.argmin(np.abs(vr - 0.5))] if np.any(vr < 0.5) else 0.5
-    p = _levenberg_marquardt(kr, vr, np.array([np.log(1.2 / khalf), np.log(2.0)]), (True, True),
-                             max_iter, ftol, xtol)
+    p = _levenberg_marquardt(kr, vr, _start(kr, vr), (True, True), max_iter, ftol, xtol)
     lb = float(np.clip(p[1], np.log(0.2), np.log(20.0)))
     if lb != p[1]:
         # beta at a bound (a PSF without Moffat wings, e.g. a Gaussian: beta -> infinity): the size refitted
@@ -86,6 +85,38 @@ def fit_moffat(psf_ft_coarse, ky, kx, max_iter=100, ftol=1e-10, xtol=1e-8):
         p = _levenberg_marquardt(kr, vr, np.array([p[0], lb]), (True, False), max_iter, ftol, xtol)
     lrs = float(np.clip(p[0], np.log(0.05), np.log(50.0)))
     return float(np.exp(lrs)), float(1.0 + np.exp(lb))
+
+
+@functools.lru_cache(maxsize=1)
+def _start_table():
+    """Where the Moffat's transform falls to 0.5 and to 0.15, x50 and x15 in x = k rs, against nu = beta - 1
+    (0.2 to 20): their ratio falls monotonically with nu (from 5.2 to 1.7), so the ratio of the two
+    wavenumbers where a PSF's transform falls to those levels gives nu, and k50 then rs."""
+    nus = np.geomspace(0.2, 20.0, 48)
+    x = np.geomspace(1e-3, 80.0, 4000)
+    x50, x15 = [], []
+    for nu in nus:
+        f = moffat_ft_x(x, nu)[::-1]
+        x50.append(np.interp(0.5, f, x[::-1]))
+        x15.append(np.interp(0.15, f, x[::-1]))
+    x50, x15 = np.array(x50), np.array(x15)
+    return nus, x50, x15 / x50
+
+
+def _start(kr, vr):
+    """The LM's starting (log rs, log nu): from the wavenumbers where the ring averages fall to 0.5 and 0.15
+    (:func:`_start_table`), which puts it within a few steps of the fit; where they do not fall that far
+    within the band, from the half-power wavenumber of a Gaussian of similar width, with nu = 2."""
+    v = np.minimum.accumulate(vr)                 # falling, for the crossings
+    if v.size >= 3 and v[0] > 0.5 and v[-1] < 0.15 and np.all(np.isfinite(v)):
+        k50 = float(np.interp(0.5, v[::-1], kr[::-1]))
+        k15 = float(np.interp(0.15, v[::-1], kr[::-1]))
+        nus, x50, ratio = _start_table()
+        if k50 > 0 and k15 > k50:
+            nu = float(np.interp(k15 / k50, ratio[::-1], nus[::-1]))
+            return np.array([np.log(float(np.interp(nu, nus, x50)) / k50), np.log(nu)])
+    khalf = kr[np.argmin(np.abs(vr - 0.5))] if np.any(vr < 0.5) else 0.5
+    return np.array([np.log(1.2 / khalf), np.log(2.0)])
 
 
 def _levenberg_marquardt(kr, vr, p, free, max_iter, ftol, xtol):
@@ -113,6 +144,8 @@ def _levenberg_marquardt(kr, vr, p, free, max_iter, ftol, xtol):
             break
         q = p.copy()
         q[free] += np.clip(step, -2.0, 2.0)
+        if np.all(np.abs(q - p) <= xtol * (np.abs(p) + xtol)):
+            break   # the step has shrunk below the tolerance: at the minimum to within it
         rq, cq, Jq = evaluate(q)
         if np.isfinite(cq) and cq <= cost:
             converged = (cost - cq <= ftol * cost

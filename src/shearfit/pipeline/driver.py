@@ -45,7 +45,7 @@ from ..errors import (FITCLASS_BAD_INPUT, FITCLASS_FEW_EXPOSURES, FITCLASS_FIT_F
                       FITCLASS_OFF_EXPOSURES, FITCLASS_TOO_LARGE, ShearfitIOError, ShearfitValueError)
 from ..calib.calibrate import PAPER_ALPHA, PAPER_BETA, CalibrationModel, calibration_m, load_calibration
 from ..engine.measure import measure_object
-from ..engine.model import psf_moffat
+from ..engine.model import ContentMemo, psf_moffat
 from ..observation import Observation
 from ..io.fieldconfig import CALIBRATION_MODES, FieldConfig
 from ..io.fits import (METACAL_QUANTITIES, attach_pixels, bad_rows, detached, empty_output_table, provenance_cards,
@@ -62,15 +62,22 @@ log = logging.getLogger(__name__)
 
 __all__ = ["measure_field", "calibration_m", "psf_ellipticity"]
 
+#: psf_moments' results by the PSF image (the objects of a CCD with one given PSF image share them)
+_PSF_MOMENTS = ContentMemo(32 * 2 ** 20)
+
+
 def psf_moments(psf):
-    """Adaptive moments of a PSF image: (sigma in array pixels, reduced shear (g1, g2)), or None if HSM fails."""
+    """Adaptive moments of a PSF image: (sigma in array pixels, reduced shear (g1, g2)), or None if HSM fails.
+    Remembered by the image (:class:`shearfit.engine.model.ContentMemo`)."""
     import galsim
 
-    try:
-        mom = galsim.hsm.FindAdaptiveMom(galsim.Image(np.ascontiguousarray(psf, dtype=np.float64), scale=1.0))
-    except Exception:   # noqa: BLE001 - HSM fails on pathological images
-        return None
-    return mom.moments_sigma, (mom.observed_shape.g1, mom.observed_shape.g2)
+    def make():
+        try:
+            mom = galsim.hsm.FindAdaptiveMom(galsim.Image(np.ascontiguousarray(psf, dtype=np.float64), scale=1.0))
+        except Exception:   # noqa: BLE001 - HSM fails on pathological images
+            return None
+        return mom.moments_sigma, (mom.observed_shape.g1, mom.observed_shape.g2)
+    return _PSF_MOMENTS.get(psf, (), make)
 
 
 def psf_ellipticity(psf, jacobian, oversampling=1, moments=None):

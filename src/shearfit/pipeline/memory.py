@@ -25,8 +25,9 @@ took per mode kept by the PSF cut (the bright ones, whose noise-aware cut keeps 
 bounds the modes Moffat PSFs with beta 2.5 to 4.5 and up to 1 arcsec FWHM keep (20-36 / w^2 per sampled
 mode); PSFs with heavier wings keep more (beta 2: up to 46 / w^2, beta 1.5: up to 61 / w^2), which the
 margin of the bytes per mode (450 against the 170-300 of most fits) covers. ``benchmarks/memory.py``
-prints the estimate beside the measured peaks (tracemalloc and RSS, each case in a fresh process): 1.4
-to 2.6 times them for 7 exposures on stamps of 48-128 pixels, the largest galaxies and a sharp PSF (the
+prints the estimate beside the measured peaks (tracemalloc and RSS, each case in a fresh process): 1.25
+to 2.6 times them (the engine of 2026-11-25, whose fold groups are binned) for 7 exposures on stamps of
+48-128 pixels, the largest galaxies and a sharp PSF (the
 loosest for faint galaxies, whose noise-aware cut drops two thirds of the modes). A change of the engine that holds more
 per mode (per ellipticity and fold-group mode, say) needs these coefficients measured again.
 """
