@@ -44,7 +44,9 @@ import yaml
 from astropy.io import fits
 from astropy.table import Table
 
+from shearfit.config import FitConfig
 from shearfit.engine import priors
+from shearfit.engine.sampling import lensing_weight
 from shearfit.app.cli import main as shearfit_main
 from shearfit.calib.bias import ring_sums, shear_bias
 from shearfit.simulate.stamps import galaxy_profile
@@ -104,6 +106,26 @@ def star_positions(args, rng):
     return np.array(out)
 
 
+def draw(prof, n, pos, args):
+    """``prof`` (in the pixel frame, without the pixel response) on an n x n stamp of unit pixels whose centre
+    is nearest ``pos``: GalSim's drawImage (method "auto": its FFT holds the modes up to the pixels' Nyquist
+    frequency or its maxk and drops those above instead of folding them), or with ``--sampled-rendering F``
+    the pixel-convolved profile's values at the pixel centres, from a drawing F times finer of which every
+    F-th pixel is kept: the sampling folds every mode up to F pi, as a detector's pixels do."""
+    if not args.sampled_rendering:
+        return prof.drawImage(nx=n, ny=n, scale=1.0, center=pos, method="auto")
+    F = args.sampled_rendering
+    ix, iy = int(np.floor(pos.x + 0.5)), int(np.floor(pos.y + 0.5))
+    out = galsim.ImageD(galsim.BoundsI(ix - n // 2, ix - n // 2 + n - 1, iy - n // 2, iy - n // 2 + n - 1), scale=1.0)
+    # fine pixel F i sits at native pixel xmin + i: the profile's centre at fine index F (pos - xmin)
+    ox, oy = F * (pos.x - out.bounds.xmin) - F * (n // 2), F * (pos.y - out.bounds.ymin) - F * (n // 2)
+    fine = galsim.Convolve(prof, galsim.Pixel(1.0), gsparams=args.gsparams).drawImage(
+        nx=n * F, ny=n * F, scale=1.0 / F, method="no_pixel", offset=(ox, oy), use_true_center=False,
+        dtype=np.float64).array
+    out.array[:] = fine[::F, ::F] * F * F
+    return out
+
+
 def make_field(d, sign, args, gals, psfs, sigma, stars=None, with_psf=True, wcs_mode="plain", psf_settings=None):
     g = sign * np.array(args.shear)
     specs = []
@@ -128,7 +150,7 @@ def make_field(d, sign, args, gals, psfs, sigma, stars=None, with_psf=True, wcs_
                 prof = galaxy_profile(gal["r"], gal["B"], gal["e1"], gal["e2"], flux=gal["flux"], g1=g[0], g2=g[1],
                                       is_bulge=gal["is_bulge"], gsparams=args.gsparams)
                 conv = galsim.Convolve(local.toImage(prof), psfs[k][c], gsparams=args.gsparams)
-                stamp = conv.drawImage(nx=64, ny=64, scale=1.0, center=pos, method="auto")
+                stamp = draw(conv, 64, pos, args)
                 b = stamp.bounds & img.bounds
                 img[b] += stamp[b]
             if stars is not None:
@@ -140,8 +162,7 @@ def make_field(d, sign, args, gals, psfs, sigma, stars=None, with_psf=True, wcs_
                     pos = wcs.toImage(coord)
                     if not (8 < pos.x < NPIX - 8 and 8 < pos.y < NPIX - 8):
                         continue
-                    st = psfs[k][c].withFlux(snr * sigma / np.sqrt(pow_psf)).drawImage(
-                        nx=40, ny=40, scale=1.0, center=pos, method="auto")
+                    st = draw(psfs[k][c].withFlux(snr * sigma / np.sqrt(pow_psf)), 40, pos, args)
                     b = st.bounds & img.bounds
                     img[b] += st[b]
             noise = rng_noise.normal(0.0, sigma, (NPIX, NPIX))
@@ -149,7 +170,9 @@ def make_field(d, sign, args, gals, psfs, sigma, stars=None, with_psf=True, wcs_
             hdus.append(fits.ImageHDU(data, header=h))
             whdus.append(fits.ImageHDU(np.full((NPIX, NPIX), 1 / sigma ** 2, dtype=np.float32), header=h))
             os_k = args.true_psf_oversampling
-            if os_k == 1:
+            if os_k == 1 and args.sampled_rendering:
+                pim = draw(psfs[k][c], 48, galsim.PositionD(24.0, 24.0), args).array   # centre at index 24
+            elif os_k == 1:
                 pim = psfs[k][c].drawImage(nx=48, ny=48, scale=1.0, method="auto", use_true_center=False).array
             else:
                 # the pixel-convolved PSF sampled every 1/k pixel (docs/interface.rst: header OVERSAMP = k)
@@ -190,6 +213,7 @@ def main(argv=None):
     ap.add_argument("--snr-min", type=float, default=100.0)
     ap.add_argument("--snr-max", type=float, default=200.0)
     ap.add_argument("--min-size", type=float, default=0.0, help="smallest scalelength drawn, arcsec")
+    ap.add_argument("--max-size", type=float, default=np.inf, help="largest scalelength drawn, arcsec")
     ap.add_argument("--max-extent", type=float, default=20.0, metavar="PIX",
                     help="largest truncated model drawn, 4.5 scalelengths in pixels (default 20: every model fits "
                          "the 48-pixel stamp; raise it with --spacing to measure large galaxies on grown stamps)")
@@ -207,6 +231,10 @@ def main(argv=None):
                     help="range of the stars' integrated SNR per exposure (log-uniform)")
     ap.add_argument("--accurate-rendering", action="store_true",
                     help="GalSim folding_threshold 1e-3, maxk_threshold 1e-4 (defaults 5e-3, 1e-3)")
+    ap.add_argument("--sampled-rendering", type=int, default=0, metavar="F",
+                    help="draw galaxies, stars and native PSF images as the pixel-convolved profiles' values at "
+                         "the pixel centres, from a drawing F times finer (the sampling folds the modes above "
+                         "Nyquist, which GalSim's drawImage at the pixel scale drops); 0: drawImage")
     ap.add_argument("--psf-e-max", type=float, default=0.07,
                     help="PSF ellipticity components drawn uniformly in +-this per exposure (0: round PSFs)")
     ap.add_argument("--psf-fwhm", type=float, nargs=2, default=[0.5, 0.8], help="range of PSF FWHM, arcsec")
@@ -254,7 +282,8 @@ def main(argv=None):
     while len(gals) < 4 * args.n_galaxies:
         p = priors.sample_population(np.array([pop_mags[k % pop_mags.size]]), rng)[0]
         k += 1
-        if p["scalelength"] < args.min_size or 4.5 * p["scalelength"] / PIX > args.max_extent:
+        if (p["scalelength"] < args.min_size or p["scalelength"] > args.max_size
+                or 4.5 * p["scalelength"] / PIX > args.max_extent):
             continue
         snr = rng.uniform(args.snr_min, args.snr_max)
         e = complex(p["e1"], p["e2"])
@@ -337,11 +366,11 @@ def main(argv=None):
 
 
 def _rows(tables, gals):
-    rows = {k: [] for k in ("galaxy", "sign", "e1", "e2", "weight", "fitclass")}
+    rows = {k: [] for k in ("galaxy", "sign", "e1", "e2", "e_var", "weight", "fitclass")}
     for sign, t in tables.items():
         for gal, row in zip(gals, t):
             for key, val in (("galaxy", gal["ring"]), ("sign", sign), ("e1", row["e1"]), ("e2", row["e2"]),
-                             ("weight", row["weight"]), ("fitclass", row["fitclass"])):
+                             ("e_var", row["e_var"]), ("weight", row["weight"]), ("fitclass", row["fitclass"])):
                 rows[key].append(val)
     return {k: np.array(v) for k, v in rows.items()}
 
@@ -368,6 +397,15 @@ def report(tables, gals, args, name, wcs_mode):
     print(f"  m1 = {est[0]:+.5f} +/- {err[0]:.5f}    c1 = {est[2]:+.6f} +/- {err[2]:.6f}")
     print(f"  m2 = {est[1]:+.5f} +/- {err[1]:.5f}    c2 = {est[3]:+.6f} +/- {err[3]:.6f}")
     print("  fitclass: " + ", ".join(f"{int((fc == v).sum())} x {v}" for v in np.unique(fc)))
+    if np.any(fc == 1):
+        # the star/galaxy test selects on shape (an elongated small galaxy beats a point source by more), and
+        # so on the shear: the same objects with those classified as stars kept, at the weight of their e_var
+        star = fc == 1
+        kept = dict(tab, fitclass=np.where(star, 0, fc),
+                    weight=np.where(star, lensing_weight(tab["e_var"], FitConfig()), tab["weight"]))
+        est_s, err_s = shear_bias(ring_sums(kept, args.n_galaxies), np.array(args.shear), 500, np.random.default_rng(0))
+        print(f"  without the star/galaxy selection ({int(star.sum())} objects classified as stars kept): "
+              f"m1 = {est_s[0]:+.5f} +/- {err_s[0]:.5f}, m2 = {est_s[1]:+.5f} +/- {err_s[1]:.5f}")
     subsets = size_subsets(gals, args)
     if subsets:
         sums = ring_sums(tab, args.n_galaxies)
