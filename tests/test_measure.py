@@ -306,9 +306,11 @@ def test_drop_threshold_is_the_sorted_sums_one():
 def test_prepare_exposures_is_prepare_exposure_of_each():
     """The batched preparation (the stamps' and PSFs' transforms in one call per shape) gives every
     observation's ExposureModes bit for bit, with and without the modes of another version (like=), for
-    stamps of two shapes and a PSF oversampled."""
+    stamps of two shapes and a PSF oversampled; the App. A Moffats of the native PSFs fitted as one batch are
+    those fitted one by one."""
     from dataclasses import fields
 
+    from shearfit.engine import model
     from shearfit.engine.model import prepare_exposure, prepare_exposures
 
     cfg = shearfit.FitConfig()
@@ -324,8 +326,11 @@ def test_prepare_exposures_is_prepare_exposure_of_each():
             x, y = getattr(a, f.name), getattr(b, f.name)
             assert (np.array_equal(x, y) if isinstance(x, np.ndarray) else x == y), f.name
 
-    one = [prepare_exposure(o, cfg) for o in obs]
-    for a, b in zip(prepare_exposures(obs, cfg), one):
+    model._OWN_MOFFAT.clear()
+    batched = prepare_exposures(obs, cfg)          # the exposures' own Moffats fitted in one batch
+    model._OWN_MOFFAT.clear()
+    one = [prepare_exposure(o, cfg) for o in obs]  # one by one
+    for a, b in zip(batched, one):
         same(a, b)
     others = _observations(0.5, (-0.1, 0.3), n_exp=len(obs), noise=True, snr=40, seed=4)
     again = [shearfit.Observation(image=x.image[:o.shape[0], :o.shape[1]], weight=o.weight, psf=o.psf,

@@ -36,7 +36,7 @@ from scipy import special
 from ..config import FitConfig
 from ..errors import ShearfitValueError
 from ..observation import Observation
-from .moffat import fit_moffat, moffat_ft
+from .moffat import fit_moffat, fit_moffats, moffat_ft
 
 __all__ = ["ExposureModes", "prepare_exposure", "prepare_exposures", "shape_matrix", "render_object"]
 
@@ -141,17 +141,26 @@ class ContentMemo:
         self.max_entries = max_entries
         self._nbytes = 0
 
-    def get(self, a, extra, make):
-        """``make()``'s result for array ``a`` and the hashable ``extra``, remembered."""
-        a = np.asarray(a)
+    _MISSING = object()
+
+    def _fingerprint(self, a, extra):
         flat = a.ravel()
-        fp = (a.shape, a.dtype.str, flat[::max(1, flat.size // 256)].tobytes(), extra)
-        for key in self._by_fp.get(fp, ()):
+        return a.shape, a.dtype.str, flat[::max(1, flat.size // 256)].tobytes(), extra
+
+    def peek(self, a, extra, default=None):
+        """The result remembered for array ``a`` and ``extra``, or ``default``."""
+        a = np.asarray(a)
+        for key in self._by_fp.get(self._fingerprint(a, extra), ()):
             copy, value, _ = self._d[key]
             if np.array_equal(copy, a):
                 self._d.move_to_end(key)
                 return value
-        value = make()
+        return default
+
+    def put(self, a, extra, value):
+        """Remember ``value`` for array ``a`` and ``extra`` (a copy of ``a`` is kept to check later hits)."""
+        a = np.asarray(a)
+        fp = self._fingerprint(a, extra)
         copy = np.array(a, copy=True)
         size = copy.nbytes + sum(v.nbytes for v in (value if isinstance(value, tuple) else (value,))
                                  if isinstance(v, np.ndarray))
@@ -168,6 +177,11 @@ class ContentMemo:
             if not keys:
                 del self._by_fp[old[0]]
         return value
+
+    def get(self, a, extra, make):
+        """``make()``'s result for array ``a`` and the hashable ``extra``, remembered."""
+        got = self.peek(a, extra, self._MISSING)
+        return self.put(a, extra, make()) if got is self._MISSING else got
 
     def __len__(self):
         return len(self._d)
@@ -449,6 +463,14 @@ def prepare_exposures(observations, cfg: FitConfig, likes=None) -> list:
             P = _centred_rfft2(np.stack([_pad_center(observations[i].psf, (ny, nx)) for i in native]))
             for i, Ps in zip(native, P):
                 pre[i]["Ps"] = Ps
+            # the App. A Moffats the exposures' own PSFs need, fitted in one batch (fit_moffats)
+            need = [i for i in native if observations[i].psf_moffat is None
+                    and _OWN_MOFFAT.peek(observations[i].psf, (ny, nx)) is None]
+            if len(need) >= 2:
+                fits = fit_moffats([pre[i]["Ps"] for i in need], 2 * np.pi * np.fft.fftfreq(ny),
+                                   2 * np.pi * np.fft.rfftfreq(nx))
+                for i, fit in zip(need, fits):
+                    _OWN_MOFFAT.put(observations[i].psf, (ny, nx), fit)
     return [prepare_exposure(o, cfg, like=lk, _pre=p) for o, lk, p in zip(observations, likes, pre)]
 
 

@@ -13,7 +13,7 @@ import functools
 import numpy as np
 from scipy import special
 
-__all__ = ["moffat_norm", "moffat_ft_x", "moffat_ft", "moffat_ft_dlogs", "fit_moffat"]
+__all__ = ["moffat_norm", "moffat_ft_x", "moffat_ft", "moffat_ft_dlogs", "fit_moffat", "fit_moffats"]
 
 
 def moffat_norm(nu):
@@ -64,6 +64,13 @@ def fit_moffat(psf_ft_coarse, ky, kx, max_iter=100, ftol=1e-10, xtol=1e-8):
 
     Returns (rs, beta) in pixels.
     """
+    return fit_moffats([psf_ft_coarse], ky, kx, max_iter, ftol, xtol)[0]
+
+
+def fit_moffats(psf_fts, ky, kx, max_iter=100, ftol=1e-10, xtol=1e-8):
+    """:func:`fit_moffat` of several PSFs' transforms on one grid, as one batch (the Levenberg-Marquardt
+    iterations of all of them in the same array operations: an object's exposures' PSFs cost little more than
+    one). Every fit is the same, number for number, whatever the batch it is in. Returns [(rs, beta), ...]."""
     kk = np.hypot(ky[:, None], kx[None, :])
     pix = np.sinc(ky[:, None] / (2 * np.pi)) * np.sinc(kx[None, :] / (2 * np.pi))
     sel = (kk > 0) & (kk < 0.7 * np.pi)
@@ -74,17 +81,20 @@ def fit_moffat(psf_ft_coarse, ky, kx, max_iter=100, ftol=1e-10, xtol=1e-8):
     count = np.bincount(idx, minlength=edges.size)[1:]
     used = count > 0
     kr = (np.bincount(idx, weights=ks, minlength=edges.size)[1:] / np.maximum(count, 1))[used]
-    vr = (np.bincount(idx, weights=np.abs(psf_ft_coarse)[sel] / pix[sel], minlength=edges.size)[1:]
-          / np.maximum(count, 1))[used]
-
-    p = _levenberg_marquardt(kr, vr, _start(kr, vr), (True, True), max_iter, ftol, xtol)
-    lb = float(np.clip(p[1], np.log(0.2), np.log(20.0)))
-    if lb != p[1]:
-        # beta at a bound (a PSF without Moffat wings, e.g. a Gaussian: beta -> infinity): the size refitted
-        # for the bound, so that the pair still matches the PSF's width
-        p = _levenberg_marquardt(kr, vr, np.array([p[0], lb]), (True, False), max_iter, ftol, xtol)
-    lrs = float(np.clip(p[0], np.log(0.05), np.log(50.0)))
-    return float(np.exp(lrs)), float(1.0 + np.exp(lb))
+    VR = np.array([(np.bincount(idx, weights=np.abs(ft)[sel] / pix[sel], minlength=edges.size)[1:]
+                    / np.maximum(count, 1))[used] for ft in psf_fts]).reshape(len(psf_fts), kr.size)
+    P = _levenberg_marquardt(kr, VR, np.array([_start(kr, vr) for vr in VR]).reshape(-1, 2), (True, True),
+                             max_iter, ftol, xtol)
+    out = []
+    for vr, p in zip(VR, P):
+        lb = float(np.clip(p[1], np.log(0.2), np.log(20.0)))
+        if lb != p[1]:
+            # beta at a bound (a PSF without Moffat wings, e.g. a Gaussian: beta -> infinity): the size refitted
+            # for the bound, so that the pair still matches the PSF's width
+            p = _levenberg_marquardt(kr, vr[None], np.array([[p[0], lb]]), (True, False), max_iter, ftol, xtol)[0]
+        lrs = float(np.clip(p[0], np.log(0.05), np.log(50.0)))
+        out.append((float(np.exp(lrs)), float(1.0 + np.exp(lb))))
+    return out
 
 
 @functools.lru_cache(maxsize=1)
@@ -119,43 +129,65 @@ def _start(kr, vr):
     return np.array([np.log(1.2 / khalf), np.log(2.0)])
 
 
-def _levenberg_marquardt(kr, vr, p, free, max_iter, ftol, xtol):
-    """Least squares of the Moffat transform at kr against vr in p = (log rs, log(beta - 1)), the
-    parameters marked ``free`` varied (the others held)."""
+def _levenberg_marquardt(kr, VR, P, free, max_iter, ftol, xtol):
+    """Least squares of the Moffat transform at kr against each row of VR in p = (log rs, log(beta - 1)) (the
+    rows of P, the parameters marked ``free`` varied, the others held), every row its own Levenberg-Marquardt
+    (its own damping, steps and stop) in one set of array operations. Returns the fitted P."""
     free = np.asarray(free)
-    lam = 1e-3
+    P = np.array(P, dtype=float)
+    m = P.shape[0]
+    lam = np.full(m, 1e-3)
 
-    def evaluate(q):
+    def evaluate(Q):
         # a trial step can reach orders where gamma and x^nu overflow: its cost is then not finite and the
         # step is refused
         with np.errstate(over="ignore", invalid="ignore"):
-            f0, d_rs, d_nu = moffat_ft_dlogs(kr * np.exp(q[0]), np.exp(q[1]))
-        r = f0 - vr
-        return r, float(r @ r), np.stack([d_rs, d_nu], axis=1)[:, free]
+            f0, d_rs, d_nu = moffat_ft_dlogs(kr[None, :] * np.exp(Q[:, :1]), np.exp(Q[:, 1:]))
+        r = f0 - VR[rows]
+        return r, np.einsum("ij,ij->i", r, r), np.stack([d_rs, d_nu], axis=2)[:, :, free]
 
-    r, cost, J = evaluate(p)
+    rows = np.arange(m)
+    R, cost, J = evaluate(P)
+    active = np.ones(m, bool)
     for _ in range(max_iter):
-        JtJ = J.T @ J
-        g = J.T @ r
-        A = JtJ + lam * np.diag(np.diag(JtJ) + 1e-30)
-        try:
-            step = -np.linalg.solve(A, g)
-        except np.linalg.LinAlgError:
+        rows = np.nonzero(active)[0]
+        if rows.size == 0:
             break
-        q = p.copy()
-        q[free] += np.clip(step, -2.0, 2.0)
-        if np.all(np.abs(q - p) <= xtol * (np.abs(p) + xtol)):
-            break   # the step has shrunk below the tolerance: at the minimum to within it
-        rq, cq, Jq = evaluate(q)
-        if np.isfinite(cq) and cq <= cost:
-            converged = (cost - cq <= ftol * cost
-                         or np.all(np.abs(q - p) <= xtol * (np.abs(p) + xtol)))
-            p, r, cost, J = q, rq, cq, Jq
-            lam = max(lam / 3.0, 1e-12)
-            if converged:
-                break
-        else:
-            lam *= 4.0
-            if lam > 1e12:
-                break
-    return p
+        Ja, Ra = J[rows], R[rows]
+        JtJ = np.einsum("mki,mkj->mij", Ja, Ja)
+        g = np.einsum("mki,mk->mi", Ja, Ra)
+        d = np.einsum("mii->mi", JtJ)
+        A = JtJ + (lam[rows, None] * (d + 1e-30))[:, :, None] * np.eye(d.shape[1])[None]
+        try:
+            step = -np.linalg.solve(A, g[:, :, None])[:, :, 0]
+        except np.linalg.LinAlgError:
+            step = _safe_solve(A, g)
+        bad = ~np.all(np.isfinite(step), axis=1)
+        Q = P[rows].copy()
+        Q[:, free] += np.clip(np.where(bad[:, None], 0.0, step), -2.0, 2.0)
+        tiny = np.all(np.abs(Q - P[rows]) <= xtol * (np.abs(P[rows]) + xtol), axis=1)
+        active[rows[bad | tiny]] = False   # a singular system, or a step shrunk below the tolerance: stop there
+        keep = ~(bad | tiny)
+        rows, Q = rows[keep], Q[keep]
+        if rows.size == 0:
+            continue
+        Rq, cq, Jq = evaluate(Q)
+        accept = np.isfinite(cq) & (cq <= cost[rows])
+        converged = accept & ((cost[rows] - cq <= ftol * cost[rows])
+                              | np.all(np.abs(Q - P[rows]) <= xtol * (np.abs(P[rows]) + xtol), axis=1))
+        ok = rows[accept]
+        P[ok], R[ok], cost[ok], J[ok] = Q[accept], Rq[accept], cq[accept], Jq[accept]
+        lam[rows] = np.where(accept, np.maximum(lam[rows] / 3.0, 1e-12), lam[rows] * 4.0)
+        active[rows[converged | (~accept & (lam[rows] > 1e12))]] = False
+    return P
+
+
+def _safe_solve(A, g):
+    """The steps -A^-1 g of a stack of systems one by one, NaN where A is singular (the fit stops there)."""
+    out = np.full(g.shape, np.nan)
+    for i in range(A.shape[0]):
+        try:
+            out[i] = np.linalg.solve(A[i], g[i])
+        except np.linalg.LinAlgError:
+            pass
+    return -out
