@@ -76,7 +76,6 @@ class JointModes:
     pixel_scale: float
     keep: list = None      # per exposure, the modes the noise-aware cut kept (None: all)
     decoupled: np.ndarray = None   # per fold group found, whether its cross terms were dropped (None: none)
-    k_cell: float = 0.0    # half the exposures' K lattice spacing, 2 pi / (stamp size x pixel scale) (0: unknown)
     data_map: object = field(default=None, repr=False)   # how z was made from the exposures' data (_DataMap)
 
     @property
@@ -467,8 +466,7 @@ def join_exposures(exposures: list[ExposureModes], chi2_tolerance: float = 0.0, 
     return JointModes(kx=kxu, ky=kyu, z=zu, q=q, multi=multi, msizes=msizes, H=Hm,
                       basis=np.stack([kxu * kxu, 2 * kxu * kyu, kyu * kyu]), yy=yy, npix=npix,
                       n_exposures=len(exposures), pixel_scale=float(np.mean([e.pixel_scale for e in exposures])),
-                      keep=keep, decoupled=decoupled, data_map=dmap,
-                      k_cell=0.5 * min(2 * np.pi / (max(ex.shape) * ex.pixel_scale) for ex in exposures))
+                      keep=keep, decoupled=decoupled, data_map=dmap)
 
 
 def shift_joint(jm: JointModes, du, dv) -> JointModes:
@@ -487,8 +485,7 @@ def shift_joint(jm: JointModes, du, dv) -> JointModes:
         dm = replace(dm, phase=dm.phase * phase)
     return JointModes(kx=jm.kx, ky=jm.ky, z=jm.z * phase, q=jm.q, multi=jm.multi, msizes=jm.msizes, H=H,
                       basis=jm.basis, yy=jm.yy, npix=jm.npix, n_exposures=jm.n_exposures,
-                      pixel_scale=jm.pixel_scale, keep=jm.keep, decoupled=jm.decoupled, data_map=dm,
-                      k_cell=jm.k_cell)
+                      pixel_scale=jm.pixel_scale, keep=jm.keep, decoupled=jm.decoupled, data_map=dm)
 
 
 @dataclass
