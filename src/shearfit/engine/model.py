@@ -200,21 +200,25 @@ class ContentMemo:
 _FINE_PSF = ContentMemo(64 * 2 ** 20)
 
 
-def _fine_modes_from_psf(psf, s, ny, nx):
+def _fine_modes_from_psf(psf, s, ny, nx, tolerance=0.0):
     """Fine wavevectors (rad per stamp pixel), PSF transform and coarse index.
 
     The PSF array is taken on a grid s times finer than the stamp, padded or
     cropped to (s ny, s nx); its DFT gives the PSF at wavevectors up to
-    s pi. Each fine mode folds onto the stamp's mode (m mod n). Remembered
-    (read-only arrays, :class:`ContentMemo`): the objects of a CCD with one
-    given PSF image share them (the same numbers as made afresh).
+    s pi. Each fine mode folds onto the stamp's mode (m mod n). Only the modes
+    where |T| exceeds ``tolerance`` times its largest value are kept.
+    Remembered (read-only arrays, :class:`ContentMemo`): the objects of a CCD
+    with one given PSF image share them (the same numbers as made afresh).
     """
     def make():
-        got = _fine_modes_from_psf_made(psf, s, ny, nx)
+        ky, kx, T, coarse = _fine_modes_from_psf_made(psf, s, ny, nx)
+        aT = np.abs(T)
+        keep = aT > tolerance * aT.max()
+        got = ky[keep], kx[keep], T[keep], coarse[keep]
         for arr in got:
             arr.setflags(write=False)
         return got
-    return _FINE_PSF.get(psf, (int(s), int(ny), int(nx)), make)
+    return _FINE_PSF.get(psf, (int(s), int(ny), int(nx), float(tolerance)), make)
 
 
 def _fine_modes_from_psf_made(psf, s, ny, nx):
@@ -499,10 +503,7 @@ def prepare_exposure(obs: Observation, cfg: FitConfig, grid_shape=None, with_dat
         ky, kx, T, coarse = _fine_modes_moffat(obs.psf, ny, nx, cfg.alias_oversampling, obs.psf_moffat,
                                                cfg.psf_mode_tolerance, Ps=pre.get("Ps"), offset=obs.offset)
     else:
-        ky, kx, T, coarse = _fine_modes_from_psf(obs.psf, s, ny, nx)
-        aT = np.abs(T)
-        keep = aT > cfg.psf_mode_tolerance * aT.max()
-        ky, kx, T, coarse = ky[keep], kx[keep], T[keep], coarse[keep]
+        ky, kx, T, coarse = _fine_modes_from_psf(obs.psf, s, ny, nx, cfg.psf_mode_tolerance)
         # the object's nominal position sits at (stamp centre + offset)
         dx, dy = obs.offset
         T = T * np.exp(-1j * (kx * dx + ky * dy))
