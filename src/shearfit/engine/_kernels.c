@@ -378,9 +378,9 @@ static void bin_index(const double *restrict P, Py_ssize_t n_single, double a0, 
 /* pass 2: the modes' weights into rows of 8 floats (the six linear vectors, q, padding), a row a vector; the
    DC mode's into row nbin. Each mode's four rows are updated directly, without branches: the bins of one
    ellipticity fit in the first-level cache (an earlier version summed runs of modes with the same bins in
-   registers first; its unpredictable branch cost three times the updates). The rows are summed in float32
-   (one AVX2 vector a row, no conversion of the float32 weights): 1e-7 of the largest bin, which moved e by
-   at most 1e-5 (rms 3e-6) against float64 rows on 38 galaxies at SNR 150-300 (25 % faster binning) */
+   registers first; its unpredictable branch cost more than the updates). The rows are summed in float32
+   (one AVX2 vector a row, no conversion of the float32 weights): rounding within 1e-6 of the largest bin
+   (tests/test_measure.py), within what benchmarks/speed.py --check bounds for the estimates */
 typedef double v8u __attribute__((vector_size(8 * sizeof(double)), aligned(sizeof(double))));
 typedef float v8fu __attribute__((vector_size(8 * sizeof(float)), aligned(sizeof(float))));
 
