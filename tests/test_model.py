@@ -329,3 +329,13 @@ def test_oversampled_psfex_against_the_sampled_image():
     mod = shearfit.render_object(obs, e[0], e[1], 0.05, 1.0, 1.0, config={"alias_correction": "none"})
     assert np.abs(mod - sampled).max() / sampled.max() < 0.2 * TOL
     assert np.abs(drawn - sampled).max() / sampled.max() > 2 * TOL
+
+
+def test_psf_moffats_fits_a_batch_as_one_by_one():
+    from shearfit.engine.model import psf_moffats
+
+    J = 0.187 * np.eye(2)
+    psfs = [draw_psf_image(moffat_psf(fwhm, beta, e1, e2), J, 25)
+            for fwhm, beta, e1, e2 in [(0.6, 3.0, 0.05, 0.0), (0.8, 2.5, -0.03, 0.04), (0.7, 4.0, 0.0, 0.0)]]
+    psfs.append(draw_psf_image(moffat_psf(0.7, 3.5, 0.0, 0.02), J, 24))   # another shape: its own batch
+    assert psf_moffats(psfs) == [psf_moffat(p) for p in psfs]

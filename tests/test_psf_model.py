@@ -120,6 +120,51 @@ def test_oversampled_model_of_an_undersampled_psf():
     assert abs(mm.observed_shape.e2 - mt.observed_shape.e2) < 0.005
 
 
+def test_native_prior_keeps_noise_out_of_the_high_frequencies():
+    # 100 stars at SNR 20-1000: plain least squares (native_width=0, the paper's fit) puts the stars' noise into
+    # every frequency, 2 % of P(0) where the true transform is 1e-4; the prior around the model's Moffat takes it
+    # out there and leaves the measured frequencies to the stars (benchmarks/psf_model_test.py --native-width)
+    st = _stars(100, seed=3, snr_min=20)
+    kf = 2 * np.pi * np.fft.fftfreq(N)
+    kk = np.hypot(kf[:, None], kf[None, :])
+    out = {}
+    for w in (0.0, 1.0):
+        model, _, _ = fit_pixel_psf(st, 2, order=3, ccd_shape=[(4096, 2048)] * 2, native_width=w)
+        rng = np.random.default_rng(5)
+        res, high, low = [], [], []
+        for _ in range(10):
+            c = int(rng.integers(0, 2))
+            u, v = (rng.uniform(-1, 0) if c == 0 else rng.uniform(0, 1)), rng.uniform(-1, 1)
+            m = model.image(c, u, v)
+            t = _draw(_psf_at(c, u, v), 0, 0)
+            t /= t.sum()
+            res.append(np.sqrt(np.mean((m - t) ** 2)))
+            dP = np.abs(np.fft.fft2(np.fft.ifftshift(m - t)))
+            high.append(np.sqrt(np.mean(dP[kk > 2.5] ** 2)))
+            low.append(np.sqrt(np.mean(dP[kk < 1.0] ** 2)))
+        out[w] = np.mean(res), np.mean(high), np.mean(low)
+    assert out[0.0][1] > 1e-2 and out[1.0][1] < 1e-3
+    assert out[1.0][0] < 0.6 * out[0.0][0]
+    # the well-measured frequencies stay the stars' (not pulled to the circular Moffat)
+    assert out[1.0][2] < 1.2 * out[0.0][2]
+
+
+def test_native_prior_leaves_noise_free_stars_alone():
+    # no noise: the stars' residual variance vanishes and with it the prior's weight
+    rng = np.random.default_rng(4)
+    n = 60
+    ccd = rng.integers(0, 2, n)
+    u, v = rng.uniform(-1, 1, n), rng.uniform(-1, 1, n)
+    delta = rng.uniform(-0.5, 0.5, (n, 2))
+    imgs = np.array([1e4 * _draw(_psf_at(0, 0.0, 0.0), *delta[i]) for i in range(n)])
+    st = StarSet(image=imgs, ivar=np.ones((n, N, N)), delta=delta, ccd=ccd, u=u, v=v, x=np.zeros(n),
+                 y=np.zeros(n), snr=np.full(n, 1e4))
+    a, _, _ = fit_pixel_psf(st, 2, order=1, native_width=0.0)
+    b, _, _ = fit_pixel_psf(st, 2, order=1, native_width=1.0)
+    ia, ib = a.image(0, 0.1, 0.2), b.image(0, 0.1, 0.2)
+    assert np.max(np.abs(ia - ib)) < 1e-6 * ia.max()
+
+
 def test_too_few_stars_is_an_error():
     from shearfit.errors import ShearfitValueError
 

@@ -199,7 +199,8 @@ def _cmd_psf(args):
         res = fit_exposure_psf(cfg, cat, ccds, f"exposure {k} ({spec.image})")
         prefix = os.path.join(out, stem)
         write_psf_model(res.model, f"{prefix}.psfmodel.fits")
-        diag = psf_diagnostics(res, ccds, n_bootstrap=0 if args.no_bootstrap else cfg.pipeline.psf_bootstrap)
+        diag = psf_diagnostics(res, ccds, n_bootstrap=0 if args.no_bootstrap else cfg.pipeline.psf_bootstrap,
+                               pc=cfg.pipeline)
         paths = write_diagnostics(diag, res, prefix)
         g = diag["grid"]
         summary.append(dict(exposure=k, image=spec.image, model=f"{prefix}.psfmodel.fits", n_stars=len(res.stars),

@@ -45,7 +45,7 @@ from scipy import fft as sfft
 from scipy import ndimage
 
 from ..errors import FITCLASS_GALAXY, ShearfitIOError
-from ..engine.model import psf_moffat
+from ..engine.model import psf_moffat, psf_moffats
 from ..observation import Observation
 
 log = logging.getLogger(__name__)
@@ -220,10 +220,13 @@ class _Drawer:
         return out
 
 
-def metacal_observations(obs: Observation, delta=0.01, rng=None, versions=tuple(VERSIONS)) -> dict:
+def metacal_observations(obs: Observation, delta=0.01, rng=None, versions=tuple(VERSIONS),
+                         fit_moffat=True) -> dict:
     """The metacal versions of one exposure's stamp: ``{version: Observation}`` (see the module doc).
 
-    ``rng`` (numpy Generator) draws the symmetrising noise field.
+    ``rng`` (numpy Generator) draws the symmetrising noise field. ``fit_moffat=False``: where the
+    observation gives no App. A Moffat, the versions carry none either (:func:`measure_metacal` fits those
+    of all the exposures as one batch, the same numbers).
     """
     rng = np.random.default_rng() if rng is None else rng
     J = obs.jacobian
@@ -249,7 +252,7 @@ def metacal_observations(obs: Observation, delta=0.01, rng=None, versions=tuple(
     elif obs.psf_moffat is not None:
         moffat = (float(obs.psf_moffat[0]) * dilation, float(obs.psf_moffat[1]))
     else:
-        moffat = psf_moffat(psf_img)
+        moffat = psf_moffat(psf_img) if fit_moffat else None
     # the symmetrising noise: the stamp's variance, rotated by 90 degrees before the operations
     sigma = np.where(good, 1.0 / np.sqrt(np.where(good, w, 1.0)), 0.0)
     noise = rng.normal(0.0, 1.0, w.shape) * sigma
@@ -316,6 +319,15 @@ class MetacalResult:
 E_GRID_MIN = 0.005
 
 
+def _fit_new_moffats(per_exp):
+    """The App. A Moffats of the versions' new PSFs where none was given (native PSFs), as
+    :func:`metacal_observations` fits them one by one, but as one batch (``psf_moffats``: the same numbers)."""
+    need = [v for v in per_exp if v["noshear"].psf_oversampling == 1 and v["noshear"].psf_moffat is None]
+    for v, fit in zip(need, psf_moffats([v["noshear"].psf for v in need])):
+        for o in v.values():
+            o.psf_moffat = fit
+
+
 def measure_metacal(observations, mag, config=None, delta=0.01, rng=None, replay_margin=10.0) -> MetacalResult:
     """Measure the five metacal versions of one object jointly over its exposures (see the module doc)."""
     from dataclasses import replace
@@ -327,7 +339,8 @@ def measure_metacal(observations, mag, config=None, delta=0.01, rng=None, replay
     config = as_config(config)
     if config.e_grid_min > E_GRID_MIN:
         config = replace(config, e_grid_min=E_GRID_MIN)
-    per_exp = [metacal_observations(o, delta, rng) for o in observations]
+    per_exp = [metacal_observations(o, delta, rng, fit_moffat=False) for o in observations]
+    _fit_new_moffats(per_exp)
     out = MetacalResult(delta=float(delta))
     # the sheared versions replay the noshear fit's choices (modes, position, size nodes, ellipticity
     # samples): their estimates then differ only through their pixels (measure_versions)

@@ -243,6 +243,18 @@ def psf_moffat(psf):
     return _fit_moffat_rfft(_centred_rfft2(_pad_center(psf, (ny, nx))), ny, nx)
 
 
+def psf_moffats(psfs):
+    """:func:`psf_moffat` of several native PSF images, those of equal shapes fitted as one batch
+    (:func:`shearfit.engine.moffat.fit_moffats`: the same numbers as one by one). Returns [(rs, beta), ...]."""
+    psfs = list(psfs)
+    out = [None] * len(psfs)
+    for (ny, nx), idx in indices_by_shape(tuple(n + n % 2 for n in p.shape) for p in psfs).items():
+        fts = [_centred_rfft2(_pad_center(psfs[i], (ny, nx))) for i in idx]
+        for i, fit in zip(idx, fit_moffats(fts, 2 * np.pi * np.fft.fftfreq(ny), 2 * np.pi * np.fft.rfftfreq(nx))):
+            out[i] = fit
+    return out
+
+
 def _fit_moffat_rfft(Ps, ny, nx):
     """fit_moffat of the rfft ``Ps`` of a PSF on a (ny, nx) grid."""
     return fit_moffat(Ps, 2 * np.pi * np.fft.fftfreq(ny), 2 * np.pi * np.fft.rfftfreq(nx))

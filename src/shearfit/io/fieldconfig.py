@@ -109,6 +109,10 @@ class PipelineConfig:
                                             "pixels", "sec. 5")
     psf_iterations: int = setting(3, "rounds of star centring (cross-correlation with the model) and refitting",
                                "sec. 5")
+    psf_native_width: float = setting(
+        1.0, "relative width of the prior on the native PSF model's transform: frequencies where the PSF is below "
+        "the stars' noise follow a Moffat fitted to the model instead of the noise (0: plain least squares at every "
+        "frequency, the paper's fit)", "implementation")
     psf_clip: float = setting(0.0, "drop stars whose reduced chi^2 exceeds the median by this many robust "
                                 "sigmas before the last fit (0: keep all)", "implementation")
     registration_order: int = setting(1, "polynomial order per CCD of the astrometric registration offsets "

@@ -207,7 +207,8 @@ def build_exposure_psf(ccds, star_ra, star_dec, others_ra, others_dec, pc, label
     model, used, info = fit_pixel_psf(
         stars, len(ccds), order=pc.psf_order, oversampling=pc.psf_oversampling, ccd_terms=True,
         alias_order=pc.psf_alias_order, iterations=pc.psf_iterations, clip=pc.psf_clip,
-        registration_order=pc.registration_order, ccd_shape=[c.shape for c in ccds], frame=frame.to_dict())
+        registration_order=pc.registration_order, ccd_shape=[c.shape for c in ccds], frame=frame.to_dict(),
+        native_width=pc.psf_native_width)
     return ExposurePSFResult(model=model, stars=used, info=info, n_candidates=cand, n_usable=usable,
                              rejected=rejected, notes=notes)
 

@@ -57,8 +57,8 @@ def psf_diagnostics(result, ccds, n_bootstrap=64, grid=8, seed=0, pc=None):
         idx = rng.integers(0, len(stars), len(stars))
         try:
             mb, _, _ = fit_pixel_psf(stars.subset(idx), model.n_ccd, order=model.order, oversampling=k,
-                                     alias_order=model.alias_order,
-                                     iterations=0, centre=False, clip=0)
+                                     alias_order=model.alias_order, iterations=0, centre=False, clip=0,
+                                     native_width=1.0 if pc is None else pc.psf_native_width)
         except Exception:   # a resampling without enough stars on a CCD
             continue
         if not np.array_equal(mb.ccd_used, model.ccd_used):

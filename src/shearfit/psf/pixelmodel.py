@@ -241,7 +241,9 @@ def _solve_modes(model: PixelPSF, D, stars: StarSet, flux, prior=None):
     With oversampling, ``prior`` = (mu, tau, s2): the alias unknowns get a
     Gaussian prior of mean ``mu`` and width ``tau`` (arrays like the alias
     terms' spectra), weighed against the data with ``s2`` (n, n), the
-    residual variance per unit star weight at each stamp frequency.
+    residual variance per unit star weight at each stamp frequency. Native
+    (k = 1), ``prior`` = (mu (T, n, n), tau (n, n), s2) puts such a prior on
+    every term (:func:`_native_prior`).
     """
     n, k = model.size, model.oversampling
     w = stars.weight
@@ -258,6 +260,19 @@ def _solve_modes(model: PixelPSF, D, stars: StarSet, flux, prior=None):
         Yc = (Y * np.conj(ph)).reshape(len(stars), -1)
         sw = np.sqrt(w)[:, None]
         coef, *_ = np.linalg.lstsq(sw * C, sw * Yc, rcond=None)
+        if prior is not None:
+            # the Gaussian prior of _native_prior, frequency by frequency: (N + lam_j) c_j = N c_ls,j + lam_j mu_j
+            # with N = X^T W X shared by every frequency (its eigenvectors once) and lam_j = s2_j / tau_j^2
+            mu, tau, s2 = prior
+            lam = (s2 / tau ** 2).ravel()
+            on = lam > 0
+            if np.any(on):
+                X = sw * C
+                e, V = np.linalg.eigh(X.T @ X)
+                e = np.maximum(e, 0.0)
+                mu = mu.reshape(T, -1)
+                R = V.T @ (X.T @ (sw * Yc[:, on]) + lam[on][None, :] * mu[:, on])
+                coef[:, on] = V @ (R / (e[:, None] + lam[on][None, :]))
         spectra[:, 0, 0] = coef.reshape(T, n, n)
         return spectra
     mu, tau, s2 = prior
@@ -333,6 +348,32 @@ def _alias_prior(native: PixelPSF, stars: StarSet, k, model: PixelPSF, rel_width
     return mu, tau
 
 
+def _native_prior(model: PixelPSF, stars: StarSet, rel_width, floor=1e-5):
+    """Prior mean and width of a native model's spectra where the stars do not constrain them.
+
+    A circular Moffat times the pixel response is fitted to the mean of the model over the stars (as the
+    likelihood's App. A correction); each CCD's constant term is expected at its transform, give or take
+    ``rel_width`` of it (plus a small floor), and every other term at zero, give or take the same. Where the
+    stars measure a frequency well (their residual variance small against the width) the prior does not
+    move it; where the PSF's transform is far below the stars' noise (the highest frequencies of a PSF a few
+    pixels wide) the model takes the Moffat's instead of fitting the noise. Returns (mu (T, n, n), tau (n, n)).
+    """
+    from ..engine.moffat import fit_moffat, moffat_ft
+
+    n = model.size
+    P0 = np.mean(model.star_spectra(stars.ccd, stars.u, stars.v)[:, 0, 0], axis=0)   # (n, n)
+    P0 = P0 / P0[0, 0].real
+    rs, beta = fit_moffat(P0[:, : n // 2 + 1], 2 * np.pi * np.fft.fftfreq(n), 2 * np.pi * np.fft.rfftfreq(n))
+    f = _signed_freq(n)
+    kf = 2 * np.pi * f / n
+    pix = np.sinc(f / n)
+    G = moffat_ft(np.hypot(kf[:, None], kf[None, :]), rs, beta) * pix[:, None] * pix[None, :]
+    const = (model.kind != 2) & (model.powers[:, 0] == 0) & (model.powers[:, 1] == 0)
+    mu = np.zeros((model.kind.size, n, n), complex)
+    mu[const] = G
+    return mu, rel_width * np.abs(G) + floor
+
+
 def _centre_by_xcorr(model: PixelPSF, D, stars: StarSet, n_newton=6, max_step=0.5):
     """Offsets maximising each star's band-limited cross-correlation with the model."""
     n, k = model.size, model.oversampling
@@ -383,7 +424,7 @@ def residual_images(model: PixelPSF, stars: StarSet, flux=None):
 def fit_pixel_psf(stars: StarSet, n_ccd: int, order: int = 3, oversampling: int = 1, ccd_terms: bool = True,
                   alias_order: int = 0, iterations: int = 3, alias_width: float = 0.5, clip: float = 5.0,
                   centroid_sigma: float = 2.0, registration_order: int = 1, ccd_shape=None,
-                  centre: bool = True, frame=None) -> tuple:
+                  centre: bool = True, frame=None, native_width: float = 1.0) -> tuple:
     """Fit the pixel PSF model of one exposure to its stars.
 
     Parameters
@@ -407,6 +448,11 @@ def fit_pixel_psf(stars: StarSet, n_ccd: int, order: int = 3, oversampling: int 
         above-Nyquist components around the native model's Moffat
         extrapolation (see ``_alias_prior``); the native model is fitted
         first and gives the stars' starting centres.
+    native_width : float
+        The relative width of the prior on the native model's spectra (``_native_prior``): the
+        frequencies the stars cannot measure (the PSF's transform below their noise) follow a Moffat
+        fitted to the model instead of the noise, from the second fit on. 0: plain least squares at
+        every frequency (the paper's fit).
     clip : float
         Stars whose reduced chi^2 exceeds the median by ``clip`` robust
         sigmas are dropped (binaries, galaxies, cosmic rays) before the last fit.
@@ -443,7 +489,7 @@ def fit_pixel_psf(stars: StarSet, n_ccd: int, order: int = 3, oversampling: int 
         # the native model first: the stars' centres, fluxes and outlier cut, and the prior above Nyquist
         native, st, nat = fit_pixel_psf(stars, n_ccd, order=order, oversampling=1, ccd_terms=ccd_terms,
                                         iterations=iterations, clip=clip, centroid_sigma=centroid_sigma,
-                                        centre=centre, frame=frame)
+                                        centre=centre, frame=frame, native_width=native_width)
         kept = nat["kept"].copy()
         D = np.fft.fft2(np.fft.ifftshift(st.image, axes=(-2, -1)))
         flux, M = _star_fluxes(native, D, st)
@@ -472,8 +518,10 @@ def fit_pixel_psf(stars: StarSet, n_ccd: int, order: int = 3, oversampling: int 
             mx, my = gaussian_centroid(imgs, 1.0 / k, centroid_sigma)
             st.delta = st.delta + np.stack([mx, my], axis=1)
         flux, M = _star_fluxes(model, D, st)
-        if prior is not None:
+        if k > 1:
             prior = (prior[0], prior[1], _residual_variance(model, D, st, flux, M))
+        elif native_width > 0:
+            prior = _native_prior(model, st, native_width) + (_residual_variance(model, D, st, flux, M),)
         if it == iterations - 1 and clip > 0:
             chi2 = _reduced_chi2(st, D, flux, M)
             med = np.median(chi2)
@@ -485,6 +533,12 @@ def fit_pixel_psf(stars: StarSet, n_ccd: int, order: int = 3, oversampling: int 
                 st = st.subset(good)
                 D, flux = D[good], flux[good]
     flux, M = _star_fluxes(model, D, st)
+    if k == 1 and native_width > 0 and iterations == 0:
+        # a single fit (no rounds to carry the prior): the prior from its residuals, then the fit again
+        prior = _native_prior(model, st, native_width) + (_residual_variance(model, D, st, flux, M),)
+        model.spectra = _solve_modes(model, D, st, flux, prior)
+        model._images = None
+        flux, M = _star_fluxes(model, D, st)
     chi2 = _reduced_chi2(st, D, flux, M)
     offset = st.delta - initial[kept]
     if ccd_shape is not None:
