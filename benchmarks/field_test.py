@@ -250,7 +250,8 @@ def main(argv=None):
                     help="with --keep: read the catalogue of a field already measured there (same options) "
                          "instead of simulating and measuring it again")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                    help="setting for the fitted-PSF runs (e.g. psf_oversampling=3)")
+                    help="setting of every run (e.g. psf_oversampling=3 for the fitted-PSF runs, or an engine "
+                         "setting such as size_prior_axis=area)")
     args = ap.parse_args(argv)
     args.gsparams = (galsim.GSParams(folding_threshold=1e-3, maxk_threshold=1e-4)
                      if args.accurate_rendering else None)
@@ -304,7 +305,8 @@ def main(argv=None):
     fitted = [("fitted", False, dict(args.psf_settings))]
     if args.fitted_oversampling:
         fitted = [(f"fitted {k}x", False, {**args.psf_settings, "psf_oversampling": k}) for k in args.fitted_oversampling]
-    psf_variants = {"given": [("given", True, {})], "fitted": fitted, "both": [("given", True, {})] + fitted}[args.psf]
+    given = [("given", True, dict(args.psf_settings))]
+    psf_variants = {"given": given, "fitted": fitted, "both": given + fitted}[args.psf]
     # every (WCS, PSF) combination of the same galaxies, PSFs and noise
     variants = [(w, name, with_psf) for w in args.wcs for name, with_psf, _ in psf_variants]
     settings = {name: st for name, _, st in psf_variants}

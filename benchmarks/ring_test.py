@@ -66,6 +66,7 @@ import numpy as np  # noqa: E402
 
 import shearfit  # noqa: E402
 from shearfit.simulate import ring_set  # noqa: E402
+from shearfit.simulate.outside import outside_population, outside_profile  # noqa: E402
 from shearfit.simulate.stamps import NegatedNormal  # noqa: E402
 from shearfit.calib.bias import (format_with_error, galaxy_column, ring_sums, shear_bias,  # noqa: E402
                                           shear_bias_by_snr)
@@ -115,6 +116,8 @@ def _work(task):
                 "psf_e1_mean": float(np.mean(truth["psf_e1"])), "psf_e2_mean": float(np.mean(truth["psf_e2"])),
                 "n_redraws": truth["n_redraws"],
                 "peak_over_sigma": float(max(o.image.max() for o in obs) / truth["sigma"]),
+                # galaxies outside the model family (--population outside): the family and half-light radius
+                "family": int(truth["fields"].get("family", -1)), "true_hlr": float(truth["fields"].get("hlr", np.nan)),
                 "fitclass": -99, "time": np.nan, "error": "",
             }
             for name in RESULT_FIELDS + (METACAL_FIELDS if metacal else ()):
@@ -298,6 +301,38 @@ def report_metacal(tab, args, n_gal):
     print(f"  fitclass != 0: {np.mean(np.asarray(tab['fitclass']) != 0):.3%} of {len(tab)} objects")
 
 
+def report_families(tab, args):
+    """m and c per family of galaxies outside the model family (``family`` column >= 0), and per half-light
+    radius (below and above 0.3"): plain lensfit (its ``plain_*`` columns in a --with-plain metacal run)
+    and, with --metacal, the metacal shear."""
+    if "family" not in tab.dtype.names or not np.any(np.asarray(tab["family"]) >= 0):
+        return
+    from shearfit.simulate.outside import FAMILIES
+
+    fam = np.asarray(tab["family"])
+    hlr = np.asarray(tab["true_hlr"], float)
+    subsets = [(name, fam == k) for k, name in enumerate(FAMILIES)]
+    subsets += [('half-light radius < 0.3"', hlr < 0.3), ('half-light radius >= 0.3"', hlr >= 0.3)]
+    plain = tab
+    if args.metacal and "plain_e1" in tab.dtype.names:
+        plain = _plain_columns(tab)
+    for label, sel in subsets:
+        if not sel.any():
+            continue
+        _, gal = np.unique(np.asarray(tab["galaxy"])[sel], return_inverse=True)
+        n = int(gal.max()) + 1
+        print(f"\n=== {label}: {n} galaxies")
+        if not args.metacal or plain is not tab:
+            sub = plain[sel].copy()
+            sub["galaxy"] = gal
+            print("  plain lensfit:", end="")
+            report_bias(sub, args, n)
+        if args.metacal:
+            sub = tab[sel].copy()
+            sub["galaxy"] = gal
+            report_metacal(sub, args, n)
+
+
 def report_dry(tab):
     first = tab["sign"] > 0
     t = tab[first]
@@ -343,9 +378,11 @@ def parse_args(argv=None):
                    help="noise-free images with the weights of the target SNR: the likelihood has that SNR's "
                         "width but is centred on the truth (implementation accuracy without noise bias)")
     p.add_argument("--dry-run", action="store_true", help="simulate only and summarise the stamps")
-    p.add_argument("--population", choices=["paper", "odd"], default="paper",
-                   help="the paper's population (priors) or one unlike it (sizes x2, a third Sersic n=2.5, "
-                        "e rms 0.3)")
+    p.add_argument("--population", choices=["paper", "odd", "outside"], default="paper",
+                   help="the paper's population (priors), one unlike it (sizes x2, a third Sersic n=2.5, "
+                        "e rms 0.3), or galaxies outside the model family (shearfit.simulate.outside: Sersic n "
+                        "0.3-6, bulge + disk with their own shapes, disks with knots; half-light radius 0.1-2\"; "
+                        "m and c per family too; give --stamp-size 64 for the largest)")
     p.add_argument("--calibration", default=None,
                    help="calibration YAML for the calibrated m line (default: the paper's alpha, beta)")
     p.add_argument("--antithetic", action="store_true",
@@ -465,6 +502,7 @@ def report_tables(args):
               f"m2 = {format_with_error(cal[1], cal_err[1])}")
     if args.metacal:
         report_metacal(tab, args, n_gal)
+    report_families(tab, args)
     return 0
 
 
@@ -490,7 +528,8 @@ def main(argv=None):
                             snr_range=(args.snr_min, args.snr_max), mag_range=(args.mag_min, args.mag_max),
                             stamp_size=args.stamp_size, psf_oversampling=args.psf_oversampling,
                             rotate_exposures=args.rotate_exposures, add_noise=not args.noise_free,
-                            population=odd_population if args.population == "odd" else None),
+                            population={"odd": odd_population, "outside": outside_population}.get(args.population),
+                            profile=outside_profile if args.population == "outside" else None),
     }
     seeds = np.random.SeedSequence(args.seed).spawn(args.n_galaxies)
     tasks = [(i, seeds[i], opts) for i in range(args.n_galaxies)]
@@ -536,6 +575,7 @@ def main(argv=None):
         report_bias(tab, args, args.n_galaxies)
         if args.metacal:
             report_metacal(tab, args, args.n_galaxies)
+        report_families(tab, args)
     if args.out:
         _write_table(tab, args.out)
         print(f"\nper-object results written to {args.out}")

@@ -298,3 +298,38 @@ def test_ring_set_jacobian_jitter():
         assert 2e-4 < np.std(dev) < 3e-3
     plain = ring_set(2, (0.02, 0.0), np.random.default_rng(4), n_rotations=1, n_exposures=6, noise_seed=5)
     assert all(np.array_equal(o.jacobian, PIX * np.eye(2)) for o in plain[0][0])
+
+
+@pytest.mark.parametrize("family", ["sersic", "bulge_disk", "knots"])
+def test_galaxies_outside_the_model_family(family):
+    """shearfit.simulate.outside: each family's profile has the flux asked for, its ring members are the galaxy
+    turned as a whole (their mean ellipticity vanishes without shear, whatever the profile), and ring_set
+    draws them through its ``profile`` hook."""
+    from shearfit.simulate.outside import FAMILIES, outside_population, outside_profile
+
+    rng = np.random.default_rng(3)
+    pop = outside_population(np.full(40, 22.0), rng, families=(family,))
+    assert np.all(pop["family"] == FAMILIES.index(family))
+    assert pop["hlr"].min() >= 0.1 and pop["hlr"].max() <= 2.0
+    k = int(np.argmax(np.hypot(pop["e1"], pop["e2"]) > 0.2))   # a clearly elliptical one
+    fields = {name: v[k].item() for name, v in pop.items()}
+    fields["hlr"] = 0.5
+    prof = outside_profile(fields, 0.0, 0.0, 0.0, flux=3.0)
+    assert prof.flux == pytest.approx(3.0)
+    # (through a small round Gaussian: the knots are points)
+    shapes = [hsm_shape(galsim.Convolve(outside_profile(fields, np.pi * j / 4, 0.0, 0.0, 1.0), galsim.Gaussian(sigma=0.05)),
+                        guess=0.5)[1] for j in range(4)]
+    e = np.array([[s.e1, s.e2] for s in shapes])
+    assert np.hypot(*e[0]) > 0.05
+    assert np.abs(e.mean(axis=0)).max() < 1e-3 * np.hypot(*e[0]) + 1e-5
+    # a turn by pi / 2 turns e by pi: the turned galaxy's e is minus the first's
+    assert e[2] == pytest.approx(-e[0], abs=2e-3)
+    rings = ring_set(1, (0.0, 0.0), np.random.default_rng(4), n_rotations=2, n_exposures=1, stamp_size=64,
+                     population=lambda m, r, c: outside_population(m, r, c, families=(family,)),
+                     profile=outside_profile, add_noise=False)
+    (o0, t0), (o1, t1) = rings
+    assert t0["fields"]["family"] == FAMILIES.index(family)
+    ref = draw_stamp(outside_profile(t1["fields"], np.pi / 2, 0.0, 0.0, t1["flux"]),
+                     moffat_psf(t1["psf_fwhm"][0], t1["psf_beta"][0], t1["psf_e1"][0], t1["psf_e2"][0]),
+                     J_SQUARE, t1["offsets"][0], 64)
+    np.testing.assert_allclose(o1[0].image, ref, atol=1e-9 * t1["flux"])

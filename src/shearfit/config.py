@@ -63,6 +63,11 @@ class FitConfig:
     )
     size_prior_scale: str = setting("paper", "'paper': a = r_d/size_rd_over_a; 'median': a such that median(r) = r_d",
                                  "App. B.1", ("paper", "median"))
+    size_prior_axis: str = setting(
+        "major", "which scalelength of an elliptical model the size prior is evaluated at: 'major' (the paper's: "
+        "the semi-major axis, which the models keep fixed), 'area' (r sqrt(q), the round model of the same area) or "
+        "'minor' (r q); a diagnostic of the small-galaxy bias (benchmarks/small_galaxy_bias.py), not a calibration",
+        "App. B.1", ("major", "area", "minor"))
 
     # --- flux prior (sec. 3.2) --------------------------------------------------
     flux_prior_slope: float = setting(2.0, "alpha of the flux prior P(S) ~ S^-alpha", "sec. 3.2")

@@ -191,7 +191,8 @@ class EllipticityLikelihood:
         mg = flux_position_marginal(sums, cfg, self.jm.pixel_scale)
         ld0, lb0 = log_population_weights(cfg)
         y = np.logaddexp(ld0 + mg.logl_disk, lb0 + mg.logl_bulge).reshape(R.shape)
-        lpr = priors.log_size_prior_per_lnr(np.log(R), self.mag, cfg)
+        shift = _prior_axis_shift(e1, e2, cfg)
+        lpr = priors.log_size_prior_per_lnr(np.log(R) + (0.0 if shift is None else shift[:, None]), self.mag, cfg)
         y = y + lpr
         y = np.where(np.isfinite(y), y, -1e300)
         k = np.clip(np.argmax(y, axis=1), 1, n - 2)
@@ -273,7 +274,7 @@ class EllipticityLikelihood:
         shape = (ne, nr)
         return self._size_marginal(R, mg.logl_disk.reshape(shape), mg.logl_bulge.reshape(shape),
                                    mg.mean_flux_disk.reshape(shape), mg.mean_flux_bulge.reshape(shape),
-                                   mg.mean_b_disk.reshape(shape))
+                                   mg.mean_b_disk.reshape(shape), prior_shift=_prior_axis_shift(e1, e2, cfg))
 
     def _fine_grid(self):
         """The fine ln r grid of the size integral, the node->grid interpolation matrix and the spline
@@ -283,7 +284,7 @@ class EllipticityLikelihood:
             self._fine = (xf, interp_matrix(self.x, xf), np.ascontiguousarray(spline_matrix(self.x, xf)))
         return self._fine   # xf, (n_nodes, n_fine), (n_nodes, n_fine)
 
-    def _size_marginal(self, rnodes, ld, lb, fd, fb, bd, use_kernel=True):
+    def _size_marginal(self, rnodes, ld, lb, fd, fb, bd, use_kernel=True, prior_shift=None):
         """Spline log L over ln r and integrate against the size prior (dr = r d ln r).
 
         The disk (index 0) and bulge (1) populations are done together, stacked on a first axis. The
@@ -294,12 +295,14 @@ class EllipticityLikelihood:
         xf, interp_w, spl = self._fine_grid()
         lnrf = (np.log(rnodes[:, :1]) - x[0]) + xf[None, :]
         rf = np.exp(lnrf)
-        logprior = priors.log_size_prior_per_lnr(lnrf, self.mag, cfg)
+        # the size prior at the scalelength of size_prior_axis (ln r + prior_shift per sample; 0: the semi-major)
+        sh = 0.0 if prior_shift is None else prior_shift[:, None]
+        logprior = priors.log_size_prior_per_lnr(lnrf + sh, self.mag, cfg)
         # from r = 0 to the first node (r = r_min sqrt(u)): p(r) dr = [p(r)/r] (r_min^2 / 2) du, smooth
         # down to r = 0, where p(r) ~ r; log L there is linear in r^2 between the point source and the node
         u = self._SEG_U
         lnr0 = np.maximum(lnrf[:, :1] + self._SEG_HALF_LOG_U[None, :], np.log(1e-12))
-        lsegprior = priors.log_size_prior_per_lnr(lnr0, self.mag, cfg) - 2 * lnr0
+        lsegprior = priors.log_size_prior_per_lnr(lnr0 + sh, self.mag, cfg) - 2 * lnr0
         l0 = np.array([float(self.zero.logl_disk[0]), float(self.zero.logl_bulge[0])])
         logmix = np.array(log_population_weights(cfg))
         if USE_KERNEL and use_kernel and KERNEL is not None and x.size <= 512:
@@ -366,6 +369,16 @@ def _mix(point: EPoint, e1, e2, cfg):
         pb = np.log(priors.bulge_e_density(e1, e2, cfg))
     logpost = np.logaddexp(la + pd, lb + pb)
     return logl, logpost
+
+
+def _prior_axis_shift(e1, e2, cfg):
+    """ln of the size prior's scalelength over the semi-major one at each e (``size_prior_axis``): None for
+    'major', (1/2) ln q for 'area', ln q for 'minor' (q = (1 - |e|) / (1 + |e|))."""
+    k = {"major": 0.0, "area": 0.5, "minor": 1.0}[cfg.size_prior_axis]
+    if k == 0.0:
+        return None
+    em = np.minimum(np.hypot(e1, e2), 0.999)
+    return k * np.log((1.0 - em) / (1.0 + em))
 
 
 @functools.lru_cache(maxsize=32)

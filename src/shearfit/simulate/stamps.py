@@ -355,7 +355,7 @@ def ring_set(n_galaxies, shear, rng, n_rotations=4, n_exposures=7, snr_range=(10
              psf_fwhm_range=(0.5, 0.8), psf_beta_range=(2.5, 4.5), psf_e_max=0.1, pixel_scale=0.187,
              stamp_size=48, psf_oversampling=1, max_dither=0.5, cfg=None, noise_seed=None,
              rotate_exposures=False, gsparams=None, population=None, add_noise=True, noise_sign=1,
-             jacobian_jitter=0.0):
+             jacobian_jitter=0.0, profile=None):
     """Ring sets of GalSim-simulated galaxies, all with one applied shear.
 
     Every galaxy is drawn from the paper's population at a magnitude uniform in
@@ -406,6 +406,13 @@ def ring_set(n_galaxies, shear, rng, n_rotations=4, n_exposures=7, snr_range=(10
     gsparams : galsim.GSParams, optional
     population : callable, optional
         ``population(mags, rng, cfg)`` replacing the default population sampler.
+    profile : callable, optional
+        ``profile(fields, angle, g1, g2, flux, gsparams)``: the galaxy's GalSim profile from its
+        population fields (a dict of scalars), turned by ``angle`` radians as a whole and sheared,
+        instead of :func:`galaxy_profile` of the fields (e.g.
+        :func:`shearfit.simulate.outside.outside_profile`: galaxies outside the model family). Ring
+        member j is then the galaxy turned by ``pi j / n_rotations``, and its ``e1_int``, ``e2_int``
+        are those of the population fields turned the same way.
     noise_sign : +1 or -1
         -1 negates every noise draw (the antithetic twin of the same
         galaxies, PSFs and dithers: its noise is exactly minus the +1 run's).
@@ -447,10 +454,14 @@ def ring_set(n_galaxies, shear, rng, n_rotations=4, n_exposures=7, snr_range=(10
         psf_images = [draw_psf_image(p, J, oversampling=psf_oversampling, gsparams=gsparams)
                       for p, J in zip(psfs, Js)]
 
-        def stamps(e1, e2, sg1, sg2):
-            prof = galaxy_profile(gal["scalelength"], gal["bulge_fraction"], e1, e2, flux=gal["flux"], g1=sg1,
-                                  g2=sg2, is_bulge=gal["is_bulge"], truncation=truncation, gsparams=gsparams,
-                                  bulge_size_ratio=bulge_ratio, sersic_n=gal["sersic_n"])
+        def stamps(e1, e2, sg1, sg2, turn=0.0):
+            if profile is not None:
+                # the whole galaxy turned by `turn` (pi j / n_rotations for ring member j)
+                prof = profile(gal["fields"], turn, sg1, sg2, gal["flux"], gsparams)
+            else:
+                prof = galaxy_profile(gal["scalelength"], gal["bulge_fraction"], e1, e2, flux=gal["flux"], g1=sg1,
+                                      g2=sg2, is_bulge=gal["is_bulge"], truncation=truncation, gsparams=gsparams,
+                                      bulge_size_ratio=bulge_ratio, sersic_n=gal["sersic_n"])
             return [draw_stamp(prof, p, J, o, stamp_size, gsparams) for p, J, o in zip(psfs, Js, gal["offsets"])]
 
         # The sigma must not depend on the sign of the shear, else the noise would not cancel
@@ -459,7 +470,7 @@ def ring_set(n_galaxies, shear, rng, n_rotations=4, n_exposures=7, snr_range=(10
         e_int = complex(gal["e1"], gal["e2"])
         for j in range(n_rotations):
             ej = e_int * np.exp(2j * np.pi * j / n_rotations)
-            m = stamps(ej.real, ej.imag, g1, g2)
+            m = stamps(ej.real, ej.imag, g1, g2, np.pi * j / n_rotations)
             noise_rng = rng if seed_prefix is None else np.random.default_rng(seed_prefix + [i, j])
             if noise_sign < 0:
                 noise_rng = NegatedNormal(noise_rng)
@@ -474,7 +485,7 @@ def ring_set(n_galaxies, shear, rng, n_rotations=4, n_exposures=7, snr_range=(10
                 "psf_fwhm": gal["psf_fwhm"].copy(), "psf_beta": gal["psf_beta"].copy(),
                 "psf_e1": gal["psf_e1"].copy(), "psf_e2": gal["psf_e2"].copy(), "offsets": gal["offsets"].copy(),
                 "jacobian_angles": gal["jacobian_angles"].copy(), "n_redraws": gal["n_redraws"],
-                "jacobians": np.array(Js),
+                "jacobians": np.array(Js), "fields": dict(gal["fields"]),
             }
             out.append((obs, truth))
     return out
@@ -514,6 +525,7 @@ def _draw_galaxy(rng, sampler, cfg, n_exposures, snr_range, mag_range, psf_fwhm_
             "sersic_n": float(_field(pop, "sersic_n")) if _has_field(pop, "sersic_n") else None,
             "psf_fwhm": fwhm, "psf_beta": beta, "psf_e1": pe * np.cos(2 * pphi), "psf_e2": pe * np.sin(2 * pphi),
             "offsets": offsets, "jacobian_angles": angles, "snr": snr, "n_redraws": tries,
+            "fields": _fields(pop),
         }
     raise ShearfitValueError(f"no galaxy fitting a {stamp_size}-pixel stamp in {max_tries} draws; "
                              "enlarge the stamp or narrow the magnitude / PSF ranges")
@@ -531,6 +543,17 @@ def _has_field(sample, name):
     if isinstance(sample, np.ndarray) and sample.dtype.names:
         return name in sample.dtype.names
     return hasattr(sample, name)
+
+
+def _fields(sample):
+    """Every field of a one-galaxy population sample, as a dict of scalars."""
+    if isinstance(sample, Mapping):
+        names = list(sample)
+    elif isinstance(sample, np.ndarray) and sample.dtype.names:
+        names = list(sample.dtype.names)
+    else:
+        return {}
+    return {k: _field(sample, k).item() for k in names}
 
 
 def _field(sample, name):
