@@ -195,7 +195,7 @@ def make_field(d, sign, args, gals, psfs, sigma, stars=None, with_psf=True, wcs_
         Table({"id": np.arange(len(stars)), "ra": stars[:, 0], "dec": stars[:, 1],
                "mag": 30 - 2.5 * np.log10(stars[:, 2])}).write(os.path.join(d, "stars.fits"), overwrite=True)
         conf["stars"] = "stars.fits"
-        conf.update(psf_settings or {})
+    conf.update(psf_settings or {})
     with open(os.path.join(d, "field.yaml"), "w") as f:
         yaml.safe_dump(conf, f)
     return os.path.join(d, "field.yaml")
