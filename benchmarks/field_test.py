@@ -23,7 +23,9 @@ pipeline's throughput.
         --fitted-oversampling 1 3 --star-snr 200 2000                 # undersampled: native vs 3x fitted model
 
 With ``--psf fitted`` or ``both`` every CCD also holds stars (a star
-catalogue is given), each CCD of each exposure has its own PSF (a jump
+catalogue is given; at the default ``--spacing`` a star 31 pixels from a large galaxy blends with it:
+``--spacing 64 --set psf_min_stars=20`` keeps them apart, 68 of 144 galaxies flagged blended against none
+on 18 rings of 2 CCDs), each CCD of each exposure has its own PSF (a jump
 between CCDs), and ``shearfit measure`` fits the pixel PSF models itself;
 ``both`` measures each field with the true PSF too and prints the
 difference in m and c (same galaxies and noise, so most of the error cancels).
@@ -94,14 +96,17 @@ def ccd_header(ccd, exposure, mode, rng_exp):
 
 
 def star_positions(args, rng):
-    """Stars in the middle of the galaxy grid's cells, so that their stamps avoid the galaxies."""
-    nx_side = (NPIX - 2 * SPACING) // SPACING
+    """Stars in the middle of the galaxy grid's cells (``--spacing``), so that their stamps avoid the galaxies: at
+    the default spacing of 44 pixels they lie 31 pixels from four galaxies, where the co-added isophotes of
+    the brightest stars and of the larger galaxies touch (fitclass -3); ``--spacing 64`` keeps them 45 apart
+    (25 stars per CCD: give ``--set psf_min_stars=20`` too)."""
+    nx_side = (NPIX - 2 * args.spacing) // args.spacing
     out = []
     for c in range(args.n_ccd):
         for i in range(nx_side - 1):
             for j in range(nx_side - 1):
-                du = ((c - 0.5) * (NPIX + 20) + (i - nx_side / 2 + 1.0) * SPACING + rng.uniform(-2, 2)) * PIX / 3600.0
-                dv = ((j - nx_side / 2 + 1.0) * SPACING + rng.uniform(-2, 2)) * PIX / 3600.0
+                du = ((c - 0.5) * (NPIX + 20) + (i - nx_side / 2 + 1.0) * args.spacing + rng.uniform(-2, 2)) * PIX / 3600.0
+                dv = ((j - nx_side / 2 + 1.0) * args.spacing + rng.uniform(-2, 2)) * PIX / 3600.0
                 out.append((RA0 - du / np.cos(np.radians(DEC0)), DEC0 + dv, 10 ** rng.uniform(*np.log10(args.star_snr))))
     return np.array(out)
 
