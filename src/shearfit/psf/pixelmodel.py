@@ -259,20 +259,20 @@ def _solve_modes(model: PixelPSF, D, stars: StarSet, flux, prior=None):
         ph = _phases(n, 1, stars.delta)[:, 0, 0]
         Yc = (Y * np.conj(ph)).reshape(len(stars), -1)
         sw = np.sqrt(w)[:, None]
-        coef, *_ = np.linalg.lstsq(sw * C, sw * Yc, rcond=None)
-        if prior is not None:
-            # the Gaussian prior of _native_prior, frequency by frequency: (N + lam_j) c_j = N c_ls,j + lam_j mu_j
-            # with N = X^T W X shared by every frequency (its eigenvectors once) and lam_j = s2_j / tau_j^2
-            mu, tau, s2 = prior
-            lam = (s2 / tau ** 2).ravel()
-            on = lam > 0
-            if np.any(on):
-                X = sw * C
-                e, V = np.linalg.eigh(X.T @ X)
-                e = np.maximum(e, 0.0)
-                mu = mu.reshape(T, -1)
-                R = V.T @ (X.T @ (sw * Yc[:, on]) + lam[on][None, :] * mu[:, on])
-                coef[:, on] = V @ (R / (e[:, None] + lam[on][None, :]))
+        X = sw * C
+        # with the Gaussian prior of _native_prior, frequency by frequency: (N + lam_j) c_j = X^T W y_j + lam_j mu_j,
+        # N = X^T W X shared by every frequency (its eigenvectors once), lam_j = s2_j / tau_j^2; plain least
+        # squares where lam_j = 0 (no prior, or stars without noise there)
+        lam = np.zeros(n * n) if prior is None else (prior[2] / prior[1] ** 2).ravel()
+        on = lam > 0
+        coef = np.zeros((T, n * n), complex)
+        if not np.all(on):
+            coef[:, ~on] = np.linalg.lstsq(X, sw * Yc[:, ~on], rcond=None)[0]
+        if np.any(on):
+            e, V = np.linalg.eigh(X.T @ X)
+            e = np.maximum(e, 0.0)
+            R = V.T @ (X.T @ (sw * Yc[:, on]) + lam[on][None, :] * prior[0].reshape(T, -1)[:, on])
+            coef[:, on] = V @ (R / (e[:, None] + lam[on][None, :]))
         spectra[:, 0, 0] = coef.reshape(T, n, n)
         return spectra
     mu, tau, s2 = prior
@@ -314,6 +314,23 @@ def _residual_variance(model: PixelPSF, D, stars: StarSet, flux, M):
     return np.sum(w[:, None, None] * np.abs(r) ** 2, axis=0) / dof
 
 
+def _model_moffat(native: PixelPSF, stars: StarSet, k):
+    """The native model's mean transform over the stars P0 (n, n; P0(0) = 1) and the circular Moffat times the
+    pixel response fitted to it (as the likelihood's App. A correction) at the fine frequencies j + n m,
+    G (k, k, n, n)."""
+    from ..engine.moffat import fit_moffat, moffat_ft
+
+    n = native.size
+    P0 = np.mean(native.star_spectra(stars.ccd, stars.u, stars.v)[:, 0, 0], axis=0)   # (n, n)
+    P0 = P0 / P0[0, 0].real
+    rs, beta = fit_moffat(P0[:, : n // 2 + 1], 2 * np.pi * np.fft.fftfreq(n), 2 * np.pi * np.fft.rfftfreq(n))
+    f = _fine_freqs(n, k)                                   # (k, n) signed fine frequencies per axis
+    kf = 2 * np.pi * f / n
+    pix = np.sinc(f / n)
+    kk = np.hypot(kf[:, None, :, None], kf[None, :, None, :])          # (k, k, n, n)
+    return P0, moffat_ft(kk, rs, beta) * pix[:, None, :, None] * pix[None, :, None, :]
+
+
 def _alias_prior(native: PixelPSF, stars: StarSet, k, model: PixelPSF, rel_width=0.5, floor=1e-5):
     """Prior mean and width of the above-Nyquist components: the native model extrapolated by a Moffat.
 
@@ -324,19 +341,8 @@ def _alias_prior(native: PixelPSF, stars: StarSet, k, model: PixelPSF, rel_width
     small floor), so that components the stars' sub-pixel phases constrain
     follow the stars and the others fall back on the Moffat extrapolation.
     """
-    from ..engine.moffat import fit_moffat, moffat_ft
-
     n = native.size
-    P0 = np.mean(native.star_spectra(stars.ccd, stars.u, stars.v)[:, 0, 0], axis=0)   # (n, n)
-    P0 = P0 / P0[0, 0].real
-    kyc = 2 * np.pi * np.fft.fftfreq(n)
-    kxc = 2 * np.pi * np.fft.rfftfreq(n)
-    rs, beta = fit_moffat(P0[:, : n // 2 + 1], kyc, kxc)
-    f = _fine_freqs(n, k)                                   # (k, n) signed fine frequencies per axis
-    kf = 2 * np.pi * f / n
-    pix = np.sinc(f / n)
-    kk = np.hypot(kf[:, None, :, None], kf[None, :, None, :])          # (k, k, n, n)
-    G = moffat_ft(kk, rs, beta) * pix[:, None, :, None] * pix[None, :, None, :]
+    P0, G = _model_moffat(native, stars, k)
     h = (k - 1) // 2
     g0 = G[h, h]
     ratio = np.where(np.abs(g0) > 1e-12, G / np.where(np.abs(g0) > 1e-12, g0, 1.0), 0.0)
@@ -358,16 +364,8 @@ def _native_prior(model: PixelPSF, stars: StarSet, rel_width, floor=1e-5):
     move it; where the PSF's transform is far below the stars' noise (the highest frequencies of a PSF a few
     pixels wide) the model takes the Moffat's instead of fitting the noise. Returns (mu (T, n, n), tau (n, n)).
     """
-    from ..engine.moffat import fit_moffat, moffat_ft
-
     n = model.size
-    P0 = np.mean(model.star_spectra(stars.ccd, stars.u, stars.v)[:, 0, 0], axis=0)   # (n, n)
-    P0 = P0 / P0[0, 0].real
-    rs, beta = fit_moffat(P0[:, : n // 2 + 1], 2 * np.pi * np.fft.fftfreq(n), 2 * np.pi * np.fft.rfftfreq(n))
-    f = _signed_freq(n)
-    kf = 2 * np.pi * f / n
-    pix = np.sinc(f / n)
-    G = moffat_ft(np.hypot(kf[:, None], kf[None, :]), rs, beta) * pix[:, None] * pix[None, :]
+    G = _model_moffat(model, stars, 1)[1][0, 0]
     const = (model.kind != 2) & (model.powers[:, 0] == 0) & (model.powers[:, 1] == 0)
     mu = np.zeros((model.kind.size, n, n), complex)
     mu[const] = G
