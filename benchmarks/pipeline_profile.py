@@ -5,8 +5,9 @@ Simulates a field with ``shearfit.simulate`` (preset ``small`` by default:
 7 dithered exposures of 2 CCDs, each with its own PSF, stars, bad columns and
 cosmic rays), runs the field pipeline on one process (``-j 1``), once with
 the true PSF images given and once with PSF models fitted from the stars, and
-prints objects per CPU-second of each, the share of the PSF stage, and the
-peak memory; then, under the profiler, the time of each pipeline stage and of
+prints objects per CPU-second of each, the Fourier modes the engine sums per
+fit (and how many are linked into fold groups), the share of the PSF stage,
+and the peak memory; then, under the profiler, the time of each pipeline stage and of
 ``measure_object`` alone.
 
     python benchmarks/pipeline_profile.py                   # given and fitted PSFs, then the profile
@@ -51,6 +52,54 @@ STAGES = [
 ]
 
 
+class _ModeCounter:
+    """Per fit, the Fourier modes the engine sums, those of them in fold groups (aliases of one sampled mode,
+    App. A) and the groups' cross terms, counted where the engine packs them for binning."""
+
+    def __enter__(self):
+        import shearfit.engine.likelihood as lik
+
+        self.lik, self.orig, self.rows = lik, lik._packed_bins, []
+
+        def counted(jm):
+            fresh = getattr(jm, "_bins32", None) is None
+            out = self.orig(jm)
+            if fresh:
+                self.rows.append((out[0].shape[0], jm.multi.size, out[3].size))
+            return out
+
+        lik._packed_bins = counted
+        return self
+
+    def __exit__(self, *exc):
+        self.lik._packed_bins = self.orig
+
+    def summary(self):
+        if not self.rows:
+            return "no fits"
+        med = np.median(np.array(self.rows), axis=0)
+        return (f"Fourier modes per fit, median {med[0]:.0f}, of which {med[1]:.0f} in fold groups with {med[2]:.0f} "
+                f"cross terms ({len(self.rows)} fits)")
+
+
+def _with_settings(cfg, items):
+    """The field config with KEY=VALUE settings of the engine (cfg.fit) or the pipeline (cfg.pipeline)."""
+    from dataclasses import replace
+
+    import yaml
+
+    for item in items:
+        key, _, value = item.partition("=")
+        value = yaml.safe_load(value)
+        if hasattr(cfg.fit, key):
+            cfg = replace(cfg, fit=replace(cfg.fit, **{key: value}))
+        elif hasattr(cfg.pipeline, key):
+            cfg = replace(cfg, pipeline=replace(cfg.pipeline, **{key: value}))
+        else:
+            raise SystemExit(f"pipeline_profile.py: error: no setting {key!r}")
+    return cfg
+
+
 def _cpu_seconds():
     r = resource.getrusage(resource.RUSAGE_SELF)
     return r.ru_utime + r.ru_stime
@@ -63,6 +112,8 @@ def main(argv=None):
     ap.add_argument("--psf", choices=["true", "fitted", "both"], default="both")
     ap.add_argument("--no-profile", action="store_true", help="skip the profiled run (stages)")
     ap.add_argument("--keep", default=None, help="keep the field in this directory")
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                    help="a setting of the engine or the pipeline for every run (e.g. psf_native_width=0)")
     args = ap.parse_args(argv)
     from shearfit.engine.kernel import kernel_info
 
@@ -80,16 +131,18 @@ def main(argv=None):
         print(f"simulated preset {args.preset} in {time.perf_counter() - t0:.0f} s")
         rates = {}
         for mode in modes:
-            cfg = load_field_config(os.path.join(d, "field_truepsf.yaml" if mode == "true" else "field.yaml"))
+            cfg = _with_settings(load_field_config(os.path.join(d, "field_truepsf.yaml" if mode == "true"
+                                                                else "field.yaml")), args.set)
             c0, t0 = _cpu_seconds(), time.perf_counter()
-            table = measure_field(cfg, out_path=os.path.join(d, f"shear_{mode}.fits"), processes=1)
+            with _ModeCounter() as modes:
+                table = measure_field(cfg, out_path=os.path.join(d, f"shear_{mode}.fits"), processes=1)
             cpu, wall = _cpu_seconds() - c0, time.perf_counter() - t0
             rates[mode] = (len(table), cpu)
             fc = np.asarray(table["fitclass"])
             print(f"\nPSF {'given (true images)' if mode == 'true' else 'fitted from the stars'}: {len(table)} objects "
                   f"({int((fc == 0).sum())} galaxies, {int((fc == 1).sum())} stars, {int((fc < 0).sum())} flagged or "
                   f"unmeasured), {len(cfg.exposures)} exposures, one process: {len(table) / cpu:.2f} objects per "
-                  f"CPU-second ({cpu:.1f} CPU-s, {wall:.1f} s wall)")
+                  f"CPU-second ({cpu:.1f} CPU-s, {wall:.1f} s wall); {modes.summary()}")
         if len(rates) == 2:
             extra = rates["fitted"][1] - rates["true"][1]
             print(f"\nPSF stage (fitted minus given): {extra:.1f} CPU-s, {100 * extra / rates['fitted'][1]:.0f} % of the "
@@ -99,7 +152,8 @@ def main(argv=None):
         if args.no_profile:
             return
         mode = modes[-1]
-        cfg = load_field_config(os.path.join(d, "field_truepsf.yaml" if mode == "true" else "field.yaml"))
+        cfg = _with_settings(load_field_config(os.path.join(d, "field_truepsf.yaml" if mode == "true" else "field.yaml")),
+                             args.set)
         prof = cProfile.Profile()
         prof.enable()
         table = measure_field(cfg, out_path=os.path.join(d, "shear_profiled.fits"), processes=1)
