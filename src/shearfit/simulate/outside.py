@@ -28,10 +28,10 @@ in the ring's mean, then sheared.
 
 from __future__ import annotations
 
-import math
-
 import galsim
 import numpy as np
+
+from .stamps import intrinsic_shape
 
 __all__ = ["FAMILIES", "SERSIC_TRUNCATION", "outside_population", "outside_profile"]
 
@@ -39,8 +39,6 @@ __all__ = ["FAMILIES", "SERSIC_TRUNCATION", "outside_population", "outside_profi
 FAMILIES = ("sersic", "bulge_disk", "knots")
 #: Sersic profiles are truncated at this many half-light radii (an n = 6 profile has 1 % of its light beyond 40)
 SERSIC_TRUNCATION = 5.0
-#: an exponential disk's half-light radius in scalelengths
-_EXP_HLR = 1.6783469900166608
 #: extent of a drawn galaxy in half-light radii, for the stamp check of ring_set (its ``scalelength`` field is
 #: this extent / 4.5, the paper's truncation in scalelengths)
 _EXTENT_HLR = 5.0
@@ -79,15 +77,6 @@ def outside_population(mags, rng, cfg=None, hlr_range=(0.1, 2.0), families=FAMIL
     }
 
 
-def _shape(prof, e1, e2):
-    """The intrinsic ellipticity with the semi-major axis kept (as the paper's models, App. A)."""
-    emod = math.hypot(e1, e2)
-    if emod == 0.0:
-        return prof
-    q = (1.0 - emod) / (1.0 + emod)
-    return prof.dilate(math.sqrt(q)).shear(g1=e1, g2=e2)
-
-
 def outside_profile(pop, angle, g1, g2, flux, gsparams=None):
     """The GalSim profile of one galaxy of :func:`outside_population` (``pop``: its fields as scalars), turned
     by ``angle`` radians as a whole, then sheared by (g1, g2), of total flux ``flux``."""
@@ -97,20 +86,20 @@ def outside_profile(pop, angle, g1, g2, flux, gsparams=None):
     if fam == "sersic":
         prof = galsim.Sersic(n=float(pop["sersic_n"]), half_light_radius=hlr, trunc=SERSIC_TRUNCATION * hlr,
                              flux_untruncated=False, gsparams=gsparams)
-        prof = _shape(prof, e1, e2)
+        prof = intrinsic_shape(prof, e1, e2)
     elif fam == "bulge_disk":
         B = float(pop["bulge_fraction"])
-        disk = _shape(galsim.Exponential(half_light_radius=hlr, gsparams=gsparams), e1, e2).withFlux(1.0 - B)
+        disk = intrinsic_shape(galsim.Exponential(half_light_radius=hlr, gsparams=gsparams), e1, e2).withFlux(1.0 - B)
         rb = float(pop["bulge_hlr_ratio"]) * hlr
         bulge = galsim.DeVaucouleurs(half_light_radius=rb, trunc=SERSIC_TRUNCATION * rb, gsparams=gsparams)
-        bulge = _shape(bulge, float(pop["bulge_e1"]), float(pop["bulge_e2"])).withFlux(B)
+        bulge = intrinsic_shape(bulge, float(pop["bulge_e1"]), float(pop["bulge_e2"])).withFlux(B)
         prof = galsim.Add([disk, bulge], gsparams=gsparams)
     elif fam == "knots":
         fk = float(pop["knot_fraction"])
         disk = galsim.Exponential(half_light_radius=hlr, gsparams=gsparams).withFlux(1.0 - fk)
         knots = galsim.RandomKnots(int(pop["n_knots"]), half_light_radius=hlr, flux=fk,
                                    rng=galsim.BaseDeviate(int(pop["knot_seed"])), gsparams=gsparams)
-        prof = _shape(galsim.Add([disk, knots], gsparams=gsparams), e1, e2)
+        prof = intrinsic_shape(galsim.Add([disk, knots], gsparams=gsparams), e1, e2)
     else:   # pragma: no cover - FAMILIES is closed
         raise ValueError(fam)
     if angle:

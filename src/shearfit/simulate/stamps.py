@@ -30,6 +30,7 @@ from ..observation import Observation
 
 __all__ = [
     "galaxy_profile",
+    "intrinsic_shape",
     "moffat_psf",
     "jacobian_wcs",
     "draw_stamp",
@@ -49,7 +50,7 @@ ZERO_POINT = 30.0
 # profiles
 # ----------------------------------------------------------------------------
 
-def _intrinsic_shape(prof: galsim.GSObject, e1: float, e2: float) -> galsim.GSObject:
+def intrinsic_shape(prof: galsim.GSObject, e1: float, e2: float) -> galsim.GSObject:
     """Give ``prof`` the ellipticity (e1, e2) keeping its semi-major axis fixed.
 
     A reduced shear of modulus |e| along its axis stretches that axis by
@@ -114,7 +115,7 @@ def galaxy_profile(scalelength, bulge_fraction, e1, e2, flux=1.0, g1=0.0, g2=0.0
     if sersic_n is not None and np.isfinite(sersic_n) and sersic_n > 0:
         prof = galsim.Sersic(n=float(sersic_n), half_light_radius=_EXP_HLR * r, trunc=truncation * r,
                              flux_untruncated=True, gsparams=gsparams)
-        prof = _intrinsic_shape(prof, float(e1), float(e2))
+        prof = intrinsic_shape(prof, float(e1), float(e2))
         if g1 != 0.0 or g2 != 0.0:
             prof = prof.shear(g1=float(g1), g2=float(g2))
         return prof.withFlux(float(flux))
@@ -134,7 +135,7 @@ def galaxy_profile(scalelength, bulge_fraction, e1, e2, flux=1.0, g1=0.0, g2=0.0
                                      gsparams=gsparams)
         components.append(bulge.withFlux(B))
     prof = components[0] if len(components) == 1 else galsim.Add(components, gsparams=gsparams)
-    prof = _intrinsic_shape(prof, float(e1), float(e2))
+    prof = intrinsic_shape(prof, float(e1), float(e2))
     if g1 != 0.0 or g2 != 0.0:
         prof = prof.shear(g1=float(g1), g2=float(g2))
     return prof.withFlux(float(flux))
