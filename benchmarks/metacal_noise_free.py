@@ -18,10 +18,13 @@ the ring tests of ``ring_test.py --metacal`` need a million objects).
     python benchmarks/metacal_noise_free.py --n-galaxies 60
     python benchmarks/metacal_noise_free.py --n-galaxies 60 --population odd
     python benchmarks/metacal_noise_free.py --n-galaxies 60 --variants 2:quintic:cubic,0:quintic:cubic
+    python benchmarks/metacal_noise_free.py --n-galaxies 60 --variants 1.333:quintic:quintic:own,1.333:quintic:quintic:galsim
 
-``--variants`` compares image settings, each ``WRAP:STAMP_INTERPOLANT:PSF_INTERPOLANT``: the FFT grid in stamp
-widths (0: GalSim's own grid) and GalSim's k-interpolants of the stamp (and its noise) and of the PSF
-(``shearfit.calib.metacal.WRAP_STAMPS``, ``K_INTERPOLANT``, ``PSF_K_INTERPOLANT``); the default is the shipped one.
+``--variants`` compares image settings, each ``WRAP:STAMP_INTERPOLANT:PSF_INTERPOLANT[:own|galsim]``: the FFT
+grid in stamp widths (0: GalSim's own grid), GalSim's k-interpolants of the stamp (and its noise) and of the PSF
+(``shearfit.calib.metacal.WRAP_STAMPS``, ``K_INTERPOLANT``, ``PSF_K_INTERPOLANT``), and whether the images come
+from shearfit's own k-space operations (``own``, the default where both interpolants are quintic and the grid is
+not GalSim's: ``metacal.OWN_KSPACE``) or from GalSim's objects (``galsim``); the default is the shipped one.
 """
 
 from __future__ import annotations
@@ -79,17 +82,22 @@ def main(argv=None):
           f"{' and their antithetic twins' if len(twins) > 1 else ''} ({args.population} population, SNR "
           f"{args.snr_min:g}-{args.snr_max:g}{'' if args.noisy else ' weights'}, mag {args.mag_min:g}-{args.mag_max:g}), "
           f"7 exposures; true shears +-{h:g}, metacal delta {args.delta:g}; rendered in {time.perf_counter() - t0:.0f} s")
-    shipped = f"{metacal.WRAP_STAMPS:g}:{metacal.K_INTERPOLANT}:{metacal.PSF_K_INTERPOLANT}"
+    shipped = (f"{metacal.WRAP_STAMPS:g}:{metacal.K_INTERPOLANT}:{metacal.PSF_K_INTERPOLANT}:"
+               f"{'own' if metacal.OWN_KSPACE else 'galsim'}")
     for variant in (args.variants.split(",") if args.variants else [shipped]):
-        wrap, kint, pkint = variant.split(":")
-        saved = metacal.WRAP_STAMPS, metacal.K_INTERPOLANT, metacal.PSF_K_INTERPOLANT
+        parts = variant.split(":")
+        if len(parts) not in (3, 4) or (len(parts) == 4 and parts[3] not in ("own", "galsim")):
+            ap.error(f"--variants: {variant!r} is not WRAP:STAMP_INTERPOLANT:PSF_INTERPOLANT[:own|galsim]")
+        wrap, kint, pkint = parts[:3]
+        saved = metacal.WRAP_STAMPS, metacal.K_INTERPOLANT, metacal.PSF_K_INTERPOLANT, metacal.OWN_KSPACE
         metacal.WRAP_STAMPS, metacal.K_INTERPOLANT, metacal.PSF_K_INTERPOLANT = float(wrap), kint, pkint
+        metacal.OWN_KSPACE = len(parts) == 3 or parts[3] == "own"
         try:
             t0 = time.perf_counter()
             rows = [[fixed_sample_responses(sets[twin], i, h, args.delta, cfg, args.seed, args.noisy, twin,
                                             free=args.noisy) for twin in twins] for i in range(args.n_galaxies)]
         finally:
-            metacal.WRAP_STAMPS, metacal.K_INTERPOLANT, metacal.PSF_K_INTERPOLANT = saved
+            metacal.WRAP_STAMPS, metacal.K_INTERPOLANT, metacal.PSF_K_INTERPOLANT, metacal.OWN_KSPACE = saved
         # a galaxy (with its twin) counts where every fit of it measured a galaxy; twins averaged
         # (A_free is measured only with --noisy: A stands in for it, unprinted)
         ok = [np.mean([(R, A, A if F is None else F) for R, A, F, _ in rs], axis=0)

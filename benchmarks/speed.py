@@ -172,80 +172,87 @@ def stage_report(stats):
 
 
 def metacal_report(objs, cfg, passes):
-    """Metacal (GalSim images of five versions, five joint fits) against the plain engine, same objects.
+    """Metacal (the images of five versions, five joint fits) against the plain engine, same objects.
 
-    The plain fit, the metacal images alone and the whole metacal measurement of each galaxy are timed one
-    after the other, galaxy by galaxy, so that the three see the same machine (whose speed drifts by
-    10-30 %% from minute to minute here); the ratio is taken per pass and its median reported.
+    The plain fit, the metacal images alone (shearfit's own k-space operations, and GalSim's objects as
+    before them) and the whole metacal measurement of each galaxy are timed one after the other, galaxy by
+    galaxy, so that they see the same machine (whose speed drifts by 10-30 %% from minute to minute here);
+    the ratio is taken per pass and its median reported.
     """
-    from shearfit.calib.metacal import measure_metacal, metacal_observations
+    from shearfit.calib import metacal
 
     rng = np.random.default_rng(0)
     rows = []
     for _ in range(max(passes, 1)):
-        tp = ti = tm = 0.0
+        tp = ti = tg = tm = 0.0
         for o, t in objs:
             t0 = time.perf_counter()
             shearfit.measure_object(o, mag=t["mag"], config=cfg)
             t1 = time.perf_counter()
             for ob in o:
-                metacal_observations(ob, 0.01, rng)
+                metacal.metacal_observations(ob, 0.01, rng)
             t2 = time.perf_counter()
-            measure_metacal(o, t["mag"], cfg, rng=rng)
+            metacal.OWN_KSPACE = False
+            try:
+                for ob in o:
+                    metacal.metacal_observations(ob, 0.01, rng)
+            finally:
+                metacal.OWN_KSPACE = True
             t3 = time.perf_counter()
-            tp, ti, tm = tp + t1 - t0, ti + t2 - t1, tm + t3 - t2
-        rows.append((tp, ti, tm))
+            metacal.measure_metacal(o, t["mag"], cfg, rng=rng)
+            t4 = time.perf_counter()
+            tp, ti, tg, tm = tp + t1 - t0, ti + t2 - t1, tg + t3 - t2, tm + t4 - t3
+        rows.append((tp, ti, tg, tm))
     rows = np.array(rows) / len(objs)
-    ratio = rows[:, 2] / rows[:, 0]
+    ratio = rows[:, 3] / rows[:, 0]
     k = int(np.argsort(ratio)[len(ratio) // 2])
-    tp, ti, tm = rows[k]
+    tp, ti, tg, tm = rows[k]
     print(f"\nmetacal, {len(objs)} galaxies, plain and metacal fits timed galaxy by galaxy, {len(rows)} passes:")
     print(f"  {1 / tm:.2f} galaxies / s / core ({1e3 * tm:.1f} ms per galaxy) against {1 / tp:.2f} plain "
           f"({1e3 * tp:.1f} ms): {tm / tp:.2f} x the plain engine (median pass; passes "
           f"{ratio.min():.2f}-{ratio.max():.2f} x)")
-    print(f"  of which the GalSim images of the five versions and their symmetrising noise {1e3 * ti:.1f} ms "
+    print(f"  of which the images of the five versions and their symmetrising noise {1e3 * ti:.1f} ms "
           f"({ti / tp:.2f} x a plain fit), the five fits {1e3 * (tm - ti):.1f} ms ({(tm - ti) / tp:.2f} x)")
+    print(f"  the same images by GalSim's objects (metacal.OWN_KSPACE = False): {1e3 * tg:.1f} ms "
+          f"({tg / tp:.2f} x a plain fit, {tg / ti:.2f} x shearfit's own)")
 
 
 def metacal_image_profile(objs):
-    """Where the metacal images' time goes: GalSim's k-space evaluation of its interpolated images (the
-    stamp, its symmetrising noise, the PSF under the deconvolution), split by whether the Jacobian
-    reaching them is diagonal (a shear along the pixel axes, evaluated separably) or not (a shear
-    along the diagonals, or any shear on a rotated pixel grid: evaluated point by point), per k point."""
-    import galsim
+    """Where the metacal images' time goes, per galaxy: shearfit's own k-space operations (the padded
+    transforms of the stamp, its noise and the PSF; the quintic interpolation at the versions' sheared
+    wavevectors; the inverse transforms onto the stamps) and the rest of the per-exposure work."""
+    from shearfit.calib import kspace, metacal
 
-    from shearfit.calib.metacal import metacal_observations
-
-    orig = galsim.InterpolatedImage._drawKImage
     acc = {}
 
-    def timed_draw(self, image, jac=None):
-        t0 = time.perf_counter()
-        orig(self, image, jac)
-        dt = time.perf_counter() - t0
-        kind = "diagonal" if jac is None or (jac[0, 1] == 0 and jac[1, 0] == 0) else "general"
-        first = not getattr(self, "_timed", False)   # the first draw also transforms the padded image
-        self._timed = True
-        a = acc.setdefault(kind if not first else "first draw of an image", [0.0, 0, 0])
-        a[0] += dt
-        a[1] += image.array.size
-        a[2] += 1
+    def timed(name, fn):
+        def wrap(*a, **k):
+            t0 = time.perf_counter()
+            out = fn(*a, **k)
+            acc[name] = acc.get(name, 0.0) + time.perf_counter() - t0
+            return out
+        return wrap
 
+    saved = (kspace.padded_transforms, kspace.kvalues, kspace.band_maxk, metacal.band_images)
+    kspace.padded_transforms = timed("padded transforms (rfft, 4 x padding)", saved[0])
+    kspace.kvalues = timed("quintic interpolation (compiled)", saved[1])
+    kspace.band_maxk = timed("the PSF's band", saved[2])
+    metacal.band_images = timed("inverse transforms onto the stamps", saved[3])
     rng = np.random.default_rng(1)
-    galsim.InterpolatedImage._drawKImage = timed_draw
     try:
         t0 = time.perf_counter()
         for o, _ in objs:
             for ob in o:
-                metacal_observations(ob, 0.01, rng)
+                metacal.metacal_observations(ob, 0.01, rng)
         total = time.perf_counter() - t0
     finally:
-        galsim.InterpolatedImage._drawKImage = orig
+        kspace.padded_transforms, kspace.kvalues, kspace.band_maxk, metacal.band_images = saved
     n = len(objs)
-    print(f"\n  metacal images: {1e3 * total / n:.1f} ms per galaxy; GalSim's k-space evaluation of interpolated images:")
-    for kind, (dt, pts, calls) in acc.items():
-        print(f"    {kind:24s} {calls / n:5.1f} per galaxy, {1e3 * dt / n:6.1f} ms per galaxy "
-              f"({100 * dt / total:4.1f} %), {1e9 * dt / pts:5.0f} ns per k point")
+    print(f"\n  metacal images: {1e3 * total / n:.1f} ms per galaxy, of which:")
+    for name, dt in acc.items():
+        print(f"    {name:40s} {1e3 * dt / n:6.1f} ms ({100 * dt / total:4.1f} %)")
+    rest = total - sum(acc.values())
+    print(f"    {'the rest (masks, noise, PSF image, Python)':40s} {1e3 * rest / n:6.1f} ms ({100 * rest / total:4.1f} %)")
 
 
 #: the settings that trade exactness for speed, at their exact values

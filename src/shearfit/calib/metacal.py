@@ -1,14 +1,28 @@
 """Metacalibration on the lensfit likelihood: a shear response from the data themselves.
 
 Huff & Mandelbaum (2017), Sheldon & Huff (2017). For each exposure of an
-object, GalSim turns the stamp into an interpolated image
-(``galsim.InterpolatedImage``), divides out that exposure's PSF
-(``galsim.Deconvolve`` of the interpolated PSF, which includes the pixel),
-shears the result by +-delta in each component in the sky frame (the stamp's
-WCS is the exposure's Jacobian, so ``.shear`` acts on the catalogue's (u, v)
-axes), and convolves it with the PSF dilated by 1 + 2 delta, which is wider
-than the sheared original in every direction. The same without the shear
-gives the ``noshear`` version. All five versions carry the same new PSF.
+object, the stamp is taken as an interpolated image (GalSim's
+``InterpolatedImage``: Lanczos-15 in x, quintic in k), that exposure's PSF
+(which includes the pixel) is divided out, the result is sheared by +-delta
+in each component in the sky frame (the stamp's WCS is the exposure's
+Jacobian, so the shear acts on the catalogue's (u, v) axes), and convolved
+with the PSF dilated by 1 + 2 delta, which is wider than the sheared
+original in every direction. The same without the shear gives the
+``noshear`` version. All five versions carry the same new PSF.
+
+For a PSF given on the stamp's pixels (the usual case) these operations are
+shearfit's own (:func:`own_kspace_images`, :mod:`shearfit.calib.kspace`):
+the transforms of the stamp, its noise and the PSF are taken once per
+exposure and every version interpolates them at its sheared wavevectors
+with one set of quintic weights; the deconvolution stops at the PSF's band
+(where its transform falls below 1e-3 of its flux, and at most the pixels'
+Nyquist disc). For an oversampled PSF, or with other interpolants
+(``K_INTERPOLANT``, ``PSF_K_INTERPOLANT``) or GalSim's own FFT grid
+(``WRAP_STAMPS = 0``), GalSim's objects do them (``galsim.Deconvolve``,
+``.shear``, ``.dilate``, :func:`_galsim_images`); set ``OWN_KSPACE = False``
+for GalSim's objects always. Given the same band, the two give the same
+images to 1e-6 of the peak (``tests/test_kspace.py``); the own operations
+take a third of the time.
 
 The deconvolution and the shear correlate the noise anisotropically, which
 would itself respond to the shear. The standard cure: a new noise field with
@@ -26,7 +40,9 @@ The ``noshear`` fit makes its choices from its data as any fit does (the
 Fourier modes kept, the position, the size nodes, the ellipticity samples);
 the sheared versions replay them (:func:`shearfit.engine.measure.measure_versions`),
 so that their estimates differ only through their pixels, and evaluate only
-the samples within ``replay_margin`` nats of the posterior cut.
+the samples within ``replay_margin`` nats of the posterior cut (those within
+``REPLAY_FIRST_MARGIN`` first, the rest only where the version's posterior
+moved enough for them to matter: the same estimates).
 ``R_ij = (e_i[j+] - e_i[j-]) / (2 delta)`` per galaxy, and an ensemble
 shear is ``<R>^-1 <e>`` with the lensfit weights of the ``noshear`` fit.
 Cuts and weights computed from measured quantities respond to the shear too
@@ -36,6 +52,7 @@ sheared version's own measurement and adds ``R_S``.
 
 from __future__ import annotations
 
+import functools
 import logging
 from dataclasses import dataclass, field
 
@@ -46,6 +63,7 @@ from scipy import ndimage
 
 from ..errors import FITCLASS_GALAXY, ShearfitIOError
 from ..engine.model import psf_moffat, psf_moffats
+from . import kspace
 from ..observation import Observation
 
 log = logging.getLogger(__name__)
@@ -69,6 +87,11 @@ WRAP_STAMPS = 4 / 3
 #: ``benchmarks/metacal_noise_free.py --variants``).
 K_INTERPOLANT = "quintic"
 PSF_K_INTERPOLANT = "quintic"
+#: The x-interpolant of the interpolated stamps and PSFs.
+_LANCZOS = galsim.Lanczos(15)
+#: The versions of stamps with native PSFs made by shearfit's own k-space operations (:func:`own_kspace_images`;
+#: False: by GalSim's objects, :func:`_galsim_images`).
+OWN_KSPACE = True
 
 
 def _wcs(J, k=1):
@@ -86,6 +109,26 @@ def _interpolated(array, wcs, calculate_maxk=False, k_interpolant="quintic"):
 
 
 _PIXEL = galsim.PixelScale(1.0)
+
+
+@functools.lru_cache(maxsize=16)
+def _dilation_matrix(n, dilation):
+    """L[i, p] = X((i - c) / d - (p - c)) / d, X the Lanczos-15 interpolant (GalSim's), c = n // 2: the
+    interpolated image of n pixels along one axis, dilated by d about pixel c, at its pixel centres."""
+    c = n // 2
+    u = ((np.arange(n) - c) / dilation)[:, None] - (np.arange(n) - c)[None, :]
+    m = _LANCZOS.xval(u.ravel()).reshape(u.shape) / dilation
+    m.setflags(write=False)
+    return m
+
+
+def dilated_image(image, dilation):
+    """The image as an interpolated image (Lanczos-15) dilated by ``dilation`` about its pixel
+    (ny // 2, nx // 2), at its pixel centres: what GalSim's ``drawImage(method='no_pixel')`` of
+    ``InterpolatedImage(image).dilate(dilation)`` draws on the same pixels, as two matrix products (the
+    interpolant is separable)."""
+    ny, nx = image.shape
+    return _dilation_matrix(ny, float(dilation)) @ image @ _dilation_matrix(nx, float(dilation)).T
 
 
 def _draw(prof, shape, wcs):
@@ -192,32 +235,123 @@ class _Drawer:
             if abs(self.flux_scaling - 1.0) > galsim.GSParams().kvalue_accuracy:
                 arr = arr * self.flux_scaling
             batches.setdefault(n, []).append((i, r, arr))
-        ny, nx = self.shape
         for n, items in batches.items():
-            half = n // 2
-            cols = min(max(r for _, r, _ in items), half) + 1
-            spec = np.zeros((len(items), n, cols), np.complex128)
-            for b, (_, r, arr) in enumerate(items):
-                if r < half:
-                    spec[b, np.arange(-r, r + 1) % n, :r + 1] = arr
-                else:
-                    # the band reaches the Nyquist row or column: GalSim's Hermitian fold onto the n grid
-                    full = galsim.ImageCD(galsim.BoundsI(0, r, -r, r), scale=1.0)
-                    full.array[:, :] = arr
-                    folded = full.wrap(galsim.BoundsI(0, half, -half, half - 1), hermitian="x").array
-                    spec[b, np.arange(-half, half) % n, :] = folded
-            # f(x) = (1 / 4 pi^2) sum_k F(k) exp(i k.x) dk^2 with dk = 2 pi / n, irfft2's own normalisation,
-            # evaluated only at the stamp's rows and columns: the transform over ky of the band's columns,
-            # the stamp's rows of it, then the real transform over kx
-            iy = (np.arange(ny) - ny // 2) % n
-            ix = (np.arange(nx) - nx // 2) % n
-            rows = sfft.ifft(spec, axis=1, workers=1)[:, iy, :]
-            if cols < half + 1:
-                rows = np.concatenate([rows, np.zeros(rows.shape[:2] + (half + 1 - cols,), rows.dtype)], axis=2)
-            real = sfft.irfft(rows, n=n, axis=2, workers=1)[:, :, ix]
-            for b, (i, _, _) in enumerate(items):
-                out[i] = real[b]
+            for (i, _, _), im in zip(items, band_images(self.shape, n, [(r, arr) for _, r, arr in items])):
+                out[i] = im
         return out
+
+
+def band_images(shape, n, items):
+    """The images on a stamp of ``shape`` of k images given on bands: ``items`` is a list of (r, arr), arr the
+    transform (an image's, as GalSim's drawFFT makes its k image: surface brightness per pixel, origin at
+    pixel (ny // 2, nx // 2)) at the wavevectors 2 pi (i, j) / n of the pixel frame, i = 0 .. r, j = -r .. r
+    (rows j), zero beyond; the images are periodic on the n x n grid. A band that reaches the grid's Nyquist
+    row or column is folded onto the grid by GalSim's ``Image.wrap`` (Hermitian in x), as ``drawFFT`` folds
+    its k image before the transform."""
+    ny, nx = shape
+    half = n // 2
+    cols = min(max(r for r, _ in items), half) + 1
+    spec = np.zeros((len(items), n, cols), np.complex128)
+    for b, (r, arr) in enumerate(items):
+        if r < half:
+            spec[b, np.arange(-r, r + 1) % n, :r + 1] = arr
+        else:
+            full = galsim.ImageCD(galsim.BoundsI(0, r, -r, r), scale=1.0)
+            full.array[:, :] = arr
+            folded = full.wrap(galsim.BoundsI(0, half, -half, half - 1), hermitian="x").array
+            spec[b, np.arange(-half, half) % n, :] = folded
+    # f(x) = (1 / 4 pi^2) sum_k F(k) exp(i k.x) dk^2 with dk = 2 pi / n, irfft2's own normalisation,
+    # evaluated only at the stamp's rows and columns: the transform over ky of the band's columns,
+    # the stamp's rows of it, then the real transform over kx
+    iy = (np.arange(ny) - ny // 2) % n
+    ix = (np.arange(nx) - nx // 2) % n
+    rows = sfft.ifft(spec, axis=1, workers=1)[:, iy, :]
+    if cols < half + 1:
+        rows = np.concatenate([rows, np.zeros(rows.shape[:2] + (half + 1 - cols,), rows.dtype)], axis=2)
+    return list(sfft.irfft(rows, n=n, axis=2, workers=1)[:, :, ix])
+
+
+def _singular_values(A):
+    """The larger and the smaller singular value of a 2 x 2 matrix (closed form)."""
+    (a, b), (c, d) = np.asarray(A, float)
+    p = a * a + b * b + c * c + d * d
+    q = np.hypot(a * a + b * b - c * c - d * d, 2 * (a * c + b * d))
+    return np.sqrt(0.5 * (p + q)), np.sqrt(max(0.5 * (p - q), 0.0))
+
+
+def _shear_matrix(g1, g2):
+    """GalSim's shear of (g1, g2) as a matrix on sky positions (unit determinant)."""
+    return np.array([[1 + g1, g2], [g2, 1 - g1]]) / np.sqrt(1 - g1 * g1 - g2 * g2)
+
+
+def _galsim_images(image, noise, psf_image, wcs, psf_wcs, delta, names):
+    """The images of :func:`metacal_observations`' products, [version, its noise] per name of ``names``, from
+    GalSim's objects (interpolated images, ``Deconvolve``, ``shear``, ``dilate``) drawn by :class:`_Drawer`:
+    the reference for :func:`own_kspace_images`, and the path for oversampled PSFs."""
+    gal = _interpolated(image, wcs, k_interpolant=K_INTERPOLANT)
+    nint = _interpolated(noise, wcs, k_interpolant=K_INTERPOLANT)
+    psf = _interpolated(psf_image, psf_wcs, calculate_maxk=True, k_interpolant=PSF_K_INTERPOLANT)
+    inv_psf = galsim.Deconvolve(psf)
+    new_psf = psf.dilate(1.0 + 2.0 * abs(delta))
+    products, bands = [], []
+    for name in names:
+        s1, s2 = VERSIONS[name]
+        g1, g2 = s1 * delta, s2 * delta
+        # the shear of (stamp / PSF) is the product of the sheared factors (a shear keeps areas)
+        gal_g, noise_g, inv = [(p.shear(g1=g1, g2=g2) if (g1 or g2) else p) for p in (gal, nint, inv_psf)]
+        # the same operations on the rotated noise; rotated back, its correlation is the processed
+        # noise's turned by 90 degrees (as if sheared by -g), so the sum's is symmetric
+        products += [[gal_g, inv, new_psf], [noise_g, inv, new_psf]]
+        bands += [inv.maxk, inv.maxk]
+    return _Drawer(image.shape, wcs).draw(products, bands)
+
+
+def own_kspace_images(image, noise, psf, J, delta, names, fft_size=None):
+    """The images of :func:`metacal_observations`' products, [version, its noise] per name of ``names``, from
+    shearfit's own k-space operations (:mod:`shearfit.calib.kspace`) instead of GalSim's objects, for a PSF
+    image on the stamp's pixels: the stamp's, its noise's and the PSF's discrete transforms once, each
+    version's sheared wavevectors interpolated with one set of quintic weights for the three; drawn on the
+    same periodic grid of :data:`WRAP_STAMPS` stamp widths (``fft_size``) as :class:`_Drawer`."""
+    shape = image.shape
+    n_small = int(fft_size) if fft_size else sfft.next_fast_len(int(np.ceil(WRAP_STAMPS * max(shape))))
+    n = kspace.padded_size(shape, psf.shape)
+    table = kspace.padded_transforms([image, noise, psf], n)
+    psf_table = table[2:3]
+    J = np.asarray(J, float)
+    jit = np.linalg.inv(J).T
+    xk = _LANCZOS.kval
+    maxk = kspace.band_maxk(table[2], xk, J)
+    dk = 2 * np.pi / n_small
+    dilation = 1.0 + 2.0 * abs(delta)
+    to_table = n / (2 * np.pi)
+    grids = {}
+    items = []
+    smax_j = _singular_values(J)[0]
+    for name in names:
+        s1, s2 = VERSIONS[name]
+        S = _shear_matrix(s1 * delta, s2 * delta)
+        A = S @ jit     # kappa -> the deconvolved profile's sky wavevector S^T K (S symmetric)
+        # the grid's half-width: the band's disc seen in the pixel frame, and no wider than the new PSF's band
+        # (beyond it the product is below the threshold)
+        r = int(np.ceil(maxk / (_singular_values(A)[1] * dk))) + 1
+        r = min(r, int(np.ceil(maxk / dilation * smax_j / dk)))
+        if r not in grids:
+            j, i = np.mgrid[-r:r + 1, 0:r + 1]
+            kap = dk * np.stack([i.ravel(), j.ravel()]).astype(float)
+            d = dilation * kap
+            gamma = kspace.kvalues(psf_table, d[0] * to_table, d[1] * to_table)[:, 0] * xk(d[0]) * xk(d[1])
+            grids[r] = (kap, gamma)
+        kap, gamma = grids[r]
+        sky = A @ kap
+        inside = np.nonzero(np.sum(sky * sky, axis=0) <= maxk * maxk)[0]
+        kp = (J.T @ sky[:, inside]) * to_table   # the sheared wavevectors in the pixel frame: M kappa, M = J^T S J^-T
+        v = kspace.kvalues(table, kp[0], kp[1])
+        f = gamma[inside] / v[:, 2]
+        for t in (0, 1):
+            arr = np.zeros(kap.shape[1], complex)
+            arr[inside] = v[:, t] * f
+            items.append((r, arr.reshape(2 * r + 1, r + 1)))
+    return band_images(shape, n_small, items)
 
 
 def metacal_observations(obs: Observation, delta=0.01, rng=None, versions=tuple(VERSIONS),
@@ -230,20 +364,14 @@ def metacal_observations(obs: Observation, delta=0.01, rng=None, versions=tuple(
     """
     rng = np.random.default_rng() if rng is None else rng
     J = obs.jacobian
-    wcs = _wcs(J)
     k = obs.psf_oversampling
-    pwcs = _wcs(J, k)
     w = obs.weight
     good = w > 0
     image = np.where(good, obs.image, 0.0)
-    gal = _interpolated(image, wcs, k_interpolant=K_INTERPOLANT)
-    psf = _interpolated(obs.psf, pwcs, calculate_maxk=True, k_interpolant=PSF_K_INTERPOLANT)
-    inv_psf = galsim.Deconvolve(psf)
     dilation = 1.0 + 2.0 * abs(delta)
-    new_psf = psf.dilate(dilation)
-    # its image: a dilation commutes with the Jacobian, so it is drawn in the PSF's own pixel frame, where
-    # GalSim interpolates separably (through a general Jacobian, 25 times slower; the same pixels)
-    psf_img = _draw(_interpolated(obs.psf, _PIXEL).dilate(dilation), obs.psf.shape, _PIXEL)
+    # its image: a dilation commutes with the Jacobian, so it is drawn in the PSF's own pixel frame, where the
+    # interpolation is separable (GalSim's drawImage of the dilated interpolated PSF to 1e-7 of the peak)
+    psf_img = dilated_image(obs.psf, dilation)
     psf_img /= psf_img.sum()
     # the App. A Moffat of the new PSF: the exposure's own, dilated the same way (so objects sharing an
     # exposure's Moffat share its alias tables); fitted to the new PSF only when none was given
@@ -262,23 +390,15 @@ def metacal_observations(obs: Observation, delta=0.01, rng=None, versions=tuple(
         # and its correlation doubles the processed noise's instead of symmetrising it
         log.warning("metacal: a %d x %d stamp is not square; its noise is not symmetrised", *w.shape)
     nrot = np.rot90(noise, 1) if square else noise
-    nint = _interpolated(nrot, wcs, k_interpolant=K_INTERPOLANT)
     mask = ndimage.binary_dilation(~good, iterations=_MASK_GROW)
     mask[:_EDGE, :] = mask[-_EDGE:, :] = True
     mask[:, :_EDGE] = mask[:, -_EDGE:] = True
     var_in = float(np.mean(sigma[~mask] ** 2)) if np.any(~mask) else 1.0
     names = ("noshear",) + tuple(v for v in versions if v != "noshear")
-    products, bands = [], []
-    for name in names:
-        s1, s2 = VERSIONS[name]
-        g1, g2 = s1 * delta, s2 * delta
-        # the shear of (stamp / PSF) is the product of the sheared factors (a shear keeps areas)
-        gal_g, noise_g, inv = [(p.shear(g1=g1, g2=g2) if (g1 or g2) else p) for p in (gal, nint, inv_psf)]
-        # the same operations on the rotated noise; rotated back, its correlation is the processed
-        # noise's turned by 90 degrees (as if sheared by -g), so the sum's is symmetric
-        products += [[gal_g, inv, new_psf], [noise_g, inv, new_psf]]
-        bands += [inv.maxk, inv.maxk]
-    images = _Drawer(w.shape, wcs).draw(products, bands)
+    if OWN_KSPACE and k == 1 and WRAP_STAMPS and K_INTERPOLANT == PSF_K_INTERPOLANT == "quintic":
+        images = own_kspace_images(image, nrot, obs.psf, J, delta, names)
+    else:
+        images = _galsim_images(image, nrot, obs.psf, _wcs(J), _wcs(J, k), delta, names)
     out = {}
     weight = None
     for v, name in enumerate(names):
@@ -317,6 +437,10 @@ class MetacalResult:
 #: goes below 0.02 where fewer than 30 samples lie above 5 % of the peak, so broad likelihoods cost
 #: nothing more.
 E_GRID_MIN = 0.005
+#: The sheared versions' replays evaluate the samples within this many nats of the posterior cut first, and
+#: those within ``replay_margin`` only where the version's posterior moved enough for one of them to matter
+#: (:func:`shearfit.engine.sampling.replay_samples`): the same estimates, about half the samples.
+REPLAY_FIRST_MARGIN = 1.0
 
 
 def _fit_new_moffats(per_exp):
@@ -328,7 +452,8 @@ def _fit_new_moffats(per_exp):
             o.psf_moffat = fit
 
 
-def measure_metacal(observations, mag, config=None, delta=0.01, rng=None, replay_margin=10.0) -> MetacalResult:
+def measure_metacal(observations, mag, config=None, delta=0.01, rng=None, replay_margin=10.0,
+                    replay_first_margin=REPLAY_FIRST_MARGIN) -> MetacalResult:
     """Measure the five metacal versions of one object jointly over its exposures (see the module doc)."""
     from dataclasses import replace
 
@@ -345,7 +470,7 @@ def measure_metacal(observations, mag, config=None, delta=0.01, rng=None, replay
     # the sheared versions replay the noshear fit's choices (modes, position, size nodes, ellipticity
     # samples): their estimates then differ only through their pixels (measure_versions)
     results = measure_versions([[v[name] for v in per_exp] for name in VERSIONS], mag, config,
-                               margin=replay_margin)
+                               margin=replay_margin, first_margin=replay_first_margin)
     out.results = dict(zip(VERSIONS, results))
     R = np.full((2, 2), np.nan)
     for j, (p, m) in enumerate((("1p", "1m"), ("2p", "2m"))):

@@ -1161,6 +1161,106 @@ static PyObject *size_marginal(PyObject *self, PyObject *args)
     Py_RETURN_NONE;
 }
 
+/*
+ * quintic_kvalues(table, n, ntab, tx, ty, out): metacal's k-space interpolation (calib/kspace.py, whose numpy
+ * kvalues_numpy is the reference). table: complex128 (ntab, n / 2 + 1, n), the transforms of ntab padded images
+ * (kx >= 0, then ky); tx, ty: float64, the points in units of the table's step; out: complex128
+ * (npts, ntab). Each point takes the 6 x 6 table values around it (periodic in n; a column beyond n / 2 is the
+ * conjugate of the mirrored one) with the weights of the quintic kernel (Bernstein & Gruen 2014), one set of
+ * weights for the ntab images.
+ */
+/* the six weights of the quintic kernel at distances f + 2, f + 1, f, 1 - f, 2 - f, 3 - f (f in [0, 1)):
+   each distance in a known piece of the kernel, so no branch */
+static inline __attribute__((always_inline)) void quintic_weights(double f, double *w)
+{
+    double x = f + 2.0;
+    w[0] = (x - 2.0) * (x - 3.0) * (x - 3.0) * (-9.0 / 4.0 + x * (25.0 / 12.0 + x * (-11.0 / 24.0)));
+    x = f + 1.0;
+    w[1] = (x - 1.0) * (x - 2.0) * (-23.0 / 4.0 + x * (29.0 / 2.0 + x * (-83.0 / 8.0 + x * (55.0 / 24.0))));
+    x = f;
+    w[2] = 1.0 + x * x * x * (-95.0 / 12.0 + x * (23.0 / 2.0 + x * (-55.0 / 12.0)));
+    x = 1.0 - f;
+    w[3] = 1.0 + x * x * x * (-95.0 / 12.0 + x * (23.0 / 2.0 + x * (-55.0 / 12.0)));
+    x = 2.0 - f;
+    w[4] = (x - 1.0) * (x - 2.0) * (-23.0 / 4.0 + x * (29.0 / 2.0 + x * (-83.0 / 8.0 + x * (55.0 / 24.0))));
+    x = 3.0 - f;
+    w[5] = (x - 2.0) * (x - 3.0) * (x - 3.0) * (-9.0 / 4.0 + x * (25.0 / 12.0 + x * (-11.0 / 24.0)));
+}
+
+#define KI_MAXTAB 8
+
+/* the npts points for NT images (a compile-time constant where the caller's switch makes it one); the table
+   is NT planes of nc columns (kx = 0 .. n / 2) of n values (ky), so that each column's six taps are adjacent */
+static inline __attribute__((always_inline)) void kvalues_range(
+    const double *restrict T, Py_ssize_t n, const Py_ssize_t NT, const double *restrict TX,
+    const double *restrict TY, Py_ssize_t npts, double *restrict O)
+{
+    const Py_ssize_t nc = n / 2 + 1, plane = 2 * nc * n;
+    for (Py_ssize_t p = 0; p < npts; p++) {
+        const double fx = floor(TX[p]), fy = floor(TY[p]);
+        double wx[6], wy[6];
+        quintic_weights(TX[p] - fx, wx);
+        quintic_weights(TY[p] - fy, wy);
+        Py_ssize_t ix = ((Py_ssize_t)fx - 2) % n, iy = ((Py_ssize_t)fy - 2) % n;
+        ix = ix < 0 ? ix + n : ix;
+        iy = iy < 0 ? iy + n : iy;
+        Py_ssize_t cy[6], my[6];
+        for (int b = 0; b < 6; b++) {
+            cy[b] = iy;
+            my[b] = iy == 0 ? 0 : n - iy;   /* -ky, for the mirrored columns */
+            iy = iy + 1 == n ? 0 : iy + 1;
+        }
+        double acc[2 * KI_MAXTAB];
+        for (Py_ssize_t t = 0; t < 2 * NT; t++) acc[t] = 0.0;
+        for (int a = 0; a < 6; a++) {
+            const int low = ix <= n / 2;
+            const Py_ssize_t col = low ? ix : n - ix;
+            const Py_ssize_t *rows = low ? cy : my;
+            /* this column's six values summed with the y weights first; the mirrored column conjugated */
+            for (Py_ssize_t t = 0; t < NT; t++) {
+                const double *v = T + t * plane + 2 * n * col;
+                double re = 0.0, im = 0.0;
+                for (int b = 0; b < 6; b++) {
+                    re += wy[b] * v[2 * rows[b]];
+                    im += wy[b] * v[2 * rows[b] + 1];
+                }
+                acc[2 * t] += wx[a] * re;
+                acc[2 * t + 1] += (low ? wx[a] : -wx[a]) * im;
+            }
+            ix = ix + 1 == n ? 0 : ix + 1;
+        }
+        for (Py_ssize_t t = 0; t < 2 * NT; t++) O[2 * NT * p + t] = acc[t];
+    }
+}
+
+static PyObject *quintic_kvalues(PyObject *self, PyObject *args)
+{
+    Py_buffer tab, txb, tyb, out;
+    Py_ssize_t n, ntab;
+    if (!PyArg_ParseTuple(args, "y*nny*y*w*", &tab, &n, &ntab, &txb, &tyb, &out)) return NULL;
+    const Py_ssize_t nc = n / 2 + 1;
+    const Py_ssize_t npts = txb.len / (Py_ssize_t)sizeof(double);
+    if (n < 2 || ntab < 1 || ntab > KI_MAXTAB || tab.len != n * nc * ntab * 2 * (Py_ssize_t)sizeof(double)
+        || tyb.len != txb.len || out.len != npts * ntab * 2 * (Py_ssize_t)sizeof(double)) {
+        RELEASE(&tab, &txb, &tyb, &out);
+        PyErr_SetString(PyExc_ValueError, "quintic_kvalues: inconsistent buffers");
+        return NULL;
+    }
+    const double *T = (const double *)tab.buf, *TX = (const double *)txb.buf, *TY = (const double *)tyb.buf;
+    double *O = (double *)out.buf;
+    Py_BEGIN_ALLOW_THREADS
+    switch (ntab) {
+    case 1: kvalues_range(T, n, 1, TX, TY, npts, O); break;
+    case 2: kvalues_range(T, n, 2, TX, TY, npts, O); break;
+    case 3: kvalues_range(T, n, 3, TX, TY, npts, O); break;
+    case 4: kvalues_range(T, n, 4, TX, TY, npts, O); break;
+    default: kvalues_range(T, n, ntab, TX, TY, npts, O); break;
+    }
+    Py_END_ALLOW_THREADS
+    RELEASE(&tab, &txb, &tyb, &out);
+    Py_RETURN_NONE;
+}
+
 /* the instruction-set level this module was compiled for */
 static PyObject *kernel_isa(PyObject *self, PyObject *args)
 {
@@ -1211,6 +1311,7 @@ static PyMethodDef methods[] = {
     {"binned_sums", binned_sums, METH_VARARGS,
      "binned_sums(shape, r2, e_index, lo, offsets, columns, dc, bins_per_octave, log_f, log_g, M, J, start, "
      "per_octave, low_f, low_g, zero_f, zero_g, ratio2, pair_basis, pair_a, pair_b, pair_h, out)"},
+    {"quintic_kvalues", quintic_kvalues, METH_VARARGS, "quintic_kvalues(table, n, ntab, tx, ty, out)"},
     {NULL, NULL, 0, NULL}};
 
 static struct PyModuleDef module = {PyModuleDef_HEAD_INIT, K_STR(KERNEL_MODULE),

@@ -130,7 +130,7 @@ def _same_modes(o: Observation, ref: Observation) -> bool:
             and np.array_equal(o.jacobian, ref.jacobian) and (o.psf is ref.psf or np.array_equal(o.psf, ref.psf)))
 
 
-def _measure(obs, mag, cfg, return_samples, plan=None, margin=np.inf):
+def _measure(obs, mag, cfg, return_samples, plan=None, margin=np.inf, first_margin=None):
     """One object's fit: (FitResult, the FitPlan it made, or None where it stopped early).
 
     With ``plan``, the fit replays another version's choices (modes, position, size nodes and centres,
@@ -186,7 +186,7 @@ def _measure(obs, mag, cfg, return_samples, plan=None, margin=np.inf):
         shift = float(np.hypot(*plan.shift))
         like = EllipticityLikelihood(jm, cfg, mag, fast, plan.size_nodes, plan.r_center)
         like.fixed_centres = plan.centres
-        samples = replay_samples(like, plan.samples, cfg, margin)
+        samples = replay_samples(like, plan.samples, cfg, margin, first_margin)
         n_samples = int(np.count_nonzero(samples.evaluated))
     return _result(obs, cfg, mag, jm, like, samples, n_samples, shift / pix, return_samples), plan
 
@@ -235,7 +235,7 @@ def _result(obs, cfg, mag, jm, like, samples, n_samples, centroid_shift, return_
 
 
 def measure_versions(versions: Sequence[Sequence[Observation]], mag: float, config=None,
-                     margin: float = 10.0) -> list:
+                     margin: float = 10.0, first_margin: float = None) -> list:
     """Measure versions of one object (its stamps slightly transformed, as metacalibration's) alike.
 
     The first version is fitted as :func:`measure_object` fits it; every
@@ -244,7 +244,8 @@ def measure_versions(versions: Sequence[Sequence[Observation]], mag: float, conf
     ellipticity samples and cells, see :func:`shearfit.engine.sampling.replay_samples`),
     so that differences between the versions' estimates follow the
     differences between their pixels smoothly. The versions must carry the
-    same PSFs, Jacobians and weights. Returns one FitResult per version.
+    same PSFs, Jacobians and weights. ``margin`` and ``first_margin``: which samples a replay evaluates
+    (:func:`shearfit.engine.sampling.replay_samples`). Returns one FitResult per version.
     """
     cfg = as_config(config)
     versions = [list(v) for v in versions]
@@ -260,7 +261,8 @@ def measure_versions(versions: Sequence[Sequence[Observation]], mag: float, conf
     out = []
     for k, obs in enumerate(versions):
         try:
-            res, made = _measure(obs, float(mag), cfg, False, plan=plan, margin=margin)
+            res, made = _measure(obs, float(mag), cfg, False, plan=plan, margin=margin,
+                                 first_margin=first_margin)
         except (np.linalg.LinAlgError, FloatingPointError, ZeroDivisionError, ValueError) as exc:
             if isinstance(exc, ShearfitValueError):
                 raise

@@ -570,7 +570,8 @@ def two_pass_samples(like: EllipticityLikelihood, cfg: FitConfig) -> Samples:
     return st.result()
 
 
-def replay_samples(like: EllipticityLikelihood, ref: Samples, cfg: FitConfig, margin: float) -> Samples:
+def replay_samples(like: EllipticityLikelihood, ref: Samples, cfg: FitConfig, margin: float,
+                   first_margin: float = None) -> Samples:
     """The ellipticity samples of a reference fit, evaluated on another version of the same object.
 
     The estimator then follows the data smoothly from one version to the
@@ -582,6 +583,13 @@ def replay_samples(like: EllipticityLikelihood, ref: Samples, cfg: FitConfig, ma
     the rest get log L = -inf, which the estimator leaves out anyway unless
     the version's posterior differs from the reference's by more than
     ``margin`` there.
+
+    With ``first_margin`` (< ``margin``), the samples within ``first_margin`` of the cut are evaluated first;
+    the rest of those within ``margin`` only where the version could lift one of them above its own cut: where
+    twice the largest change of the posterior (relative to its maximum) seen over the first samples reaches
+    ``first_margin``. The change from one version to another grows about linearly with the distance from the
+    peak (a small shear moves the posterior), so the samples left out stay below the cut and the estimate is
+    the one with ``margin`` alone.
     """
     ok = np.isfinite(ref.logpost) & (ref.area > 0)
     n = ref.e1.size
@@ -590,12 +598,30 @@ def replay_samples(like: EllipticityLikelihood, ref: Samples, cfg: FitConfig, ma
     fields_ = ("logl_disk", "logl_bulge", "mean_r", "mean_b", "mean_flux")
     cols = {f: np.full(n, np.nan) for f in fields_}
     sel = np.zeros(n, bool)
-    if np.any(ok):
-        sel = ok & (ref.logpost > np.max(ref.logpost[ok]) + np.log(cfg.posterior_cut) - margin)
-        pt = like(ref.e1[sel], ref.e2[sel])
-        logl[sel], logpost[sel] = _mix(pt, ref.e1[sel], ref.e2[sel], cfg)
+
+    def evaluate(which):
+        pt = like(ref.e1[which], ref.e2[which])
+        logl[which], logpost[which] = _mix(pt, ref.e1[which], ref.e2[which], cfg)
         for f in fields_:
-            cols[f][sel] = getattr(pt, f)
+            cols[f][which] = getattr(pt, f)
+
+    if np.any(ok):
+        top = np.max(ref.logpost[ok])
+        full = ok & (ref.logpost > top + np.log(cfg.posterior_cut) - margin)
+        sel = full
+        if first_margin is not None and first_margin < margin:
+            sel = ok & (ref.logpost > top + np.log(cfg.posterior_cut) - first_margin)
+            evaluate(sel)
+            lp = logpost[sel]
+            good = np.isfinite(lp)
+            change = np.abs((lp[good] - lp[good].max()) - (ref.logpost[sel][good] - top)) if np.any(good) else [np.inf]
+            if not (2 * np.max(change) < first_margin):
+                rest = full & ~sel
+                if np.any(rest):
+                    evaluate(rest)
+                sel = full
+        else:
+            evaluate(sel)
     return Samples(e1=ref.e1, e2=ref.e2, area=ref.area, logl=logl, logpost=logpost, point=EPoint(**cols),
                    evaluated=sel)
 

@@ -1,0 +1,163 @@
+"""Metacal's k-space operations in shearfit's own code (native-sampled PSFs).
+
+The metacal versions of a stamp (:mod:`shearfit.calib.metacal`) are, in the
+stamp's pixel frame (wavevector kappa, the sky's K = J^-T kappa for the
+exposure's Jacobian J)::
+
+    F(kappa) = I(M kappa) / P(M kappa) * Gamma(kappa),   M = J^T S J^-T
+
+where I and P are the transforms of the stamp and of its PSF image as
+interpolated images (each the pixels' discrete-time transform D times the
+transform of the x-interpolant, which is the same for both since a native
+PSF shares the stamp's pixels, and cancels), S the sky-frame shear of the
+version and Gamma the new PSF: the PSF dilated by 1 + 2 delta,
+X(d kappa) D_P(d kappa). GalSim evaluates each factor as an object of its
+own, one k value at a time through its transformations; here the three
+discrete transforms (the stamp, its symmetrising noise, the PSF) are taken
+once per exposure on a grid padded four times (``rfft2``), and every version
+interpolates them at its sheared wavevectors with one set of weights: the
+quintic k-interpolant of Bernstein & Gruen (2014), the one GalSim's
+``InterpolatedImage`` uses by default (and the metacal module asks for),
+in the compiled loops where they are built (:func:`kvalues`).
+
+The deconvolution is applied within the PSF's band, a disc in the sky frame
+of radius ``maxk`` (the largest sky wavenumber where the PSF's transform
+exceeds ``MAXK_THRESHOLD`` of its flux, GalSim's ``maxk_threshold``),
+beyond which the product is zero, as GalSim's ``Deconvolve`` sets it.
+"""
+
+from __future__ import annotations
+
+import functools
+
+import numpy as np
+from scipy import fft as sfft
+
+from ..engine.kernel import KERNEL, USE_KERNEL
+
+__all__ = ["quintic", "padded_transforms", "kvalues", "band_maxk", "PAD_FACTOR", "MAXK_THRESHOLD"]
+
+#: The padded grid of the discrete transforms, in widths of the larger image (GalSim's default pad_factor).
+PAD_FACTOR = 4
+#: The fraction of the flux below which the PSF's transform counts as zero (GalSim's default maxk_threshold).
+MAXK_THRESHOLD = 1e-3
+
+
+def quintic(x):
+    """The quintic interpolation kernel (Bernstein & Gruen 2014, eq. 29; GalSim's ``Quintic``): 1 at 0, 0 at
+    the other integers, support |x| < 3, continuous to its second derivative."""
+    x = np.abs(np.asarray(x, float))
+    out = np.zeros_like(x)
+    a = x <= 1
+    b = (x > 1) & (x <= 2)
+    c = (x > 2) & (x < 3)
+    xa, xb, xc = x[a], x[b], x[c]
+    out[a] = 1 + xa ** 3 * (-95 / 12 + xa * (23 / 2 + xa * (-55 / 12)))
+    out[b] = (xb - 1) * (xb - 2) * (-23 / 4 + xb * (29 / 2 + xb * (-83 / 8 + xb * 55 / 24)))
+    out[c] = (xc - 2) * (xc - 3) ** 2 * (-9 / 4 + xc * (25 / 12 + xc * (-11 / 24)))
+    return out
+
+
+def padded_size(*shapes):
+    """The padded transform's size: ``PAD_FACTOR`` times the largest image side, rounded up to a fast size."""
+    return sfft.next_fast_len(PAD_FACTOR * max(max(s) for s in shapes), real=True)
+
+
+def padded_transforms(images, n):
+    """The discrete-time transforms of real images, each about its pixel (ny // 2, nx // 2), sampled on the
+    n x n grid of wavevectors 2 pi (i, j) / n (pixel units): an array (len(images), n // 2 + 1, n) complex,
+    image, then kx >= 0 (the others by Hermitian symmetry), then ky, as the transpose of ``rfft2`` of each
+    image zero-padded to n and rolled so that its origin pixel is at index 0."""
+    ny = max(im.shape[0] for im in images)
+    rows = np.zeros((len(images), ny, n))
+    for t, im in enumerate(images):
+        h, w = im.shape
+        if h > n or w > n:
+            raise ValueError(f"an image of {h} x {w} pixels does not fit a padded grid of {n}")
+        c = w // 2   # column c at index 0, the columns left of it at the grid's end
+        rows[t, :h, :w - c] = im[:, c:]
+        rows[t, :h, n - c:] = im[:, :c]
+    # the transform over x of the images' rows only (the padding's rows are zero), then over y (the last
+    # axis, contiguous)
+    part = sfft.rfft(rows, axis=2, workers=1)
+    cols = np.zeros((len(images), n // 2 + 1, n), complex)
+    for t, im in enumerate(images):
+        h = im.shape[0]
+        c = h // 2
+        cols[t, :, :h - c] = part[t, c:h].T
+        cols[t, :, n - c:] = part[t, :c].T
+    return sfft.fft(cols, axis=2, workers=1, overwrite_x=True)
+
+
+def _taps(p):
+    """The six table indices around positions p (floor(p) - 2 .. floor(p) + 3) and their quintic weights."""
+    f0 = np.floor(p)
+    idx = f0[:, None].astype(np.int64) + np.arange(-2, 4)[None, :]
+    return idx, quintic(p[:, None] - idx)
+
+
+def kvalues_numpy(table, tx, ty):
+    """:func:`kvalues` in numpy (the reference for the compiled loop, and the fallback without it)."""
+    n = table.shape[2]
+    ix, wx = _taps(np.asarray(tx, float))
+    iy, wy = _taps(np.asarray(ty, float))
+    ix = ix % n
+    iy = iy % n
+    out = np.zeros((ix.shape[0], table.shape[0]), complex)
+    for b in range(6):
+        for a in range(6):
+            cx, cy = ix[:, a], iy[:, b]
+            low = cx <= n // 2
+            rows = np.where(low, cy, (n - cy) % n)
+            cols = np.where(low, cx, n - cx)
+            v = table[:, cols, rows].T
+            v = np.where(low[:, None], v, np.conj(v))
+            out += (wy[:, b] * wx[:, a])[:, None] * v
+    return out
+
+
+def kvalues(table, tx, ty):
+    """The transforms of ``table`` (:func:`padded_transforms`) at the wavevectors (tx, ty), in units of the
+    table's step 2 pi / n, by quintic interpolation (6 x 6 taps, periodic, Hermitian): (len(tx), ntab)
+    complex. One set of weights serves every image of the table."""
+    tx = np.ascontiguousarray(tx, dtype=float)
+    ty = np.ascontiguousarray(ty, dtype=float)
+    if not USE_KERNEL:
+        return kvalues_numpy(table, tx, ty)
+    table = np.ascontiguousarray(table, dtype=complex)
+    out = np.empty((tx.size, table.shape[0]), complex)
+    KERNEL.quintic_kvalues(table, int(table.shape[2]), int(table.shape[0]), tx, ty, out)
+    return out
+
+
+def band_maxk(psf_column, xkernel, jac, threshold=MAXK_THRESHOLD):
+    """The sky radius of the PSF's band: the largest |J^-T kappa| over the padded grid's wavevectors kappa
+    where the PSF's transform (``psf_column``, (n // 2 + 1, n): kx, then ky, times the x-interpolant's transform
+    ``xkernel(kappa_x) xkernel(kappa_y)``) exceeds ``threshold`` of its flux, and at most pi / s_max (s_max the
+    largest singular value of the Jacobian ``jac``): the largest sky disc whose wavevectors stay within the
+    pixels' Nyquist square, beyond which a stamp's transform only repeats itself."""
+    n = psf_column.shape[1]
+    kx, ky, xx = _band_grid(n, xkernel)
+    amp = np.abs(psf_column) * xx
+    above = amp > threshold * abs(psf_column[0, 0])
+    jac = np.asarray(jac, float)
+    nyquist = np.pi / np.linalg.svd(jac, compute_uv=False)[0]
+    if not np.any(above):
+        return 0.0
+    # |J^-T kappa|^2 as the quadratic form of (J^T J)^-1 over the grid
+    (a, b), (_, c) = np.linalg.inv(jac.T @ jac)
+    k2 = a * kx * kx + 2 * b * kx * ky + c * ky * ky
+    return float(min(np.sqrt(np.max(k2[above])), nyquist))
+
+
+@functools.lru_cache(maxsize=8)
+def _band_grid(n, xkernel):
+    """The padded grid's wavevectors, kx (n // 2 + 1, 1) and ky (1, n), and |X(kx) X(ky)| there, X the
+    x-interpolant's transform (read-only, shared)."""
+    ky = 2 * np.pi * sfft.fftfreq(n)
+    kx = 2 * np.pi * np.arange(n // 2 + 1) / n
+    xx = np.abs(xkernel(kx))[:, None] * np.abs(xkernel(ky))[None, :]
+    out = kx[:, None], ky[None, :], xx
+    for a in out:
+        a.setflags(write=False)
+    return out
