@@ -62,11 +62,11 @@ def field_jobs(out, role, base, seeds, modulus, twins=False):
     return jobs
 
 
-def measure(d, processes, psf):
-    out = os.path.join(d, "shear.fits" if psf == "true" else "shear_fitted.fits")
+def measure(d, processes, psf, settings=(), tag=""):
+    out = os.path.join(d, ("shear" if psf == "true" else "shear_fitted") + tag + ".fits")
     if not os.path.exists(out):
         config = os.path.join(d, "field_truepsf.yaml" if psf == "true" else "field.yaml")
-        args = ["measure", config, "--out", out, "--quiet"]
+        args = ["measure", config, *settings, "--out", out, "--quiet"]
         if processes > 1:
             args += ["-j", str(processes)]
         if cli_main(args) != 0:
@@ -132,7 +132,11 @@ def main(argv=None):
                     help="add the test set's antithetic twins (the same fields with the pixel noise reversed): "
                          "the noise's odd part cancels in c, which the +g / -g pairs do not free of it")
     ap.add_argument("-j", "--processes", type=int, default=os.cpu_count() or 1)
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                    help="a setting of shearfit measure for every field (e.g. size_prior_axis=area); the fields are "
+                         "shared between settings, each measured once per distinct set of them")
     args = ap.parse_args(argv)
+    tag = "".join("_" + "".join(ch if ch.isalnum() else "-" for ch in item) for item in args.set)
     out = os.path.abspath(args.out)
     t0 = time.time()
     great = dict(GREAT, ccd_nx=args.ccd, ccd_ny=args.ccd)
@@ -150,17 +154,17 @@ def main(argv=None):
         pairs[role] = []
         for d, _ in js:
             ts = time.time()
-            pairs[role].append(measure(d, args.processes, args.psf))
+            pairs[role].append(measure(d, args.processes, args.psf, args.set, tag))
             print(f"  measured {d} in {time.time() - ts:.0f} s", flush=True)
     t_meas = time.time() - t0
 
     result, bins, cal_tab = calibrate(pairs["cal"], n_snr=args.n_snr, n_size=args.n_size)
-    write_calibration(result, os.path.join(out, "calibration.yaml"))
+    write_calibration(result, os.path.join(out, f"calibration{tag}.yaml"))
     a, b = result["alpha"], result["beta"]
     binned = CalibrationModel(a, b, "binned", result["binned"])
     fitted = CalibrationModel(a, b)
     paper = CalibrationModel(PAPER_ALPHA, PAPER_BETA)
-    plot_calibration(bins, result, os.path.join(out, "calibration.png"), weight_bins=weight_bins(cal_tab, binned))
+    plot_calibration(bins, result, os.path.join(out, f"calibration{tag}.png"), weight_bins=weight_bins(cal_tab, binned))
     test = stack_matched(pairs["test"])
     second = stack_matched(pairs["second"])
     rows = [("calibration set (self), binned", calibrated_bias(cal_tab, binned)),
@@ -178,7 +182,7 @@ def main(argv=None):
     t_size = quantity_bins(test, "scalelength", binned, n=6)
     t_w = weight_bins(test, binned, n=8)
     s_snr = quantity_bins(second, "snr", binned, n=4)
-    plot(os.path.join(out, "closure.png"), result, bins, t_snr, t_size, t_w, s_snr)
+    plot(os.path.join(out, f"closure{tag}.png"), result, bins, t_snr, t_size, t_w, s_snr)
 
     print()
     print(f"calibration set: {result['n_galaxies']} galaxy measurements ({result['n_groups']} galaxies, "
@@ -201,9 +205,9 @@ def main(argv=None):
     summary = dict(alpha=a, beta=b, alpha_err=result["alpha_err"], beta_err=result["beta_err"],
                    chi2=result["chi2"], dof=result["dof"], rows={name: d for name, d in rows},
                    measure_wall_s=t_meas, total_wall_s=time.time() - t0, processes=args.processes, psf=args.psf)
-    with open(os.path.join(out, "closure.json"), "w") as f:
+    with open(os.path.join(out, f"closure{tag}.json"), "w") as f:
         json.dump(summary, f, indent=1)
-    print(f"\nwritten {out}/calibration.yaml, calibration.png, closure.png, closure.json; "
+    print(f"\nwritten {out}/calibration{tag}.yaml, calibration{tag}.png, closure{tag}.png, closure{tag}.json; "
           f"{time.time() - t0:.0f} s in all ({t_meas:.0f} s simulating and measuring)")
     return 0
 

@@ -134,7 +134,7 @@ def main(argv=None):
             cfg = _with_settings(load_field_config(os.path.join(d, "field_truepsf.yaml" if mode == "true"
                                                                 else "field.yaml")), args.set)
             c0, t0 = _cpu_seconds(), time.perf_counter()
-            with _ModeCounter() as modes:
+            with _ModeCounter() as counter:
                 table = measure_field(cfg, out_path=os.path.join(d, f"shear_{mode}.fits"), processes=1)
             cpu, wall = _cpu_seconds() - c0, time.perf_counter() - t0
             rates[mode] = (len(table), cpu)
@@ -142,7 +142,7 @@ def main(argv=None):
             print(f"\nPSF {'given (true images)' if mode == 'true' else 'fitted from the stars'}: {len(table)} objects "
                   f"({int((fc == 0).sum())} galaxies, {int((fc == 1).sum())} stars, {int((fc < 0).sum())} flagged or "
                   f"unmeasured), {len(cfg.exposures)} exposures, one process: {len(table) / cpu:.2f} objects per "
-                  f"CPU-second ({cpu:.1f} CPU-s, {wall:.1f} s wall); {modes.summary()}")
+                  f"CPU-second ({cpu:.1f} CPU-s, {wall:.1f} s wall); {counter.summary()}")
         if len(rates) == 2:
             extra = rates["fitted"][1] - rates["true"][1]
             print(f"\nPSF stage (fitted minus given): {extra:.1f} CPU-s, {100 * extra / rates['fitted'][1]:.0f} % of the "
