@@ -33,8 +33,10 @@ from concurrent.futures import ProcessPoolExecutor
 
 import numpy as np
 
+import shearfit
 from shearfit.calib.calibrate import (PAPER_ALPHA, PAPER_BETA, CalibrationModel, calibrate, calibrated_bias,
-                                plot_calibration, quantity_bins, stack_matched, weight_bins, write_calibration)
+                                      default_calibration_record, plot_calibration, quantity_bins, stack_matched,
+                                      weight_bins, write_calibration)
 from shearfit.app.cli import main as cli_main
 from shearfit.simulate.field import simulate_missing
 
@@ -135,6 +137,10 @@ def main(argv=None):
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="a setting of shearfit measure for every field (e.g. size_prior_axis=area); the fields are "
                          "shared between settings, each measured once per distinct set of them")
+    ap.add_argument("--write-default", default=None, metavar="PATH",
+                    help="also write the calibration set's binned calibration, with this run's closure on the test "
+                         "set and the second suite, as the package's default (src/shearfit/calib/"
+                         "default_calibration.yaml)")
     args = ap.parse_args(argv)
     tag = "".join("_" + "".join(ch if ch.isalnum() else "-" for ch in item) for item in args.set)
     out = os.path.abspath(args.out)
@@ -207,6 +213,16 @@ def main(argv=None):
                    measure_wall_s=t_meas, total_wall_s=time.time() - t0, processes=args.processes, psf=args.psf)
     with open(os.path.join(out, f"closure{tag}.json"), "w") as f:
         json.dump(summary, f, indent=1)
+    if args.write_default:
+        command = "python benchmarks/calibration_closure.py " + " ".join(sys.argv[1:] if argv is None else argv)
+        closure = {name: {k: float(d[k]) for k in ("m_raw", "m_raw_err", "m_cal", "m_cal_err")} | {
+            "n_galaxies": int(d["n_galaxies"])} for name, d in rows if "binned" in name}
+        record = default_calibration_record(
+            result, f"{command} (shearfit {shearfit.__version__}; fields {args.cal_seeds} calibration, "
+                    f"{args.test_seeds} test, {args.second_seeds} second-suite seeds; PSF {args.psf}; settings "
+                    f"{' '.join(args.set) or 'the defaults'})", closure)
+        write_calibration(record, args.write_default)
+        print(f"written the default calibration {args.write_default}")
     print(f"\nwritten {out}/calibration{tag}.yaml, calibration{tag}.png, closure{tag}.png, closure{tag}.json; "
           f"{time.time() - t0:.0f} s in all ({t_meas:.0f} s simulating and measuring)")
     return 0

@@ -190,3 +190,23 @@ def test_binned_model_closes_where_the_paper_form_cannot(tmp_path):
     d = model.draws(200, np.random.default_rng(0))
     spread = np.std([x.m(np.array([30.0]), np.array([0.5]))[0] for x in d])
     assert 0.2 * np.median(np.asarray(res["binned"]["m_err"])) < spread < 5 * np.max(np.asarray(res["binned"]["m_err"]))
+
+
+def test_the_default_calibration_is_the_packaged_binned_table():
+    """Without a calibration file the pipeline applies the package's binned table, fitted on shearfit's own
+    simulated fields (benchmarks/calibration_closure.py --write-default), which records how it was made and
+    what it leaves on held-out fields: |calibrated m| on the test set within 3 sigma of 0 and far below the raw
+    m; every bin's m finite and between -1 and 1."""
+    from shearfit.calib.calibrate import DEFAULT_CALIBRATION, default_calibration
+
+    model = default_calibration()
+    assert model.kind == "binned"
+    d = yaml.safe_load(open(DEFAULT_CALIBRATION))
+    assert "calibration_closure.py" in d["source"] and d["n_galaxies"] > 10000
+    test = d["closure"]["test set, binned"]
+    assert abs(test["m_cal"]) < 3 * test["m_cal_err"] < abs(test["m_raw"])
+    m = np.asarray(d["binned"]["m"], float)
+    assert np.all(np.isfinite(m)) and np.all(np.abs(m) < 1)
+    # a faint small galaxy gets a larger correction than a bright large one
+    faint, bright = model.m(np.array([9.0, 150.0]), np.array([0.15, 0.8]))
+    assert faint < bright < 0.05

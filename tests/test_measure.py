@@ -637,6 +637,20 @@ def test_bad_input_errors():
         shearfit.FitConfig(sampling="mcmc")
 
 
+def test_an_observation_with_other_pixels_shares_the_rest():
+    im = np.ones((48, 48))
+    psf = np.zeros((25, 25))
+    psf[12, 12] = 1.0
+    o = shearfit.Observation(image=im, psf=psf, jacobian=PIX * np.eye(2), weight=np.ones_like(im), offset=(0.2, -0.1),
+                             psf_moffat=(2.0, 3.0))
+    v = o.with_image(2 * im)
+    assert np.array_equal(v.image, 2 * im) and not v.image.flags.writeable and np.array_equal(o.image, im)
+    assert v.psf is o.psf and v.weight is o.weight and v.jacobian is o.jacobian and v.psf_moffat == o.psf_moffat
+    assert np.array_equal(v.offset, o.offset) and v.flux_scale == o.flux_scale
+    with pytest.raises(ShearfitValueError, match="image shape"):
+        o.with_image(np.ones((40, 40)))
+
+
 def test_too_large_for_the_stamp_is_flagged():
     # 4.5 x 1.2" / 0.187" = 29 pixels > half of a 48-pixel stamp
     from shearfit.errors import FITCLASS_TOO_LARGE

@@ -95,6 +95,17 @@ class Observation:
             psf_moffat = (rs, beta)
         self.psf_moffat = psf_moffat
 
+    def with_image(self, image):
+        """This observation with other pixels (same weight, PSF, Jacobian, offset, scale and Moffat, whose
+        arrays are shared, already checked): another version of the same stamp, as metacalibration's."""
+        img = _readonly(image, "image")
+        if img.shape != self.image.shape:
+            raise ShearfitValueError(f"Observation image shape {img.shape} differs from {self.image.shape}")
+        out = object.__new__(Observation)
+        out.__dict__.update(self.__dict__)
+        out.image = img
+        return out
+
     @property
     def shape(self):
         return self.image.shape

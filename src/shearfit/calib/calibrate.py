@@ -30,6 +30,8 @@ two-point functions.
 
 from __future__ import annotations
 
+import os
+
 import numpy as np
 import yaml
 from astropy.table import Table, join, vstack
@@ -42,7 +44,8 @@ from ..errors import ShearfitIOError, ShearfitValueError
 __all__ = ["CalibrationModel", "as_model", "load_calibration", "binned_table", "matched_galaxies", "stack_matched",
            "sheared_ellipticity", "quantity_bins", "bin_indices", "bin_bias", "fit_alpha_beta", "calibrate",
            "read_calibration", "write_calibration", "model_m", "calibration_m", "calibrated_bias", "plot_calibration",
-           "weight_bins", "PAPER_ALPHA", "PAPER_BETA"]
+           "weight_bins", "PAPER_ALPHA", "PAPER_BETA", "DEFAULT_CALIBRATION", "default_calibration",
+           "default_calibration_record"]
 
 PAPER_ALPHA = 0.057
 PAPER_BETA = -0.37
@@ -401,6 +404,32 @@ def load_calibration(path) -> CalibrationModel:
     elif kind != "paper":
         raise ShearfitIOError(f"{path}: calibration key 'model' must be 'paper' or 'binned', not {kind!r}")
     return CalibrationModel(alpha, beta, kind, binned if kind == "binned" else None, grid)
+
+
+#: The calibration ``shearfit measure`` applies where the field configuration names none: the m of each SNR-size
+#: bin fitted on shearfit's own GREAT-like simulated fields with the engine's default settings
+#: (``benchmarks/calibration_closure.py --write-default``; the file records the command, the settings and the
+#: closure on held-out fields). The paper's (alpha, beta) were fitted for the CFHTLenS pipeline and leave m of
+#: several per cent on this engine's simulations.
+DEFAULT_CALIBRATION = os.path.join(os.path.dirname(os.path.abspath(__file__)), "default_calibration.yaml")
+
+
+def default_calibration() -> CalibrationModel:
+    """The model of :data:`DEFAULT_CALIBRATION`."""
+    return load_calibration(DEFAULT_CALIBRATION)
+
+
+def default_calibration_record(result, source, closure=None) -> dict:
+    """What :data:`DEFAULT_CALIBRATION` keeps of a :func:`calibrate` result: the binned table, the fitted
+    (alpha, beta) with their errors, the sample's size, ``source`` (how it was made) and ``closure`` (what
+    it leaves on held-out fields)."""
+    keep = ("alpha", "beta", "alpha_err", "beta_err", "chi2", "dof", "n_galaxies", "n_groups", "n_snr_bins",
+            "n_size_bins", "paper_alpha", "paper_beta", "model", "binned")
+    out = {k: result[k] for k in keep if k in result}
+    out["source"] = str(source)
+    if closure is not None:
+        out["closure"] = closure
+    return out
 
 
 def write_calibration(result, path):

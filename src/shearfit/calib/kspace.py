@@ -45,7 +45,7 @@ MAXK_THRESHOLD = 1e-3
 
 def quintic(x):
     """The quintic interpolation kernel (Bernstein & Gruen 2014, eq. 29; GalSim's ``Quintic``): 1 at 0, 0 at
-    the other integers, support |x| < 3, continuous to its second derivative."""
+    the other integers, support \\|x\\| < 3, continuous to its second derivative."""
     x = np.abs(np.asarray(x, float))
     out = np.zeros_like(x)
     a = x <= 1
@@ -131,7 +131,7 @@ def kvalues(table, tx, ty):
 
 
 def band_maxk(psf_column, xkernel, jac, threshold=MAXK_THRESHOLD):
-    """The sky radius of the PSF's band: the largest |J^-T kappa| over the padded grid's wavevectors kappa
+    """The sky radius of the PSF's band: the largest norm of J^-T kappa over the padded grid's wavevectors kappa
     where the PSF's transform (``psf_column``, (n // 2 + 1, n): kx, then ky, times the x-interpolant's transform
     ``xkernel(kappa_x) xkernel(kappa_y)``) exceeds ``threshold`` of its flux, and at most pi / s_max (s_max the
     largest singular value of the Jacobian ``jac``): the largest sky disc whose wavevectors stay within the

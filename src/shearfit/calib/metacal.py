@@ -401,6 +401,7 @@ def metacal_observations(obs: Observation, delta=0.01, rng=None, versions=tuple(
         images = _galsim_images(image, nrot, obs.psf, _wcs(J), _wcs(J, k), delta, names)
     out = {}
     weight = None
+    first = None
     for v, name in enumerate(names):
         im, nim = images[2 * v], images[2 * v + 1]
         if square:
@@ -413,8 +414,12 @@ def metacal_observations(obs: Observation, delta=0.01, rng=None, versions=tuple(
             scale = var_in / max(2.0 * var_out, 1e-300)
             weight = np.where(mask, 0.0, w * scale)
         if name in versions:
-            out[name] = Observation(image=im + nim, weight=weight, psf=psf_img, psf_oversampling=k, jacobian=J,
+            if first is None:
+                first = Observation(image=im + nim, weight=weight, psf=psf_img, psf_oversampling=k, jacobian=J,
                                     offset=tuple(obs.offset), flux_scale=obs.flux_scale, psf_moffat=moffat)
+                out[name] = first
+            else:   # the versions share the first one's weight, PSF and geometry
+                out[name] = first.with_image(im + nim)
     return out
 
 

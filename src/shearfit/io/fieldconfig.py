@@ -175,8 +175,9 @@ class FieldConfig:
         Default output catalogue (the command line's ``--out`` wins).
     calibration : str or None
         A calibration.yaml from ``shearfit calibrate``: its (alpha, beta) fill
-        the ``m`` column; None or ``simulations`` uses the paper's (0.057,
-        -0.37); ``metacal`` measures each object's shear response from its own
+        the ``m`` column; None or ``simulations`` uses shearfit's default
+        calibration (:data:`shearfit.calib.calibrate.DEFAULT_CALIBRATION`, a
+        table of bins fitted on its own simulations); ``metacal`` measures each object's shear response from its own
         images instead (:mod:`shearfit.calib.metacal`; ``m`` is then 0 and the
         catalogue carries the sheared measurements and ``R11`` .. ``R22``).
     fit : FitConfig

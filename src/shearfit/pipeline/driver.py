@@ -43,7 +43,7 @@ from ..workers import process_pool
 from ..files import atomic_path
 from ..errors import (FITCLASS_BAD_INPUT, FITCLASS_FEW_EXPOSURES, FITCLASS_FIT_FAILED, FITCLASS_MEMORY,
                       FITCLASS_OFF_EXPOSURES, FITCLASS_TOO_LARGE, ShearfitIOError, ShearfitValueError)
-from ..calib.calibrate import PAPER_ALPHA, PAPER_BETA, CalibrationModel, calibration_m, load_calibration
+from ..calib.calibrate import calibration_m, default_calibration, load_calibration
 from ..engine.measure import measure_object
 from ..engine.model import ContentMemo, psf_moffat
 from ..observation import Observation
@@ -370,7 +370,7 @@ def measure_field(cfg: FieldConfig, out_path=None, progress=False, processes=1, 
         if calibration is not None:
             src = os.path.basename(cfg.calibration)
         else:
-            calibration, src = CalibrationModel(PAPER_ALPHA, PAPER_BETA), "paper default"
+            calibration, src = default_calibration(), "shearfit default"
         alpha, beta = calibration.alpha, calibration.beta
         table["m"] = np.where(measured, calibration.m(table["snr"], table["scalelength"]), np.nan)
         cards += [("CALMODE", "simulations", "m(snr, size) from simulations"),
