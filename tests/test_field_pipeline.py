@@ -227,3 +227,29 @@ def test_stamps_grow_for_a_large_galaxy(tmp_path):
     # intrinsic shape (0.25, -0.15), no shear: recovered at this SNR to a few times its likelihood width
     assert abs(g["e1"] - 0.25) < 0.02 and abs(g["e2"] + 0.15) < 0.02, (g["e1"], g["e2"])
     assert g["scalelength"] == pytest.approx(1.2, rel=0.1)
+
+
+def test_a_chunks_jacobians_and_psf_positions_are_those_of_one_call_each():
+    """The pipeline takes every local Jacobian (and fitted-PSF position) of a chunk's objects in one vectorised
+    call per CCD: the same numbers, to the bit, as one call per object and exposure."""
+    from types import SimpleNamespace
+
+    from shearfit.io.wcs import local_jacobian, pixel_to_sky
+    from shearfit.pipeline.driver import _chunk_geometry
+
+    h = sky_header(200, (1.5, -2.0), 30.0)
+
+    class Frame:
+        def model_uv(self, c, x, y):
+            return pixel_to_sky(h, x, y)   # any vectorised function of (x, y) stands in for the model's frame
+
+    exposures = [([SimpleNamespace(wcs=h)], Frame()), ([SimpleNamespace(wcs=h)], SimpleNamespace(model_uv=lambda *a: None))]
+    hits = [[(0, 0, 10.0, 20.0), (1, 0, 11.5, 19.25)], [(0, 0, 150.25, 40.75)], [(0, 0, 10.0, 20.0)]]
+    geo = _chunk_geometry(exposures, hits)
+    assert len(geo) == 3
+    for (e, c, x, y), (J, uv) in geo.items():
+        assert np.array_equal(J, local_jacobian(h, x, y))
+        if e == 0:
+            assert uv == tuple(pixel_to_sky(h, x, y))
+        else:
+            assert uv is None

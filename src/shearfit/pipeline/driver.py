@@ -131,16 +131,24 @@ class _ExposurePSF:
     def _model(self, ccd_index):
         return ccd_index if self.model_ccd is None else self.model_ccd[ccd_index]
 
-    def at(self, ccd_index, x, y):
-        """(PSF image, oversampling) at CCD pixel (x, y), or None where the model has no stars (or no PSF at all)."""
+    def model_uv(self, ccd_index, x, y):
+        """The fitted model's field coordinates (u, v) of CCD pixels (x, y) (arrays), or None without a fitted
+        model."""
+        if self.fitted is None:
+            return None
+        if self._frame is None:
+            self._frame = FieldFrame(**self.fitted.frame)
+        ra, dec = pixel_to_sky(self.ccds[ccd_index].wcs, x, y)
+        return self._frame.uv(ra, dec)
+
+    def at(self, ccd_index, x, y, uv=None):
+        """(PSF image, oversampling) at CCD pixel (x, y), or None where the model has no stars (or no PSF at all).
+        ``uv``: the fitted model's (u, v) there, where already known (:meth:`model_uv`)."""
         if self.fitted is not None:
             m = self._model(ccd_index)
             if not self.fitted.ccd_used[m]:
                 return None
-            if self._frame is None:
-                self._frame = FieldFrame(**self.fitted.frame)
-            ra, dec = pixel_to_sky(self.ccds[ccd_index].wcs, x, y)
-            u, v = self._frame.uv(ra, dec)
+            u, v = self.model_uv(ccd_index, x, y) if uv is None else uv
             return self.fitted.image(m, float(u), float(v)), self.fitted.oversampling
         if self.images is not None:
             return self.images[ccd_index]
@@ -483,12 +491,32 @@ def _measure_objects(exposures, hits, mags, ids, cfg):
     """One chunk's objects: the exposures' memory maps opened once, the pages each object read released after
     it (an object touches about 5 MB of pages on 7 exposures; kept, a chunk's would add up)."""
     opened = _attached(exposures)
+    geometry = _chunk_geometry(opened, hits)
     rows = []
     for h, m, i in zip(hits, mags, ids):
-        rows.append(_measure_one(h, opened, m, cfg, cfg.pipeline, i))
+        rows.append(_measure_one(h, opened, m, cfg, cfg.pipeline, i, geometry))
         for ccds, _ in opened:
             release_pages(ccds)
     return rows
+
+
+def _chunk_geometry(exposures, hits) -> dict:
+    """At every (exposure, CCD, x, y) the chunk's objects fall on, keyed so: (the local WCS Jacobian, the fitted
+    PSF model's (u, v) or None), from one vectorised :func:`local_jacobian` and one sky conversion per CCD
+    instead of one call per object and exposure (the same numbers)."""
+    where = {}
+    for obj in hits:
+        for e, c, x, y in obj:
+            where.setdefault((e, c), set()).add((x, y))
+    out = {}
+    for (e, c), pts in where.items():
+        pts = sorted(pts)
+        xy = np.array(pts, float)
+        J = local_jacobian(exposures[e][0][c].wcs, xy[:, 0], xy[:, 1])
+        uv = exposures[e][1].model_uv(c, xy[:, 0], xy[:, 1])
+        for n, (x, y) in enumerate(pts):
+            out[(e, c, x, y)] = (J[n], None if uv is None else (uv[0][n], uv[1][n]))
+    return out
 
 
 def _set_state(state):
@@ -642,7 +670,7 @@ def stamp_ladder(pc) -> list:
     return [pc.stamp_size] + [s for s in LARGER_STAMPS if pc.stamp_size < s <= pc.max_stamp_size]
 
 
-def _measure_one(hits, exposures, mag, cfg, pc, obj_id=0) -> dict:
+def _measure_one(hits, exposures, mag, cfg, pc, obj_id=0, geometry=None) -> dict:
     """One object's catalogue row: measured on stamps of ``stamp_size``, and again on larger ones while its
     truncated model does not fit (sec. 3.6: a Fourier model wraps around a stamp smaller than it). A size
     whose fit would need more than ``max_object_memory_mb`` is not measured: the object gets fitclass -8
@@ -650,7 +678,7 @@ def _measure_one(hits, exposures, mag, cfg, pc, obj_id=0) -> dict:
     if not hits:
         return {"fitclass": FITCLASS_OFF_EXPOSURES}
     for size in stamp_ladder(pc):
-        row = _measure_on_stamps(hits, exposures, mag, cfg, pc, obj_id, size)
+        row = _measure_on_stamps(hits, exposures, mag, cfg, pc, obj_id, size, geometry)
         if row.get("fitclass") != FITCLASS_TOO_LARGE:
             break
     row.setdefault("stamp_size", size)
@@ -668,7 +696,7 @@ def object_memory_bytes(cuts, size, cfg) -> float:
                             metacal=cfg.calibration == "metacal")
 
 
-def _measure_on_stamps(hits, exposures, mag, cfg, pc, obj_id, size) -> dict:
+def _measure_on_stamps(hits, exposures, mag, cfg, pc, obj_id, size, geometry=None) -> dict:
     # one stamp per exposure: where dithers put an object on two CCDs of one exposure, the CCD
     # where it lies furthest from the edge
     best = {}
@@ -683,7 +711,8 @@ def _measure_on_stamps(hits, exposures, mag, cfg, pc, obj_id, size) -> dict:
     for e, (margin, c, x, y) in sorted(best.items()):
         ccd = exposures[e][0][c]
         epsf = exposures[e][1]
-        got = epsf.at(c, x, y)
+        J, uv = (None, None) if geometry is None else geometry.get((e, c, x, y), (None, None))
+        got = epsf.at(c, x, y, uv=uv)
         if got is None:   # a CCD without enough PSF stars
             continue
         psf, k = got
@@ -693,7 +722,8 @@ def _measure_on_stamps(hits, exposures, mag, cfg, pc, obj_id, size) -> dict:
         if st is None:
             continue
         cuts.append(dict(e=e, ccd=ccd, image=np.array(st.image, float), weight=np.array(st.weight, float),
-                         offset=st.offset, J=local_jacobian(ccd.wcs, x, y), psf=psf, k=k, moments=psf_moments(psf),
+                         offset=st.offset, J=local_jacobian(ccd.wcs, x, y) if J is None else J, psf=psf, k=k,
+                         moments=psf_moments(psf),
                          moffat=epsf.moffat(c, ccd.image.shape) if k == 1 else None))
     if not cuts:
         return {"fitclass": FITCLASS_FEW_EXPOSURES, "n_exposures_used": 0, "stamp_size": 0}
