@@ -35,8 +35,8 @@ import numpy as np
 
 import shearfit
 from shearfit.calib.calibrate import (PAPER_ALPHA, PAPER_BETA, CalibrationModel, calibrate, calibrated_bias,
-                                      default_calibration_record, plot_calibration, quantity_bins, stack_matched,
-                                      weight_bins, write_calibration)
+                                      default_calibration, default_calibration_record, plot_calibration,
+                                      quantity_bins, stack_matched, weight_bins, write_calibration)
 from shearfit.app.cli import main as cli_main
 from shearfit.simulate.field import simulate_missing
 
@@ -178,12 +178,14 @@ def main(argv=None):
             ("test set, binned", calibrated_bias(test, binned)),
             ("test set, fitted form", calibrated_bias(test, fitted)),
             ("test set, paper's alpha, beta", calibrated_bias(test, paper)),
+            ("test set, the package's default", calibrated_bias(test, default_calibration())),
             *([("test set, noise sign +1 only, binned",
                 calibrated_bias(stack_matched([p for (d, _), p in zip(sets["test"], pairs["test"])
                                                if not d.endswith("r")]), binned))] if args.antithetic else []),
             ("second suite, binned", calibrated_bias(second, binned)),
             ("second suite, fitted form", calibrated_bias(second, fitted)),
-            ("second suite, paper's alpha, beta", calibrated_bias(second, paper))]
+            ("second suite, paper's alpha, beta", calibrated_bias(second, paper)),
+            ("second suite, the package's default", calibrated_bias(second, default_calibration()))]
     t_snr = quantity_bins(test, "snr", binned, n=6)
     t_size = quantity_bins(test, "scalelength", binned, n=6)
     t_w = weight_bins(test, binned, n=8)
