@@ -279,11 +279,6 @@ def _singular_values(A):
     return np.sqrt(0.5 * (p + q)), np.sqrt(max(0.5 * (p - q), 0.0))
 
 
-def _shear_matrix(g1, g2):
-    """GalSim's shear of (g1, g2) as a matrix on sky positions (unit determinant)."""
-    return np.array([[1 + g1, g2], [g2, 1 - g1]]) / np.sqrt(1 - g1 * g1 - g2 * g2)
-
-
 def _galsim_images(image, noise, psf_image, wcs, psf_wcs, delta, names):
     """The images of :func:`metacal_observations`' products, [version, its noise] per name of ``names``, from
     GalSim's objects (interpolated images, ``Deconvolve``, ``shear``, ``dilate``) drawn by :class:`_Drawer`:
@@ -329,7 +324,7 @@ def own_kspace_images(image, noise, psf, J, delta, names, fft_size=None):
     smax_j = _singular_values(J)[0]
     for name in names:
         s1, s2 = VERSIONS[name]
-        S = _shear_matrix(s1 * delta, s2 * delta)
+        S = galsim.Shear(g1=s1 * delta, g2=s2 * delta).getMatrix()   # on sky positions, unit determinant
         A = S @ jit     # kappa -> the deconvolved profile's sky wavevector S^T K (S symmetric)
         # the grid's half-width: the band's disc seen in the pixel frame, and no wider than the new PSF's band
         # (beyond it the product is below the threshold)
