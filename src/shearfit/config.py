@@ -11,6 +11,7 @@ unknown key is an error that names it.
 from __future__ import annotations
 
 import dataclasses
+import math
 from dataclasses import dataclass, field, fields
 from typing import Any, Mapping
 
@@ -124,6 +125,16 @@ class FitConfig:
     sampling: str = setting("adaptive", "'adaptive': the paper's grid refinement; 'two-pass': find the maximum first",
                          "sec. 3.3", ("adaptive", "two-pass"))
     e_grid_start: float = setting(0.16, "starting ellipticity grid spacing", "sec. 3.3")
+    e_grid_prepass: float = setting(
+        0.32,
+        "a coarser grid (e_grid_start times a power of 2) sampled first over the whole |e| < 1 disk: the starting "
+        "grid is then sampled only within one coarse step of the coarse samples whose posterior lies less than "
+        "e_grid_prepass_margin nats below the posterior cut, since the rest of it lies far below the cut, where the "
+        "estimator uses nothing and the refinement never goes (0: sample the whole starting grid, the paper's)",
+        "sec. 3.3 (implementation)")
+    e_grid_prepass_margin: float = setting(
+        10.0, "nats below the posterior cut within which a coarse pre-pass sample has the starting grid sampled "
+        "around it (see e_grid_prepass)", "sec. 3.3 (implementation)")
     e_grid_min: float = setting(0.02, "finest ellipticity grid spacing", "sec. 3.3")
     n_above: int = setting(30, "samples wanted above the threshold", "sec. 3.3")
     above_fraction: float = setting(0.05, "threshold, as a fraction of the maximum posterior", "sec. 3.3")
@@ -171,6 +182,14 @@ class FitConfig:
             raise ShearfitValueError("settings n_flux >= 5 and n_size >= 3 are needed for the spline integrals")
         if not 0 < self.model_e_limit < 1:
             raise ShearfitValueError("setting model_e_limit must lie in (0, 1)")
+        if self.e_grid_prepass != 0:
+            ratio = self.e_grid_prepass / self.e_grid_start
+            k = round(math.log2(ratio)) if ratio > 0 else -1
+            if k < 1 or abs(ratio - 2 ** k) > 1e-9 * ratio:
+                raise ShearfitValueError(f"setting e_grid_prepass={self.e_grid_prepass!r} must be 0 or e_grid_start "
+                                         f"({self.e_grid_start!r}) times a power of 2 (2, 4, ...)")
+        if not self.e_grid_prepass_margin >= 0:
+            raise ShearfitValueError(f"setting e_grid_prepass_margin={self.e_grid_prepass_margin!r} must be >= 0")
         if not 0 <= self.mode_bins_per_octave <= 4096:
             raise ShearfitValueError(f"setting mode_bins_per_octave={self.mode_bins_per_octave!r} must lie in [0, 4096]")
 

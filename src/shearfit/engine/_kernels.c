@@ -339,40 +339,81 @@ static inline __attribute__((always_inline)) double fast_log2(double x)
    exactly. The basis comes as three arrays of doubles (P: kx^2, then 2 kx ky, then ky^2) and the bins are int32,
    so that the loops vectorise (AVX2 converts doubles to int32 only).
    Returns the lowest and highest bin; the DC mode (K = 0) gets the bin INT_MIN */
+typedef int v8i __attribute__((vector_size(8 * sizeof(int)), aligned(sizeof(int))));
+
+/* the lowest and highest of the bins idx[0 .. n - 1], the DC mode's INT_MIN left out of the lowest (INT_MAX,
+   INT_MIN where none), eight at a time in vectors of int32 (vectorised as written: a scalar loop of these
+   selects was not, and cost a quarter of the binning) */
+static void bin_range(const int *restrict idx, Py_ssize_t n, int *lo_out, int *hi_out)
+{
+    v8i vlo, vhi, vmin, vmax;
+    for (int t = 0; t < 8; t++) {
+        vlo[t] = vmax[t] = INT_MAX;
+        vhi[t] = vmin[t] = INT_MIN;
+    }
+    Py_ssize_t j = 0;
+    for (; j + 8 <= n; j += 8) {
+        v8i v;
+        memcpy(&v, idx + j, sizeof v);
+        const v8i dc = v == vmin;
+        const v8i vv = (dc & vmax) | (~dc & v);
+        const v8i m = vv < vlo, mh = v > vhi;
+        vlo = (m & vv) | (~m & vlo);
+        vhi = (mh & v) | (~mh & vhi);
+    }
+    int lo = INT_MAX, hi = INT_MIN;
+    for (int t = 0; t < 8; t++) {
+        lo = vlo[t] < lo ? vlo[t] : lo;
+        hi = vhi[t] > hi ? vhi[t] : hi;
+    }
+    for (; j < n; j++) {
+        const int i = idx[j], v = i == INT_MIN ? INT_MAX : i;
+        lo = v < lo ? v : lo;
+        hi = i > hi ? i : hi;
+    }
+    *lo_out = lo;
+    *hi_out = hi;
+}
+
+/* bin_index's pass over the modes, for weights of type WT (double for the pairs of binned_sums, float for
+   make_bins' sums, which are float32) */
+#define BIN_INDEX_BODY(WT)                                                                                   \
+    const double *restrict P0 = P, *restrict P1 = P + n_single, *restrict P2 = P + 2 * n_single;            \
+    for (Py_ssize_t j = 0; j < n_single; j++) {                                                              \
+        double k = a0 * P0[j] + a1 * P1[j] + a2 * P2[j];                                                    \
+        double lg = fast_log2(k > 1e-300 ? k : 1.0) * nb;                                                    \
+        xs[j] = k > 1e-300 ? lg : INFINITY;   /* +inf: the DC mode */                                       \
+    }                                                                                                        \
+    /* the weights and bins: a loop of selects that vectorises (a floating-point min/max in it would not) */ \
+    for (Py_ssize_t j = 0; j < n_single; j++) {                                                              \
+        int dc = !(xs[j] < INFINITY);                                                                        \
+        double x = dc ? 0.0 : xs[j];                                                                         \
+        double f = floor(x), t = x - f;                                                                      \
+        double tp = t + 1.0, tm = t - 1.0, tm2 = t - 2.0;                                                    \
+        w4[j] = (WT)(-t * tm * tm2 / 6.0);                                                                   \
+        w4[n_single + j] = (WT)(tp * tm * tm2 / 2.0);                                                        \
+        w4[2 * n_single + j] = (WT)(-tp * t * tm2 / 2.0);                                                    \
+        w4[3 * n_single + j] = (WT)(tp * t * tm / 6.0);                                                      \
+        int i = (int)f - 1;                                                                                  \
+        idx[j] = dc ? INT_MIN : i;                                                                           \
+    }                                                                                                        \
+    int lo, hi;                                                                                              \
+    bin_range(idx, n_single, &lo, &hi);                                                                      \
+    *lo_out = lo != INT_MAX ? (long long)lo : LLONG_MAX;                                                     \
+    *hi_out = hi != INT_MIN ? (long long)hi + 3 : LLONG_MIN;
+
 static void bin_index(const double *restrict P, Py_ssize_t n_single, double a0, double a1, double a2, int nb,
                       double *restrict xs, int *restrict idx, double *restrict w4, long long *lo_out,
                       long long *hi_out)
 {
-    const double *restrict P0 = P, *restrict P1 = P + n_single, *restrict P2 = P + 2 * n_single;
-    for (Py_ssize_t j = 0; j < n_single; j++) {
-        double k = a0 * P0[j] + a1 * P1[j] + a2 * P2[j];
-        double lg = fast_log2(k > 1e-300 ? k : 1.0) * nb;
-        xs[j] = k > 1e-300 ? lg : INFINITY;   /* +inf: the DC mode */
-    }
-    /* the weights and bins: a loop of selects that vectorises (a floating-point min/max in it would not) */
-    for (Py_ssize_t j = 0; j < n_single; j++) {
-        int dc = !(xs[j] < INFINITY);
-        double x = dc ? 0.0 : xs[j];
-        double f = floor(x), t = x - f;
-        double tp = t + 1.0, tm = t - 1.0, tm2 = t - 2.0;
-        w4[j] = -t * tm * tm2 / 6.0;
-        w4[n_single + j] = tp * tm * tm2 / 2.0;
-        w4[2 * n_single + j] = -tp * t * tm2 / 2.0;
-        w4[3 * n_single + j] = tp * t * tm / 6.0;
-        int i = (int)f - 1;
-        idx[j] = dc ? INT_MIN : i;
-    }
-    /* the lowest and highest bin reached, the DC mode (INT_MIN) left out of the minimum */
-    int lo = INT_MAX, hi = INT_MIN;
-    for (Py_ssize_t j = 0; j < n_single; j++) {
-        const int i = idx[j];
-        const int v = i == INT_MIN ? INT_MAX : i;
-        lo = v < lo ? v : lo;
-    }
-    for (Py_ssize_t j = 0; j < n_single; j++)
-        hi = idx[j] > hi ? idx[j] : hi;
-    *lo_out = lo != INT_MAX ? (long long)lo : LLONG_MAX;
-    *hi_out = hi != INT_MIN ? (long long)hi + 3 : LLONG_MIN;
+    BIN_INDEX_BODY(double)
+}
+
+static void bin_index_f32(const double *restrict P, Py_ssize_t n_single, double a0, double a1, double a2, int nb,
+                          double *restrict xs, int *restrict idx, float *restrict w4, long long *lo_out,
+                          long long *hi_out)
+{
+    BIN_INDEX_BODY(float)
 }
 
 /* pass 2: the modes' weights into rows of 8 floats (the six linear vectors, q, padding), a row a vector; the
@@ -384,7 +425,7 @@ static void bin_index(const double *restrict P, Py_ssize_t n_single, double a0, 
 typedef double v8u __attribute__((vector_size(8 * sizeof(double)), aligned(sizeof(double))));
 typedef float v8fu __attribute__((vector_size(8 * sizeof(float)), aligned(sizeof(float))));
 
-static void bin_scatter(const float *C8, Py_ssize_t n_single, const int *idx, const double *w4,
+static void bin_scatter(const float *C8, Py_ssize_t n_single, const int *idx, const float *w4,
                         long long lo, Py_ssize_t nbin, float *A)
 {
     for (Py_ssize_t j = 0; j < n_single; j++) {
@@ -395,10 +436,10 @@ static void bin_scatter(const float *C8, Py_ssize_t n_single, const int *idx, co
             continue;
         }
         v8f *row = (v8f *)(A + 8 * (Py_ssize_t)(i - lo));
-        row[0] += (float)w4[j] * cv;
-        row[1] += (float)w4[n_single + j] * cv;
-        row[2] += (float)w4[2 * n_single + j] * cv;
-        row[3] += (float)w4[3 * n_single + j] * cv;
+        row[0] += w4[j] * cv;
+        row[1] += w4[n_single + j] * cv;
+        row[2] += w4[2 * n_single + j] * cv;
+        row[3] += w4[3 * n_single + j] * cv;
     }
 }
 
@@ -428,14 +469,15 @@ static PyObject *make_bins(PyObject *self, PyObject *args)
     const double *S = (const double *)shape.buf;
     Py_ssize_t ns = n_single > 0 ? n_single : 1;
     int *idx = (int *)malloc(ns * sizeof(int));
-    double *frac = (double *)malloc(5 * ns * sizeof(double));   /* x, then the four weights */
+    double *frac = (double *)malloc(ns * sizeof(double));   /* each mode's position x */
+    float *w4 = (float *)malloc(4 * ns * sizeof(float));      /* its four weights */
     long long *off = (long long *)malloc((n_e + 1) * sizeof(long long));
     long long *los = (long long *)malloc((n_e > 0 ? n_e : 1) * sizeof(long long));
     double *dc = (double *)calloc(8 * (n_e > 0 ? n_e : 1), sizeof(double));
     float *A = NULL;
     double *cols = NULL;
     Py_ssize_t capA = 0, capC = 0, ncol = 0;
-    int nomem = (idx == NULL || frac == NULL || off == NULL || los == NULL || dc == NULL);
+    int nomem = (idx == NULL || frac == NULL || w4 == NULL || off == NULL || los == NULL || dc == NULL);
 
     /* the modes' basis as three arrays of doubles, for loops that vectorise */
     double *P = (double *)malloc(3 * ns * sizeof(double));
@@ -446,7 +488,7 @@ static PyObject *make_bins(PyObject *self, PyObject *args)
     for (Py_ssize_t e = 0; !nomem && e < n_e; e++) {
         const double a0 = S[3 * e], a1 = S[3 * e + 1], a2 = S[3 * e + 2];
         long long lo, hi;
-        bin_index(P, n_single, a0, a1, a2, nb, frac, idx, frac + ns, &lo, &hi);
+        bin_index_f32(P, n_single, a0, a1, a2, nb, frac, idx, w4, &lo, &hi);
         Py_ssize_t nbin = hi >= lo ? (Py_ssize_t)(hi - lo) + 1 : 0;
         Py_ssize_t npad = (nbin + BPAD - 1) / BPAD * BPAD;
         if (nbin + 1 > capA) {
@@ -458,7 +500,7 @@ static PyObject *make_bins(PyObject *self, PyObject *args)
             if (A == NULL) { nomem = 1; break; }
         }
         memset(A, 0, (nbin + 1) * 8 * sizeof(float));
-        bin_scatter((const float *)c8.buf, n_single, idx, frac + ns, lo, nbin, A);
+        bin_scatter((const float *)c8.buf, n_single, idx, w4, lo, nbin, A);
         if (NCH * (ncol + npad) > capC) {
             capC = 2 * NCH * (ncol + npad);
             double *r = (double *)realloc(cols, capC * sizeof(double));
@@ -491,7 +533,7 @@ static PyObject *make_bins(PyObject *self, PyObject *args)
         Py_XDECREF(c);
         Py_XDECREF(d);
     }
-    free(P); free(idx); free(frac); free(off); free(los); free(dc); free(A); free(cols);
+    free(P); free(idx); free(frac); free(w4); free(off); free(los); free(dc); free(A); free(cols);
     RELEASE(&shape, &b3, &c8);
     if (nomem) return PyErr_NoMemory();
     return res;
@@ -532,7 +574,12 @@ static inline double hsum8(v8u v)
 }
 
 /* the sums of one model from its ellipticity's bins (W: NCH channels of npad), transforms rf, rg there, and
-   the DC bin (dcw, at the transforms' values at 0, r0f and r0g): the output row o of NOUT, as block_body's */
+   the DC bin (dcw, at the transforms' values at 0, r0f and r0g): the output row o of NOUT, as block_body's.
+   With AVX-512 (32 vector registers) the fifteen sums run in one pass of eight-double accumulators; with
+   fewer registers (AVX2's 16, SSE's) those would spill to memory at every step, so the sums run in two passes
+   (the disk's six linear sums, ff and fg; then the bulge's and gg) of four-double accumulators: at most nine
+   live vectors each */
+#if defined(__AVX512F__)
 static void sums_from_bins(const double *restrict W, Py_ssize_t npad, const double *restrict rf,
                            const double *restrict rg, const double *dcw, double r0f, double r0g, double *o)
 {
@@ -560,6 +607,44 @@ static void sums_from_bins(const double *restrict W, Py_ssize_t npad, const doub
     o[13] = hsum8(gg) + dcw[6] * r0g * r0g;
     o[14] = hsum8(fg) + dcw[6] * r0f * r0g;
 }
+#else
+typedef double v4u __attribute__((vector_size(4 * sizeof(double)), aligned(sizeof(double))));
+
+static inline double hsum4(v4u v)
+{
+    return (v[0] + v[2]) + (v[1] + v[3]);
+}
+
+static void sums_from_bins(const double *restrict W, Py_ssize_t npad, const double *restrict rf,
+                           const double *restrict rg, const double *dcw, double r0f, double r0g, double *o)
+{
+    const v4u zero = {0};
+    v4u l[6], a = zero, b = zero;
+    const double *Q = W + 6 * npad;
+    /* pass 1: the disk's linear sums, ff and fg */
+    for (int t = 0; t < 6; t++) l[t] = zero;
+    for (Py_ssize_t k = 0; k < npad; k += 4) {
+        v4u vf = *(const v4u *)(rf + k);
+        for (int t = 0; t < 6; t++) l[t] += vf * *(const v4u *)(W + t * npad + k);
+        v4u qf = *(const v4u *)(Q + k) * vf;
+        a += qf * vf;
+        b += qf * *(const v4u *)(rg + k);
+    }
+    for (int t = 0; t < 6; t++) o[t] = hsum4(l[t]) + r0f * dcw[t];
+    o[12] = hsum4(a) + dcw[6] * r0f * r0f;
+    o[14] = hsum4(b) + dcw[6] * r0f * r0g;
+    /* pass 2: the bulge's linear sums and gg */
+    for (int t = 0; t < 6; t++) l[t] = zero;
+    a = zero;
+    for (Py_ssize_t k = 0; k < npad; k += 4) {
+        v4u vg = *(const v4u *)(rg + k);
+        for (int t = 0; t < 6; t++) l[t] += vg * *(const v4u *)(W + t * npad + k);
+        a += *(const v4u *)(Q + k) * vg * vg;
+    }
+    for (int t = 0; t < 6; t++) o[6 + t] = hsum4(l[t]) + r0g * dcw[t];
+    o[13] = hsum4(a) + dcw[6] * r0g * r0g;
+}
+#endif
 
 /*
  * binned_sums(shape, r2, e_index, lo, offsets, columns, dc, bins_per_octave, log_f, log_g, M, J, start, per_octave,
