@@ -85,6 +85,22 @@ def test_registration_offsets_recovered(fitted):
     assert np.max(np.abs(reg - _true_offset(st.ccd, st.x, st.y))) < 0.02
 
 
+def test_many_positions_at_once_match_one_at_a_time(fitted):
+    """images_at and registration_shifts (the pipeline's per-chunk batches) give what image and
+    registration_shift give object by object, to rounding."""
+    st, model, _, _ = fitted
+    for c in (0, 1):
+        sel = np.nonzero(st.ccd == c)[0][:5]
+        u, v = st.u[sel], st.v[sel]
+        many = model.images_at(c, u, v)
+        one = np.array([model.image(c, a, b) for a, b in zip(u, v)])
+        assert many.shape == one.shape
+        np.testing.assert_allclose(many, one, rtol=0, atol=1e-14)
+        shifts = model.registration_shifts(c, st.x[sel], st.y[sel])
+        np.testing.assert_allclose(shifts, [model.registration_shift(c, x, y) for x, y in zip(st.x[sel], st.y[sel])],
+                                   rtol=0, atol=1e-13)
+
+
 def test_model_is_centred_and_normalised(fitted):
     _, model, _, _ = fitted
     img = model.image(0, -0.5, 0.2)

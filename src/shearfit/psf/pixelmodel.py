@@ -174,6 +174,18 @@ class PixelPSF:
         s = img.sum()
         return img / s if s != 0 else img
 
+    def images_at(self, ccd, u, v) -> np.ndarray:
+        """The PSF at many positions (arrays) of one CCD: (n, k n, k n), each as :meth:`image` would make it
+        (one matrix product for all of them)."""
+        if not self.ccd_used[int(ccd)]:
+            raise ShearfitValueError(f"the PSF model has no stars on CCD {int(ccd)}")
+        u = np.atleast_1d(np.asarray(u, float))
+        imgs = self.images
+        c = self.coefficients(np.full(u.size, int(ccd)), u, v)
+        out = (c @ imgs.reshape(imgs.shape[0], -1)).reshape((u.size,) + imgs.shape[1:])
+        s = out.sum(axis=(1, 2))
+        return out / np.where(s != 0, s, 1.0)[:, None, None]
+
     # -- per-star transforms ---------------------------------------------------------------------
     def star_spectra(self, ccd, u, v) -> np.ndarray:
         """Each star's model transform over all aliases, (n_s, k, k, n, n)."""
@@ -189,6 +201,10 @@ class PixelPSF:
         return M / np.where(tot != 0, tot, 1.0)[:, None, None]
 
     # -- registration ---------------------------------------------------------------------------
+    def registration_shifts(self, ccd, x, y) -> np.ndarray:
+        """:meth:`registration_shift` at many CCD pixels (arrays) of one CCD: (n, 2)."""
+        return _registration_shifts(self, ccd, x, y)
+
     def registration_shift(self, ccd, x, y):
         """Astrometric offset (dx, dy), pixels, of a source at CCD pixel (x, y): true minus WCS position."""
         if self.registration is None:
@@ -197,6 +213,16 @@ class PixelPSF:
         t = _reg_terms(np.atleast_1d(x) / nx - 0.5, np.atleast_1d(y) / ny - 0.5, self.registration_order)
         d = t @ self.registration[int(ccd)].T
         return float(d[0, 0]), float(d[0, 1])
+
+
+def _registration_shifts(model, ccd, x, y) -> np.ndarray:
+    """:meth:`PixelPSF.registration_shift` at many CCD pixels (arrays): (n, 2)."""
+    x = np.atleast_1d(np.asarray(x, float))
+    if model.registration is None:
+        return np.zeros((x.size, 2))
+    ny, nx = model.ccd_shape[int(ccd)]
+    t = _reg_terms(x / nx - 0.5, np.atleast_1d(np.asarray(y, float)) / ny - 0.5, model.registration_order)
+    return t @ model.registration[int(ccd)].T
 
 
 def _reg_terms(xs, ys, order):
