@@ -124,6 +124,9 @@ def main(argv=None):
     ap.add_argument("--seed", type=int, default=3)
     ap.add_argument("--psf", choices=["true", "fitted", "both"], default="both")
     ap.add_argument("--no-profile", action="store_true", help="skip the profiled run (stages)")
+    ap.add_argument("--pairs", type=int, default=3,
+                    help="runs of each PSF mode, given and fitted alternately (a shared machine's speed drifts by "
+                         "10-30 %% from minute to minute: the PSF stage is taken from each pair and from the medians)")
     ap.add_argument("--keep", default=None, help="keep the field in this directory")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="a setting of the engine or the pipeline for every run (e.g. psf_native_width=0)")
@@ -147,24 +150,35 @@ def main(argv=None):
         c0 = _cpu_seconds()
         _warm_up()
         print(f"one-off per process (profile tables, imports): {_cpu_seconds() - c0:.1f} CPU-s, not counted below")
-        rates = {}
+        rates = {m: [] for m in modes}
+        for rep in range(max(args.pairs, 1)):
+            for mode in modes:
+                cfg = _with_settings(load_field_config(os.path.join(d, "field_truepsf.yaml" if mode == "true"
+                                                                    else "field.yaml")), args.set)
+                c0, t0 = _cpu_seconds(), time.perf_counter()
+                with _ModeCounter() as counter:
+                    table = measure_field(cfg, out_path=os.path.join(d, f"shear_{mode}.fits"), processes=1)
+                cpu, wall = _cpu_seconds() - c0, time.perf_counter() - t0
+                rates[mode].append(cpu)
+                fc = np.asarray(table["fitclass"])
+                if rep == 0:
+                    print(f"\nPSF {'given (true images)' if mode == 'true' else 'fitted from the stars'}: {len(table)} "
+                          f"objects ({int((fc == 0).sum())} galaxies, {int((fc == 1).sum())} stars, "
+                          f"{int((fc < 0).sum())} flagged or unmeasured), {len(cfg.exposures)} exposures, one process; "
+                          f"{counter.summary()}")
+                print(f"  run {rep + 1}, PSF {'given' if mode == 'true' else 'fitted'}: {len(table) / cpu:.2f} objects "
+                      f"per CPU-second ({cpu:.1f} CPU-s, {wall:.1f} s wall)", flush=True)
+        n_obj = len(table)
         for mode in modes:
-            cfg = _with_settings(load_field_config(os.path.join(d, "field_truepsf.yaml" if mode == "true"
-                                                                else "field.yaml")), args.set)
-            c0, t0 = _cpu_seconds(), time.perf_counter()
-            with _ModeCounter() as counter:
-                table = measure_field(cfg, out_path=os.path.join(d, f"shear_{mode}.fits"), processes=1)
-            cpu, wall = _cpu_seconds() - c0, time.perf_counter() - t0
-            rates[mode] = (len(table), cpu)
-            fc = np.asarray(table["fitclass"])
-            print(f"\nPSF {'given (true images)' if mode == 'true' else 'fitted from the stars'}: {len(table)} objects "
-                  f"({int((fc == 0).sum())} galaxies, {int((fc == 1).sum())} stars, {int((fc < 0).sum())} flagged or "
-                  f"unmeasured), {len(cfg.exposures)} exposures, one process: {len(table) / cpu:.2f} objects per "
-                  f"CPU-second ({cpu:.1f} CPU-s, {wall:.1f} s wall); {counter.summary()}")
-        if len(rates) == 2:
-            extra = rates["fitted"][1] - rates["true"][1]
-            print(f"\nPSF stage (fitted minus given): {extra:.1f} CPU-s, {100 * extra / rates['fitted'][1]:.0f} % of the "
-                  "run with fitted PSFs")
+            med = float(np.median(rates[mode]))
+            print(f"\nPSF {'given' if mode == 'true' else 'fitted'}, median of {len(rates[mode])} runs: "
+                  f"**{n_obj / med:.2f} objects per CPU-second** ({med:.1f} CPU-s; runs "
+                  f"{', '.join(f'{n_obj / c:.1f}' for c in rates[mode])})")
+        if len(modes) == 2:
+            pair = [100 * (f - t) / f for t, f in zip(rates["true"], rates["fitted"])]
+            mt, mf = float(np.median(rates["true"])), float(np.median(rates["fitted"]))
+            print(f"PSF stage (fitted minus given): {mf - mt:.1f} CPU-s, {100 * (mf - mt) / mf:.0f} % of the run with "
+                  f"fitted PSFs (medians); pair by pair {', '.join(f'{p:.0f}' for p in pair)} %")
         peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
         print(f"peak memory (max RSS of this process): {peak:.0f} MB")
         if args.no_profile:

@@ -53,9 +53,11 @@ def shape_matrix(e1, e2):
     e2 = np.asarray(e2, dtype=float)
     e = np.hypot(e1, e2)
     q = (1.0 - e) / (1.0 + e)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        c2 = np.where(e > 0, e1 / np.where(e > 0, e, 1.0), 1.0)
-        s2 = np.where(e > 0, e2 / np.where(e > 0, e, 1.0), 0.0)
+    # the direction of e (1, 0 where e = 0); no division by zero to guard against
+    pos = e > 0
+    safe = np.where(pos, e, 1.0)
+    c2 = np.where(pos, e1 / safe, 1.0)
+    s2 = e2 / safe   # e2 = 0 where e = 0
     mean = 0.5 * (1.0 + q * q)
     half = 0.5 * (1.0 - q * q)
     return mean + half * c2, half * s2, mean - half * c2

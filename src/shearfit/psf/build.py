@@ -106,7 +106,7 @@ def select_stars(ccds, ra, dec, others_ra, others_dec, pc, frame: FieldFrame):
     hits = locate_all(ccds, ra, dec)
     rejected = {"off CCD edge or unusable pixel": 0, "SNR below minimum": 0, "saturated": 0, "neighbour": 0}
     cand = np.zeros(len(ccds), int)
-    rows = {k: [] for k in ("image", "ivar", "delta", "ccd", "u", "v", "x", "y", "snr")}
+    rows = {k: [] for k in ("image", "ivar", "delta", "ccd", "x", "y", "snr")}
     index = []
     trees = {}
     for obj, c, x, y in zip(hits.object, hits.ccd, hits.x, hits.y):
@@ -135,13 +135,10 @@ def select_stars(ccds, ra, dec, others_ra, others_dec, pc, frame: FieldFrame):
         if not snr > pc.psf_min_snr:
             rejected["SNR below minimum"] += 1
             continue
-        u, v = frame.uv(ra[obj], dec[obj])
         rows["image"].append(st.image)
         rows["ivar"].append(st.weight)
         rows["delta"].append(st.offset)
         rows["ccd"].append(c)
-        rows["u"].append(float(u))
-        rows["v"].append(float(v))
         rows["x"].append(x)
         rows["y"].append(y)
         rows["snr"].append(snr)
@@ -150,9 +147,11 @@ def select_stars(ccds, ra, dec, others_ra, others_dec, pc, frame: FieldFrame):
         stars = StarSet(np.zeros((0, n, n)), np.zeros((0, n, n)), np.zeros((0, 2)), np.zeros(0, int),
                         *(np.zeros(0) for _ in range(5)))
     else:
+        # the stars' field coordinates, in one call
+        u, v = frame.uv(ra[np.array(index, int)], dec[np.array(index, int)])
         stars = StarSet(image=np.array(rows["image"]), ivar=np.array(rows["ivar"]),
                         delta=np.array(rows["delta"], float), ccd=np.array(rows["ccd"], int),
-                        u=np.array(rows["u"]), v=np.array(rows["v"]), x=np.array(rows["x"]),
+                        u=np.array(u, float), v=np.array(v, float), x=np.array(rows["x"]),
                         y=np.array(rows["y"]), snr=np.array(rows["snr"]))
     usable = np.bincount(stars.ccd, minlength=len(ccds)) if len(stars) else np.zeros(len(ccds), int)
     return stars, np.array(index, int), cand, usable, rejected

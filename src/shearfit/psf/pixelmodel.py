@@ -408,15 +408,17 @@ def _centre_by_xcorr(model: PixelPSF, D, stars: StarSet, n_newton=6, max_step=0.
     kap_y = (2 * np.pi / n) * f[:, None, :, None]
     KX = np.broadcast_to(kap_x, P.shape[1:])
     KY = np.broadcast_to(kap_y, P.shape[1:])
-    base = Dc * P
+    base = (Dc * P).reshape(P.shape[0], -1)
+    # the gradient and Hessian of sum Re(E) over the modes, E = base x phases: Re(-i kappa E) = kappa Im(E) and
+    # Re(-kappa kappa' E) = -kappa kappa' Re(E), as products of Im(E) and Re(E) with the modes' factors
+    kx, ky = KX.ravel(), KY.ravel()
+    grad_f = np.stack([kx, ky], axis=1)
+    hess_f = -np.stack([kx * kx, kx * ky, ky * ky], axis=1)
     delta = stars.delta.copy()
     for _ in range(n_newton):
-        E = base * _phases(n, k, delta)
-        g = np.stack([np.sum((E * (-1j * KX)).real, axis=(1, 2, 3, 4)),
-                      np.sum((E * (-1j * KY)).real, axis=(1, 2, 3, 4))], axis=1)
-        hxx = np.sum((E * (-KX * KX)).real, axis=(1, 2, 3, 4))
-        hxy = np.sum((E * (-KX * KY)).real, axis=(1, 2, 3, 4))
-        hyy = np.sum((E * (-KY * KY)).real, axis=(1, 2, 3, 4))
+        E = base * _phases(n, k, delta).reshape(base.shape)
+        g = E.imag @ grad_f
+        hxx, hxy, hyy = (E.real @ hess_f).T
         det = hxx * hyy - hxy * hxy
         ok = (hxx < 0) & (det > 0)
         dx = np.where(ok, -(hyy * g[:, 0] - hxy * g[:, 1]) / np.where(ok, det, 1.0), 0.0)
