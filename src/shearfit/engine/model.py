@@ -36,7 +36,7 @@ from scipy import special
 from ..config import FitConfig
 from ..errors import ShearfitValueError
 from ..observation import Observation
-from .moffat import fit_moffat, fit_moffats, moffat_ft
+from .moffat import fit_moffat, fit_moffats, moffat_ft, moffat_norm
 
 __all__ = ["ExposureModes", "prepare_exposure", "prepare_exposures", "shape_matrix", "render_object"]
 
@@ -333,19 +333,21 @@ def _moffat_table(k, rs, beta, x_exact=4.0, x_step=0.2, floor=1e-30):
     step = int(x_step / dx)
     if step >= 3 and n - j >= 4 * step:
         nodes = np.append(np.arange(j, n - 1, step), n - 1)
-        v = moffat_ft(k[nodes], rs, beta)
+        nu = beta - 1.0
+        xn = k[nodes] * rs   # >= x_exact: moffat_ft's c x^nu K_nu(x), its K_nu kept for the slopes
+        kvn = special.kv(nu, xn)
+        v = moffat_norm(nu) * xn ** nu * kvn
         m = int(np.count_nonzero(v >= floor))
         if m >= 4:
             out = np.zeros_like(k)
             out[:j] = moffat_ft(k[:j], rs, beta)
-            nodes, v = nodes[:m], v[:m]
+            nodes, v, xn, kvn = nodes[:m], v[:m], xn[:m], kvn[:m]
             last = nodes[-1] + 1
-            nu = beta - 1.0
-            xn = k[nodes] * rs
-            slope = -rs * special.kv(nu - 1.0, xn) / special.kv(nu, xn)   # d log f / dk at the nodes
+            slope = -rs * special.kv(nu - 1.0, xn) / kvn   # d log f / dk at the nodes
             lv = np.log(v)
             idx = np.arange(j, last)
-            seg = np.minimum(np.searchsorted(nodes, idx, side="right") - 1, m - 2)
+            # the nodes are ``step`` apart but for the last: each point's segment without a search
+            seg = np.minimum((idx - j) // step, m - 2)
             k0, k1 = k[nodes[seg]], k[nodes[seg + 1]]
             h = k1 - k0
             t = (k[idx] - k0) / h
