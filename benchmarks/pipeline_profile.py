@@ -105,6 +105,49 @@ def _cpu_seconds():
     return r.ru_utime + r.ru_stime
 
 
+def _runs(d, settings, modes, tag, queue):
+    """A child process's runs of the PSF modes in ``modes``, one after the other: (tag, mode, CPU seconds,
+    objects) of each into ``queue``."""
+    for mode in modes:
+        cfg = _with_settings(load_field_config(os.path.join(d, "field_truepsf.yaml" if mode == "true"
+                                                            else "field.yaml")), settings)
+        c0 = _cpu_seconds()
+        table = measure_field(cfg, out_path=os.path.join(d, f"shear_{mode}_{tag}.fits"), processes=1)
+        queue.put((tag, mode, _cpu_seconds() - c0, len(table)))
+
+
+def _simultaneous_pairs(d, settings, n_pairs):
+    """Two processes side by side (forked from this warm process), one core each, n_pairs times: one runs the
+    given-PSF field then the fitted-PSF one, the other the reverse, so that each mode meets the same load from
+    the rest of the machine and from the other process (on a machine whose two cores share one physical
+    core, a process alone runs faster than two side by side: the order is swapped so that neither mode has
+    the machine to itself more than the other)."""
+    import multiprocessing as mp
+
+    ctx = mp.get_context("fork")
+    shares, rates = [], {"true": [], "fitted": []}
+    print(f"\n{n_pairs} pairs of processes side by side (given then fitted, and fitted then given):")
+    for k in range(n_pairs):
+        queue = ctx.Queue()
+        procs = [ctx.Process(target=_runs, args=(d, settings, order, tag, queue))
+                 for tag, order in (("a", ("true", "fitted")), ("b", ("fitted", "true")))]
+        for p in procs:
+            p.start()
+        got = [queue.get() for _ in range(4)]
+        for p in procs:
+            p.join()
+        n = got[0][3]
+        cpu = {m: sum(c for _, mm, c, _ in got if mm == m) for m in ("true", "fitted")}
+        rates["true"].append(2 * n / cpu["true"])
+        rates["fitted"].append(2 * n / cpu["fitted"])
+        shares.append(100 * (cpu["fitted"] - cpu["true"]) / cpu["fitted"])
+        print(f"  pair {k + 1}: given {rates['true'][-1]:.2f}, fitted {rates['fitted'][-1]:.2f} objects per "
+              f"CPU-second (two runs each, side by side); PSF stage {shares[-1]:.0f} % of the fitted runs", flush=True)
+    print(f"  median: given {np.median(rates['true']):.2f}, fitted {np.median(rates['fitted']):.2f} objects per "
+          f"CPU-second; **PSF stage {np.median(shares):.0f} %** of the fitted runs (pairs "
+          f"{', '.join(f'{x:.0f}' for x in shares)} %)")
+
+
 def _warm_up():
     """Fit one small simulated galaxy and take one PSF's adaptive moments: the tables and imports any run needs."""
     import shearfit
@@ -124,6 +167,10 @@ def main(argv=None):
     ap.add_argument("--seed", type=int, default=3)
     ap.add_argument("--psf", choices=["true", "fitted", "both"], default="both")
     ap.add_argument("--no-profile", action="store_true", help="skip the profiled run (stages)")
+    ap.add_argument("--simultaneous", type=int, default=0, metavar="N",
+                    help="also run N pairs with the given-PSF and the fitted-PSF run at the same time, one per core "
+                         "(two processes): both meet the same load from the rest of the machine, so the PSF stage is "
+                         "measured pair by pair without the drift between runs one after the other")
     ap.add_argument("--pairs", type=int, default=3,
                     help="runs of each PSF mode, given and fitted alternately (a shared machine's speed drifts by "
                          "10-30 %% from minute to minute: the PSF stage is taken from each pair and from the medians)")
@@ -179,6 +226,8 @@ def main(argv=None):
             mt, mf = float(np.median(rates["true"])), float(np.median(rates["fitted"]))
             print(f"PSF stage (fitted minus given): {mf - mt:.1f} CPU-s, {100 * (mf - mt) / mf:.0f} % of the run with "
                   f"fitted PSFs (medians); pair by pair {', '.join(f'{p:.0f}' for p in pair)} %")
+        if args.simultaneous > 0 and len(modes) == 2:
+            _simultaneous_pairs(d, args.set, args.simultaneous)
         peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
         print(f"peak memory (max RSS of this process): {peak:.0f} MB")
         if args.no_profile:
