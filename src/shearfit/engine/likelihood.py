@@ -201,12 +201,17 @@ def _packed_bins(jm):
     """
     cache = getattr(jm, "_bins32", None)
     if cache is None:
-        packed, n_single = jm.packed()[:2]
-        n = packed.shape[0]
+        # the modes in packed()'s order (alone first, then the groups'), without its rows of doubles and the
+        # groups' factors, which only the unbinned kernel needs
+        singles = jm.single_modes()
+        n_single = singles.size
+        order = np.concatenate([singles, jm.multi])
+        n = order.size
         b3 = np.zeros((n, 4), np.float32)
-        b3[:, :3] = packed[:, :3]
+        b3[:, :3] = jm.basis[:, order].T
         c8 = np.zeros((n, 8), np.float32)
-        c8[:, :7] = packed[:, 3:10]
+        c8[:, :6] = linear_vectors(jm)[:, order].T
+        c8[:n_single, 6] = jm.q[singles]
         pa = pb = np.zeros(0, np.int64)
         ph = np.zeros(0)
         gsel = np.zeros(0, np.int64)
