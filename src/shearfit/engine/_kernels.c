@@ -410,10 +410,12 @@ static void bin_index(const double *restrict P, Py_ssize_t n_single, double a0, 
    whose floor and fraction float32 holds to 1e-6 of a bin (K^T C K to 5e-8 relative), below the float32
    rounding of the modes' weights themselves (6e-8) and far below the binning's own error. kf: scratch of
    n_single floats */
+#if defined(__AVX2__)
 static void bin_index_f32(const double *restrict P, Py_ssize_t n_single, double a0, double a1, double a2, int nb,
-                          float *restrict kf, int *restrict idx, float *restrict w4, long long *lo_out,
+                          void *restrict scratch, int *restrict idx, float *restrict w4, long long *lo_out,
                           long long *hi_out)
 {
+    float *restrict kf = (float *)scratch;
     const double *restrict P0 = P, *restrict P1 = P + n_single, *restrict P2 = P + 2 * n_single;
     for (Py_ssize_t j = 0; j < n_single; j++) {
         double k = a0 * P0[j] + a1 * P1[j] + a2 * P2[j];
@@ -453,6 +455,38 @@ static void bin_index_f32(const double *restrict P, Py_ssize_t n_single, double 
     *lo_out = lo != INT_MAX ? (long long)lo : LLONG_MAX;
     *hi_out = hi != INT_MIN ? (long long)hi + 3 : LLONG_MIN;
 }
+#else
+/* without AVX2 (the portable build: SSE2 has no vector floor or float-to-int32 rounding for these loops) the
+   float32 logarithm would run one mode at a time: bin_index's doubles, the weights stored as float32 */
+static void bin_index_f32(const double *restrict P, Py_ssize_t n_single, double a0, double a1, double a2, int nb,
+                          void *restrict scratch, int *restrict idx, float *restrict w4, long long *lo_out,
+                          long long *hi_out)
+{
+    double *restrict xs = (double *)scratch;
+    const double *restrict P0 = P, *restrict P1 = P + n_single, *restrict P2 = P + 2 * n_single;
+    for (Py_ssize_t j = 0; j < n_single; j++) {
+        double k = a0 * P0[j] + a1 * P1[j] + a2 * P2[j];
+        double lg = fast_log2(k > 1e-300 ? k : 1.0) * nb;
+        xs[j] = k > 1e-300 ? lg : INFINITY;   /* +inf: the DC mode */
+    }
+    for (Py_ssize_t j = 0; j < n_single; j++) {
+        int dc = !(xs[j] < INFINITY);
+        double x = dc ? 0.0 : xs[j];
+        double f = floor(x), t = x - f;
+        double tp = t + 1.0, tm = t - 1.0, tm2 = t - 2.0;
+        w4[j] = (float)(-t * tm * tm2 / 6.0);
+        w4[n_single + j] = (float)(tp * tm * tm2 / 2.0);
+        w4[2 * n_single + j] = (float)(-tp * t * tm2 / 2.0);
+        w4[3 * n_single + j] = (float)(tp * t * tm / 6.0);
+        int i = (int)f - 1;
+        idx[j] = dc ? INT_MIN : i;
+    }
+    int lo, hi;
+    bin_range(idx, n_single, &lo, &hi);
+    *lo_out = lo != INT_MAX ? (long long)lo : LLONG_MAX;
+    *hi_out = hi != INT_MIN ? (long long)hi + 3 : LLONG_MIN;
+}
+#endif
 
 /* pass 2: the modes' weights into rows of 8 floats (the six linear vectors, q, padding), a row a vector; the
    DC mode's into row nbin. Each mode's four rows are updated directly, without branches: the bins of one
@@ -507,7 +541,7 @@ static PyObject *make_bins(PyObject *self, PyObject *args)
     const double *S = (const double *)shape.buf;
     Py_ssize_t ns = n_single > 0 ? n_single : 1;
     int *idx = (int *)malloc(ns * sizeof(int));
-    float *frac = (float *)malloc(ns * sizeof(float));      /* each mode's K^T C K (float32) */
+    double *frac = (double *)malloc(ns * sizeof(double));   /* scratch: each mode's K^T C K or position */
     float *w4 = (float *)malloc(4 * ns * sizeof(float));      /* its four weights */
     long long *off = (long long *)malloc((n_e + 1) * sizeof(long long));
     long long *los = (long long *)malloc((n_e > 0 ? n_e : 1) * sizeof(long long));
