@@ -97,3 +97,35 @@ def test_refinement_follows_the_posterior_not_its_bounding_box():
     assert cheb.max() <= 0.04 + 1e-9
     est = estimate(s, cfg)
     assert abs(est.e1 - 0.1) < 0.01 and abs(est.e2 - 0.05) < 0.01
+
+
+@pytest.mark.parametrize("mean,sigma", [((0.1, -0.05), 0.01), ((0.37, 0.29), 0.03), ((-0.2, 0.1), 0.15),
+                                        ((0.6, -0.55), 0.05)])
+def test_coarse_prepass_keeps_every_sample_the_estimator_uses(mean, sigma):
+    """With e_grid_prepass the 0.16 start grid is sampled only near the coarse samples within the margin of
+    the posterior cut: the samples above the cut, their cells and so the estimate are those of the paper's
+    full start grid, for fewer likelihood evaluations."""
+    paper, pre = FitConfig(e_grid_prepass=0.0), FitConfig()
+    assert pre.e_grid_prepass == 0.32
+    la, lb = Gaussian(mean, sigma), Gaussian(mean, sigma)
+    a, b = adaptive_samples(la, paper), adaptive_samples(lb, pre)
+    assert lb.calls < la.calls
+
+    def used(s, cfg):
+        keep = s.logpost > s.logpost.max() + np.log(cfg.posterior_cut)
+        return sorted(zip(np.round(s.e1[keep], 9), np.round(s.e2[keep], 9), np.round(s.area[keep], 12)))
+
+    assert used(a, paper) == used(b, pre)
+    ea, eb = estimate(a, paper), estimate(b, pre)
+    assert ea.e1 == pytest.approx(eb.e1, abs=1e-12) and ea.e2 == pytest.approx(eb.e2, abs=1e-12)
+    assert ea.e_var == pytest.approx(eb.e_var, rel=1e-9)
+
+
+def test_prepass_must_be_a_power_of_two_of_the_start():
+    from shearfit.errors import ShearfitValueError
+
+    FitConfig(e_grid_prepass=0.64)
+    FitConfig(e_grid_prepass=0.0)
+    for bad in (0.24, 0.16, 0.08):
+        with pytest.raises(ShearfitValueError, match="e_grid_prepass"):
+            FitConfig(e_grid_prepass=bad)
