@@ -375,33 +375,38 @@ static void bin_range(const int *restrict idx, Py_ssize_t n, int *lo_out, int *h
     *hi_out = hi;
 }
 
+/* bin_index's loops, with weights of type WT: double for the pairs of binned_sums, float for make_bins' sums
+   (float32) where AVX2 is not there to take the logarithm in float32 too (bin_index_f32). xs: n_single doubles */
+#define BIN_INDEX_DOUBLE(WT)                                                                                  \
+    const double *restrict P0 = P, *restrict P1 = P + n_single, *restrict P2 = P + 2 * n_single;            \
+    for (Py_ssize_t j = 0; j < n_single; j++) {                                                              \
+        double k = a0 * P0[j] + a1 * P1[j] + a2 * P2[j];                                                    \
+        double lg = fast_log2(k > 1e-300 ? k : 1.0) * nb;                                                    \
+        xs[j] = k > 1e-300 ? lg : INFINITY;   /* +inf: the DC mode */                                       \
+    }                                                                                                        \
+    /* the weights and bins: a loop of selects that vectorises (a floating-point min/max in it would not) */ \
+    for (Py_ssize_t j = 0; j < n_single; j++) {                                                              \
+        int dc = !(xs[j] < INFINITY);                                                                        \
+        double x = dc ? 0.0 : xs[j];                                                                         \
+        double f = floor(x), t = x - f;                                                                      \
+        double tp = t + 1.0, tm = t - 1.0, tm2 = t - 2.0;                                                    \
+        w4[j] = (WT)(-t * tm * tm2 / 6.0);                                                                   \
+        w4[n_single + j] = (WT)(tp * tm * tm2 / 2.0);                                                        \
+        w4[2 * n_single + j] = (WT)(-tp * t * tm2 / 2.0);                                                    \
+        w4[3 * n_single + j] = (WT)(tp * t * tm / 6.0);                                                      \
+        int i = (int)f - 1;                                                                                  \
+        idx[j] = dc ? INT_MIN : i;                                                                           \
+    }                                                                                                        \
+    int lo, hi;                                                                                              \
+    bin_range(idx, n_single, &lo, &hi);                                                                      \
+    *lo_out = lo != INT_MAX ? (long long)lo : LLONG_MAX;                                                     \
+    *hi_out = hi != INT_MIN ? (long long)hi + 3 : LLONG_MIN;
+
 static void bin_index(const double *restrict P, Py_ssize_t n_single, double a0, double a1, double a2, int nb,
                       double *restrict xs, int *restrict idx, double *restrict w4, long long *lo_out,
                       long long *hi_out)
 {
-    const double *restrict P0 = P, *restrict P1 = P + n_single, *restrict P2 = P + 2 * n_single;
-    for (Py_ssize_t j = 0; j < n_single; j++) {
-        double k = a0 * P0[j] + a1 * P1[j] + a2 * P2[j];
-        double lg = fast_log2(k > 1e-300 ? k : 1.0) * nb;
-        xs[j] = k > 1e-300 ? lg : INFINITY;   /* +inf: the DC mode */
-    }
-    /* the weights and bins: a loop of selects that vectorises (a floating-point min/max in it would not) */
-    for (Py_ssize_t j = 0; j < n_single; j++) {
-        int dc = !(xs[j] < INFINITY);
-        double x = dc ? 0.0 : xs[j];
-        double f = floor(x), t = x - f;
-        double tp = t + 1.0, tm = t - 1.0, tm2 = t - 2.0;
-        w4[j] = -t * tm * tm2 / 6.0;
-        w4[n_single + j] = tp * tm * tm2 / 2.0;
-        w4[2 * n_single + j] = -tp * t * tm2 / 2.0;
-        w4[3 * n_single + j] = tp * t * tm / 6.0;
-        int i = (int)f - 1;
-        idx[j] = dc ? INT_MIN : i;
-    }
-    int lo, hi;
-    bin_range(idx, n_single, &lo, &hi);
-    *lo_out = lo != INT_MAX ? (long long)lo : LLONG_MAX;
-    *hi_out = hi != INT_MIN ? (long long)hi + 3 : LLONG_MIN;
+    BIN_INDEX_DOUBLE(double)
 }
 
 /* bin_index for make_bins, whose sums are float32: K^T C K in doubles, then its logarithm and the weights in
@@ -463,28 +468,7 @@ static void bin_index_f32(const double *restrict P, Py_ssize_t n_single, double 
                           long long *hi_out)
 {
     double *restrict xs = (double *)scratch;
-    const double *restrict P0 = P, *restrict P1 = P + n_single, *restrict P2 = P + 2 * n_single;
-    for (Py_ssize_t j = 0; j < n_single; j++) {
-        double k = a0 * P0[j] + a1 * P1[j] + a2 * P2[j];
-        double lg = fast_log2(k > 1e-300 ? k : 1.0) * nb;
-        xs[j] = k > 1e-300 ? lg : INFINITY;   /* +inf: the DC mode */
-    }
-    for (Py_ssize_t j = 0; j < n_single; j++) {
-        int dc = !(xs[j] < INFINITY);
-        double x = dc ? 0.0 : xs[j];
-        double f = floor(x), t = x - f;
-        double tp = t + 1.0, tm = t - 1.0, tm2 = t - 2.0;
-        w4[j] = (float)(-t * tm * tm2 / 6.0);
-        w4[n_single + j] = (float)(tp * tm * tm2 / 2.0);
-        w4[2 * n_single + j] = (float)(-tp * t * tm2 / 2.0);
-        w4[3 * n_single + j] = (float)(tp * t * tm / 6.0);
-        int i = (int)f - 1;
-        idx[j] = dc ? INT_MIN : i;
-    }
-    int lo, hi;
-    bin_range(idx, n_single, &lo, &hi);
-    *lo_out = lo != INT_MAX ? (long long)lo : LLONG_MAX;
-    *hi_out = hi != INT_MIN ? (long long)hi + 3 : LLONG_MIN;
+    BIN_INDEX_DOUBLE(float)
 }
 #endif
 
