@@ -391,15 +391,15 @@ def _locate_nodes(half_width):
 
 @functools.lru_cache(maxsize=32)
 def _lattice(h, step, limit):
-    """The lattice indices (I, J) over [-h, h]^2 and which points are on the step's lattice with
-    I^2 + J^2 < limit^2 (read-only, shared by every object)."""
+    """The lattice indices -h .. h (each axis) and which points (I, J) of [-h, h]^2 are on the step's lattice
+    with I^2 + J^2 < limit^2 (read-only, shared by every object; the mask alone is 2D, so that the fine
+    lattices of metacal's 0.005 step stay small)."""
     idx = np.arange(-h, h + 1)
     on = (idx % step == 0)
-    I, J = np.meshgrid(idx, idx, indexing="ij")
-    allowed = on[:, None] & on[None, :] & (I * I + J * J < limit * limit)
-    for a in (I, J, allowed):
+    allowed = on[:, None] & on[None, :] & (idx[:, None] ** 2 + idx[None, :] ** 2 < limit * limit)
+    for a in (idx, allowed):
         a.setflags(write=False)
-    return I, J, allowed
+    return idx, allowed
 
 
 class _Store:
@@ -438,10 +438,10 @@ class _Store:
 
     def _points(self, step, mask):
         """The points of the step's lattice in mask with |e| below the model limit; records the region."""
-        I, J, allowed = _lattice(self.half, step, self.cfg.model_e_limit / self.unit)
-        sel = mask & allowed
+        idx, allowed = _lattice(self.half, step, self.cfg.model_e_limit / self.unit)
+        ii, jj = np.nonzero(mask & allowed)   # in the order of I[sel], J[sel] (row after row)
         self.regions.append((step, mask))
-        return list(zip(I[sel].tolist(), J[sel].tolist()))
+        return list(zip(idx[ii].tolist(), idx[jj].tolist()))
 
     def lattice_box(self, step, imin, imax, jmin, jmax):
         h = self.half
@@ -480,10 +480,7 @@ class _Store:
                        point=point)
 
     def above(self, fraction):
-        lp = np.array(self.logpost)
-        if not np.any(np.isfinite(lp)):
-            return np.zeros(lp.size, bool)
-        return lp > np.max(lp) + np.log(fraction)
+        return self.above_log(np.log(fraction))
 
     def above_log(self, log_fraction):
         """Which samples have a posterior above exp(log_fraction) of the largest."""
