@@ -243,6 +243,9 @@ def test_a_chunks_jacobians_and_psf_positions_are_those_of_one_call_each():
         def model_uv(self, c, x, y):
             return pixel_to_sky(h, x, y)   # any vectorised function of (x, y) stands in for the model's frame
 
+        def fitted_at_many(self, c, x, y, uv):
+            return None   # no model images here (tests/test_psf_model.py checks images_at)
+
     exposures = [([SimpleNamespace(wcs=h)], Frame()), ([SimpleNamespace(wcs=h)], SimpleNamespace(model_uv=lambda *a: None))]
     hits = [[(0, 0, 10.0, 20.0), (1, 0, 11.5, 19.25)], [(0, 0, 150.25, 40.75)], [(0, 0, 10.0, 20.0)]]
     geo = _chunk_geometry(exposures, hits)

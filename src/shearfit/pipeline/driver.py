@@ -552,7 +552,7 @@ def _chunk_geometry(exposures, hits) -> dict:
         epsf = exposures[e][1]
         uv = epsf.model_uv(c, xy[:, 0], xy[:, 1])
         batch = None
-        if uv is not None and hasattr(epsf, "fitted_at_many"):
+        if uv is not None:
             batch = epsf.fitted_at_many(c, xy[:, 0], xy[:, 1], uv)
         for n, (x, y) in enumerate(pts):
             got, shift = (None, None) if batch is None else ((batch[0][n], batch[1]), tuple(batch[2][n].tolist()))
