@@ -13,7 +13,8 @@ PSF, SNR 10-40) once and then
 
 1. times ``measure_object`` on those galaxies in child processes, one of the other build and one of this
    checkout alternated ``--rounds`` times (galaxies per second per core, each round's ratio), and checks
-   the estimates agree;
+   the estimates agree. Every round measures the same galaxies, each in a fresh process whose caches (the
+   App. A Moffats, the alias tables) start empty, so no round finds the galaxies' work already done;
 2. loads the other build's compiled module of the same instruction-set level into this process and times
    its ``make_bins`` against this one's on the bins of a few of the galaxies, interleaved (ns per mode and
    ellipticity), with the largest difference between their bins.

@@ -22,6 +22,7 @@ one), a profile grouped by stage and the process's peak memory.
     python benchmarks/speed.py --workers 2         # 2 worker processes against one
     python benchmarks/speed.py --isa-ab baseline   # the loops in use against the portable ones, interleaved
     python benchmarks/speed.py --check             # how far the speed settings move the estimates
+    python benchmarks/speed.py --check --check-each   # and each setting's own effect
 """
 
 from __future__ import annotations
@@ -262,27 +263,30 @@ def metacal_image_profile(objs):
 EXACT = {"mode_bins_per_octave": 0, "n_flux": 11, "fold_chi2_tolerance": 0.0, "e_grid_prepass": 0.0}
 
 
-def check_report(objs, cfg, res, seed):
+def check_report(objs, cfg, res, seed, each=False):
     """The speed settings against the exact ones (EXACT), on the timed galaxies and on faint ones:
-    how far the estimates move, in e and in units of their own error."""
+    how far the estimates move, in e and in units of their own error. ``each``: also every setting of EXACT
+    alone at its exact value, the others as they are, so that each approximation's own effect shows."""
     from dataclasses import replace
 
-    exact = replace(cfg, **EXACT)
     faint = ring_set(len(objs), (0.0, 0.0), np.random.default_rng(seed + 1000), n_rotations=1, n_exposures=7,
                      snr_range=(7, 15), mag_range=(23.0, 24.7), stamp_size=48)
-    print(f"\ncheck: these settings against {', '.join(f'{k}={v}' for k, v in EXACT.items())}")
-    for label, ob, fast in (("timed set, SNR 10-60", objs, res), ("faint set, SNR 7-15", faint, None)):
-        if fast is None:
-            fast = [shearfit.measure_object(o, mag=t["mag"], config=cfg) for o, t in ob]
-        ref = [shearfit.measure_object(o, mag=t["mag"], config=exact) for o, t in ob]
-        ok = [(a, b) for a, b in zip(ref, fast) if a.fitclass == 0 and b.fitclass == 0]
-        de = np.array([[a.e1 - b.e1, a.e2 - b.e2] for a, b in ok])
-        rel = np.abs(de).max(axis=1) / np.sqrt([a.e_var for a, _ in ok])
-        dw = np.array([abs(a.weight - b.weight) / a.weight for a, b in ok if a.weight > 0])
-        same = sum(a.fitclass == b.fitclass for a, b in zip(ref, fast))
-        print(f"  {label}: {len(ok)} galaxies; max |de| {np.max(np.abs(de)):.1e} (rms {np.sqrt(np.mean(de ** 2)):.1e}), "
-              f"at most {np.max(rel):.1e} of the error on e; weights within {np.max(dw):.1e}; "
-              f"fitclass the same for {same} of {len(ref)}")
+    sets = (("timed set, SNR 10-60", objs, res),
+            ("faint set, SNR 7-15", faint, [shearfit.measure_object(o, mag=t["mag"], config=cfg) for o, t in faint]))
+    cases = [EXACT] + ([{k: v} for k, v in EXACT.items()] if each else [])
+    for case in cases:
+        print(f"\ncheck: these settings against {', '.join(f'{k}={v}' for k, v in case.items())}")
+        exact = replace(cfg, **case)
+        for label, ob, fast in sets:
+            ref = [shearfit.measure_object(o, mag=t["mag"], config=exact) for o, t in ob]
+            ok = [(a, b) for a, b in zip(ref, fast) if a.fitclass == 0 and b.fitclass == 0]
+            de = np.array([[a.e1 - b.e1, a.e2 - b.e2] for a, b in ok])
+            rel = np.abs(de).max(axis=1) / np.sqrt([a.e_var for a, _ in ok])
+            dw = np.array([abs(a.weight - b.weight) / a.weight for a, b in ok if a.weight > 0])
+            same = sum(a.fitclass == b.fitclass for a, b in zip(ref, fast))
+            print(f"  {label}: {len(ok)} galaxies; max |de| {np.max(np.abs(de)):.1e} (rms "
+                  f"{np.sqrt(np.mean(de ** 2)):.1e}), at most {np.max(rel):.1e} of the error on e; weights within "
+                  f"{np.max(dw):.1e}; fitclass the same for {same} of {len(ref)}")
 
 
 def main(argv=None):
@@ -317,6 +321,8 @@ def main(argv=None):
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="engine setting")
     ap.add_argument("--metacal", action="store_true",
                     help="also time the metacal measurement (five versions per object) against the plain one")
+    ap.add_argument("--check-each", action="store_true",
+                    help="with --check, also each speed setting alone at its exact value (its own effect)")
     ap.add_argument("--check", action="store_true",
                     help="also measure the galaxies (and as many faint ones) with the exact settings and report "
                          "how far the speed settings (mode binning, flux nodes) move the estimates")
@@ -388,7 +394,7 @@ def main(argv=None):
         metacal_report(objs, cfg, args.passes)
         metacal_image_profile(objs)
     if args.check:
-        check_report(objs, cfg, res, args.seed)
+        check_report(objs, cfg, res, args.seed, each=args.check_each)
     if args.isa_ab:
         isa_ab_report(sets, cfg, args.isa_ab)
     if args.workers > 1:

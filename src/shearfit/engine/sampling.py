@@ -507,8 +507,8 @@ def adaptive_samples(like: EllipticityLikelihood, cfg: FitConfig) -> Samples:
     cut: below it themselves unless the posterior has a feature narrower
     than the coarse step there, and then neither the estimator (which uses
     only samples above the cut) nor the refinement (which starts from them)
-    would have used them. The estimates move by at most 2e-7 (73 galaxies
-    of SNR 7-40; ``benchmarks/speed.py --check`` includes it).
+    would have used them. The estimates move by at most 2.2e-7 (59 galaxies
+    of SNR 7-60, ``benchmarks/speed.py --check --check-each``).
     """
     st = _Store(like, cfg)
     step = int(round(cfg.e_grid_start / cfg.e_grid_min))
