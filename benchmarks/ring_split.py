@@ -1,10 +1,10 @@
 #!/usr/bin/env python
 """m and c of a ring-test table (benchmarks/ring_test.py --out) split by true scalelength and by sigma_e.
 
-    python benchmarks/ring_split.py ring.fits
+    python benchmarks/ring_split.py ring.fits [--r-bins 0,0.15,0.3,10]
 """
 
-import sys
+import argparse
 
 import numpy as np
 from astropy.table import Table
@@ -12,7 +12,7 @@ from astropy.table import Table
 from shearfit.calib.bias import ring_sums, shear_bias
 
 
-def main(path):
+def main(path, r_bins=(0, 0.15, 0.3, 10)):
     t = Table.read(path)
     plus = t[t["sign"] > 0]
     g = np.array([plus["g1"][0], plus["g2"][0]])   # the shear of the +g set
@@ -36,11 +36,15 @@ def main(path):
               f"c1={est[2]:+.5f}+-{err[2]:.5f}  c2={est[3]:+.5f}+-{err[3]:.5f}")
 
     sub(np.ones(n, bool), "all")
-    for lo, hi in [(0, 0.15), (0.15, 0.3), (0.3, 10)]:
+    for lo, hi in zip(r_bins[:-1], r_bins[1:]):
         sub((rgal >= lo) & (rgal < hi), f"r in [{lo}, {hi}) arcsec")
     for lo, hi in [(0, 0.02), (0.02, 0.05), (0.05, 1)]:
         sub((sdg >= lo) & (sdg < hi), f"sigma_e in [{lo}, {hi})")
 
 
 if __name__ == "__main__":
-    main(sys.argv[1])
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("table")
+    ap.add_argument("--r-bins", default="0,0.15,0.3,10", help="edges of the true-scalelength bins, arcsec")
+    a = ap.parse_args()
+    main(a.table, [float(x) for x in a.r_bins.split(",")])

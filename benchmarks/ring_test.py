@@ -58,6 +58,7 @@ for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_var, "1")
 
 import argparse  # noqa: E402
+import functools  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
 from multiprocessing import Pool  # noqa: E402
@@ -190,6 +191,18 @@ def odd_population(mags, rng, cfg):
         e[big] = rng.normal(0.0, 0.3 / np.sqrt(2.0), (int(big.sum()), 2))
     pop["e1"], pop["e2"] = e[:, 0], e[:, 1]
     pop["sersic_n"] = np.where(rng.uniform(size=n) < 1.0 / 3.0, 2.5, np.nan)
+    return pop
+
+
+def sized_population(mags, rng, cfg, size_range):
+    """The paper's population with scalelengths log-uniform over ``size_range`` (arcsec) instead of the size
+    prior's: many rings of one range of sizes (the small galaxies), each drawn after the rest of the galaxy."""
+    from shearfit.engine.priors import sample_population
+
+    rec = sample_population(mags, rng, cfg)
+    pop = {k: np.array(rec[k], copy=True) for k in rec.dtype.names}
+    lo, hi = np.log(size_range[0]), np.log(size_range[1])
+    pop["scalelength"] = np.exp(rng.uniform(lo, hi, len(mags)))
     return pop
 
 
@@ -383,6 +396,9 @@ def parse_args(argv=None):
                         "e rms 0.3), or galaxies outside the model family (shearfit.simulate.outside: Sersic n "
                         "0.3-6, bulge + disk with their own shapes, disks with knots; half-light radius 0.1-2\"; "
                         "m and c per family too; give --stamp-size 64 for the largest)")
+    p.add_argument("--size-range", type=float, nargs=2, metavar=("RMIN", "RMAX"),
+                   help="with the paper's population: scalelengths log-uniform from RMIN to RMAX arcsec instead "
+                        "of the size prior's (benchmarks/ring_split.py --r-bins splits the result)")
     p.add_argument("--calibration", default=None,
                    help="calibration YAML for the calibrated m line (default: the paper's alpha, beta)")
     p.add_argument("--antithetic", action="store_true",
@@ -408,6 +424,8 @@ def parse_args(argv=None):
         p.error("--n-galaxies, --n-rotations, --n-exposures and --processes must be positive")
     if not 0 < args.snr_min <= args.snr_max:
         p.error("need 0 < --snr-min <= --snr-max")
+    if args.size_range is not None and (args.population != "paper" or not 0 < args.size_range[0] < args.size_range[1]):
+        p.error("--size-range needs 0 < RMIN < RMAX and the paper's population")
     return args
 
 
@@ -528,7 +546,9 @@ def main(argv=None):
                             snr_range=(args.snr_min, args.snr_max), mag_range=(args.mag_min, args.mag_max),
                             stamp_size=args.stamp_size, psf_oversampling=args.psf_oversampling,
                             rotate_exposures=args.rotate_exposures, add_noise=not args.noise_free,
-                            population={"odd": odd_population, "outside": outside_population}.get(args.population),
+                            population=(functools.partial(sized_population, size_range=tuple(args.size_range))
+                                        if args.size_range else
+                                        {"odd": odd_population, "outside": outside_population}.get(args.population)),
                             profile=outside_profile if args.population == "outside" else None),
     }
     seeds = np.random.SeedSequence(args.seed).spawn(args.n_galaxies)

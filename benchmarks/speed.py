@@ -327,17 +327,12 @@ def main(argv=None):
                     help="also measure the galaxies (and as many faint ones) with the exact settings and report "
                          "how far the speed settings (mode binning, flux nodes) move the estimates")
     args = ap.parse_args(argv)
+    import yaml
+
     cfg = {}
     for kv in args.set:
         k, v = kv.split("=", 1)
-        try:
-            v = int(v)
-        except ValueError:
-            try:
-                v = float(v)
-            except ValueError:
-                pass
-        cfg[k] = v
+        cfg[k.strip()] = yaml.safe_load(v)   # 16 -> int, 0.32 -> float, true -> bool, as a config file reads them
     cfg = shearfit.fit_config_from_mapping(cfg)
     from shearfit.engine.kernel import kernel_info
 
