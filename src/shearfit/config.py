@@ -143,6 +143,15 @@ class FitConfig:
     # --- estimator and weight (sec. 3.4, 3.5) --------------------------------------
     posterior_cut: float = setting(0.01, "samples whose posterior is below this fraction of its maximum are rejected",
                                 "sec. 3.4")
+    self_calibration: bool = setting(
+        False, "self-calibration: correct each estimate for the estimator's own bias, found by measuring, as the "
+        "data were measured (same exposures, PSFs, Jacobians, weights, position and ellipticity samples), "
+        "noise-free images of the fitted model (its size, bulge fraction and flux) at the estimate and min(0.05, "
+        "2 sigma_e) closer to e = 0, and taking the ellipticity whose model's estimate is the data's (one Newton step). "
+        "It removes most of the over-response of small galaxies' likelihood means (benchmarks/README.md, "
+        "'Self-calibration and the small galaxies'), at about 2.3 times the cost of a fit; it needs a noise-bias "
+        "calibration of its own. Not applied to metacal's versions",
+        "sec. 3.4 (extension)")
     weight_e_max: float = setting(0.804, "e_max of the weight", "eq. (weight)")
     sigma_pop: float = setting(0.255, "1D rms ellipticity of the population, sigma_pop", "eq. (weight)")
 

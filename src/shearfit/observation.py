@@ -144,7 +144,10 @@ class FitResult:
     galaxy model's improvement over a point source is chance, and
     ``centroid_shift`` the fitted centre's distance from the input position
     in pixels; ``n_samples`` and ``n_models`` count ellipticity samples and
-    (e, r) models evaluated.
+    (e, r) models evaluated. With the ``self_calibration`` setting, ``e1, e2``
+    are self-calibrated, ``selfcal_de`` is the correction subtracted from the
+    likelihood mean and ``selfcal_response`` the estimator's response found
+    on the model (radial, tangential; before bounding); otherwise both are None.
     """
 
     e1: float = np.nan
@@ -164,3 +167,5 @@ class FitResult:
     shape_weight: float = 0.0
     message: str = ""
     samples: Optional[np.ndarray] = field(default=None, repr=False)
+    selfcal_de: Optional[tuple] = field(default=None, repr=False)
+    selfcal_response: Optional[tuple] = field(default=None, repr=False)

@@ -13,7 +13,7 @@ from ..config import as_config
 from ..errors import (FITCLASS_CENTROID, FITCLASS_FEW_EXPOSURES, FITCLASS_FIT_FAILED, FITCLASS_GALAXY,
                      FITCLASS_STAR, FITCLASS_TOO_LARGE, ShearfitValueError)
 from .likelihood import coarse_peak, find_position, flux_position_marginal, join_exposures, model_sums, shift_joint
-from .model import prepare_exposures
+from .model import prepare_exposures, render_modes, render_object
 from ..observation import FitResult, Observation
 from .profiles import exponential_disk, fast_pair
 from .sampling import (EllipticityLikelihood, Samples, adaptive_samples, estimate, log_population_weights,
@@ -89,7 +89,10 @@ def measure_object(observations: Sequence[Observation], mag: float, config=None,
     if not obs:
         return FitResult(fitclass=FITCLASS_FEW_EXPOSURES, message="no usable exposure")
     try:
-        return _measure(obs, float(mag), cfg, return_samples)[0]
+        res, plan = _measure(obs, float(mag), cfg, return_samples)
+        if cfg.self_calibration and plan is not None and res.fitclass >= FITCLASS_GALAXY:
+            _self_calibrate(obs, float(mag), cfg, res, plan)
+        return res
     except (np.linalg.LinAlgError, FloatingPointError, ZeroDivisionError, ValueError) as exc:
         if isinstance(exc, ShearfitValueError):
             raise
@@ -232,6 +235,83 @@ def _result(obs, cfg, mag, jm, like, samples, n_samples, centroid_shift, return_
             rec[f] = getattr(samples, f)
         result.samples = rec
     return result
+
+
+def model_observations(obs, plan: "FitPlan", params, cfg, modes=None):
+    """``obs`` with their pixels replaced by the noise-free model ``params`` = (e1, e2, scalelength,
+    bulge_fraction, flux) at the fit's position (``plan.shift``), each rendered by
+    :func:`shearfit.engine.model.render_object` with its exposure's PSF, Jacobian and offset. ``modes``:
+    per exposure, :func:`shearfit.engine.model.render_modes` of the moved observation (made here if None)."""
+    e1, e2, r, b, flux = params
+    moved = _moved(obs, plan)
+    if modes is None:
+        modes = [render_modes(m, r, cfg) for m in moved]
+    return [o.with_image(render_object(m, e1, e2, r, b, flux, cfg, modes=md)) for o, m, md in zip(obs, moved, modes)]
+
+
+def _moved(obs, plan):
+    """``obs`` with their offsets moved to the fit's position (the sky shift ``plan.shift``)."""
+    du, dv = plan.shift
+    out = []
+    for o in obs:
+        moved = o.with_image(o.image)
+        moved.offset = o.offset + np.linalg.solve(o.jacobian, [du, dv])
+        out.append(moved)
+    return out
+
+
+#: The largest step of the finite difference that finds the estimator's radial response (self_calibration):
+#: wide enough to see the response's trend over the sampler's lattice (0.02 apart), narrow enough to stay
+#: local; the step is at most twice the likelihood's width, within which the replayed samples lie.
+SELFCAL_STEP = 0.05
+#: The bounds of the responses the self-calibration divides by: at most a twofold correction of the bias.
+SELFCAL_RESPONSE = (0.5, 1.5)
+
+
+def _self_calibrate(obs, mag, cfg, res, plan, margin=10.0):
+    """Correct ``res``'s ellipticity for the estimator's bias, found on noise-free images of models.
+
+    f(e): the estimate on the noise-free image of the model of ellipticity e (with the fit's size, bulge
+    fraction, flux and position), measured as the data were (same exposures, weights, modes, position and
+    ellipticity samples). The corrected estimate solves f(e) = e_hat, the data's estimate, by one Newton step
+    from e_hat: the bias b = f(e_hat) - e_hat divided by f's response, radially the finite difference
+    of f over min(SELFCAL_STEP, 2 sigma_e) towards e = 0 and tangentially |f(e_hat)| / |e_hat| (an estimator that turns with
+    the galaxy), each bounded to SELFCAL_RESPONSE. For a small galaxy at high |e| the radial response is well
+    below 1, and the bias it leaves is the larger for it.
+    """
+    e_hat = np.array([res.e1, res.e2])
+    a = float(np.hypot(*e_hat))
+    modes = [render_modes(m, res.scalelength, cfg) for m in _moved(obs, plan)]
+
+    def f(e):
+        models = model_observations(obs, plan, (e[0], e[1], res.scalelength, res.bulge_fraction, res.model_flux),
+                                    cfg, modes=modes)
+        ref, _ = _measure(models, mag, cfg, False, plan=plan, margin=margin)
+        return np.array([ref.e1, ref.e2])
+
+    u = e_hat / a if a > 1e-6 else np.array([1.0, 0.0])
+    v = np.array([-u[1], u[0]])
+    # the model's estimate must lie within the data's samples that the replay evaluates: at most 2 sigma_e away
+    h = float(np.clip(2.0 * np.sqrt(res.e_var), 0.5 * cfg.e_grid_min, SELFCAL_STEP))
+    h = h if a > h else -h
+    f0 = f(e_hat)
+    fb = f(e_hat - h * u)
+    if not (np.all(np.isfinite(f0)) and np.all(np.isfinite(fb))):
+        res.fitclass = FITCLASS_FIT_FAILED
+        res.weight = 0.0
+        res.message = "self-calibration: no estimate on the model's image"
+        return
+    lo, hi = SELFCAL_RESPONSE
+    s_rad = float(np.clip(np.dot(f0 - fb, u) / h, lo, hi))
+    s_tan = float(np.clip(np.dot(f0, u) / a, lo, hi)) if a > abs(h) else s_rad
+    b = f0 - e_hat
+    e_out = e_hat - (np.dot(b, u) / s_rad) * u - (np.dot(b, v) / s_tan) * v
+    n = float(np.hypot(*e_out))
+    if n > cfg.model_e_limit:
+        e_out *= cfg.model_e_limit / n
+    res.selfcal_de = (float(e_hat[0] - e_out[0]), float(e_hat[1] - e_out[1]))
+    res.selfcal_response = (float(np.dot(f0 - fb, u) / h), float(np.dot(f0, u) / a) if a > 0 else np.nan)
+    res.e1, res.e2 = float(e_out[0]), float(e_out[1])
 
 
 def measure_versions(versions: Sequence[Sequence[Observation]], mag: float, config=None,
