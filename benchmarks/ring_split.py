@@ -1,7 +1,7 @@
 #!/usr/bin/env python
 """m and c of a ring-test table (benchmarks/ring_test.py --out) split by true scalelength and by sigma_e.
 
-    python benchmarks/ring_split.py ring.fits [--r-bins 0,0.15,0.3,10]
+    python benchmarks/ring_split.py ring.fits [--r-bins 0,0.15,0.3,10] [--unweighted]
 """
 
 import argparse
@@ -12,8 +12,10 @@ from astropy.table import Table
 from shearfit.calib.bias import ring_sums, shear_bias
 
 
-def main(path, r_bins=(0, 0.15, 0.3, 10)):
+def main(path, r_bins=(0, 0.15, 0.3, 10), unweighted=False):
     t = Table.read(path)
+    if unweighted:   # unit weights for the galaxies (fitclass 0), none for the rest
+        t["weight"] = np.where(t["fitclass"] == 0, 1.0, 0.0)
     plus = t[t["sign"] > 0]
     g = np.array([plus["g1"][0], plus["g2"][0]])   # the shear of the +g set
     n = int(t["galaxy"].max()) + 1
@@ -46,5 +48,6 @@ if __name__ == "__main__":
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("table")
     ap.add_argument("--r-bins", default="0,0.15,0.3,10", help="edges of the true-scalelength bins, arcsec")
+    ap.add_argument("--unweighted", action="store_true", help="unit weights for fitclass 0 instead of lensfit's")
     a = ap.parse_args()
-    main(a.table, [float(x) for x in a.r_bins.split(",")])
+    main(a.table, [float(x) for x in a.r_bins.split(",")], a.unweighted)
