@@ -89,3 +89,24 @@ def test_self_calibration_leaves_a_resolved_estimate_and_reports_its_correction(
     assert (cal.e1, cal.e2) == pytest.approx((plain.e1 - de[0], plain.e2 - de[1]), abs=1e-12)
     assert cal.selfcal_response == pytest.approx((1.0, 1.0), abs=0.03)
     assert (cal.e_var, cal.weight, cal.fitclass) == (plain.e_var, plain.weight, plain.fitclass)
+
+
+def test_a_model_without_estimate_fails_the_object(monkeypatch):
+    """If the model's image gives no estimate, the object is not left uncorrected among corrected ones: it
+    becomes a failed fit (fitclass -2) of weight 0, with a message."""
+    psfs, offs, pims = _setup(n=3)
+    obs, _ = _obs(0.3, complex(0.2, 0.1), (0, 0), psfs, offs, pims, snr=100)
+    real = M._measure
+    calls = []
+
+    def fake(o, mag, cfg, return_samples, plan=None, **kw):
+        calls.append(plan is None)
+        if plan is None:
+            return real(o, mag, cfg, return_samples, plan=plan, **kw)
+        return shearfit.FitResult(), None
+
+    monkeypatch.setattr(M, "_measure", fake)
+    res = shearfit.measure_object(obs, mag=22.0, config={"self_calibration": True})
+    assert calls[0] and not calls[-1]
+    assert res.fitclass == shearfit.errors.FITCLASS_FIT_FAILED and res.weight == 0.0
+    assert "self-calibration" in res.message
