@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Iterable, Sequence
 
 import numpy as np
@@ -13,9 +13,9 @@ from ..config import as_config
 from ..errors import (FITCLASS_CENTROID, FITCLASS_FEW_EXPOSURES, FITCLASS_FIT_FAILED, FITCLASS_GALAXY,
                      FITCLASS_STAR, FITCLASS_TOO_LARGE, ShearfitValueError)
 from .likelihood import coarse_peak, find_position, flux_position_marginal, join_exposures, model_sums, shift_joint
-from .model import prepare_exposures, render_modes, render_object
+from .model import model_ft, prepare_exposures
 from ..observation import FitResult, Observation
-from .profiles import exponential_disk, fast_pair
+from .profiles import de_vaucouleurs, exponential_disk, fast_pair
 from .sampling import (EllipticityLikelihood, Samples, adaptive_samples, estimate, log_population_weights,
                        replay_samples, two_pass_samples)
 
@@ -237,26 +237,22 @@ def _result(obs, cfg, mag, jm, like, samples, n_samples, centroid_shift, return_
     return result
 
 
-def model_observations(obs, plan: "FitPlan", params, cfg, modes=None):
+def model_observations(obs, plan: "FitPlan", params, cfg):
     """``obs`` with their pixels replaced by the noise-free model ``params`` = (e1, e2, scalelength,
-    bulge_fraction, flux) at the fit's position (``plan.shift``), each rendered by
-    :func:`shearfit.engine.model.render_object` with its exposure's PSF, Jacobian and offset. ``modes``:
-    per exposure, :func:`shearfit.engine.model.render_modes` of the moved observation (made here if None)."""
+    bulge_fraction, flux) at the fit's position (``plan.shift``): the fit's own model, on each exposure's
+    Fourier modes as the fit made them (``plan.exposures``: PSF, pixel, App. A correction, Jacobian, offset,
+    flux scale) and transformed to the stamp's pixels, periodic on the stamp as the fit's model is."""
     e1, e2, r, b, flux = params
-    moved = _moved(obs, plan)
-    if modes is None:
-        modes = [render_modes(m, r, cfg) for m in moved]
-    return [o.with_image(render_object(m, e1, e2, r, b, flux, cfg, modes=md)) for o, m, md in zip(obs, moved, modes)]
-
-
-def _moved(obs, plan):
-    """``obs`` with their offsets moved to the fit's position (the sky shift ``plan.shift``)."""
     du, dv = plan.shift
+    disk = exponential_disk(cfg.truncation)
+    bulge = de_vaucouleurs(cfg.truncation)
     out = []
-    for o in obs:
-        moved = o.with_image(o.image)
-        moved.offset = o.offset + np.linalg.solve(o.jacobian, [du, dv])
-        out.append(moved)
+    for o, ex in zip(obs, plan.exposures):
+        moved = replace(ex, transfer=ex.transfer * np.exp(-1j * (ex.kx * du + ex.ky * dv)))
+        M = (1.0 - b) * model_ft(moved, disk, e1, e2, r)
+        if b != 0:
+            M = M + b * model_ft(moved, bulge, e1, e2, r * cfg.bulge_size_ratio)
+        out.append(o.with_image(np.fft.fftshift(np.fft.irfft2(M, s=ex.shape)) * flux))
     return out
 
 
@@ -271,21 +267,21 @@ SELFCAL_RESPONSE = (0.5, 1.5)
 def _self_calibrate(obs, mag, cfg, res, plan, margin=10.0):
     """Correct ``res``'s ellipticity for the estimator's bias, found on noise-free images of models.
 
-    f(e): the estimate on the noise-free image of the model of ellipticity e (with the fit's size, bulge
-    fraction, flux and position), measured as the data were (same exposures, weights, modes, position and
-    ellipticity samples). The corrected estimate solves f(e) = e_hat, the data's estimate, by one Newton step
-    from e_hat: the bias b = f(e_hat) - e_hat divided by f's response, radially the finite difference
-    of f over min(SELFCAL_STEP, 2 sigma_e) towards e = 0 and tangentially |f(e_hat)| / |e_hat| (an estimator that turns with
-    the galaxy), each bounded to SELFCAL_RESPONSE. For a small galaxy at high |e| the radial response is well
-    below 1, and the bias it leaves is the larger for it.
+    f(e): the estimate on the noise-free image of the model of ellipticity e (with the fit's posterior-mean
+    size, bulge fraction and flux, at its position; :func:`model_observations`), measured as the data were
+    (same exposures, weights, modes, position and ellipticity samples). The corrected estimate solves
+    f(e) = e_hat, the data's estimate, by one Newton step from e_hat: the bias b = f(e_hat) - e_hat divided by
+    f's response, radially the finite difference of f over min(SELFCAL_STEP, 2 sigma_e) towards e = 0 and
+    tangentially |f(e_hat)| / |e_hat| (an estimator that turns with the galaxy), each bounded to
+    SELFCAL_RESPONSE. For a small galaxy at high |e| the radial response is well below 1, and the bias it
+    leaves is the larger for it.
     """
     e_hat = np.array([res.e1, res.e2])
     a = float(np.hypot(*e_hat))
-    modes = [render_modes(m, res.scalelength, cfg) for m in _moved(obs, plan)]
 
     def f(e):
         models = model_observations(obs, plan, (e[0], e[1], res.scalelength, res.bulge_fraction, res.model_flux),
-                                    cfg, modes=modes)
+                                    cfg)
         ref, _ = _measure(models, mag, cfg, False, plan=plan, margin=margin)
         return np.array([ref.e1, ref.e2])
 

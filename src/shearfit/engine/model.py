@@ -546,10 +546,15 @@ def model_ft(modes: ExposureModes, profile, e1, e2, r):
     return M.reshape(ny, nx // 2 + 1)
 
 
-def render_modes(obs: Observation, scalelength, config=None):
-    """The Fourier modes on which :func:`render_object` draws models of up to ``scalelength`` on ``obs``'s
-    stamp: a grid padded so that the truncated profile and the PSF do not wrap around (for drawing several
-    models of one size on one stamp)."""
+def render_object(obs: Observation, e1, e2, scalelength, bulge_fraction, flux, config=None):
+    """The PSF-convolved, pixelised model of a bulge+disk galaxy on ``obs``'s stamp.
+
+    The model is computed on a grid padded so that the truncated profile and
+    the PSF do not wrap around, then cut to the stamp. Returns counts: total
+    ``flux * obs.flux_scale`` (before the cut).
+    """
+    from .profiles import de_vaucouleurs, exponential_disk
+
     from ..config import as_config
 
     cfg = as_config(config)
@@ -560,26 +565,7 @@ def render_modes(obs: Observation, scalelength, config=None):
     need = int(np.ceil(2 * (extent + psf_half + np.abs(obs.offset).max()) + 4))
     n = max(ny, nx, need)
     n += n % 2
-    return prepare_exposure(obs, cfg, grid_shape=(n, n), with_data=False)
-
-
-def render_object(obs: Observation, e1, e2, scalelength, bulge_fraction, flux, config=None, modes=None):
-    """The PSF-convolved, pixelised model of a bulge+disk galaxy on ``obs``'s stamp.
-
-    The model is computed on a grid padded so that the truncated profile and
-    the PSF do not wrap around, then cut to the stamp. Returns counts: total
-    ``flux * obs.flux_scale`` (before the cut). ``modes``: those of
-    :func:`render_modes` for this stamp and a scalelength at least this one.
-    """
-    from .profiles import de_vaucouleurs, exponential_disk
-
-    from ..config import as_config
-
-    cfg = as_config(config)
-    ny, nx = obs.shape
-    if modes is None:
-        modes = render_modes(obs, scalelength, cfg)
-    n = modes.shape[0]
+    modes = prepare_exposure(obs, cfg, grid_shape=(n, n), with_data=False)
     disk = exponential_disk(cfg.truncation)
     bulge = de_vaucouleurs(cfg.truncation)
     M = (1.0 - bulge_fraction) * model_ft(modes, disk, e1, e2, scalelength)
