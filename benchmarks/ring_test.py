@@ -174,13 +174,18 @@ def _get_measure_object():
     return measure
 
 
-def odd_population(mags, rng, cfg):
-    """A population unlike the priors (issue 8): sizes doubled, a third of the galaxies single Sersic n = 2.5
-    profiles, ellipticities Gaussian with an rms |e| of 0.3 (redrawn above 0.9)."""
+def _paper_population(mags, rng, cfg):
+    """The paper's population (the priors' draws) as a dict of writable arrays, for the variants below."""
     from shearfit.engine.priors import sample_population
 
     rec = sample_population(mags, rng, cfg)
-    pop = {k: np.array(rec[k], copy=True) for k in rec.dtype.names}
+    return {k: np.array(rec[k], copy=True) for k in rec.dtype.names}
+
+
+def odd_population(mags, rng, cfg):
+    """A population unlike the priors (issue 8): sizes doubled, a third of the galaxies single Sersic n = 2.5
+    profiles, ellipticities Gaussian with an rms |e| of 0.3 (redrawn above 0.9)."""
+    pop = _paper_population(mags, rng, cfg)
     n = len(mags)
     pop["scalelength"] = 2.0 * np.asarray(pop["scalelength"], float)
     e = rng.normal(0.0, 0.3 / np.sqrt(2.0), (n, 2))
@@ -197,10 +202,7 @@ def odd_population(mags, rng, cfg):
 def sized_population(mags, rng, cfg, size_range):
     """The paper's population with scalelengths log-uniform over ``size_range`` (arcsec) instead of the size
     prior's: many rings of one range of sizes (the small galaxies), each drawn after the rest of the galaxy."""
-    from shearfit.engine.priors import sample_population
-
-    rec = sample_population(mags, rng, cfg)
-    pop = {k: np.array(rec[k], copy=True) for k in rec.dtype.names}
+    pop = _paper_population(mags, rng, cfg)
     lo, hi = np.log(size_range[0]), np.log(size_range[1])
     pop["scalelength"] = np.exp(rng.uniform(lo, hi, len(mags)))
     return pop

@@ -298,15 +298,17 @@ def _self_calibrate(obs, mag, cfg, res, plan, margin=10.0):
         res.message = "self-calibration: no estimate on the model's image"
         return
     lo, hi = SELFCAL_RESPONSE
-    s_rad = float(np.clip(np.dot(f0 - fb, u) / h, lo, hi))
-    s_tan = float(np.clip(np.dot(f0, u) / a, lo, hi)) if a > abs(h) else s_rad
+    r_rad = float(np.dot(f0 - fb, u) / h)
+    r_tan = float(np.dot(f0, u) / a) if a > 0 else np.nan
+    s_rad = float(np.clip(r_rad, lo, hi))
+    s_tan = float(np.clip(r_tan, lo, hi)) if a > abs(h) else s_rad
     b = f0 - e_hat
     e_out = e_hat - (np.dot(b, u) / s_rad) * u - (np.dot(b, v) / s_tan) * v
     n = float(np.hypot(*e_out))
     if n > cfg.model_e_limit:
         e_out *= cfg.model_e_limit / n
     res.selfcal_de = (float(e_hat[0] - e_out[0]), float(e_hat[1] - e_out[1]))
-    res.selfcal_response = (float(np.dot(f0 - fb, u) / h), float(np.dot(f0, u) / a) if a > 0 else np.nan)
+    res.selfcal_response = (r_rad, r_tan)
     res.e1, res.e2 = float(e_out[0]), float(e_out[1])
 
 
