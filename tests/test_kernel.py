@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 import shearfit
-from shearfit.engine import kernel, likelihood, sampling
+from shearfit.engine import kernel, likelihood, model, sampling
 from shearfit.simulate import draw_psf_image, draw_stamp, galaxy_profile, moffat_psf, noise_for_snr
 
 PIX = 0.187
@@ -38,7 +38,8 @@ def _galaxy(seed):
 
 
 def _numpy_path(monkeypatch):
-    for mod, name in ((likelihood, "USE_KERNEL"), (likelihood, "USE_KERNEL_MARGINAL"), (sampling, "USE_KERNEL")):
+    for mod, name in ((likelihood, "USE_KERNEL"), (likelihood, "USE_KERNEL_MARGINAL"), (sampling, "USE_KERNEL"),
+                      (model, "USE_KERNEL")):
         monkeypatch.setattr(mod, name, False)
 
 
@@ -131,3 +132,22 @@ print(msgs[0] if msgs else "")
     first, message = run.stdout.strip().splitlines()[:2]
     assert first == "1 numpy numpy"
     assert "shearfit.engine._kernels" in message and "numpy loops run instead" in message
+
+
+@pytest.mark.parametrize("rs, beta", [(0.3, 1.2), (1.7, 3.1), (4.5, 2.2), (40.0, 15.0)])
+@pytest.mark.parametrize("s", [1, 3, 5])
+def test_alias_tables_compiled_and_numpy_agree(monkeypatch, rs, beta, s):
+    """The App. A Moffat's table (Hermite segments) and alias sums in C are the numpy lines' numbers to
+    rounding; a wrong alias order, a segment off by one point or a missing kept alias fails it."""
+    tabs = {}
+    for use in (True, False):
+        monkeypatch.setattr(model, "USE_KERNEL", use)
+        model._moffat_aliases.cache_clear()
+        k = model._alias_geometry(48, 40, s)[0]
+        tabs[use] = (model._moffat_table(k, rs, beta), model._moffat_aliases(rs, beta, 48, 40, s))
+    model._moffat_aliases.cache_clear()
+    (t1, a1), (t0, a0) = tabs[True], tabs[False]
+    assert np.abs(t1 - t0).max() < 1e-14
+    for x, y in zip(a1[:4], a0[:4]):
+        assert x.shape == y.shape
+        assert np.abs(np.asarray(x, float) - np.asarray(y, float)).max() < 1e-14

@@ -1402,6 +1402,88 @@ static PyObject *quintic_kvalues(PyObject *self, PyObject *args)
     Py_RETURN_NONE;
 }
 
+/*
+ * The App. A Moffat's alias tables (model._moffat_table, model._moffat_aliases, whose numpy lines stay as the
+ * reference and the fallback; tests check they agree).
+ *
+ * hermite_log_table(k0, dk, nodes, lv, slope, out): out[i] for i from nodes[0] to nodes[-1] - 1 (k = k0 + i dk)
+ * the exponential of the cubic Hermite interpolant of a logarithm through the nodes (table indices, increasing),
+ * with values lv and slopes d/dk there; the rest of out untouched.
+ */
+static PyObject *hermite_log_table(PyObject *self, PyObject *args)
+{
+    double k0, dk;
+    Py_buffer nb, lvb, slb, out;
+    if (!PyArg_ParseTuple(args, "ddy*y*y*w*", &k0, &dk, &nb, &lvb, &slb, &out)) return NULL;
+    const Py_ssize_t m = nb.len / (Py_ssize_t)sizeof(int64_t), nout = out.len / (Py_ssize_t)sizeof(double);
+    const int64_t *N = (const int64_t *)nb.buf;
+    int bad = m < 2 || lvb.len != m * (Py_ssize_t)sizeof(double) || slb.len != lvb.len;
+    for (Py_ssize_t s = 0; !bad && s < m; s++)
+        bad = N[s] < 0 || N[s] >= nout || (s > 0 && N[s] <= N[s - 1]);
+    if (bad) {
+        RELEASE(&nb, &lvb, &slb, &out);
+        PyErr_SetString(PyExc_ValueError, "hermite_log_table: inconsistent buffers");
+        return NULL;
+    }
+    const double *LV = (const double *)lvb.buf, *SL = (const double *)slb.buf;
+    double *O = (double *)out.buf;
+    Py_BEGIN_ALLOW_THREADS
+    for (Py_ssize_t s = 0; s + 1 < m; s++) {
+        const double ka = k0 + (double)N[s] * dk, h = (double)(N[s + 1] - N[s]) * dk;
+        const double a0 = LV[s], a1 = h * SL[s], b0 = LV[s + 1], b1 = h * SL[s + 1];
+        for (int64_t i = N[s]; i < N[s + 1]; i++) {
+            const double t = (k0 + (double)i * dk - ka) / h, t2 = t * t, t3 = t2 * t;
+            O[i] = (2 * t3 - 3 * t2 + 1) * a0 + (t3 - 2 * t2 + t) * a1 + (-2 * t3 + 3 * t2) * b0 + (t3 - t2) * b1;
+        }
+    }
+    vexp_shift(O + N[0], 0.0, O + N[0], (Py_ssize_t)(N[m - 1] - N[0]));
+    Py_END_ALLOW_THREADS
+    RELEASE(&nb, &lvb, &slb, &out);
+    Py_RETURN_NONE;
+}
+
+/*
+ * alias_sums(table, i0, w0, w1, kept, A, Gs): G = table[i0] w0 + table[i0 + 1] w1 at every alias of every mode
+ * (i0, w0, w1: n_alias blocks of n modes, alias after alias), A[j] = the sum of G over the aliases of mode j
+ * (in alias order), and Gs = G of the aliases listed in kept, block after block.
+ */
+static PyObject *alias_sums(PyObject *self, PyObject *args)
+{
+    Py_buffer tb, ib, w0b, w1b, kb, ab, gb;
+    if (!PyArg_ParseTuple(args, "y*y*y*y*y*w*w*", &tb, &ib, &w0b, &w1b, &kb, &ab, &gb)) return NULL;
+    const Py_ssize_t ntab = tb.len / (Py_ssize_t)sizeof(double), n = ab.len / (Py_ssize_t)sizeof(double);
+    const Py_ssize_t total = ib.len / (Py_ssize_t)sizeof(int64_t), nk = kb.len / (Py_ssize_t)sizeof(int64_t);
+    const Py_ssize_t na = n > 0 ? total / n : 0;
+    const int64_t *I = (const int64_t *)ib.buf, *K = (const int64_t *)kb.buf;
+    int bad = n < 1 || na * n != total || w0b.len != total * (Py_ssize_t)sizeof(double) || w1b.len != w0b.len
+              || gb.len != nk * n * (Py_ssize_t)sizeof(double);
+    for (Py_ssize_t a = 0; !bad && a < nk; a++) bad = K[a] < 0 || K[a] >= na;
+    for (Py_ssize_t e = 0; !bad && e < total; e++) bad = I[e] < 0 || I[e] + 1 >= ntab;
+    if (bad) {
+        RELEASE(&tb, &ib, &w0b, &w1b, &kb, &ab, &gb);
+        PyErr_SetString(PyExc_ValueError, "alias_sums: inconsistent buffers");
+        return NULL;
+    }
+    const double *T = (const double *)tb.buf, *W0 = (const double *)w0b.buf, *W1 = (const double *)w1b.buf;
+    double *A = (double *)ab.buf, *G = (double *)gb.buf;
+    Py_BEGIN_ALLOW_THREADS
+    for (Py_ssize_t j = 0; j < n; j++) A[j] = 0.0;
+    for (Py_ssize_t a = 0; a < na; a++) {
+        const int64_t *Ia = I + a * n;
+        const double *Wa = W0 + a * n, *Wb = W1 + a * n;
+        for (Py_ssize_t j = 0; j < n; j++) A[j] += T[Ia[j]] * Wa[j] + T[Ia[j] + 1] * Wb[j];
+    }
+    for (Py_ssize_t c = 0; c < nk; c++) {
+        const int64_t *Ia = I + K[c] * n;
+        const double *Wa = W0 + K[c] * n, *Wb = W1 + K[c] * n;
+        double *Gc = G + c * n;
+        for (Py_ssize_t j = 0; j < n; j++) Gc[j] = T[Ia[j]] * Wa[j] + T[Ia[j] + 1] * Wb[j];
+    }
+    Py_END_ALLOW_THREADS
+    RELEASE(&tb, &ib, &w0b, &w1b, &kb, &ab, &gb);
+    Py_RETURN_NONE;
+}
+
 /* the instruction-set level this module was compiled for */
 static PyObject *kernel_isa(PyObject *self, PyObject *args)
 {
@@ -1453,6 +1535,8 @@ static PyMethodDef methods[] = {
      "binned_sums(shape, r2, e_index, lo, offsets, columns, dc, bins_per_octave, log_f, log_g, M, J, start, "
      "per_octave, low_f, low_g, zero_f, zero_g, ratio2, pair_basis, pair_a, pair_b, pair_h, out)"},
     {"quintic_kvalues", quintic_kvalues, METH_VARARGS, "quintic_kvalues(table, n, ntab, tx, ty, out)"},
+    {"hermite_log_table", hermite_log_table, METH_VARARGS, "hermite_log_table(k0, dk, nodes, lv, slope, out)"},
+    {"alias_sums", alias_sums, METH_VARARGS, "alias_sums(table, i0, w0, w1, kept, A, Gs)"},
     {NULL, NULL, 0, NULL}};
 
 static struct PyModuleDef module = {PyModuleDef_HEAD_INIT, K_STR(KERNEL_MODULE),
