@@ -389,24 +389,11 @@ def _locate_nodes(half_width):
     return xs
 
 
-@functools.lru_cache(maxsize=32)
-def _lattice(h, step, limit):
-    """The lattice indices -h .. h (each axis) and which points (I, J) of [-h, h]^2 are on the step's lattice
-    with I^2 + J^2 < limit^2 (read-only, shared by every object; the mask alone is 2D, so that the fine
-    lattices of metacal's 0.005 step stay small)."""
-    idx = np.arange(-h, h + 1)
-    on = (idx % step == 0)
-    allowed = on[:, None] & on[None, :] & (idx[:, None] ** 2 + idx[None, :] ** 2 < limit * limit)
-    for a in (idx, allowed):
-        a.setflags(write=False)
-    return idx, allowed
-
-
 class _Store:
     """Samples on the integer lattice of the finest step (0.02 by default).
 
-    Each sampled region is kept as its step and a mask over the lattice (``regions``): a sample stands
-    for a cell of the finest region that contains it.
+    Each sampled region is kept as its step and a mask over a box of the lattice (``regions``): a sample
+    stands for a cell of the finest region that contains it.
     """
 
     def __init__(self, like, cfg):
@@ -418,7 +405,10 @@ class _Store:
         # the lattice's half-width: every |e| < 1, and the coarsest boxes' margins
         coarsest = int(round(max(cfg.e_grid_start, cfg.e_grid_prepass) / self.unit))
         self.half = int(np.ceil(1.0 / self.unit)) + 4 * coarsest + 2
-        self.regions = []   # (step, mask over the lattice (2 half + 1)^2)
+        # (step, i0, j0, mask): the region is mask's True entries, entry (a, b) the lattice point (i0 + a, j0 + b).
+        # Masks cover only their region's box: over the whole lattice, metacal's 0.005 step made each one
+        # 917 x 917 entries, and their allocation and search 6 % of its fits
+        self.regions = []
 
     def add(self, ij):
         new = [k for k in ij if k not in self.keys]
@@ -436,26 +426,48 @@ class _Store:
         self.logpost.extend(logpost)
         self.points.append(pt)
 
-    def _points(self, step, mask):
-        """The points of the step's lattice in mask with |e| below the model limit; records the region."""
-        idx, allowed = _lattice(self.half, step, self.cfg.model_e_limit / self.unit)
-        ii, jj = np.nonzero(mask & allowed)   # in the order of I[sel], J[sel] (row after row)
-        self.regions.append((step, mask))
-        return list(zip(idx[ii].tolist(), idx[jj].tolist()))
+    def _points(self, step, i0, j0, mask):
+        """The step's lattice points in the region (mask over the box from (i0, j0)) with |e| below the model
+        limit, row after row; records the region."""
+        I = np.arange(i0, i0 + mask.shape[0])
+        J = np.arange(j0, j0 + mask.shape[1])
+        limit = self.cfg.model_e_limit / self.unit
+        on = (((I % step == 0)[:, None] & (J % step == 0)[None, :])
+              & (I[:, None] ** 2 + J[None, :] ** 2 < limit * limit))
+        ii, jj = np.nonzero(mask & on)
+        self.regions.append((step, i0, j0, mask))
+        return list(zip(I[ii].tolist(), J[jj].tolist()))
+
+    def _box(self, imin, imax, jmin, jmax):
+        """The box's corner and an empty mask over it, clipped to the lattice [-half, half]^2 (None if empty)."""
+        h = self.half
+        imin, jmin = max(imin, -h), max(jmin, -h)
+        imax, jmax = min(imax, h), min(jmax, h)
+        if imax < imin or jmax < jmin:
+            return None
+        return imin, jmin, np.zeros((imax - imin + 1, jmax - jmin + 1), bool)
 
     def lattice_box(self, step, imin, imax, jmin, jmax):
-        h = self.half
-        idx = np.arange(-h, h + 1)
-        mask = ((idx >= imin) & (idx <= imax))[:, None] & ((idx >= jmin) & (idx <= jmax))[None, :]
-        return self._points(step, mask)
+        box = self._box(imin, imax, jmin, jmax)
+        if box is None:
+            return []
+        i0, j0, mask = box
+        mask[:, :] = True
+        return self._points(step, i0, j0, mask)
 
     def lattice_around(self, step, i, j, reach):
         """The step's lattice points within ``reach`` (Chebyshev, lattice units) of the points (i, j)."""
-        h = self.half
-        mask = np.zeros((2 * h + 1, 2 * h + 1), bool)
-        for a, b in zip(np.asarray(i).tolist(), np.asarray(j).tolist()):
-            mask[max(a - reach + h, 0):a + reach + h + 1, max(b - reach + h, 0):b + reach + h + 1] = True
-        return self._points(step, mask)
+        i = np.asarray(i).tolist()
+        j = np.asarray(j).tolist()
+        if not i:
+            return []
+        box = self._box(min(i) - reach, max(i) + reach, min(j) - reach, max(j) + reach)
+        if box is None:
+            return []
+        i0, j0, mask = box
+        for a, b in zip(i, j):
+            mask[max(a - reach - i0, 0):a + reach - i0 + 1, max(b - reach - j0, 0):b + reach - j0 + 1] = True
+        return self._points(step, i0, j0, mask)
 
     def result(self) -> Samples:
         e1 = np.array(self.e1)
@@ -466,8 +478,10 @@ class _Store:
         # cells if it lies on that region's lattice, and for nothing otherwise (a two-pass first-pass
         # point, or a coarser-lattice point inside a finer region)
         step = np.full(e1.size, np.iinfo(np.int64).max)
-        for (s, mask) in self.regions:
-            inside = mask[i + self.half, j + self.half]
+        for (s, i0, j0, mask) in self.regions:
+            a, b = i - i0, j - j0
+            inside = (a >= 0) & (a < mask.shape[0]) & (b >= 0) & (b < mask.shape[1])
+            inside[inside] = mask[a[inside], b[inside]]
             step = np.where(inside, np.minimum(step, s), step)
         covered = step < np.iinfo(np.int64).max
         st = np.where(covered, step, 1)
