@@ -192,21 +192,39 @@ def test_binned_model_closes_where_the_paper_form_cannot(tmp_path):
     assert 0.2 * np.median(np.asarray(res["binned"]["m_err"])) < spread < 5 * np.max(np.asarray(res["binned"]["m_err"]))
 
 
-def test_the_default_calibration_is_the_packaged_binned_table():
-    """Without a calibration file the pipeline applies the package's binned table, fitted on shearfit's own
-    simulated fields (benchmarks/calibration_closure.py --write-default), which records how it was made and
-    what it leaves on held-out fields: |calibrated m| on the test set within 3 sigma of 0 and far below the raw
-    m; every bin's m finite and between -1 and 1."""
-    from shearfit.calib.calibrate import DEFAULT_CALIBRATION, default_calibration
-
-    model = default_calibration()
+def _packaged_table(path, model):
+    """A packaged calibration (benchmarks/calibration_closure.py --write-default) as the pipeline applies it:
+    binned, its source the closure script, over 10 000 measurements, |calibrated m| on the held-out test set
+    within 3 sigma of 0 and below the raw m, every bin's m finite and between -1 and 1. Returns the file's
+    record and the bins' m."""
     assert model.kind == "binned"
-    d = yaml.safe_load(open(DEFAULT_CALIBRATION))
+    d = yaml.safe_load(open(path))
     assert "calibration_closure.py" in d["source"] and d["n_galaxies"] > 10000
     test = d["closure"]["test set, binned"]
     assert abs(test["m_cal"]) < 3 * test["m_cal_err"] < abs(test["m_raw"])
     m = np.asarray(d["binned"]["m"], float)
     assert np.all(np.isfinite(m)) and np.all(np.abs(m) < 1)
+    return d, m
+
+
+def test_the_default_calibration_is_the_packaged_binned_table():
+    """Without a calibration file the pipeline applies the package's binned table, fitted on shearfit's own
+    simulated fields, which records how it was made and what it leaves on held-out fields (_packaged_table)."""
+    from shearfit.calib.calibrate import DEFAULT_CALIBRATION, default_calibration
+
+    model = default_calibration()
+    _packaged_table(DEFAULT_CALIBRATION, model)
     # a faint small galaxy gets a larger correction than a bright large one
     faint, bright = model.m(np.array([9.0, 150.0]), np.array([0.15, 0.8]))
     assert faint < bright < 0.05
+
+
+def test_self_calibrated_fits_have_their_own_packaged_calibration():
+    """``default_calibration(self_calibration=True)`` is a second such table, fitted on the same simulated
+    fields with ``self_calibration: true`` in force (its source says so); it differs from the plain fit's."""
+    from shearfit.calib.calibrate import DEFAULT_CALIBRATION, DEFAULT_CALIBRATION_SELFCAL, default_calibration
+
+    d, m = _packaged_table(DEFAULT_CALIBRATION_SELFCAL, default_calibration(self_calibration=True))
+    assert "self_calibration=true" in d["source"]
+    plain = np.asarray(yaml.safe_load(open(DEFAULT_CALIBRATION))["binned"]["m"], float)
+    assert m.shape == plain.shape and not np.allclose(m, plain)

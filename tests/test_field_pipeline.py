@@ -7,6 +7,8 @@ Jacobian code); the PSF is given as a FITS image per exposure; the
 galaxies are a ring of 4 orientations with one shear, at high SNR.
 """
 
+import json
+
 import numpy as np
 import pytest
 import yaml
@@ -257,3 +259,27 @@ def test_a_chunks_jacobians_and_psf_positions_are_those_of_one_call_each():
             assert uv == tuple(pixel_to_sky(h, x, y))
         else:
             assert uv is None
+
+
+def test_self_calibrated_fits_get_their_own_default_calibration(field):
+    """With ``self_calibration: true`` and no calibration file, the m column comes from the package's table
+    fitted with that setting in force (``default_calibration(self_calibration=True)``), which the header names;
+    the plain fit's table would give other m."""
+    from shearfit.calib.calibrate import default_calibration
+
+    d, gals = field
+    conf = yaml.safe_load((d / "field.yaml").read_text())
+    conf["self_calibration"] = True
+    conf.pop("calibration", None)
+    (d / "field_selfcal.yaml").write_text(yaml.safe_dump(conf))
+    out = d / "shear_selfcal.fits"
+    assert main(["measure", str(d / "field_selfcal.yaml"), "--out", str(out), "--quiet"]) == 0
+    t = Table.read(out)
+    good = t["fitclass"] == 0
+    assert good.sum() >= 2
+    snr, r = np.asarray(t["snr"][good]), np.asarray(t["scalelength"][good])
+    np.testing.assert_allclose(t["m"][good], default_calibration(self_calibration=True).m(snr, r))
+    assert not np.allclose(t["m"][good], default_calibration().m(snr, r))
+    hdr = fits.getheader(out, 1)
+    assert "self-cal" in hdr.comments["CALALPHA"]
+    assert json.loads(hdr["SFCONFIG"])["self_calibration"] is True

@@ -149,8 +149,9 @@ class FitConfig:
         "noise-free images of the fitted model (its size, bulge fraction and flux) at the estimate and min(0.05, "
         "2 sigma_e) closer to e = 0, and taking the ellipticity whose model's estimate is the data's (one Newton step). "
         "It removes most of the over-response of small galaxies' likelihood means (benchmarks/README.md, "
-        "'Self-calibration and the small galaxies'), at about 2.1 times the cost of a fit; it needs a noise-bias "
-        "calibration of its own. Not applied to metacal's versions",
+        "'Self-calibration and the small galaxies'), at about 2.1 times the cost of a fit; its noise bias is its "
+        "own, and shearfit measure applies a default calibration fitted with it (DEFAULT_CALIBRATION_SELFCAL) "
+        "where the config names none. Not applied to metacal's versions",
         "sec. 3.4 (extension)")
     weight_e_max: float = setting(0.804, "e_max of the weight", "eq. (weight)")
     sigma_pop: float = setting(0.255, "1D rms ellipticity of the population, sigma_pop", "eq. (weight)")

@@ -45,7 +45,7 @@ __all__ = ["CalibrationModel", "as_model", "load_calibration", "binned_table", "
            "sheared_ellipticity", "quantity_bins", "bin_indices", "bin_bias", "fit_alpha_beta", "calibrate",
            "read_calibration", "write_calibration", "model_m", "calibration_m", "calibrated_bias", "plot_calibration",
            "weight_bins", "PAPER_ALPHA", "PAPER_BETA", "DEFAULT_CALIBRATION", "default_calibration",
-           "default_calibration_record"]
+           "default_calibration_record", "DEFAULT_CALIBRATION_SELFCAL"]
 
 PAPER_ALPHA = 0.057
 PAPER_BETA = -0.37
@@ -412,11 +412,16 @@ def load_calibration(path) -> CalibrationModel:
 #: closure on held-out fields). The paper's (alpha, beta) were fitted for the CFHTLenS pipeline and leave m of
 #: several per cent on this engine's simulations.
 DEFAULT_CALIBRATION = os.path.join(os.path.dirname(os.path.abspath(__file__)), "default_calibration.yaml")
+#: The same for fits with ``self_calibration: true``, whose noise bias differs (fitted on the same fields with
+#: that setting in force: ``benchmarks/calibration_closure.py --set self_calibration=true --write-default``).
+DEFAULT_CALIBRATION_SELFCAL = os.path.join(os.path.dirname(os.path.abspath(__file__)),
+                                           "default_calibration_selfcal.yaml")
 
 
-def default_calibration() -> CalibrationModel:
-    """The model of :data:`DEFAULT_CALIBRATION`."""
-    return load_calibration(DEFAULT_CALIBRATION)
+def default_calibration(self_calibration: bool = False) -> CalibrationModel:
+    """The model of :data:`DEFAULT_CALIBRATION`, or of :data:`DEFAULT_CALIBRATION_SELFCAL` for fits made with
+    ``self_calibration``."""
+    return load_calibration(DEFAULT_CALIBRATION_SELFCAL if self_calibration else DEFAULT_CALIBRATION)
 
 
 def default_calibration_record(result, source, closure=None) -> dict:

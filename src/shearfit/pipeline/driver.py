@@ -412,7 +412,9 @@ def measure_field(cfg: FieldConfig, out_path=None, progress=False, processes=1, 
         if calibration is not None:
             src = os.path.basename(cfg.calibration)
         else:
-            calibration, src = default_calibration(), "shearfit default"
+            selfcal = bool(cfg.fit.self_calibration)
+            calibration = default_calibration(self_calibration=selfcal)
+            src = "shearfit default, self-cal" if selfcal else "shearfit default"
         alpha, beta = calibration.alpha, calibration.beta
         table["m"] = np.where(measured, calibration.m(table["snr"], table["scalelength"]), np.nan)
         cards += [("CALMODE", "simulations", "m(snr, size) from simulations"),
