@@ -32,6 +32,7 @@ import time
 from concurrent.futures import ProcessPoolExecutor
 
 import numpy as np
+import yaml
 
 import shearfit
 from shearfit.calib.calibrate import (PAPER_ALPHA, PAPER_BETA, CalibrationModel, calibrate, calibrated_bias,
@@ -137,6 +138,9 @@ def main(argv=None):
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="a setting of shearfit measure for every field (e.g. size_prior_axis=area); the fields are "
                          "shared between settings, each measured once per distinct set of them")
+    ap.add_argument("--sim", action="append", default=[], metavar="KEY=VALUE",
+                    help="a simulation key for the GREAT-like fields (calibration and test sets), e.g. "
+                         "psf_variation=0; give another --out, since the fields there are reused as they are")
     ap.add_argument("--write-default", default=None, metavar="PATH",
                     help="also write the calibration set's binned calibration, with this run's closure on the test "
                          "set and the second suite, as the package's default (src/shearfit/calib/"
@@ -146,6 +150,9 @@ def main(argv=None):
     out = os.path.abspath(args.out)
     t0 = time.time()
     great = dict(GREAT, ccd_nx=args.ccd, ccd_ny=args.ccd)
+    for kv in args.sim:
+        k, v = kv.split("=", 1)
+        great[k.strip()] = yaml.safe_load(v)
     second = dict(SECOND, ccd_nx=args.ccd, ccd_ny=args.ccd)
     sets = dict(cal=field_jobs(out, "cal", great, range(1000, 1000 + args.cal_seeds), args.cal_g),
                 test=field_jobs(out, "test", great, range(2000, 2000 + args.test_seeds), args.test_g,

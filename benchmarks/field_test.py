@@ -217,6 +217,10 @@ def main(argv=None):
                          "first are printed with errors from the same rings resampled")
     ap.add_argument("--snr-min", type=float, default=100.0)
     ap.add_argument("--snr-max", type=float, default=200.0)
+    ap.add_argument("--mag-min", type=float, default=21.0,
+                    help="magnitudes drawn uniformly from --mag-min to --mag-max: the sizes from the prior at each "
+                         "magnitude, the flux set by the SNR")
+    ap.add_argument("--mag-max", type=float, default=24.0)
     ap.add_argument("--min-size", type=float, default=0.0, help="smallest scalelength drawn, arcsec")
     ap.add_argument("--max-size", type=float, default=np.inf, help="largest scalelength drawn, arcsec")
     ap.add_argument("--max-extent", type=float, default=20.0, metavar="PIX",
@@ -283,7 +287,7 @@ def main(argv=None):
         raise SystemExit(f"at most {len(slots) // 4} rings fit on {args.n_ccd} CCDs")
     order = rng.permutation(len(slots))
     gals = []
-    pop_mags = rng.uniform(21.0, 24.0, 4 * args.n_galaxies)
+    pop_mags = rng.uniform(args.mag_min, args.mag_max, 4 * args.n_galaxies)
     k = 0
     while len(gals) < 4 * args.n_galaxies:
         p = priors.sample_population(np.array([pop_mags[k % pop_mags.size]]), rng)[0]
