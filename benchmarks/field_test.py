@@ -51,7 +51,8 @@ from shearfit.engine import priors
 from shearfit.engine.sampling import lensing_weight
 from shearfit.app.cli import main as shearfit_main
 from shearfit.calib.bias import ring_sums, shear_bias
-from shearfit.simulate.stamps import galaxy_profile
+from shearfit.simulate.field import nearest_galaxy, truth_galaxies
+from shearfit.simulate.stamps import galaxy_profile, mag_to_flux
 
 PIX = 0.187
 RA0, DEC0 = 35.0, -4.0
@@ -221,6 +222,13 @@ def main(argv=None):
                     help="magnitudes drawn uniformly from --mag-min to --mag-max: the sizes from the prior at each "
                          "magnitude, the flux set by the SNR")
     ap.add_argument("--mag-max", type=float, default=24.0)
+    ap.add_argument("--noise-sigma", type=float, default=None,
+                    help="pixel sigma in counts at zero point 30, the flux the magnitude's (the SNR then follows "
+                         "from magnitude and size, as on a survey field; the closure fields: 4.29) instead of unit "
+                         "noise and the flux of a target SNR")
+    ap.add_argument("--population-from", nargs="+", metavar="TRUTH",
+                    help="the galaxies of simulated fields (truth.fits of shearfit simulate) within the magnitude "
+                         "range, each the one of the magnitude nearest a uniform draw, instead of prior draws")
     ap.add_argument("--min-size", type=float, default=0.0, help="smallest scalelength drawn, arcsec")
     ap.add_argument("--max-size", type=float, default=np.inf, help="largest scalelength drawn, arcsec")
     ap.add_argument("--max-extent", type=float, default=20.0, metavar="PIX",
@@ -266,7 +274,8 @@ def main(argv=None):
                      if args.accurate_rendering else None)
     args.psf_settings = {kv.split("=", 1)[0]: yaml.safe_load(kv.split("=", 1)[1]) for kv in args.set}
     rng = np.random.default_rng(args.seed)
-    sigma = 1.0
+    sigma = 1.0 if args.noise_sigma is None else float(args.noise_sigma)
+    replay = truth_galaxies(args.population_from, (args.mag_min, args.mag_max)) if args.population_from else None
     base = [(rng.uniform(2.5, 4.5), rng.uniform(*args.psf_fwhm) / PIX, args.psf_e_max * rng.uniform(-1, 1),
              args.psf_e_max * rng.uniform(-1, 1)) for _ in range(args.n_exposures)]
     # with stars, each CCD has its own PSF (a jump at the CCD boundary); otherwise one per exposure
@@ -291,6 +300,9 @@ def main(argv=None):
     k = 0
     while len(gals) < 4 * args.n_galaxies:
         p = priors.sample_population(np.array([pop_mags[k % pop_mags.size]]), rng)[0]
+        if replay is not None:
+            i = nearest_galaxy(replay, float(pop_mags[k % pop_mags.size]))
+            p = {name: replay[name][i] for name in replay}
         k += 1
         if (p["scalelength"] < args.min_size or p["scalelength"] > args.max_size
                 or 4.5 * p["scalelength"] / PIX > args.max_extent):
@@ -305,8 +317,11 @@ def main(argv=None):
             gals.append(dict(ring=len(gals) // 4, ra=RA0 - du / np.cos(np.radians(DEC0)), dec=DEC0 + dv,
                              r=float(p["scalelength"]), B=float(p["bulge_fraction"]), is_bulge=bool(p["is_bulge"]),
                              e1=ej.real, e2=ej.imag, mag=float(p["mag"]), snr=snr))
-    # flux for the target SNR (profile-weighted, all exposures) at pixel noise sigma
+    # flux for the target SNR (profile-weighted, all exposures) at pixel noise sigma, or the magnitude's
     for gal in gals:
+        if args.noise_sigma is not None:
+            gal["flux"] = float(mag_to_flux(gal["mag"]))
+            continue
         prof = galaxy_profile(gal["r"], gal["B"], gal["e1"], gal["e2"], flux=1.0, is_bulge=gal["is_bulge"])
         power = sum(float(np.sum(galsim.Convolve(prof.dilate(1 / PIX), p[0]).drawImage(nx=64, ny=64, scale=1.0)
                                  .array ** 2)) for p in psfs)
@@ -377,11 +392,12 @@ def main(argv=None):
 
 
 def _rows(tables, gals):
-    rows = {k: [] for k in ("galaxy", "sign", "e1", "e2", "e_var", "weight", "fitclass")}
+    rows = {k: [] for k in ("galaxy", "sign", "e1", "e2", "e_var", "weight", "fitclass", "m")}
     for sign, t in tables.items():
         for gal, row in zip(gals, t):
             for key, val in (("galaxy", gal["ring"]), ("sign", sign), ("e1", row["e1"]), ("e2", row["e2"]),
-                             ("e_var", row["e_var"]), ("weight", row["weight"]), ("fitclass", row["fitclass"])):
+                             ("e_var", row["e_var"]), ("weight", row["weight"]), ("fitclass", row["fitclass"]),
+                             ("m", row["m"] if "m" in t.colnames else np.nan)):
                 rows[key].append(val)
     return {k: np.array(v) for k, v in rows.items()}
 
@@ -407,6 +423,13 @@ def report(tables, gals, args, name, wcs_mode):
           f"scalelength >= {args.min_size}\"")
     print(f"  m1 = {est[0]:+.5f} +/- {err[0]:.5f}    c1 = {est[2]:+.6f} +/- {err[2]:.6f}")
     print(f"  m2 = {est[1]:+.5f} +/- {err[1]:.5f}    c2 = {est[3]:+.6f} +/- {err[3]:.6f}")
+    good = (fc == 0) & np.isfinite(tab["m"]) & (np.nan_to_num(tab["weight"]) > 0)
+    if good.any():
+        # the catalogue's m column (the calibration in force, shearfit's default unless --set calibration=...)
+        mbar = float(np.sum(tab["weight"][good] * tab["m"][good]) / np.sum(tab["weight"][good]))
+        cal, cal_err = (1 + est[:2]) / (1 + mbar) - 1, err[:2] / (1 + mbar)
+        print(f"  calibrated by the catalogue's m (weighted mean {mbar:+.4f}): m1 = {cal[0]:+.5f} +/- "
+              f"{cal_err[0]:.5f}, m2 = {cal[1]:+.5f} +/- {cal_err[1]:.5f}")
     print("  fitclass: " + ", ".join(f"{int((fc == v).sum())} x {v}" for v in np.unique(fc)))
     if np.any(fc == 1):
         # the star/galaxy test selects on shape (an elongated small galaxy beats a point source by more), and

@@ -67,6 +67,7 @@ import numpy as np  # noqa: E402
 
 import shearfit  # noqa: E402
 from shearfit.simulate import ring_set  # noqa: E402
+from shearfit.simulate.field import truth_galaxies  # noqa: E402
 from shearfit.simulate.outside import outside_population, outside_profile  # noqa: E402
 from shearfit.simulate.stamps import NegatedNormal  # noqa: E402
 from shearfit.calib.bias import (format_with_error, galaxy_column, ring_sums, shear_bias,  # noqa: E402
@@ -205,6 +206,19 @@ def sized_population(mags, rng, cfg, size_range):
     pop = _paper_population(mags, rng, cfg)
     lo, hi = np.log(size_range[0]), np.log(size_range[1])
     pop["scalelength"] = np.exp(rng.uniform(lo, hi, len(mags)))
+    return pop
+
+
+def replayed_population(mags, rng, cfg, galaxies):
+    """The galaxies of simulated fields (:func:`shearfit.simulate.field.truth_galaxies`): the one of the
+    magnitude nearest each drawn one (a ring of a field's galaxy, to compare rings and fields on the same
+    galaxies)."""
+    from shearfit.simulate.field import nearest_galaxy
+
+    pop = _paper_population(mags, rng, cfg)
+    k = np.array([nearest_galaxy(galaxies, m) for m in mags])
+    for name in ("scalelength", "bulge_fraction", "is_bulge", "e1", "e2"):
+        pop[name] = galaxies[name][k].astype(pop[name].dtype)
     return pop
 
 
@@ -377,6 +391,12 @@ def parse_args(argv=None):
     p.add_argument("--mag-min", type=float, default=21.0)
     p.add_argument("--mag-max", type=float, default=24.5)
     p.add_argument("--n-exposures", type=int, default=7)
+    p.add_argument("--psf-fwhm", type=float, nargs=2, default=[0.5, 0.8], metavar=("MIN", "MAX"),
+                   help="Moffat FWHM range, arcsec, uniform per exposure (the closure fields: 0.55 0.85)")
+    p.add_argument("--psf-e-max", type=float, default=0.1, help="PSF |e| uniform up to this (fields: 0.08)")
+    p.add_argument("--noise-sigma", type=float, default=None,
+                   help="one pixel sigma for every galaxy (counts, zero point 30) instead of the target SNR: "
+                        "the SNR follows from magnitude and size as on a field (the closure fields: 4.29)")
     p.add_argument("--shear", type=float, nargs=2, default=[0.03, -0.02], metavar=("G1", "G2"))
     p.add_argument("--seed", type=int, default=1)
     p.add_argument("--processes", type=int, default=os.cpu_count() or 1)
@@ -398,6 +418,9 @@ def parse_args(argv=None):
                         "e rms 0.3), or galaxies outside the model family (shearfit.simulate.outside: Sersic n "
                         "0.3-6, bulge + disk with their own shapes, disks with knots; half-light radius 0.1-2\"; "
                         "m and c per family too; give --stamp-size 64 for the largest)")
+    p.add_argument("--population-from", nargs="+", metavar="TRUTH",
+                   help="the galaxies of simulated fields (truth.fits of shearfit simulate) within the magnitude "
+                        "range, each at the magnitude nearest a uniform draw, instead of new population draws")
     p.add_argument("--size-range", type=float, nargs=2, metavar=("RMIN", "RMAX"),
                    help="with the paper's population: scalelengths log-uniform from RMIN to RMAX arcsec instead "
                         "of the size prior's (benchmarks/ring_split.py --r-bins splits the result)")
@@ -546,10 +569,15 @@ def main(argv=None):
         "antithetic": args.antithetic, "with_plain": args.with_plain and args.metacal,
         "ring_kwargs": dict(n_rotations=args.n_rotations, n_exposures=args.n_exposures,
                             snr_range=(args.snr_min, args.snr_max), mag_range=(args.mag_min, args.mag_max),
+                            psf_fwhm_range=tuple(args.psf_fwhm), psf_e_max=args.psf_e_max,
+                            noise_sigma=args.noise_sigma,
                             stamp_size=args.stamp_size, psf_oversampling=args.psf_oversampling,
                             rotate_exposures=args.rotate_exposures, add_noise=not args.noise_free,
                             population=(functools.partial(sized_population, size_range=tuple(args.size_range))
                                         if args.size_range else
+                                        functools.partial(replayed_population, galaxies=truth_galaxies(
+                                            args.population_from, (args.mag_min, args.mag_max)))
+                                        if args.population_from else
                                         {"odd": odd_population, "outside": outside_population}.get(args.population)),
                             profile=outside_profile if args.population == "outside" else None),
     }

@@ -333,3 +333,19 @@ def test_galaxies_outside_the_model_family(family):
                      moffat_psf(t1["psf_fwhm"][0], t1["psf_beta"][0], t1["psf_e1"][0], t1["psf_e2"][0]),
                      J_SQUARE, t1["offsets"][0], 64)
     np.testing.assert_allclose(o1[0].image, ref, atol=1e-9 * t1["flux"])
+
+
+def test_ring_set_fixed_noise_sigma_keeps_the_magnitudes_flux():
+    """noise_sigma: every galaxy has that pixel sigma and its magnitude's flux (as on a field of one depth),
+    and the truth's snr is the one the sigma gives the unsheared galaxy; the same draws otherwise."""
+    a = ring_set(4, (0.02, 0.0), np.random.default_rng(6), n_rotations=2, n_exposures=3, noise_sigma=4.0,
+                 mag_range=(23.0, 24.5), add_noise=False)
+    b = ring_set(4, (0.02, 0.0), np.random.default_rng(6), n_rotations=2, n_exposures=3, snr_range=(10, 20),
+                 mag_range=(23.0, 24.5), add_noise=False)
+    for (oa, ta), (ob, tb) in zip(a, b):
+        assert ta["sigma"] == 4.0 and ta["flux"] == pytest.approx(10 ** (-0.4 * (ta["mag"] - 30.0)))
+        assert ta["scalelength"] == tb["scalelength"] and ta["mag"] == tb["mag"]
+        assert all(np.allclose(x.image, y.image) for x, y in zip(oa, ob))     # noise-free: the same stamps
+        assert all(np.allclose(x.weight, 1 / 16.0) for x in oa)
+        if ta["rotation"] == 0:
+            assert ta["snr"] == pytest.approx(tb["snr"] * tb["sigma"] / 4.0, rel=0.02)

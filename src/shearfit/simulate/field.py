@@ -58,7 +58,8 @@ from ..errors import ShearfitValueError
 from ..engine.priors import sample_population
 from .stamps import galaxy_profile, mag_to_flux
 
-__all__ = ["SimulationConfig", "PRESETS", "simulate_field", "simulation_config", "simulate_missing"]
+__all__ = ["SimulationConfig", "PRESETS", "simulate_field", "simulation_config", "simulate_missing", "truth_galaxies",
+           "nearest_galaxy"]
 
 SNR_APERTURE = 5.0     # pixels (sec. 8.1)
 ZERO_POINT = 30.0
@@ -498,3 +499,40 @@ def simulate_missing(job):
     if not os.path.exists(os.path.join(out_dir, "truth.fits")):
         simulate_field(simulation_config(mapping), out_dir)
     return out_dir
+
+
+def truth_galaxies(paths, mag_range=(-np.inf, np.inf)) -> dict:
+    """The galaxies (not stars) of simulated fields' ``truth.fits``, within ``mag_range``, sorted by magnitude.
+
+    Returns a dict of arrays ``mag``, ``scalelength``, ``bulge_fraction``,
+    ``is_bulge``, ``e1``, ``e2`` (the intrinsic ellipticity): the population of
+    those fields, for benchmarks that draw the same galaxies another way (rings).
+    """
+    tabs = []
+    for p in paths:
+        t = Table.read(p)
+        for col in ("mag", "scalelength", "bulge_fraction", "is_bulge", "e1_int", "e2_int", "is_star"):
+            if col not in t.colnames:
+                raise ShearfitValueError(f"{p}: no column {col} (not a truth table of shearfit simulate)")
+        tabs.append(t)
+    if not tabs:
+        raise ShearfitValueError("no truth table given")
+    mag = np.concatenate([np.asarray(t["mag"], float) for t in tabs])
+    keep = ~np.concatenate([np.asarray(t["is_star"], bool) for t in tabs]) & (mag >= mag_range[0]) & \
+        (mag <= mag_range[1])
+    if keep.sum() < 2:
+        raise ShearfitValueError(f"{', '.join(map(str, paths))}: fewer than 2 galaxies of magnitude "
+                                 f"{mag_range[0]}-{mag_range[1]}")
+    order = np.argsort(mag[keep], kind="stable")
+    out = {}
+    for name, col in (("mag", "mag"), ("scalelength", "scalelength"), ("bulge_fraction", "bulge_fraction"),
+                      ("is_bulge", "is_bulge"), ("e1", "e1_int"), ("e2", "e2_int")):
+        out[name] = np.concatenate([np.asarray(t[col]) for t in tabs])[keep][order]
+    return out
+
+
+def nearest_galaxy(galaxies, mag) -> int:
+    """Index of the galaxy of :func:`truth_galaxies` whose magnitude is nearest ``mag``."""
+    tm = galaxies["mag"]
+    k = int(np.clip(np.searchsorted(tm, mag), 1, tm.size - 1))
+    return k - 1 if abs(tm[k - 1] - mag) < abs(tm[k] - mag) else k

@@ -356,7 +356,7 @@ def ring_set(n_galaxies, shear, rng, n_rotations=4, n_exposures=7, snr_range=(10
              psf_fwhm_range=(0.5, 0.8), psf_beta_range=(2.5, 4.5), psf_e_max=0.1, pixel_scale=0.187,
              stamp_size=48, psf_oversampling=1, max_dither=0.5, cfg=None, noise_seed=None,
              rotate_exposures=False, gsparams=None, population=None, add_noise=True, noise_sign=1,
-             jacobian_jitter=0.0, profile=None):
+             jacobian_jitter=0.0, profile=None, noise_sigma=None):
     """Ring sets of GalSim-simulated galaxies, all with one applied shear.
 
     Every galaxy is drawn from the paper's population at a magnitude uniform in
@@ -417,6 +417,10 @@ def ring_set(n_galaxies, shear, rng, n_rotations=4, n_exposures=7, snr_range=(10
     noise_sign : +1 or -1
         -1 negates every noise draw (the antithetic twin of the same
         galaxies, PSFs and dithers: its noise is exactly minus the +1 run's).
+    noise_sigma : float, optional
+        One pixel sigma (counts) for every galaxy instead of the target SNR's:
+        the SNR then follows from the magnitude's flux and the galaxy's size, as
+        on a survey field of that depth, and ``snr_range`` is not used.
     jacobian_jitter : float
         Multiply each exposure's Jacobian by ``1 + A``, A a 2x2 matrix of
         normal deviates of this rms (a camera's distortion at the dithered
@@ -428,7 +432,8 @@ def ring_set(n_galaxies, shear, rng, n_rotations=4, n_exposures=7, snr_range=(10
         ``n_galaxies * n_rotations`` entries, galaxy-major. The truth dict has
         ``galaxy``, ``rotation``, ``e1_int``, ``e2_int`` (this orientation's),
         ``g1``, ``g2``, ``scalelength``, ``bulge_fraction``, ``is_bulge``,
-        ``mag``, ``flux``, ``snr`` (target), ``snr_true`` (of this orientation's
+        ``mag``, ``flux``, ``snr`` (target; with ``noise_sigma``, that of the unsheared
+        galaxy), ``snr_true`` (of this orientation's
         noise-free stamps), ``sigma``, ``psf_fwhm``, ``psf_beta``, ``psf_e1``,
         ``psf_e2``, ``offsets``, ``jacobian_angles``, ``jacobians`` and ``n_redraws``.
     """
@@ -467,7 +472,11 @@ def ring_set(n_galaxies, shear, rng, n_rotations=4, n_exposures=7, snr_range=(10
 
         # The sigma must not depend on the sign of the shear, else the noise would not cancel
         # between +g and -g runs: take it from the unsheared galaxy.
-        sigma = noise_for_snr(stamps(gal["e1"], gal["e2"], 0.0, 0.0), gal["snr"])
+        if noise_sigma is None:
+            sigma = noise_for_snr(stamps(gal["e1"], gal["e2"], 0.0, 0.0), gal["snr"])
+        else:
+            sigma = float(noise_sigma)
+            gal["snr"] = noise_for_snr(stamps(gal["e1"], gal["e2"], 0.0, 0.0), sigma)
         e_int = complex(gal["e1"], gal["e2"])
         for j in range(n_rotations):
             ej = e_int * np.exp(2j * np.pi * j / n_rotations)
