@@ -5,8 +5,10 @@ import pytest
 import yaml
 from astropy.table import Table
 
-from shearfit.calib.calibrate import (CalibrationModel, bin_indices, calibrate, calibrated_bias, calibration_m,
-                                load_calibration, matched_galaxies, read_calibration, write_calibration)
+from shearfit.calib.calibrate import _fit_mc, _group_codes, _residuals
+from shearfit.calib.calibrate import (PAPER_ALPHA, CalibrationModel, bin_indices, calibrate, calibrated_bias,
+                                      calibration_m, load_calibration, matched_galaxies, read_calibration,
+                                      sheared_ellipticity, stack_matched, write_calibration)
 from shearfit.app.cli import main
 from shearfit.errors import ShearfitIOError, ShearfitValueError
 
@@ -111,7 +113,7 @@ def _paired_fields(tmp_path, n=6000, seed=3, shared=True):
         w = 1.0 / (0.25 ** 2 + (2.0 / snr) ** 2)
         ids = np.arange(n)
         meas = Table({"id": ids, "e1": e[:, 0], "e2": e[:, 1], "weight": w, "fitclass": np.zeros(n, int),
-                      "snr": snr * (1 + 0.01 * rng.normal(size=n)), "scalelength": r})
+                      "snr": snr * (1 + 0.01 * rng.normal(size=n)), "scalelength": r, "m_true": m})
         truth = Table({"id": ids, "g1": np.full(n, g[0]), "g2": np.full(n, g[1]), "e1_int": eint[:, 0],
                        "e2_int": eint[:, 1], "is_star": np.zeros(n, bool)})
         truth.meta["SEED"] = seed
@@ -129,9 +131,12 @@ def test_fields_from_one_seed_pair_up_and_their_noise_cancels(tmp_path):
     assert res["n_groups"] == 6000 and res["n_galaxies"] == 12000
     groups = np.asarray(tab["group"])
     assert len(np.unique(groups)) == 6000
-    # the shared noise cancels: m per bin is precise, and the errors (groups resampled together) know it
+    # the shared noise cancels: m per bin is precise, and the errors (groups resampled together) know it;
+    # each bin's m is the weighted mean of its galaxies' m (bins as calibrate makes them)
     assert np.median(bins["m_err"]) < 0.01
-    pred = np.array([calibration_m(s, rr, ALPHA, BETA) for s, rr in zip(bins["snr"], bins["r"])])
+    idx, ns, nr = bin_indices(tab["snr"], tab["scalelength"], 4, 4, groups=_group_codes(tab))
+    w, mt = np.asarray(tab["weight"], float), np.asarray(tab["m_true"], float)
+    pred = np.array([np.sum((w * mt)[idx == b]) / np.sum(w[idx == b]) for b in bins["bin"]])
     pulls = (np.asarray(bins["m"]) - pred) / np.asarray(bins["m_err"])
     assert np.all(np.abs(pulls) < 5) and 0.4 < np.std(pulls) < 2.0
     cb = calibrated_bias(tab, (ALPHA, BETA))
@@ -139,6 +144,39 @@ def test_fields_from_one_seed_pair_up_and_their_noise_cancels(tmp_path):
     # without shared noise the same sample measures m ten times less precisely
     res_ind, bins_ind, tab_ind = calibrate(_paired_fields(tmp_path, shared=False), n_snr=4, n_size=4, n_boot=50)
     assert np.median(bins_ind["m_err"]) > 5 * np.median(bins["m_err"])
+
+
+def test_m_is_the_response_of_the_weighted_mean_including_the_weights(tmp_path):
+    """lensfit's weight depends on |e|: a galaxy sheared along its major axis is weighted differently at +g
+    and -g, so the weighted mean ellipticity responds to shear by more than its galaxies do. With an exact
+    estimator (e the true sheared ellipticity) and such weights, m is that response: the difference of the
+    +g and -g fields' weighted means over 2g, as the ring test measures it, not the zero of the residuals
+    e - e_s (which subtract the weights' response with e_s)."""
+    rng = np.random.default_rng(4)
+    n = 20000
+    eint = rng.normal(0, 0.25, (n, 2))
+    g = np.array([0.04, -0.03])
+    pairs, means = [], []
+    for tag, sign in (("p", 1.0), ("m", -1.0)):
+        es = sheared_ellipticity(eint[:, 0] + 1j * eint[:, 1], sign * (g[0] + 1j * g[1]))
+        w = 1.0 / (0.3 ** 2 + 0.5 * np.abs(es) ** 2)
+        meas = Table({"id": np.arange(n), "e1": es.real, "e2": es.imag, "weight": w, "fitclass": np.zeros(n, int),
+                      "snr": np.full(n, 20.0), "scalelength": np.full(n, 0.3)})
+        truth = Table({"id": np.arange(n), "g1": np.full(n, sign * g[0]), "g2": np.full(n, sign * g[1]),
+                       "e1_int": eint[:, 0], "e2_int": eint[:, 1], "is_star": np.zeros(n, bool)})
+        truth.meta["SEED"] = 7
+        meas.write(tmp_path / f"wm{tag}.fits")
+        truth.write(tmp_path / f"wt{tag}.fits")
+        pairs.append((tmp_path / f"wm{tag}.fits", tmp_path / f"wt{tag}.fits"))
+        means.append(np.array([np.sum(w * es.real), np.sum(w * es.imag)]) / np.sum(w))
+    ring = float((means[0] - means[1]) @ g / (2 * g @ g)) - 1
+    tab = stack_matched(pairs)
+    cb = calibrated_bias(tab, (PAPER_ALPHA, 0.0))            # beta = 0: no correction
+    assert cb["m_raw"] == pytest.approx(ring, abs=1e-12)
+    assert ring < -0.02                                       # weights falling with |e| damp the response
+    assert abs(_fit_mc(*_residuals(tab))[0]) < 2e-3           # which the residuals' fit does not see
+    res, bins, _ = calibrate(pairs, n_snr=2, n_size=2, n_boot=5)
+    assert res["m_raw"] == pytest.approx(ring, abs=1e-12)
 
 
 def test_cli_takes_several_pairs_and_refuses_an_odd_count(tmp_path, capsys):
