@@ -51,7 +51,7 @@ from shearfit.engine import priors
 from shearfit.engine.sampling import lensing_weight
 from shearfit.app.cli import main as shearfit_main
 from shearfit.calib.bias import ring_sums, shear_bias
-from shearfit.simulate.field import nearest_galaxy, truth_galaxies
+from shearfit.simulate.field import truth_galaxies
 from shearfit.simulate.stamps import galaxy_profile, mag_to_flux
 
 PIX = 0.187
@@ -228,7 +228,7 @@ def main(argv=None):
                          "noise and the flux of a target SNR")
     ap.add_argument("--population-from", nargs="+", metavar="TRUTH",
                     help="the galaxies of simulated fields (truth.fits of shearfit simulate) within the magnitude "
-                         "range, each the one of the magnitude nearest a uniform draw, instead of prior draws")
+                         "range, drawn at random with their magnitudes, instead of prior draws")
     ap.add_argument("--min-size", type=float, default=0.0, help="smallest scalelength drawn, arcsec")
     ap.add_argument("--max-size", type=float, default=np.inf, help="largest scalelength drawn, arcsec")
     ap.add_argument("--max-extent", type=float, default=20.0, metavar="PIX",
@@ -301,7 +301,7 @@ def main(argv=None):
     while len(gals) < 4 * args.n_galaxies:
         p = priors.sample_population(np.array([pop_mags[k % pop_mags.size]]), rng)[0]
         if replay is not None:
-            i = nearest_galaxy(replay, float(pop_mags[k % pop_mags.size]))
+            i = int(rng.integers(0, replay["mag"].size))
             p = {name: replay[name][i] for name in replay}
         k += 1
         if (p["scalelength"] < args.min_size or p["scalelength"] > args.max_size

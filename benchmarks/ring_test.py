@@ -210,14 +210,12 @@ def sized_population(mags, rng, cfg, size_range):
 
 
 def replayed_population(mags, rng, cfg, galaxies):
-    """The galaxies of simulated fields (:func:`shearfit.simulate.field.truth_galaxies`): the one of the
-    magnitude nearest each drawn one (a ring of a field's galaxy, to compare rings and fields on the same
-    galaxies)."""
-    from shearfit.simulate.field import nearest_galaxy
-
+    """The galaxies of simulated fields (:func:`shearfit.simulate.field.truth_galaxies`), one drawn at random
+    with its magnitude (so in the fields' proportions): a ring of a field's galaxy, to compare rings and fields
+    on the same galaxies."""
     pop = _paper_population(mags, rng, cfg)
-    k = np.array([nearest_galaxy(galaxies, m) for m in mags])
-    for name in ("scalelength", "bulge_fraction", "is_bulge", "e1", "e2"):
+    k = rng.integers(0, galaxies["mag"].size, len(mags))
+    for name in ("mag", "scalelength", "bulge_fraction", "is_bulge", "e1", "e2"):
         pop[name] = galaxies[name][k].astype(pop[name].dtype)
     return pop
 
@@ -420,7 +418,7 @@ def parse_args(argv=None):
                         "m and c per family too; give --stamp-size 64 for the largest)")
     p.add_argument("--population-from", nargs="+", metavar="TRUTH",
                    help="the galaxies of simulated fields (truth.fits of shearfit simulate) within the magnitude "
-                        "range, each at the magnitude nearest a uniform draw, instead of new population draws")
+                        "range, drawn at random with their magnitudes, instead of new population draws")
     p.add_argument("--size-range", type=float, nargs=2, metavar=("RMIN", "RMAX"),
                    help="with the paper's population: scalelengths log-uniform from RMIN to RMAX arcsec instead "
                         "of the size prior's (benchmarks/ring_split.py --r-bins splits the result)")

@@ -203,3 +203,31 @@ def test_run_demo_rejects_bad_input():
         run_demo(snr_range=(50, 20), quiet=True)
     with pytest.raises(ShearfitValueError):
         run_demo(shear=(0.9, 0.9), quiet=True)
+
+
+def test_field_demo_m_is_the_weighted_means_response():
+    """The field demo's m is the response of the weighted mean ellipticity with each field's own weights (which
+    depend on |e| and so on the shear); its c comes from the residuals e - e_int with the pair's mean weight."""
+    from astropy.table import Table
+
+    from shearfit.app.demo import _pair_bias
+    from shearfit.calib.calibrate import sheared_ellipticity
+
+    rng = np.random.default_rng(3)
+    n = 400
+    eint = rng.normal(0, 0.25, (n, 2))
+    eint[1::2] = -eint[0::2]                       # 90-degree twins
+    g = np.array([0.04, -0.03])
+    tabs, means = [], []
+    for sign in (1, -1):
+        es = sheared_ellipticity(eint[:, 0] + 1j * eint[:, 1], sign * (g[0] + 1j * g[1]))
+        w = 1.0 / (0.09 + 0.5 * np.abs(es) ** 2)
+        tabs.append(Table({"id": np.arange(n), "e1": es.real + 0.002, "e2": es.imag, "e1_int": eint[:, 0],
+                           "e2_int": eint[:, 1], "weight": w, "m": np.full(n, -0.1)}))
+        means.append(np.array([np.sum(w * es.real), np.sum(w * es.imag)]) / np.sum(w))
+    est, err, n_pairs, K = _pair_bias(tabs[0], tabs[1], g, n_boot=20)
+    ring = (means[0] - means[1]) / (2 * g) - 1
+    assert est[0] == pytest.approx(ring[0], abs=1e-12) and est[1] == pytest.approx(ring[1], abs=1e-12)
+    assert ring[0] < -0.05                         # the weights' response, which e - e_int would not show
+    assert est[2] == pytest.approx(0.002, abs=2e-3) and abs(est[3]) < 2e-3
+    assert n_pairs == n and K == pytest.approx(-0.1)

@@ -161,10 +161,10 @@ def test_antithetic_twin_reverses_only_the_noise(tmp_path):
         simulation_config({"noise_sign": 0})
 
 
-def test_truth_galaxies_and_the_nearest_magnitude(tiny, tmp_path):
+def test_truth_galaxies(tiny, tmp_path):
     """truth_galaxies: a field's galaxies (no stars) within a magnitude range, sorted, with their intrinsic
-    ellipticities; nearest_galaxy picks by magnitude; a table that is not a truth table is named."""
-    from shearfit.simulate.field import nearest_galaxy, truth_galaxies
+    ellipticities; a table that is not a truth table is named."""
+    from shearfit.simulate.field import truth_galaxies
 
     sc, res, d = tiny
     t = Table.read(d / "a" / "truth.fits")
@@ -172,10 +172,6 @@ def test_truth_galaxies_and_the_nearest_magnitude(tiny, tmp_path):
     sel = ~np.asarray(t["is_star"]) & (t["mag"] >= 21.0) & (t["mag"] <= 22.5)
     assert gal["mag"].size == sel.sum() > 2 and np.all(np.diff(gal["mag"]) >= 0)
     assert sorted(gal["e1"]) == sorted(np.asarray(t["e1_int"])[sel])
-    k = nearest_galaxy(gal, gal["mag"][3] + 1e-9)
-    assert gal["mag"][k] == pytest.approx(gal["mag"][3], abs=1e-8)
-    assert gal["mag"][nearest_galaxy(gal, 0.0)] == gal["mag"][0]
-    assert gal["mag"][nearest_galaxy(gal, 99.0)] == gal["mag"][-1]
     Table({"id": [1]}).write(tmp_path / "x.fits")
     with pytest.raises(ShearfitValueError, match="x.fits: no column mag"):
         truth_galaxies([tmp_path / "x.fits"])

@@ -349,3 +349,19 @@ def test_ring_set_fixed_noise_sigma_keeps_the_magnitudes_flux():
         assert all(np.allclose(x.weight, 1 / 16.0) for x in oa)
         if ta["rotation"] == 0:
             assert ta["snr"] == pytest.approx(tb["snr"] * tb["sigma"] / 4.0, rel=0.02)
+
+
+def test_ring_set_population_may_set_the_magnitude():
+    """A population that returns a ``mag`` (a simulated field's galaxies) sets the galaxy's magnitude and
+    flux, whatever was drawn from mag_range."""
+    from shearfit.engine.priors import sample_population
+
+    def fixed(mags, rng, cfg):
+        pop = sample_population(mags, rng, cfg)
+        pop["mag"] = 22.25
+        return pop
+
+    out = ring_set(2, (0.02, 0.0), np.random.default_rng(2), n_rotations=1, n_exposures=2, population=fixed,
+                   mag_range=(23.0, 24.0), add_noise=False)
+    for _, t in out:
+        assert t["mag"] == 22.25 and t["flux"] == pytest.approx(10 ** (-0.4 * (22.25 - 30.0)))

@@ -8,12 +8,14 @@ the input shear, the recovered shear (the weighted mean ellipticity of the
 objects classified as galaxies, as a user would compute it) and the
 multiplicative and additive biases m and c from the galaxies measured in
 both fields, raw and calibrated by the catalogue's m(snr, scalelength) column
-(divided by 1 + K, K its weighted mean, as for a shear estimate): with e_int
-the intrinsic ellipticity,
-``m_k = sum w (d+ - d-) / (2 g_k sum w) - 1`` and ``c_k = sum w (d+ + d-) / (2 sum w)``
-with d = e - e_int,
-so that shape noise and most of the pixel noise cancel; errors are
-bootstrap resamplings of the galaxy pairs.
+(divided by 1 + K, K its weighted mean, as for a shear estimate):
+``m_k = (sum w+ e+ / sum w+ - sum w- e- / sum w-) / (2 g_k) - 1``, the response
+of the weighted mean ellipticity with each field's own weights (lensfit's
+weight depends on |e| and responds to the shear too), and
+``c_k = sum w (d+ + d-) / (2 sum w)`` with d = e - e_int, e_int the intrinsic
+ellipticity, so that shape noise and most of the pixel noise cancel; errors
+are bootstrap resamplings of the galaxy pairs (a galaxy with its 90-degree
+twin).
 """
 
 from __future__ import annotations
@@ -44,17 +46,25 @@ def _pair_bias(tp, tm, g, n_boot=500, seed=0):
     im = {int(i): k for k, i in enumerate(tm["id"])}
     a = np.array([ip[int(i)] for i in ids], int)
     b = np.array([im[int(i)] for i in ids], int)
-    w = 0.5 * (np.asarray(tp["weight"], float)[a] + np.asarray(tm["weight"], float)[b])
+    wp, wm = np.asarray(tp["weight"], float)[a], np.asarray(tm["weight"], float)[b]
+    w = 0.5 * (wp + wm)
     # a galaxy and its 90-degree twin are resampled together: they are one "galaxy" of the ring sums
     pair = np.unique(ids // 2, return_inverse=True)[1]
-    rows = {"galaxy": np.concatenate([pair, pair]), "sign": np.repeat([1, -1], ids.size),
-            "fitclass": np.zeros(2 * ids.size, int), "weight": np.concatenate([w, w])}
+    n_pair = int(pair.max()) + 1 if ids.size else 0
+    base = {"galaxy": np.concatenate([pair, pair]), "sign": np.repeat([1, -1], ids.size),
+            "fitclass": np.zeros(2 * ids.size, int)}
+    # m: the weighted mean ellipticity's response, each field's own weights (which respond to the shear too)
+    resp = dict(base, weight=np.concatenate([wp, wm]))
+    # c: measured minus intrinsic ellipticity (the same e_int in both fields), so that the shape noise cancels
+    resid = dict(base, weight=np.concatenate([w, w]))
     for k in (1, 2):
-        # measured minus intrinsic ellipticity (the same e_int in both fields): the shape noise cancels
-        rows[f"e{k}"] = np.concatenate([np.asarray(tp[f"e{k}"], float)[a] - np.asarray(tp[f"e{k}_int"], float)[a],
-                                        np.asarray(tm[f"e{k}"], float)[b] - np.asarray(tm[f"e{k}_int"], float)[b]])
-    est, err = shear_bias(ring_sums(rows, int(pair.max()) + 1 if ids.size else 0), g, n_boot,
-                          np.random.default_rng(seed))
+        ep, em = np.asarray(tp[f"e{k}"], float)[a], np.asarray(tm[f"e{k}"], float)[b]
+        resp[f"e{k}"] = np.concatenate([ep, em])
+        resid[f"e{k}"] = np.concatenate([ep - np.asarray(tp[f"e{k}_int"], float)[a],
+                                         em - np.asarray(tm[f"e{k}_int"], float)[b]])
+    est, err = shear_bias(ring_sums(resp, n_pair), g, n_boot, np.random.default_rng(seed))
+    est_c, err_c = shear_bias(ring_sums(resid, n_pair), g, n_boot, np.random.default_rng(seed))
+    est[2:], err[2:] = est_c[2:], err_c[2:]
     m_cal = 0.5 * (np.asarray(tp["m"], float)[a] + np.asarray(tm["m"], float)[b])
     K = float(np.sum(w * m_cal) / np.sum(w)) if ids.size else float("nan")
     return est, err, int(ids.size), K
@@ -120,8 +130,9 @@ def run_field_demo(out_dir=None, processes=None, seed=1, quiet=False, psf="fitte
     say("")
     say(f"- recovered shear: the weighted mean ellipticity of the {int(gal.sum())} objects classified as "
         f"galaxies ({n_star_as_gal} of them simulated stars); its error is mostly shape noise")
-    say(f"- m and c: the {n_pairs} simulated galaxies measured in both the +g and -g fields, their intrinsic "
-        "ellipticity subtracted (errors: bootstrap over 90-degree pairs)")
+    say(f"- m and c: the {n_pairs} simulated galaxies measured in both the +g and -g fields; m the response of "
+        "their weighted mean ellipticity, c from it minus their intrinsic ellipticity (errors: bootstrap over "
+        "90-degree pairs)")
     say("- raw m is lensfit's noise bias (the likelihood-mean estimator is biased low at low SNR); the catalogue's "
         "m column holds the calibration m(snr, scalelength), and dividing by 1 + K, K its weighted mean, "
         "calibrates it")

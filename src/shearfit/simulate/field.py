@@ -58,8 +58,7 @@ from ..errors import ShearfitValueError
 from ..engine.priors import sample_population
 from .stamps import galaxy_profile, mag_to_flux
 
-__all__ = ["SimulationConfig", "PRESETS", "simulate_field", "simulation_config", "simulate_missing", "truth_galaxies",
-           "nearest_galaxy"]
+__all__ = ["SimulationConfig", "PRESETS", "simulate_field", "simulation_config", "simulate_missing", "truth_galaxies"]
 
 SNR_APERTURE = 5.0     # pixels (sec. 8.1)
 ZERO_POINT = 30.0
@@ -530,9 +529,3 @@ def truth_galaxies(paths, mag_range=(-np.inf, np.inf)) -> dict:
         out[name] = np.concatenate([np.asarray(t[col]) for t in tabs])[keep][order]
     return out
 
-
-def nearest_galaxy(galaxies, mag) -> int:
-    """Index of the galaxy of :func:`truth_galaxies` whose magnitude is nearest ``mag``."""
-    tm = galaxies["mag"]
-    k = int(np.clip(np.searchsorted(tm, mag), 1, tm.size - 1))
-    return k - 1 if abs(tm[k - 1] - mag) < abs(tm[k] - mag) else k

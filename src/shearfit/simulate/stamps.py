@@ -406,7 +406,8 @@ def ring_set(n_galaxies, shear, rng, n_rotations=4, n_exposures=7, snr_range=(10
         ``pixel_scale * R(phi)``).
     gsparams : galsim.GSParams, optional
     population : callable, optional
-        ``population(mags, rng, cfg)`` replacing the default population sampler.
+        ``population(mags, rng, cfg)`` replacing the default population sampler; a ``mag``
+        field in what it returns replaces the drawn magnitude (and with it the flux).
     profile : callable, optional
         ``profile(fields, angle, g1, g2, flux, gsparams)``: the galaxy's GalSim profile from its
         population fields (a dict of scalars), turned by ``angle`` radians as a whole and sheared,
@@ -516,6 +517,8 @@ def _draw_galaxy(rng, sampler, cfg, n_exposures, snr_range, mag_range, psf_fwhm_
     for tries in range(max_tries):
         mag = float(rng.uniform(*mag_range))
         pop = sampler(np.array([mag]), rng, cfg)
+        # a population may choose the magnitude itself (the galaxies of a simulated field, say)
+        mag = float(_field(pop, "mag")) if _has_field(pop, "mag") else mag
         r = float(_field(pop, "scalelength"))
         fwhm = rng.uniform(*psf_fwhm_range, size=n_exposures)
         beta = rng.uniform(*psf_beta_range, size=n_exposures)
