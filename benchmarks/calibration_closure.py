@@ -209,6 +209,20 @@ def main(argv=None):
     for name, d in rows:
         print(f"{name:38s} {d['n_galaxies']:6d}  {fmt(d, 'm_raw')}  {d['m_mean']:+9.4f}  {fmt(d, 'm_cal')}  "
               f"{fmt(d, 'c1')}  {fmt(d, 'c2')}")
+    # Each field has its own seven PSFs, and m varies from field to field by more than its galaxies' noise: the
+    # bootstrap over galaxies above does not see that; the scatter of the seeds' m does.
+    for role, model in (("calibration set", binned), ("test set", binned)):
+        seeds = {}
+        for (d, cfg), p in zip(sets["cal" if role.startswith("cal") else "test"],
+                               pairs["cal" if role.startswith("cal") else "test"]):
+            seeds.setdefault(cfg["seed"], []).append(p)
+        per = np.array([[calibrated_bias(stack_matched(ps), model, n_boot=2)[k] for k in ("m_raw", "m_cal")]
+                        for ps in seeds.values()])
+        if len(per) > 1:
+            sem = per.std(axis=0, ddof=1) / np.sqrt(len(per))
+            print(f"{role} per seed, raw m: {' '.join(f'{v:+.3f}' for v in per[:, 0])}; mean {per[:, 0].mean():+.4f} "
+                  f"+- {sem[0]:.4f} (scatter of {len(per)} seeds); calibrated: mean {per[:, 1].mean():+.4f} +- "
+                  f"{sem[1]:.4f}")
     for title, tb, key, f in (("test set in bins of SNR", t_snr, "snr", "7.1f"),
                               ("test set in bins of scalelength", t_size, "r", "7.3f"),
                               ("test set in bins of weight", t_w, "weight", "7.2f"),
