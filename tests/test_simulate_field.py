@@ -157,8 +157,14 @@ def test_antithetic_twin_reverses_only_the_noise(tmp_path):
     scale = np.abs(a).max()
     assert np.max(np.abs((a.astype(float) - b) - 2 * noise)) < 1e-6 * scale
     assert abs(np.std(a.astype(float) - b) / (2 * sigma) - 1) < 0.02
+    # noise_sign: 0, the same field without its noise: the mean of the twins, the same weights
+    simulate_field(simulation_config(dict(base, noise_sign=0)), tmp_path / "z")
+    z = fits.getdata(tmp_path / "z" / "exp0.fits", 1)
+    assert Table.read(tmp_path / "z" / "truth.fits").meta["NOISESGN"] == 0
+    assert np.max(np.abs(z - 0.5 * (a.astype(float) + b))) < 1e-6 * scale
+    assert np.array_equal(fits.getdata(tmp_path / "z" / "exp0.weight.fits", 1), wa)
     with pytest.raises(ShearfitValueError, match="noise_sign"):
-        simulation_config({"noise_sign": 0})
+        simulation_config({"noise_sign": 2})
 
 
 def test_truth_galaxies(tiny, tmp_path):

@@ -38,6 +38,12 @@ mean of the two the terms of the estimate odd in the noise (the largest
 part of its scatter) cancel, while the noise bias, even in the noise,
 stays. Calibration sets use twins to measure the additive bias c, which
 the +g / -g pairs (same noise) do not free of pixel noise.
+
+``noise_sign: 0`` writes the field without its pixel noise, the weights (and
+the defects) unchanged: measured, it gives the estimator's bias at the
+field's weights without a noise realisation (the prior's pull at low SNR,
+the model's own bias), against which the noisy field's shows what the noise
+adds.
 """
 
 from __future__ import annotations
@@ -96,7 +102,7 @@ class SimulationConfig:
     psf_variation: float = 0.02          # FWHM and e change by about this over the field
     bad_columns: int = 2                 # per CCD and exposure
     cosmic_rays: int = 10                # per CCD and exposure
-    noise_sign: int = 1                  # -1: the same seed's pixel noise with its sign reversed (antithetic twin)
+    noise_sign: int = 1                  # -1: the same seed's pixel noise reversed (antithetic twin); 0: no noise
     give_psf: bool = True                # write the true PSF per exposure (``psf:`` in field.yaml)
     stamp_size: int = 48                 # the measurement's stamp
     fit_settings: dict = field(default_factory=dict)   # copied into field.yaml (psf_order, ...)
@@ -113,8 +119,8 @@ class SimulationConfig:
             raise ShearfitValueError("simulation key psf_e_fixed: give [e1, e2] with |e| < 0.5, or leave it out")
         if self.mag_range[0] >= self.mag_range[1]:
             raise ShearfitValueError(f"simulation key mag_range: {list(self.mag_range)} is empty")
-        if self.noise_sign not in (1, -1):
-            raise ShearfitValueError(f"simulation key noise_sign: {self.noise_sign!r} is not 1 or -1")
+        if self.noise_sign not in (1, 0, -1):
+            raise ShearfitValueError(f"simulation key noise_sign: {self.noise_sign!r} is not 1, 0 or -1")
         return self
 
 
