@@ -419,7 +419,9 @@ def report(tables, gals, args, name, wcs_mode):
     est, err = shear_bias(ring_sums(tab, args.n_galaxies), np.array(args.shear), 500, np.random.default_rng(0))
     fc = tab["fitclass"]
     print(f"\n[{name} PSF] {args.n_galaxies} rings x 4 x 2 shears, {args.n_exposures} exposures x {args.n_ccd} CCDs, "
-          f"WCS {wcs_mode}, SNR {args.snr_min:.0f}-{args.snr_max:.0f}{' (noise-free)' if args.noise_free else ''}, "
+          f"WCS {wcs_mode}, "
+          f"{f'noise sigma {args.noise_sigma:g}' if args.noise_sigma else f'SNR {args.snr_min:.0f}-{args.snr_max:.0f}'}"
+          f"{' (noise-free)' if args.noise_free else ''}, "
           f"scalelength >= {args.min_size}\"")
     print(f"  m1 = {est[0]:+.5f} +/- {err[0]:.5f}    c1 = {est[2]:+.6f} +/- {err[2]:.6f}")
     print(f"  m2 = {est[1]:+.5f} +/- {err[1]:.5f}    c2 = {est[3]:+.6f} +/- {err[3]:.6f}")
