@@ -211,13 +211,10 @@ def main(argv=None):
               f"{fmt(d, 'c1')}  {fmt(d, 'c2')}")
     # Each field has its own seven PSFs, and m varies from field to field by more than its galaxies' noise: the
     # bootstrap over galaxies above does not see that; the scatter of the seeds' m does.
-    for role, model in (("calibration set", binned), ("test set", binned)):
-        seeds = {}
-        for (d, cfg), p in zip(sets["cal" if role.startswith("cal") else "test"],
-                               pairs["cal" if role.startswith("cal") else "test"]):
-            seeds.setdefault(cfg["seed"], []).append(p)
-        per = np.array([[calibrated_bias(stack_matched(ps), model, n_boot=2)[k] for k in ("m_raw", "m_cal")]
-                        for ps in seeds.values()])
+    for role, tab in (("calibration set", cal_tab), ("test set", test)):
+        seed = np.asarray(tab["group"]) // 10 ** 8          # matched_galaxies: group = SEED * 10^8 + id
+        per = np.array([[calibrated_bias(tab[seed == s], binned, n_boot=2)[k] for k in ("m_raw", "m_cal")]
+                        for s in np.unique(seed)])
         if len(per) > 1:
             sem = per.std(axis=0, ddof=1) / np.sqrt(len(per))
             print(f"{role} per seed, raw m: {' '.join(f'{v:+.3f}' for v in per[:, 0])}; mean {per[:, 0].mean():+.4f} "

@@ -234,8 +234,7 @@ def _response_m(e1, e2, g1, g2, w, groups, seeds):
     """
     if groups.size == 0:
         return None
-    codes, inv = np.unique(groups, return_inverse=True)
-    inv = inv.ravel()
+    inv = np.unique(groups, return_inverse=True)[1].ravel()
     n = np.bincount(inv)
     s1, s2 = np.bincount(inv, g1), np.bincount(inv, g2)
     scale = np.bincount(inv, np.hypot(g1, g2)) / np.maximum(n, 1)

@@ -56,7 +56,7 @@ import galsim
 import numpy as np
 import yaml
 from astropy.io import fits
-from astropy.table import Table
+from astropy.table import Table, vstack
 
 from ..files import atomic_path
 from ..config import FitConfig
@@ -522,16 +522,15 @@ def truth_galaxies(paths, mag_range=(-np.inf, np.inf)) -> dict:
         tabs.append(t)
     if not tabs:
         raise ShearfitValueError("no truth table given")
-    mag = np.concatenate([np.asarray(t["mag"], float) for t in tabs])
-    keep = ~np.concatenate([np.asarray(t["is_star"], bool) for t in tabs]) & (mag >= mag_range[0]) & \
-        (mag <= mag_range[1])
+    t = vstack(tabs, metadata_conflicts="silent")
+    mag = np.asarray(t["mag"], float)
+    keep = ~np.asarray(t["is_star"], bool) & (mag >= mag_range[0]) & (mag <= mag_range[1])
     if keep.sum() < 2:
         raise ShearfitValueError(f"{', '.join(map(str, paths))}: fewer than 2 galaxies of magnitude "
                                  f"{mag_range[0]}-{mag_range[1]}")
-    order = np.argsort(mag[keep], kind="stable")
-    out = {}
-    for name, col in (("mag", "mag"), ("scalelength", "scalelength"), ("bulge_fraction", "bulge_fraction"),
-                      ("is_bulge", "is_bulge"), ("e1", "e1_int"), ("e2", "e2_int")):
-        out[name] = np.concatenate([np.asarray(t[col]) for t in tabs])[keep][order]
+    t = t[keep][np.argsort(mag[keep], kind="stable")]
+    out = {name: np.asarray(t[col]) for name, col in (("mag", "mag"), ("scalelength", "scalelength"),
+                                                       ("bulge_fraction", "bulge_fraction"), ("is_bulge", "is_bulge"),
+                                                       ("e1", "e1_int"), ("e2", "e2_int"))}
     return out
 
