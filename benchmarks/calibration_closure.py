@@ -9,7 +9,13 @@ Simulates (``shearfit simulate``) and measures (``shearfit measure``) three sets
   ``--antithetic`` also each field's antithetic twin (``noise_sign: -1``: the same field with its
   pixel noise reversed), so that the additive bias c is measured free of the noise's odd part;
 * second suite: ``--second-seeds`` fields of the second suite (Kolmogorov + optics, one exposure,
-  random positions with overlaps), +g and -g.
+  random positions with overlaps), +g and -g;
+* with ``--transfer-psf LO,HI`` (repeatable): the test set's first ``--transfer-seeds`` seeds again (the same
+  galaxies, shears and pixel noise) with every exposure's PSF FWHM drawn from [LO, HI] arcsec instead: does the
+  calibration carry to a survey of another seeing?
+
+``--cal-extra-psf LO,HI`` adds ``--cal-extra-seeds`` more calibration seeds (from 1100) whose exposures' PSF FWHM
+is drawn from [LO, HI] arcsec, so that the table spans a wider range of seeing.
 
 Then ``shearfit calibrate`` is fitted on the calibration set, applied to the test set and to the
 second suite, and the script prints raw and calibrated m and c with bootstrap errors (over galaxies,
@@ -20,6 +26,12 @@ Everything already simulated or measured under ``--out`` is reused, so the scrip
 
     python benchmarks/calibration_closure.py --out /tmp/closure -j 2
     python benchmarks/calibration_closure.py --out /tmp/closure -j 2 --antithetic --test-seeds 12
+    python benchmarks/calibration_closure.py --out /tmp/closure -j 2 --size scalelength --transfer-psf 0.85,1.05
+    python benchmarks/calibration_closure.py --out /tmp/closure -j 2 --cal-extra-psf 0.85,1.05 --cal-extra-seeds 10 \
+        --transfer-psf 0.85,1.05 --transfer-psf 1.05,1.25
+
+``--size`` is the calibration table's size axis (``shearfit calibrate --size``): ``resolution``, the scalelength
+over the catalogue's ``psf_fwhm`` (the default), or ``scalelength`` in arcsec.
 """
 
 from __future__ import annotations
@@ -141,12 +153,29 @@ def main(argv=None):
     ap.add_argument("--sim", action="append", default=[], metavar="KEY=VALUE",
                     help="a simulation key for the GREAT-like fields (calibration and test sets), e.g. "
                          "psf_variation=0; give another --out, since the fields there are reused as they are")
+    ap.add_argument("--size", choices=["resolution", "scalelength"], default="resolution",
+                    help="the calibration table's size axis (shearfit calibrate --size)")
+    ap.add_argument("--transfer-psf", action="append", default=[], metavar="LO,HI",
+                    help="also measure the first --transfer-seeds test seeds with every exposure's PSF FWHM drawn "
+                         "from [LO, HI] arcsec (the GREAT-like fields draw 0.55-0.85), and apply the calibration "
+                         "(repeatable)")
+    ap.add_argument("--cal-extra-psf", default=None, metavar="LO,HI",
+                    help="add --cal-extra-seeds calibration seeds (1100, 1101, ...) with every exposure's PSF FWHM "
+                         "drawn from [LO, HI] arcsec")
+    ap.add_argument("--cal-extra-seeds", type=int, default=0)
+    ap.add_argument("--transfer-seeds", type=int, default=4)
+    ap.add_argument("--compare", action="append", default=[], metavar="CALIBRATION.yaml",
+                    help="also apply this calibration file to the test set, the second suite and the transfer sets "
+                         "(e.g. an earlier default: git show REV:src/shearfit/calib/default_calibration.yaml > F)")
     ap.add_argument("--write-default", default=None, metavar="PATH",
                     help="also write the calibration set's binned calibration, with this run's closure on the test "
                          "set and the second suite, as the package's default (src/shearfit/calib/"
                          "default_calibration.yaml)")
     args = ap.parse_args(argv)
     tag = "".join("_" + "".join(ch if ch.isalnum() else "-" for ch in item) for item in args.set)
+    # the catalogues (measured once per setting) do not depend on the size axis; the calibration's files do
+    ctag = tag + ("_size-scalelength" if args.size == "scalelength" else "") + (
+        f"_cal-psf-{args.cal_extra_psf.replace(',', '-')}-x{args.cal_extra_seeds}" if args.cal_extra_psf else "")
     out = os.path.abspath(args.out)
     t0 = time.time()
     great = dict(GREAT, ccd_nx=args.ccd, ccd_ny=args.ccd)
@@ -158,6 +187,15 @@ def main(argv=None):
                 test=field_jobs(out, "test", great, range(2000, 2000 + args.test_seeds), args.test_g,
                                 twins=args.antithetic),
                 second=field_jobs(out, "second", second, range(3000, 3000 + args.second_seeds), args.test_g))
+    if args.cal_extra_psf and args.cal_extra_seeds > 0:
+        lo_hi = [float(v) for v in args.cal_extra_psf.split(",")]
+        sets["cal"] += field_jobs(out, f"cal-psf-{lo_hi[0]:g}-{lo_hi[1]:g}", dict(great, psf_fwhm_range=lo_hi),
+                                  range(1100, 1100 + args.cal_extra_seeds), args.cal_g)
+    for item in args.transfer_psf:
+        lo_hi = [float(v) for v in item.split(",")]
+        tdir = f"transfer-psf-{lo_hi[0]:g}-{lo_hi[1]:g}"
+        sets[tdir] = field_jobs(out, tdir, dict(great, psf_fwhm_range=lo_hi), range(2000, 2000 + args.transfer_seeds),
+                                args.test_g)
     jobs = [j for v in sets.values() for j in v]
     with ProcessPoolExecutor(args.processes) as pool:
         list(pool.map(simulate_missing, jobs))
@@ -171,47 +209,73 @@ def main(argv=None):
             print(f"  measured {d} in {time.time() - ts:.0f} s", flush=True)
     t_meas = time.time() - t0
 
-    result, bins, cal_tab = calibrate(pairs["cal"], n_snr=args.n_snr, n_size=args.n_size)
-    write_calibration(result, os.path.join(out, f"calibration{tag}.yaml"))
+    result, bins, cal_tab = calibrate(pairs["cal"], n_snr=args.n_snr, n_size=args.n_size, size=args.size)
+    write_calibration(result, os.path.join(out, f"calibration{ctag}.yaml"))
     a, b = result["alpha"], result["beta"]
-    binned = CalibrationModel(a, b, "binned", result["binned"])
+    binned = CalibrationModel(a, b, "binned", result["binned"], size=args.size)
     fitted = CalibrationModel(a, b)
     paper = CalibrationModel(PAPER_ALPHA, PAPER_BETA)
-    plot_calibration(bins, result, os.path.join(out, f"calibration{tag}.png"), weight_bins=weight_bins(cal_tab, binned))
+    plot_calibration(bins, result, os.path.join(out, f"calibration{ctag}.png"), weight_bins=weight_bins(cal_tab, binned))
     test = stack_matched(pairs["test"])
     second = stack_matched(pairs["second"])
+    # the package's default for these settings (its self-calibration table where the settings ask for it); a table
+    # in resolution needs the catalogues' psf_fwhm, which those measured before 2026-11-26 lack
+    selfcal = any(k.strip() == "self_calibration" and yaml.safe_load(v) is True
+                  for k, v in (item.split("=", 1) for item in args.set))
+    package_default = default_calibration(self_calibration=selfcal)
+
+    def defaults(tab):
+        return [] if package_default.size == "resolution" and "psf_fwhm" not in tab.colnames else [package_default]
+
+    transfer = {role: stack_matched(pairs[role]) for role in pairs if role.startswith("transfer")}
+    for t in (test, *transfer.values()):
+        if "psf_fwhm" in t.colnames:   # catalogues measured before 2026-11-26 have none
+            t["resolution"] = np.asarray(t["scalelength"], float) / np.asarray(t["psf_fwhm"], float)
     rows = [("calibration set (self), binned", calibrated_bias(cal_tab, binned)),
             ("calibration set (self), fitted form", calibrated_bias(cal_tab, fitted)),
             ("test set, binned", calibrated_bias(test, binned)),
             ("test set, fitted form", calibrated_bias(test, fitted)),
             ("test set, paper's alpha, beta", calibrated_bias(test, paper)),
-            ("test set, the package's default", calibrated_bias(test, default_calibration())),
+            *[("test set, the package's default", calibrated_bias(test, default)) for default in defaults(test)],
             *([("test set, noise sign +1 only, binned",
                 calibrated_bias(stack_matched([p for (d, _), p in zip(sets["test"], pairs["test"])
                                                if not d.endswith("r")]), binned))] if args.antithetic else []),
             ("second suite, binned", calibrated_bias(second, binned)),
             ("second suite, fitted form", calibrated_bias(second, fitted)),
             ("second suite, paper's alpha, beta", calibrated_bias(second, paper)),
-            ("second suite, the package's default", calibrated_bias(second, default_calibration()))]
+            *[("second suite, the package's default", calibrated_bias(second, default)) for default in defaults(second)],
+            *[(f"{name}, {os.path.basename(path)}", calibrated_bias(tab, path)) for path in args.compare
+              for name, tab in (("test set", test), ("second suite", second), *transfer.items())],
+            *[row for role, tab in transfer.items() for row in (
+                (f"{role} ({len(pairs[role]) // 2} test seeds), binned", calibrated_bias(tab, binned)),
+                *[(f"{role}, the package's default", calibrated_bias(tab, default)) for default in defaults(tab)],
+                (f"{role}, the same seeds' test fields, binned",
+                 calibrated_bias(test[np.isin(np.asarray(test["group"]) // 10 ** 8,
+                                              np.unique(np.asarray(tab["group"]) // 10 ** 8))], binned)))]]
     t_snr = quantity_bins(test, "snr", binned, n=6)
     t_size = quantity_bins(test, "scalelength", binned, n=6)
+    extra = [("test set in bins of resolution (scalelength / psf_fwhm)", quantity_bins(test, "resolution", binned, n=6),
+              "x", "7.3f")] if "resolution" in test.colnames else []
+    for role, tab in transfer.items():
+        extra += [(f"{role} in bins of resolution", quantity_bins(tab, "resolution", binned, n=6), "x", "7.3f"),
+                  (f"{role} in bins of SNR", quantity_bins(tab, "snr", binned, n=6), "snr", "7.1f")]
     t_w = weight_bins(test, binned, n=8)
     s_snr = quantity_bins(second, "snr", binned, n=4)
-    plot(os.path.join(out, f"closure{tag}.png"), result, bins, t_snr, t_size, t_w, s_snr)
+    plot(os.path.join(out, f"closure{ctag}.png"), result, bins, t_snr, t_size, t_w, s_snr)
 
     print()
     print(f"calibration set: {result['n_galaxies']} galaxy measurements ({result['n_groups']} galaxies, "
           f"{len(pairs['cal'])} fields), {result['n_snr_bins']} x {result['n_size_bins']} bins")
     print(f"  alpha = {a:.4f} +- {result['alpha_err']:.4f}   beta = {b:.4f} +- {result['beta_err']:.4f}   "
           f"(paper {PAPER_ALPHA}, {PAPER_BETA});  chi2 = {result['chi2']:.1f} for {result['dof']} dof")
-    print(f"{'':38s} {'n':>6s}  {'raw m':>18s}  {'<m(nu,r)>':>9s}  {'calibrated m':>18s}  "
+    print(f"{'':52s} {'n':>6s}  {'raw m':>18s}  {'<m(nu,r)>':>9s}  {'calibrated m':>18s}  "
           f"{'c1':>20s}  {'c2':>20s}")
     for name, d in rows:
-        print(f"{name:38s} {d['n_galaxies']:6d}  {fmt(d, 'm_raw')}  {d['m_mean']:+9.4f}  {fmt(d, 'm_cal')}  "
+        print(f"{name:52s} {d['n_galaxies']:6d}  {fmt(d, 'm_raw')}  {d['m_mean']:+9.4f}  {fmt(d, 'm_cal')}  "
               f"{fmt(d, 'c1')}  {fmt(d, 'c2')}")
     # Each field has its own seven PSFs, and m varies from field to field by more than its galaxies' noise: the
     # bootstrap over galaxies above does not see that; the scatter of the seeds' m does.
-    for role, tab in (("calibration set", cal_tab), ("test set", test)):
+    for role, tab in (("calibration set", cal_tab), ("test set", test), *transfer.items()):
         seed = np.asarray(tab["group"]) // 10 ** 8          # matched_galaxies: group = SEED * 10^8 + id
         per = np.array([[calibrated_bias(tab[seed == s], binned, n_boot=2)[k] for k in ("m_raw", "m_cal")]
                         for s in np.unique(seed)])
@@ -223,7 +287,7 @@ def main(argv=None):
     for title, tb, key, f in (("test set in bins of SNR", t_snr, "snr", "7.1f"),
                               ("test set in bins of scalelength", t_size, "r", "7.3f"),
                               ("test set in bins of weight", t_w, "weight", "7.2f"),
-                              ("second suite in bins of SNR", s_snr, "snr", "7.1f")):
+                              ("second suite in bins of SNR", s_snr, "snr", "7.1f"), *extra):
         print(f"\n{title}: {key}, raw m, <m(nu,r)>, calibrated m")
         for r in tb:
             print(f"  {r[key]:{f}}  {r['m']:+.4f} +- {r['m_err']:.4f}  {r['m_pred']:+.4f}  "
@@ -231,19 +295,21 @@ def main(argv=None):
     summary = dict(alpha=a, beta=b, alpha_err=result["alpha_err"], beta_err=result["beta_err"],
                    chi2=result["chi2"], dof=result["dof"], rows={name: d for name, d in rows},
                    measure_wall_s=t_meas, total_wall_s=time.time() - t0, processes=args.processes, psf=args.psf)
-    with open(os.path.join(out, f"closure{tag}.json"), "w") as f:
+    with open(os.path.join(out, f"closure{ctag}.json"), "w") as f:
         json.dump(summary, f, indent=1)
     if args.write_default:
         command = "python benchmarks/calibration_closure.py " + " ".join(sys.argv[1:] if argv is None else argv)
         closure = {name: {k: float(d[k]) for k in ("m_raw", "m_raw_err", "m_cal", "m_cal_err")} | {
             "n_galaxies": int(d["n_galaxies"])} for name, d in rows if "binned" in name}
         record = default_calibration_record(
-            result, f"{command} (shearfit {shearfit.__version__}; fields {args.cal_seeds} calibration, "
+            result, f"{command} (shearfit {shearfit.__version__}; fields {args.cal_seeds} calibration"
+                    + (f" and {args.cal_extra_seeds} more with PSF FWHM {args.cal_extra_psf}" if args.cal_extra_psf else "")
+                    + ", "
                     f"{args.test_seeds} test, {args.second_seeds} second-suite seeds; PSF {args.psf}; settings "
                     f"{' '.join(args.set) or 'the defaults'})", closure)
         write_calibration(record, args.write_default)
         print(f"written the default calibration {args.write_default}")
-    print(f"\nwritten {out}/calibration{tag}.yaml, calibration{tag}.png, closure{tag}.png, closure{tag}.json; "
+    print(f"\nwritten {out}/calibration{ctag}.yaml, calibration{ctag}.png, closure{ctag}.png, closure{ctag}.json; "
           f"{time.time() - t0:.0f} s in all ({t_meas:.0f} s simulating and measuring)")
     return 0
 

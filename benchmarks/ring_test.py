@@ -82,6 +82,14 @@ METACAL_FIELDS = tuple(f"{q}_{v}" for v in ("1p", "1m", "2p", "2m") for q in ("e
 
 # ----------------------------------------------------------------------------- workers
 
+def psf_fwhm_of(obs):
+    """Mean PSF FWHM (arcsec) over an object's exposures, as ``shearfit measure`` writes its ``psf_fwhm``."""
+    from shearfit.pipeline.driver import psf_fwhm_arcsec, psf_moments
+
+    with np.errstate(all="ignore"):
+        return float(np.nanmean([psf_fwhm_arcsec(o.jacobian, o.psf_oversampling, psf_moments(o.psf)) for o in obs]))
+
+
 def _work(task):
     """Simulate one galaxy's +g and -g rings and (unless dry) measure every object.
 
@@ -115,6 +123,9 @@ def _work(task):
                 "is_bulge": truth["is_bulge"], "mag": truth["mag"], "flux": truth["flux"],
                 "snr_target": truth["snr"], "snr_true": truth["snr_true"], "sigma": truth["sigma"],
                 "psf_fwhm_mean": float(np.mean(truth["psf_fwhm"])), "psf_beta_mean": float(np.mean(truth["psf_beta"])),
+                # the PSF size as shearfit measure's catalogue gives it (its psf_fwhm column): what a calibration
+                # table of size: resolution takes the scalelength relative to
+                "psf_fwhm": psf_fwhm_of(obs),
                 "psf_e1_mean": float(np.mean(truth["psf_e1"])), "psf_e2_mean": float(np.mean(truth["psf_e2"])),
                 "n_redraws": truth["n_redraws"],
                 "peak_over_sigma": float(max(o.image.max() for o in obs) / truth["sigma"]),
@@ -238,7 +249,10 @@ def report_bias(tab, args, n_gal):
 
     model = as_model(args.calibration if args.calibration else (PAPER_ALPHA, PAPER_BETA))
     good = tab["fitclass"] == 0
-    mc = model.m(tab["snr"], tab["scalelength"])
+    if model.size == "resolution" and "psf_fwhm" not in tab.dtype.names:
+        print(f"  (the calibration {args.calibration} is a resolution table: these ring tables have no psf_fwhm)")
+        return
+    mc = model.m_of(tab)
     w = np.where(good & np.isfinite(mc), np.nan_to_num(tab["weight"]) if weighted else 1.0, 0.0)
     mbar = float(np.sum(w * np.nan_to_num(mc)) / np.sum(w))
     cal = (1 + est[:2]) / (1 + mbar) - 1

@@ -79,7 +79,7 @@ def test_cli_writes_yaml_bins_plot_and_reads_back(tmp_path, capsys):
     mp, tp = _synthetic(tmp_path, n=6000)
     out = tmp_path / "cal.yaml"
     assert main(["calibrate", str(mp), str(tp), "--out", str(out), "--n-snr", "4", "--n-size", "4",
-                 "--bootstrap", "10", "--model", "paper"]) == 0
+                 "--bootstrap", "10", "--model", "paper", "--size", "scalelength"]) == 0
     assert "alpha =" in capsys.readouterr().out
     assert (tmp_path / "cal_bins.fits").exists() and (tmp_path / "cal.png").exists()
     a, b = read_calibration(out)
@@ -97,13 +97,16 @@ def test_bad_inputs_name_the_file(tmp_path):
         read_calibration(tmp_path / "c.yaml")
 
 
-def _paired_fields(tmp_path, n=6000, seed=3, shared=True):
-    """Two fields of the same galaxies and noise (truth header SEED), shears +g and -g."""
+def _paired_fields(tmp_path, n=6000, seed=3, shared=True, psf_range=None):
+    """Two fields of the same galaxies and noise (truth header SEED), shears +g and -g. With ``psf_range``
+    (arcsec), each galaxy has a PSF FWHM drawn from it (column psf_fwhm) and its m depends on the resolution
+    r / psf_fwhm (as m(nu, r) at r = 0.7 r / psf_fwhm): a larger PSF, a more negative m at the same r."""
     rng = np.random.default_rng(seed)
     snr = np.exp(rng.uniform(np.log(7), np.log(80), n))
     r = np.exp(rng.uniform(np.log(0.1), np.log(1.0), n))
     eint = rng.normal(0, 0.25, (n, 2))
-    m = calibration_m(snr, r, ALPHA, BETA)
+    psf = None if psf_range is None else rng.uniform(*psf_range, n)
+    m = calibration_m(snr, r if psf is None else 0.7 * r / psf, ALPHA, BETA)
     noise = rng.normal(0, 1, (n, 2)) * (2.0 / snr)[:, None]
     pairs = []
     for tag, sign in (("p", 1.0), ("m", -1.0)):
@@ -114,10 +117,13 @@ def _paired_fields(tmp_path, n=6000, seed=3, shared=True):
         ids = np.arange(n)
         meas = Table({"id": ids, "e1": e[:, 0], "e2": e[:, 1], "weight": w, "fitclass": np.zeros(n, int),
                       "snr": snr * (1 + 0.01 * rng.normal(size=n)), "scalelength": r, "m_true": m})
+        if psf is not None:
+            meas["psf_fwhm"] = psf
         truth = Table({"id": ids, "g1": np.full(n, g[0]), "g2": np.full(n, g[1]), "e1_int": eint[:, 0],
                        "e2_int": eint[:, 1], "is_star": np.zeros(n, bool)})
         truth.meta["SEED"] = seed
-        mp, tp = tmp_path / f"pm{tag}{int(shared)}.fits", tmp_path / f"pt{tag}{int(shared)}.fits"
+        name = f"{tag}{int(shared)}" + ("" if psf is None else f"_{psf_range[0]:g}_{seed}")
+        mp, tp = tmp_path / f"pm{name}.fits", tmp_path / f"pt{name}.fits"
         meas.write(mp)
         truth.write(tp)
         pairs.append((mp, tp))
@@ -180,7 +186,7 @@ def test_m_is_the_response_of_the_weighted_mean_including_the_weights(tmp_path):
 
 
 def test_cli_takes_several_pairs_and_refuses_an_odd_count(tmp_path, capsys):
-    (mp, tp), (mm, tm) = _paired_fields(tmp_path, n=3000)
+    (mp, tp), (mm, tm) = _paired_fields(tmp_path, n=3000, psf_range=(0.6, 0.8))
     out = tmp_path / "cal2.yaml"
     assert main(["calibrate", str(mp), str(tp), str(mm), str(tm), "--out", str(out), "--n-snr", "3",
                  "--n-size", "3", "--bootstrap", "10"]) == 0
@@ -251,9 +257,13 @@ def test_the_default_calibration_is_the_packaged_binned_table():
     from shearfit.calib.calibrate import DEFAULT_CALIBRATION, default_calibration
 
     model = default_calibration()
-    _packaged_table(DEFAULT_CALIBRATION, model)
+    d, _ = _packaged_table(DEFAULT_CALIBRATION, model)
+    # a table in resolution (scalelength / psf_fwhm), closing on held-out fields of a seeing beyond its own too
+    assert model.size == "resolution" and d["size"] == "resolution"
+    beyond = [v for k, v in d["closure"].items() if k.startswith("transfer-psf-1.05-1.25 (")]
+    assert beyond and abs(beyond[0]["m_cal"]) < 0.5 * abs(beyond[0]["m_raw"])
     # a faint small galaxy gets a larger correction than a bright large one
-    faint, bright = model.m(np.array([9.0, 150.0]), np.array([0.15, 0.8]))
+    faint, bright = model.m(np.array([9.0, 150.0]), np.array([0.15, 0.8]), np.array([0.75, 0.75]))
     assert faint < bright < 0.05
 
 
@@ -265,4 +275,36 @@ def test_self_calibrated_fits_have_their_own_packaged_calibration():
     d, m = _packaged_table(DEFAULT_CALIBRATION_SELFCAL, default_calibration(self_calibration=True))
     assert "self_calibration=true" in d["source"]
     plain = np.asarray(yaml.safe_load(open(DEFAULT_CALIBRATION))["binned"]["m"], float)
-    assert m.shape == plain.shape and not np.allclose(m, plain)
+    assert m.shape != plain.shape or not np.allclose(m, plain)
+    # fitted at one seeing, in arcsec; the plain fit's default is in resolution and spans two seeing ranges
+    assert d.get("size", "scalelength") == "scalelength"
+
+
+def test_a_resolution_table_carries_to_another_seeing(tmp_path):
+    """m that depends on the scalelength over the PSF size: a table in arcsec fitted under one seeing leaves a
+    bias under another; a table in resolution (scalelength / psf_fwhm) does not."""
+    cal = _paired_fields(tmp_path, n=20000, seed=5, psf_range=(0.55, 0.85))
+    other = stack_matched(_paired_fields(tmp_path, n=20000, seed=6, psf_range=(0.85, 1.05)))
+    res_r, _, _ = calibrate(cal, n_snr=8, n_size=8, n_boot=10, size="resolution")
+    res_s, _, _ = calibrate(cal, n_snr=8, n_size=8, n_boot=10, size="scalelength")
+    assert res_r["size"] == "resolution" and res_s["size"] == "scalelength"
+    by_res = calibrated_bias(other, CalibrationModel(res_r["alpha"], res_r["beta"], "binned", res_r["binned"],
+                                                     size="resolution"), n_boot=50)
+    by_r = calibrated_bias(other, CalibrationModel(res_s["alpha"], res_s["beta"], "binned", res_s["binned"]), n_boot=50)
+    assert by_res["m_raw"] < -0.05                      # the other seeing's galaxies are biased ...
+    assert abs(by_res["m_cal"]) < 3 * by_res["m_cal_err"] + 0.003     # ... and the resolution table removes it
+    assert by_r["m_cal"] < -0.01 and by_r["m_cal"] < -5 * by_r["m_cal_err"]   # the arcsec table leaves part
+    # the written table records its axis and reads back as such
+    write_calibration(res_r, tmp_path / "res.yaml")
+    model = load_calibration(tmp_path / "res.yaml")
+    assert model.size == "resolution"
+    np.testing.assert_array_equal(model.m_of(other), CalibrationModel(
+        res_r["alpha"], res_r["beta"], "binned", res_r["binned"], size="resolution").m_of(other))
+    with pytest.raises(ShearfitValueError, match="psf_fwhm"):
+        model.m(other["snr"], other["scalelength"])
+
+
+def test_a_resolution_calibration_names_catalogues_without_psf_fwhm(tmp_path):
+    mp, tp = _synthetic(tmp_path, n=2000)
+    with pytest.raises(ShearfitIOError, match=f"{mp.name}: no column psf_fwhm"):
+        calibrate([(mp, tp)], n_snr=2, n_size=2, size="resolution")

@@ -538,8 +538,8 @@ def test_photometric_scale():
 def test_output_columns_and_empty_rows():
     names = [c.name for c in output_columns()]
     assert names == ["id", "ra", "dec", "mag", "e1", "e2", "weight", "e_var", "fitclass", "snr",
-                     "scalelength", "bulge_fraction", "model_flux", "n_exposures_used", "psf_e1", "psf_e2", "m",
-                     "star_pvalue", "stamp_size"]
+                     "scalelength", "bulge_fraction", "model_flux", "n_exposures_used", "psf_e1", "psf_e2",
+                     "psf_fwhm", "m", "star_pvalue", "stamp_size"]
     row = empty_result_row()
     assert set(row) == set(names) - {"id", "ra", "dec", "mag"}
     assert row["weight"] == 0 and row["fitclass"] == FITCLASS_FIT_FAILED and np.isnan(row["e1"])

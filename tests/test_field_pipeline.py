@@ -86,6 +86,11 @@ def test_measure_field_end_to_end(field, capsys):
     assert np.mean(good["e2"]) == pytest.approx(G[1], abs=0.01)
     # the PSF ellipticity column: the Moffat's (0.05, -0.03) in the sky frame
     assert np.all(np.abs(good["psf_e1"] - 0.05) < 0.01) and np.all(np.abs(good["psf_e2"] + 0.03) < 0.01)
+    # the PSF size column: the mean over the two exposures of 2.3548 sigma of GalSim's adaptive moments of the
+    # Moffats (FWHM 0.65" and 0.7"), in arcsec whatever the pixel grid's rotation
+    hsm = [2.3548 * PIX * galsim.hsm.FindAdaptiveMom(moffat_psf(f, 3.0, 0.05, -0.03).drawImage(
+        nx=48, ny=48, scale=PIX)).moments_sigma for f in (0.65, 0.7)]
+    assert np.allclose(good["psf_fwhm"], np.mean(hsm), rtol=2e-3) and 0.675 < np.mean(hsm) < 0.85
     hdr = fits.getheader(out, 1)
     assert "SFCONFIG" in hdr and "SFVERS" in hdr
     from shearfit.engine.kernel import kernel_info
@@ -277,9 +282,8 @@ def test_self_calibrated_fits_get_their_own_default_calibration(field):
     t = Table.read(out)
     good = t["fitclass"] == 0
     assert good.sum() >= 2
-    snr, r = np.asarray(t["snr"][good]), np.asarray(t["scalelength"][good])
-    np.testing.assert_allclose(t["m"][good], default_calibration(self_calibration=True).m(snr, r))
-    assert not np.allclose(t["m"][good], default_calibration().m(snr, r))
+    np.testing.assert_allclose(t["m"][good], default_calibration(self_calibration=True).m_of(t[good]))
+    assert not np.allclose(t["m"][good], default_calibration().m_of(t[good]))
     hdr = fits.getheader(out, 1)
     assert "self-cal" in hdr.comments["CALALPHA"]
     assert json.loads(hdr["SFCONFIG"])["self_calibration"] is True

@@ -244,11 +244,12 @@ def _cmd_calibrate(args):
         raise ShearfitValueError(f"calibrate takes MEASURED TRUTH pairs; {files[-1]} has no partner")
     pairs = list(zip(files[0::2], files[1::2]))
     result, bins, tab = calibrate(pairs, n_snr=args.n_snr, n_size=args.n_size, n_boot=args.bootstrap,
-                                  seed=args.seed, model=args.model)
+                                  seed=args.seed, model=args.model, size=args.size)
     write_calibration(result, args.out)
     stem = os.path.splitext(args.out)[0]
     write_catalog_atomic(bins, f"{stem}_bins.fits", [])
-    wb = weight_bins(tab, CalibrationModel(result["alpha"], result["beta"], result["model"], result["binned"]))
+    wb = weight_bins(tab, CalibrationModel(result["alpha"], result["beta"], result["model"], result["binned"],
+                                           size=result["size"]))
     plot_calibration(bins, result, f"{stem}.png", weight_bins=wb)
     if not args.quiet:
         print(f"calibration from {result['n_galaxies']} galaxies in {result['n_snr_bins']} x {result['n_size_bins']} "
@@ -341,6 +342,10 @@ def build_parser():
     p.add_argument("--model", choices=["binned", "paper"], default="binned",
                    help="what measure applies: each SNR-size bin's m (default) or the fitted paper form "
                         "m = beta / ln(nu) exp(-alpha r nu); both are written")
+    p.add_argument("--size", choices=["resolution", "scalelength"], default="resolution",
+                   help="the table's size axis: the scalelength over the PSF FWHM at the object (default; the "
+                        "catalogue's psf_fwhm column), which carries the table to another seeing, or the "
+                        "scalelength in arcsec (the paper's)")
     p.add_argument("--seed", type=int, default=0)
     _add_common(p)
     p.set_defaults(func=_cmd_calibrate)

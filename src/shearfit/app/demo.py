@@ -7,7 +7,7 @@ the PSF models from the stars and measures every object
 the input shear, the recovered shear (the weighted mean ellipticity of the
 objects classified as galaxies, as a user would compute it) and the
 multiplicative and additive biases m and c from the galaxies measured in
-both fields, raw and calibrated by the catalogue's m(snr, scalelength) column
+both fields, raw and calibrated by the catalogue's m(snr, scalelength / psf_fwhm) column
 (divided by 1 + K, K its weighted mean, as for a shear estimate):
 ``m_k = (sum w+ e+ / sum w+ - sum w- e- / sum w-) / (2 g_k) - 1``, the response
 of the weighted mean ellipticity with each field's own weights (lensfit's
@@ -112,7 +112,7 @@ def run_field_demo(out_dir=None, processes=None, seed=1, quiet=False, psf="fitte
     n_star_as_gal = int(sum(int(i) in star_ids for i in np.asarray(cat["id"])[gal]))
     (m1, m2, c1, c2), (sm1, sm2, sc1, sc2), n_pairs, K = _pair_bias(truths["plus"], truths["minus"], shear)
     # calibrated as a user calibrates a shear estimate: divided by 1 + K, K the weighted mean of the
-    # catalogue's m(snr, scalelength) (paper sec. 8.4-8.5); its error is the raw error scaled alike
+    # catalogue's m(snr, scalelength / psf_fwhm) (paper sec. 8.4-8.5); its error is the raw error scaled alike
     mc1, mc2 = (1 + m1) / (1 + K) - 1, (1 + m2) / (1 + K) - 1
     summary = dict(out_dir=out_dir, input_shear=list(shear), recovered_shear=rec.tolist(),
                    recovered_shear_err=rec_err.tolist(), m=[m1, m2], m_err=[sm1, sm2], c=[c1, c2], c_err=[sc1, sc2],
@@ -134,7 +134,7 @@ def run_field_demo(out_dir=None, processes=None, seed=1, quiet=False, psf="fitte
         "their weighted mean ellipticity, c from it minus their intrinsic ellipticity (errors: bootstrap over "
         "90-degree pairs)")
     say("- raw m is lensfit's noise bias (the likelihood-mean estimator is biased low at low SNR); the catalogue's "
-        "m column holds the calibration m(snr, scalelength), and dividing by 1 + K, K its weighted mean, "
+        "m column holds the calibration m(snr, scalelength / psf_fwhm), and dividing by 1 + K, K its weighted mean, "
         "calibrates it")
     say(f"outputs: {out_dir}/field_plus and field_minus (exposures, field.yaml, truth.fits, shear.fits); "
         f"total {time.time() - t0:.0f} s on {processes} process(es)")

@@ -51,11 +51,28 @@ __all__ = ["CalibrationModel", "as_model", "load_calibration", "binned_table", "
            "sheared_ellipticity", "quantity_bins", "bin_indices", "bin_bias", "fit_alpha_beta", "calibrate",
            "read_calibration", "write_calibration", "model_m", "calibration_m", "calibrated_bias", "plot_calibration",
            "weight_bins", "PAPER_ALPHA", "PAPER_BETA", "DEFAULT_CALIBRATION", "default_calibration",
-           "default_calibration_record", "DEFAULT_CALIBRATION_SELFCAL"]
+           "default_calibration_record", "DEFAULT_CALIBRATION_SELFCAL", "SIZE_MEASURES", "size_values"]
 
 PAPER_ALPHA = 0.057
 PAPER_BETA = -0.37
 MIN_PER_BIN = 50
+#: what a binned calibration's size axis measures: the scalelength (arcsec) or the resolution, the scalelength
+#: over the PSF's FWHM at the object (catalogue column ``psf_fwhm``)
+SIZE_MEASURES = ("scalelength", "resolution")
+
+
+def size_values(tab, size="scalelength"):
+    """The size axis of a calibration per row: ``scalelength``, or ``resolution`` = scalelength / psf_fwhm."""
+    if size not in SIZE_MEASURES:
+        raise ShearfitValueError(f"calibration size {size!r} is not one of {', '.join(SIZE_MEASURES)}")
+    r = np.asarray(tab["scalelength"], float)
+    if size == "scalelength":
+        return r
+    if "psf_fwhm" not in tab.colnames:
+        raise ShearfitIOError("the measured catalogue has no psf_fwhm column (written by shearfit measure since "
+                              "version 0.1.0 of 2026-11-26): a resolution calibration needs it")
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return r / np.asarray(tab["psf_fwhm"], float)
 
 
 def model_m(snr, r, alpha, beta):
@@ -342,16 +359,21 @@ def fit_alpha_beta(bins: Table, n_grid=81):
                 grid_alpha=alphas.tolist(), grid_beta=betas.tolist(), loglike=loglike.tolist())
 
 
-def calibrate(pairs, n_snr=20, n_size=20, n_boot=100, seed=0, min_per_bin=MIN_PER_BIN, model="binned"):
+def calibrate(pairs, n_snr=20, n_size=20, n_boot=100, seed=0, min_per_bin=MIN_PER_BIN, model="binned",
+              size="scalelength"):
     """The calibration from simulated fields (see the module doc): (result dict, bins table, matched table).
 
     ``pairs``: a list of (measured catalogue, truth table) paths, one per field.
     ``model``: what the calibration applies, ``binned`` (the bins' m, looked
     up per galaxy) or ``paper`` (the fitted m = beta / ln(nu) exp(-alpha r nu));
-    both are written.
+    both are written. ``size``: the binned table's size axis, ``scalelength``
+    (arcsec) or ``resolution`` (scalelength / psf_fwhm, which transfers to
+    another seeing; see :class:`CalibrationModel`).
     """
     if model not in ("binned", "paper"):
         raise ShearfitValueError(f"calibration model {model!r} is not 'binned' or 'paper'")
+    if size not in SIZE_MEASURES:
+        raise ShearfitValueError(f"calibration size {size!r} is not one of {', '.join(SIZE_MEASURES)}")
     pairs = [tuple(p) for p in pairs]
     tab = stack_matched(pairs)
     names = ", ".join(str(m) for m, _ in pairs)
@@ -362,27 +384,41 @@ def calibrate(pairs, n_snr=20, n_size=20, n_boot=100, seed=0, min_per_bin=MIN_PE
         raise ShearfitValueError(f"{', '.join(str(t) for _, t in pairs)}: the shear is the same for every galaxy; "
                                  "m and c cannot be separated (simulate with shear_rms > 0, or calibrate from "
                                  "fields with different shears)")
+    if size == "resolution":
+        lacking = [str(m) for m, _ in pairs if "psf_fwhm" not in _read(m, "measured").colnames]
+        if lacking:
+            raise ShearfitIOError(f"{', '.join(lacking)}: no column psf_fwhm, which a resolution calibration "
+                                  "(size: resolution, scalelength / psf_fwhm) needs: measure again with this version, "
+                                  "or calibrate with --size scalelength")
     groups = _group_codes(tab)
-    idx, ns, nr = bin_indices(tab["snr"], tab["scalelength"], n_snr, n_size, min_per_bin, groups=groups)
+    sizes = size_values(tab, size)
+    ok = np.isfinite(sizes)
+    if not np.all(ok):   # a galaxy without a PSF size (its PSF's moments failed everywhere) cannot be binned
+        tab = tab[ok]
+        sizes = sizes[ok]
+        groups = _group_codes(tab)
+    idx, ns, nr = bin_indices(tab["snr"], sizes, n_snr, n_size, min_per_bin, groups=groups)
     rng = np.random.default_rng(seed)
     bins = bin_bias(tab, idx, ns * nr, n_boot, rng)
     fit = fit_alpha_beta(bins)
     tot = _Bias(tab)(np.arange(len(tab)))
-    binned = binned_table(tab, idx, ns, nr, bins, groups)
+    binned = binned_table(tab, idx, ns, nr, bins, groups, sizes)
     result = dict(fit, n_galaxies=int(len(tab)), n_groups=int(groups.max() + 1), n_snr_bins=int(ns),
                   n_size_bins=int(nr), m_raw=float(tot[0]), c1=float(tot[1]), c2=float(tot[2]),
-                  paper_alpha=PAPER_ALPHA, paper_beta=PAPER_BETA, model=model, binned=binned,
+                  paper_alpha=PAPER_ALPHA, paper_beta=PAPER_BETA, model=model, size=size, binned=binned,
                   measured=[str(m) for m, _ in pairs], truth=[str(t) for _, t in pairs])
     return result, bins, tab
 
 
-def binned_table(tab, idx, n_snr, n_size, bins, groups):
+def binned_table(tab, idx, n_snr, n_size, bins, groups, sizes=None):
     """The bins as a look-up table: SNR edges, size edges within each SNR bin, m and its error per bin.
 
-    Edges lie half-way between neighbouring bins' groups (mean SNR, then mean size within the SNR bin).
+    Edges lie half-way between neighbouring bins' groups (mean SNR, then mean size within the SNR bin);
+    ``sizes``: the size axis per row (default the scalelength).
     """
     codes = np.asarray(groups)
-    gs, gr = _group_mean(codes, tab["snr"]), _group_mean(codes, tab["scalelength"])
+    gs = _group_mean(codes, tab["snr"])
+    gr = _group_mean(codes, tab["scalelength"] if sizes is None else sizes)
     gidx = np.full(gs.size, -1)
     gidx[codes] = idx
     snr_bin, size_bin = gidx // n_size, gidx % n_size
@@ -401,27 +437,39 @@ def binned_table(tab, idx, n_snr, n_size, bins, groups):
 
 
 class CalibrationModel:
-    """m(SNR, scalelength) of a calibration: the paper's form with (alpha, beta), or the binned table.
+    """m(SNR, size) of a calibration: the paper's form with (alpha, beta), or the binned table.
 
-    ``kind`` ``paper``: eq. (alphabeta). ``binned``: the m of the SNR-size bin a
-    galaxy falls in (bins of ``shearfit calibrate``; outside the table, the
-    nearest bin). ``draws(n, rng)`` gives ``n`` models drawn from the
-    calibration's uncertainty (the (alpha, beta) likelihood grid, or each
-    bin's m within its bootstrap error) for the systematic covariance.
+    ``kind`` ``paper``: eq. (alphabeta), r the scalelength in arcsec. ``binned``: the m of the SNR-size bin a
+    galaxy falls in (bins of ``shearfit calibrate``; outside the table, the nearest bin), its size measured as
+    ``size`` says: ``scalelength`` (arcsec, the paper's) or ``resolution``, the scalelength over the PSF's FWHM
+    at the object (the catalogue's ``psf_fwhm``), which carries the table to a survey of another seeing.
+    ``draws(n, rng)`` gives ``n`` models drawn from the calibration's uncertainty (the (alpha, beta)
+    likelihood grid, or each bin's m within its bootstrap error) for the systematic covariance.
     """
 
-    def __init__(self, alpha=PAPER_ALPHA, beta=PAPER_BETA, kind="paper", binned=None, grid=None):
+    def __init__(self, alpha=PAPER_ALPHA, beta=PAPER_BETA, kind="paper", binned=None, grid=None, size="scalelength"):
         if kind not in ("paper", "binned"):
             raise ShearfitValueError(f"calibration model {kind!r} is not 'paper' or 'binned'")
         if kind == "binned" and binned is None:
             raise ShearfitValueError("a binned calibration needs its table")
+        if size not in SIZE_MEASURES:
+            raise ShearfitValueError(f"calibration size {size!r} is not one of {', '.join(SIZE_MEASURES)}")
         self.alpha, self.beta, self.kind, self.binned, self.grid = float(alpha), float(beta), kind, binned, grid
+        self.size = size if kind == "binned" else "scalelength"
 
-    def m(self, snr, scalelength):
+    def m(self, snr, scalelength, psf_fwhm=None):
+        """m per galaxy (NaN where SNR <= 1 or the size is not finite); ``psf_fwhm`` (arcsec) is needed by a
+        table of ``size: resolution``."""
         snr = np.asarray(snr, float)
         r = np.asarray(scalelength, float)
         if self.kind == "paper":
             return calibration_m(snr, r, self.alpha, self.beta)
+        if self.size == "resolution":
+            if psf_fwhm is None:
+                raise ShearfitValueError("this calibration's sizes are resolutions (scalelength / psf_fwhm): it needs "
+                                         "the catalogue's psf_fwhm column")
+            with np.errstate(divide="ignore", invalid="ignore"):
+                r = r / np.asarray(psf_fwhm, float)
         b = self.binned
         m_tab = np.asarray(b["m"], float)
         ib = np.searchsorted(np.asarray(b["snr_edges"], float), snr)
@@ -433,6 +481,13 @@ class CalibrationModel:
                 out[sel] = m_tab[k, jb]
         return np.where(np.isfinite(snr) & np.isfinite(r) & (snr > 1), out, np.nan)
 
+    def m_of(self, tab):
+        """m of a catalogue or matched table's rows (its snr, scalelength and, if present, psf_fwhm): an astropy
+        Table or a numpy structured array."""
+        names = tab.colnames if hasattr(tab, "colnames") else tab.dtype.names
+        psf = np.asarray(tab["psf_fwhm"], float) if "psf_fwhm" in names else None
+        return self.m(np.asarray(tab["snr"], float), np.asarray(tab["scalelength"], float), psf)
+
     def draws(self, n, rng):
         if self.kind == "paper":
             if self.grid is None:
@@ -442,7 +497,7 @@ class CalibrationModel:
         m = np.asarray(self.binned["m"], float)
         e = np.asarray(self.binned["m_err"], float)
         return [CalibrationModel(self.alpha, self.beta, "binned", dict(self.binned, m=(m + e * rng.normal(size=m.shape))
-                                                                      .tolist())) for _ in range(n)]
+                                                                      .tolist()), size=self.size) for _ in range(n)]
 
 
 def as_model(calibration) -> CalibrationModel:
@@ -477,7 +532,10 @@ def load_calibration(path) -> CalibrationModel:
                                   "(snr_edges, size_edges, m, m_err)")
     elif kind != "paper":
         raise ShearfitIOError(f"{path}: calibration key 'model' must be 'paper' or 'binned', not {kind!r}")
-    return CalibrationModel(alpha, beta, kind, binned if kind == "binned" else None, grid)
+    size = str(d.get("size", "scalelength")).lower()
+    if size not in SIZE_MEASURES:
+        raise ShearfitIOError(f"{path}: calibration key 'size' must be one of {', '.join(SIZE_MEASURES)}, not {size!r}")
+    return CalibrationModel(alpha, beta, kind, binned if kind == "binned" else None, grid, size=size)
 
 
 #: The calibration ``shearfit measure`` applies where the field configuration names none: the m of each SNR-size
@@ -503,7 +561,7 @@ def default_calibration_record(result, source, closure=None) -> dict:
     (alpha, beta) with their errors, the sample's size, ``source`` (how it was made) and ``closure`` (what
     it leaves on held-out fields)."""
     keep = ("alpha", "beta", "alpha_err", "beta_err", "chi2", "dof", "n_galaxies", "n_groups", "n_snr_bins",
-            "n_size_bins", "paper_alpha", "paper_beta", "model", "binned")
+            "n_size_bins", "paper_alpha", "paper_beta", "model", "size", "binned")
     out = {k: result[k] for k in keep if k in result}
     out["source"] = str(source)
     if closure is not None:
@@ -513,8 +571,9 @@ def default_calibration_record(result, source, closure=None) -> dict:
 
 def write_calibration(result, path):
     with atomic_path(path) as tmp, open(tmp, "w") as f:
-        f.write("# shearfit noise-bias calibration. model: binned applies the m of each SNR-size bin (binned:), "
-                "paper the fit m(nu, r) = beta / ln(nu) exp(-alpha r nu), r in arcsec\n")
+        f.write("# shearfit noise-bias calibration. model: binned applies the m of each SNR-size bin (binned:; size: "
+                "scalelength in arcsec or resolution = scalelength / psf_fwhm), paper the fit "
+                "m(nu, r) = beta / ln(nu) exp(-alpha r nu), r in arcsec\n")
         yaml.safe_dump(result, f, sort_keys=False, default_flow_style=None)
 
 
@@ -578,7 +637,7 @@ def calibrated_bias(tab: Table, calibration, n_boot=200, seed=0):
     """
     fit = _Bias(tab)
     w = fit.w
-    mc = as_model(calibration).m(tab["snr"], tab["scalelength"])
+    mc = as_model(calibration).m_of(tab)
     mc = np.where(np.isfinite(mc), mc, 0.0)
 
     def est(s):
@@ -656,6 +715,11 @@ def quantity_bins(tab: Table, column, calibration, n=6, n_boot=100, seed=0):
     order = np.argsort(gx, kind="stable")
     gidx = np.empty(gx.size, int)
     gidx[order] = np.arange(gx.size) * n // max(gx.size, 1)
-    pred = as_model(calibration).m(tab["snr"], tab["scalelength"])
+    pred = as_model(calibration).m_of(tab)
     pred = np.where(np.isfinite(pred), pred, 0.0)
-    return bin_bias(tab, gidx[codes], n, n_boot, np.random.default_rng(seed), m_pred=pred)
+    idx = gidx[codes]
+    out = bin_bias(tab, idx, n, n_boot, np.random.default_rng(seed), m_pred=pred)
+    # the weighted mean of the binned quantity itself, per bin (column x)
+    w, x = np.asarray(tab["weight"], float), np.asarray(tab[column], float)
+    out["x"] = [float(np.sum(w[idx == b] * x[idx == b]) / np.sum(w[idx == b])) for b in out["bin"]]
+    return out

@@ -823,7 +823,8 @@ _OUTPUT_COLUMNS = (
     OutputColumn("n_exposures_used", "i2", "", "exposures that entered the joint fit"),
     OutputColumn("psf_e1", "f8", "", "mean PSF model ellipticity at the object, (u, v) frame"),
     OutputColumn("psf_e2", "f8", "", "mean PSF model ellipticity at the object, (u, v) frame"),
-    OutputColumn("m", "f8", "", "multiplicative calibration m(snr, scalelength)"),
+    OutputColumn("psf_fwhm", "f8", "arcsec", "mean PSF FWHM at the object (adaptive moments, 2.3548 sigma)"),
+    OutputColumn("m", "f8", "", "multiplicative calibration m(snr, scalelength; psf_fwhm for a resolution table)"),
     OutputColumn("star_pvalue", "f8", "", "F-test probability that the galaxy model's improvement over a point "
                                           "source is chance (sec. 3.2); large for stars"),
     OutputColumn("stamp_size", "i2", "pix", "side of the stamps the object was measured on (larger than "

@@ -31,6 +31,7 @@ import json
 import logging
 import os
 import shutil
+import warnings
 from dataclasses import dataclass, field, replace
 from typing import Optional
 
@@ -60,7 +61,7 @@ from ..psf.build import (FieldFrame, TooFewStarsError, build_exposure_psf, is_ps
 
 log = logging.getLogger(__name__)
 
-__all__ = ["measure_field", "calibration_m", "psf_ellipticity"]
+__all__ = ["measure_field", "calibration_m", "psf_ellipticity", "psf_fwhm_arcsec"]
 
 #: psf_moments' results by the PSF image (the objects of a CCD with one given PSF image share them)
 _PSF_MOMENTS = ContentMemo(32 * 2 ** 20)
@@ -89,6 +90,15 @@ def psf_moments(psf, guess_sig=None):
             return None
         return mom.moments_sigma, (mom.observed_shape.g1, mom.observed_shape.g2)
     return _PSF_MOMENTS.get(psf, (), make)
+
+
+def psf_fwhm_arcsec(jacobian, oversampling=1, moments=None):
+    """The PSF's size at the object in arcsec: the FWHM of the Gaussian of its adaptive moments,
+    2.3548 sigma, with sigma carried to the sky by the Jacobian (det(M_sky)^(1/4) = sigma sqrt|det J|);
+    NaN where the moments failed. The noise-bias calibration's resolution (``scalelength / psf_fwhm``) uses it."""
+    if moments is None:
+        return np.nan
+    return float(2.3548 * moments[0] / oversampling * np.sqrt(abs(np.linalg.det(np.asarray(jacobian, float)))))
 
 
 def psf_ellipticity(psf, jacobian, oversampling=1, moments=None):
@@ -416,9 +426,10 @@ def measure_field(cfg: FieldConfig, out_path=None, progress=False, processes=1, 
             calibration = default_calibration(self_calibration=selfcal)
             src = "shearfit default, self-cal" if selfcal else "shearfit default"
         alpha, beta = calibration.alpha, calibration.beta
-        table["m"] = np.where(measured, calibration.m(table["snr"], table["scalelength"]), np.nan)
+        table["m"] = np.where(measured, calibration.m(table["snr"], table["scalelength"], table["psf_fwhm"]), np.nan)
         cards += [("CALMODE", "simulations", "m(snr, size) from simulations"),
                   ("CALMODEL", calibration.kind, "m from the bins' table or the paper's form"),
+                  ("CALSIZE", calibration.size, "m table size axis: scalelength or resolution"),
                   ("CALALPHA", alpha, f"calibration alpha ({src})"), ("CALBETA", beta, f"calibration beta ({src})")]
     write_catalog_atomic(table, out_path, cards)
     ckpt.remove()
@@ -781,7 +792,7 @@ def _measure_on_stamps(hits, exposures, mag, cfg, pc, obj_id, size, geometry=Non
     flag = _isophote_analysis(cuts, pc)
     if flag != 0:
         return {"fitclass": flag, "n_exposures_used": 0}
-    obs, psf_e = [], []
+    obs, psf_stats = [], []   # per exposure used: the PSF's ellipticity (e1, e2) and FWHM at the object
     for cut in cuts:
         if not cut["keep"]:
             continue
@@ -792,7 +803,8 @@ def _measure_on_stamps(hits, exposures, mag, cfg, pc, obj_id, size, geometry=Non
         except ShearfitValueError as exc:
             log.warning("exposure %d CCD %s skipped for an object: %s", cut["e"], cut["ccd"].label, exc)
             continue
-        psf_e.append(psf_ellipticity(cut["psf"], cut["J"], cut["k"], moments=cut["moments"]))
+        psf_stats.append(psf_ellipticity(cut["psf"], cut["J"], cut["k"], moments=cut["moments"])
+                         + (psf_fwhm_arcsec(cut["J"], cut["k"], moments=cut["moments"]),))
     if len(obs) < max(pc.min_exposures, 1):
         return {"fitclass": FITCLASS_FEW_EXPOSURES, "n_exposures_used": len(obs)}
     if cfg.calibration == "metacal":
@@ -810,8 +822,10 @@ def _measure_on_stamps(hits, exposures, mag, cfg, pc, obj_id, size, geometry=Non
            "snr": res.snr, "scalelength": res.scalelength, "bulge_fraction": res.bulge_fraction,
            "model_flux": res.model_flux, "n_exposures_used": res.n_exposures_used, "star_pvalue": res.star_pvalue}
     row.update(extra)
-    pe = np.array(psf_e, float)
-    row["psf_e1"], row["psf_e2"] = np.nanmean(pe[:, 0]), np.nanmean(pe[:, 1])
+    pe = np.array(psf_stats, float)
+    with warnings.catch_warnings():   # an object whose PSF moments failed everywhere: NaN, silently
+        warnings.simplefilter("ignore", RuntimeWarning)
+        row["psf_e1"], row["psf_e2"], row["psf_fwhm"] = np.nanmean(pe, axis=0)
     if res.fitclass == FITCLASS_FIT_FAILED:
         log.debug("fit failed: %s", res.message)
     return row

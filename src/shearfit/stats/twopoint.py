@@ -195,7 +195,7 @@ def xipm_bins(tabs, min_sep=1.0, max_sep=100.0, nbins=10, calibration=None, n_sy
         if model is not None:
             if "snr" not in t.colnames or "scalelength" not in t.colnames:
                 raise ShearfitIOError("the catalogue needs snr and scalelength columns to apply a calibration file")
-            m = model.m(np.asarray(t["snr"], float), np.asarray(t["scalelength"], float))
+            m = model.m_of(t)
         elif R is not None:
             m = np.full(len(t), 0.5 * (R[0][0] + R[1][1]) - 1.0)
         elif "m" in t.colnames:
@@ -256,8 +256,6 @@ def _systematic_cov(model, tabs, pairs, corrs, cfg, n_sys, seed):
     """
     fast = {k: v for k, v in cfg.items() if k not in ("bin_slop", "angle_slop")}
     exact_slop = cfg["bin_slop"] is not None and cfg["bin_slop"] < 0.1
-    snr = [np.asarray(t["snr"], float) for t in tabs]
-    r = [np.asarray(t["scalelength"], float) for t in tabs]
 
     def one_plus_k(ms, kw):
         cats = [_catalog(t, 1.0 + np.where(np.isfinite(m), m, 0.0), with_shear=False) for t, m in zip(tabs, ms)]
@@ -265,14 +263,14 @@ def _systematic_cov(model, tabs, pairs, corrs, cfg, n_sys, seed):
 
     kw = fast if exact_slop else cfg
     if exact_slop:
-        nominal = one_plus_k([model.m(s, x) for s, x in zip(snr, r)], fast)
+        nominal = one_plus_k([model.m_of(t) for t in tabs], fast)
         ratio = [corrs[2 * p + 1].xi / np.where(nominal[p] != 0, nominal[p], np.nan) for p in range(len(pairs))]
     else:
         ratio = [1.0] * len(pairs)
     rng = np.random.default_rng(seed)
     vecs = []
     for draw in model.draws(n_sys, rng):
-        ks = one_plus_k([draw.m(s, x) for s, x in zip(snr, r)], kw)
+        ks = one_plus_k([draw.m_of(t) for t in tabs], kw)
         vec = []
         for p in range(len(pairs)):
             gg = corrs[2 * p]
@@ -287,8 +285,9 @@ def xipm(tab: Table, min_sep=1.0, max_sep=100.0, nbins=10, calibration=None, n_s
     """xi+, xi- (raw and calibrated), 1 + K, errors and pair counts per bin; and the systematic covariance.
 
     The per-object m is the catalogue's ``m`` column unless a calibration
-    file is given (then m(snr, scalelength) from its alpha, beta). With a
-    calibration file holding the likelihood grid, ``n_sys`` draws of
+    file is given (then m(snr, scalelength) from its table or alpha, beta; a
+    table of ``size: resolution`` takes the scalelength over the catalogue's
+    ``psf_fwhm``). With a calibration file holding the likelihood grid, ``n_sys`` draws of
     (alpha, beta) give the systematic covariance of (xip, xim) concatenated.
     ``response`` (a metacal catalogue's ensemble response R, 2x2) replaces
     1 + m by the mean of R's diagonal for every galaxy, so that 1 + K = R^2.
