@@ -163,6 +163,9 @@ def main(argv=None):
                     help="add --cal-extra-seeds calibration seeds (1100, 1101, ...) with every exposure's PSF FWHM "
                          "drawn from [LO, HI] arcsec")
     ap.add_argument("--cal-extra-seeds", type=int, default=0)
+    ap.add_argument("--seeing-bins", type=int, default=1,
+                    help="also fit a table per range of the PSF's FWHM, this many ranges (shearfit calibrate "
+                         "--seeing-bins), which the calibration applies")
     ap.add_argument("--transfer-seeds", type=int, default=4)
     ap.add_argument("--compare", action="append", default=[], metavar="CALIBRATION.yaml",
                     help="also apply this calibration file to the test set, the second suite and the transfer sets "
@@ -175,7 +178,8 @@ def main(argv=None):
     tag = "".join("_" + "".join(ch if ch.isalnum() else "-" for ch in item) for item in args.set)
     # the catalogues (measured once per setting) do not depend on the size axis; the calibration's files do
     ctag = tag + ("_size-scalelength" if args.size == "scalelength" else "") + (
-        f"_cal-psf-{args.cal_extra_psf.replace(',', '-')}-x{args.cal_extra_seeds}" if args.cal_extra_psf else "")
+        f"_cal-psf-{args.cal_extra_psf.replace(',', '-')}-x{args.cal_extra_seeds}" if args.cal_extra_psf else "") + (
+        f"_seeing-{args.seeing_bins}" if args.seeing_bins > 1 else "")
     out = os.path.abspath(args.out)
     t0 = time.time()
     great = dict(GREAT, ccd_nx=args.ccd, ccd_ny=args.ccd)
@@ -209,10 +213,11 @@ def main(argv=None):
             print(f"  measured {d} in {time.time() - ts:.0f} s", flush=True)
     t_meas = time.time() - t0
 
-    result, bins, cal_tab = calibrate(pairs["cal"], n_snr=args.n_snr, n_size=args.n_size, size=args.size)
+    result, bins, cal_tab = calibrate(pairs["cal"], n_snr=args.n_snr, n_size=args.n_size, size=args.size,
+                                      seeing_bins=args.seeing_bins)
     write_calibration(result, os.path.join(out, f"calibration{ctag}.yaml"))
     a, b = result["alpha"], result["beta"]
-    binned = CalibrationModel(a, b, "binned", result["binned"], size=args.size)
+    binned = CalibrationModel(a, b, "binned", result["binned"], size=args.size, seeing=result.get("seeing"))
     fitted = CalibrationModel(a, b)
     paper = CalibrationModel(PAPER_ALPHA, PAPER_BETA)
     plot_calibration(bins, result, os.path.join(out, f"calibration{ctag}.png"), weight_bins=weight_bins(cal_tab, binned))

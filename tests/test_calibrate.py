@@ -308,3 +308,45 @@ def test_a_resolution_calibration_names_catalogues_without_psf_fwhm(tmp_path):
     mp, tp = _synthetic(tmp_path, n=2000)
     with pytest.raises(ShearfitIOError, match=f"{mp.name}: no column psf_fwhm"):
         calibrate([(mp, tp)], n_snr=2, n_size=2, size="resolution")
+
+
+def test_the_table_closes_on_its_own_galaxies(tmp_path):
+    """The bins' m (intercepts held at the whole table's) average to the whole table's m: calibrated with its own
+    table, the calibration set's m is 0 to the precision of the look-up (a galaxy's copies looked up by their own
+    SNR and size, binned by their mean)."""
+    pairs = _paired_fields(tmp_path, n=20000, seed=8, psf_range=(0.6, 0.9))
+    res, _, tab = calibrate(pairs, n_snr=12, n_size=12, n_boot=5, size="resolution")
+    own = calibrated_bias(tab, CalibrationModel(res["alpha"], res["beta"], "binned", res["binned"],
+                                                size="resolution"), n_boot=5)
+    assert own["m_raw"] < -0.05 and abs(own["m_cal"]) < 1e-3
+
+
+def test_tables_per_seeing_range(tmp_path):
+    """m that depends on the PSF size beyond the resolution: a table per seeing range (calibrate seeing_bins=2)
+    closes on held-out galaxies of both ranges, where one table over both leaves opposite biases."""
+    def fields(seed, psf_range):
+        pairs = _paired_fields(tmp_path, n=12000, seed=seed, psf_range=psf_range)
+        for mp, _ in pairs:   # m grows by a further 3 % per 0.1" of PSF FWHM above 0.8"
+            t = Table.read(mp)
+            extra = -0.3 * (np.asarray(t["psf_fwhm"]) - 0.8)
+            g = np.array([0.04, -0.03]) * (1 if "pmp" in str(mp) else -1)
+            t["e1"] += extra * g[0]
+            t["e2"] += extra * g[1]
+            t.write(mp, overwrite=True)
+        return pairs
+
+    cal = fields(10, (0.55, 0.85)) + fields(11, (0.85, 1.05))
+    small, large = stack_matched(fields(12, (0.55, 0.85))), stack_matched(fields(13, (0.85, 1.05)))
+    res, _, _ = calibrate(cal, n_snr=8, n_size=8, n_boot=10, size="resolution", seeing_bins=2)
+    assert len(res["seeing"]["tables"]) == 2 and 0.8 < res["seeing"]["psf_edges"][0] < 0.9
+    split = CalibrationModel(res["alpha"], res["beta"], "binned", res["binned"], size="resolution",
+                             seeing=res["seeing"])
+    one = CalibrationModel(res["alpha"], res["beta"], "binned", res["binned"], size="resolution")
+    for tab in (small, large):
+        b = calibrated_bias(tab, split, n_boot=30)
+        assert abs(b["m_cal"]) < 3 * b["m_cal_err"] + 0.003
+    assert calibrated_bias(small, one, n_boot=5)["m_cal"] > 0.01 > -0.01 > calibrated_bias(large, one, n_boot=5)["m_cal"]
+    write_calibration(res, tmp_path / "seeing.yaml")
+    back = load_calibration(tmp_path / "seeing.yaml")
+    np.testing.assert_array_equal(back.m_of(large), split.m_of(large))
+    assert len(back.draws(2, np.random.default_rng(0))[0].seeing["tables"]) == 2

@@ -244,12 +244,12 @@ def _cmd_calibrate(args):
         raise ShearfitValueError(f"calibrate takes MEASURED TRUTH pairs; {files[-1]} has no partner")
     pairs = list(zip(files[0::2], files[1::2]))
     result, bins, tab = calibrate(pairs, n_snr=args.n_snr, n_size=args.n_size, n_boot=args.bootstrap,
-                                  seed=args.seed, model=args.model, size=args.size)
+                                  seed=args.seed, model=args.model, size=args.size, seeing_bins=args.seeing_bins)
     write_calibration(result, args.out)
     stem = os.path.splitext(args.out)[0]
     write_catalog_atomic(bins, f"{stem}_bins.fits", [])
     wb = weight_bins(tab, CalibrationModel(result["alpha"], result["beta"], result["model"], result["binned"],
-                                           size=result["size"]))
+                                           size=result["size"], seeing=result.get("seeing")))
     plot_calibration(bins, result, f"{stem}.png", weight_bins=wb)
     if not args.quiet:
         print(f"calibration from {result['n_galaxies']} galaxies in {result['n_snr_bins']} x {result['n_size_bins']} "
@@ -346,6 +346,9 @@ def build_parser():
                    help="the table's size axis: the scalelength over the PSF FWHM at the object (default; the "
                         "catalogue's psf_fwhm column), which carries the table to another seeing, or the "
                         "scalelength in arcsec (the paper's)")
+    p.add_argument("--seeing-bins", type=int, default=1,
+                   help="also a table per range of the PSF FWHM (psf_fwhm; ranges of equal numbers), applied in "
+                        "place of the one over all seeing: for simulations that span several seeings")
     p.add_argument("--seed", type=int, default=0)
     _add_common(p)
     p.set_defaults(func=_cmd_calibrate)

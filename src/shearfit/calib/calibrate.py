@@ -1,14 +1,26 @@
 """The noise-bias calibration m(SNR, size) from simulations (sec. 8.4).
 
 Measured galaxies (``fitclass`` 0, weight > 0) are matched by ``id`` to the
-simulation's truth, and put in bins of measured SNR and measured scalelength
-with equal numbers (SNR quantiles first, then size quantiles within each SNR
-bin; 20 x 20 by default, fewer when the sample is small). In each bin m is
+simulation's truth, and put in bins of measured SNR and measured size with
+equal numbers (SNR quantiles first, then size quantiles within each SNR bin;
+20 x 20 by default, fewer when the sample is small). The size is the
+scalelength in arcsec (``size="scalelength"``, the paper's) or the resolution,
+the scalelength over the PSF's FWHM at the object (``size="resolution"``, the
+catalogue's ``psf_fwhm``): a galaxy's bias follows its size relative to the
+PSF, and a table in arcsec holds only under the seeing of its simulations.
+With ``seeing_bins`` > 1 the galaxies are also split into ranges of
+``psf_fwhm`` with a table each, applied in place of the one over all of them
+(at equal SNR and resolution a larger PSF still biases somewhat more). In
+each bin m is
 the response of the lensfit-weighted mean ellipticity to the shear, as a
 catalogue's shear estimate sum(w e) / sum(w) responds: from galaxies measured
 at +g and -g with the same noise (fields of one seed, below), the weighted
 least-squares fit e_k = (1 + m) g_k + a_k with an intercept a_k per seed, in
-which a galaxy's intrinsic shape cancels between its +g and -g rows. What the
+which a galaxy's intrinsic shape cancels between its +g and -g rows. The
+intercepts are those of the fit over the whole table (a bin holds a few
+galaxies per seed, whose own intercepts would absorb part of the weights'
+response below), so that the whole table's m is the bins' m averaged with
+their ``sum(w |g|^2)``: applied to its own galaxies the table closes. What the
 cancellation leaves is part of m: lensfit's weight depends on |e|, and a
 galaxy sheared along its major axis is weighted differently at +g than at -g
 (on shearfit's simulated fields this weight response is +0.016 of m over the
@@ -238,7 +250,33 @@ def _pair_codes(tab):
     return np.where(g >= 0, g // 10 ** 8, -1)
 
 
-def _response_m(e1, e2, g1, g2, w, groups, seeds):
+def _complete_rows(g1, g2, w, groups, seeds):
+    """Which rows enter :func:`_response_m`: those of groups with as many rows at +g as at -g, of a seed,
+    weight > 0."""
+    inv = np.unique(groups, return_inverse=True)[1].ravel()
+    n = np.bincount(inv)
+    s1, s2 = np.bincount(inv, g1), np.bincount(inv, g2)
+    scale = np.bincount(inv, np.hypot(g1, g2)) / np.maximum(n, 1)
+    complete = (n >= 2) & (np.hypot(s1, s2) < 1e-6 * np.maximum(scale, 1e-12) * n) & (scale > 0)
+    return complete[inv] & (seeds >= 0) & (w > 0)
+
+
+def _seed_means(e1, e2, g1, g2, w, groups, seeds):
+    """Per seed, the weighted means of (e1, e2, g1, g2) over the rows :func:`_response_m` uses: the intercepts of
+    its fit over the whole table, as {seed: array of 4}."""
+    keep = _complete_rows(g1, g2, w, groups, seeds)
+    out = {}
+    if not keep.any():
+        return out
+    useeds, sk = np.unique(seeds[keep], return_inverse=True)
+    W = np.bincount(sk.ravel(), w[keep])
+    cols = [np.bincount(sk.ravel(), w[keep] * x[keep]) / W for x in (e1, e2, g1, g2)]
+    for k, sd in enumerate(useeds.tolist()):
+        out[sd] = np.array([c[k] for c in cols])
+    return out
+
+
+def _response_m(e1, e2, g1, g2, w, groups, seeds, means=None):
     """m of the weighted mean ellipticity's response to shear, from groups measured at opposite shears.
 
     A group (one galaxy with one noise, simulated at +g and -g) enters when it has as many rows at
@@ -248,54 +286,63 @@ def _response_m(e1, e2, g1, g2, w, groups, seeds):
     sheared along its major axis has a larger |e| and another weight at +g than at -g. The residual
     form y = e - e_s (:func:`_fit_mc`) removes that part with e_s, and misses it. None where no
     group is complete.
+
+    ``means`` ({seed: the weighted means of e1, e2, g1, g2}, :func:`_seed_means` of the whole table): the
+    intercepts held at the whole table's, so that a subset (a calibration bin) gives its part of the whole
+    table's m: the whole's m is then the mean of its bins' m weighted by their sum(w |g|^2). With intercepts of
+    its own, a bin with a few galaxies per seed would absorb in them part of the weights' response.
     """
     if groups.size == 0:
         return None
-    inv = np.unique(groups, return_inverse=True)[1].ravel()
-    n = np.bincount(inv)
-    s1, s2 = np.bincount(inv, g1), np.bincount(inv, g2)
-    scale = np.bincount(inv, np.hypot(g1, g2)) / np.maximum(n, 1)
-    complete = (n >= 2) & (np.hypot(s1, s2) < 1e-6 * np.maximum(scale, 1e-12) * n) & (scale > 0)
-    keep = complete[inv] & (seeds >= 0) & (w > 0)
+    keep = _complete_rows(g1, g2, w, groups, seeds)
     if not keep.any():
         return None
     e1, e2, g1, g2, w, seeds = e1[keep], e2[keep], g1[keep], g2[keep], w[keep], seeds[keep]
-    _, sk = np.unique(seeds, return_inverse=True)
+    useeds, sk = np.unique(seeds, return_inverse=True)
     sk = sk.ravel()
-    W = np.bincount(sk, w)
+    if means is not None and all(sd in means for sd in useeds.tolist()):
+        M = np.array([means[sd] for sd in useeds.tolist()])   # (seeds, 4)
 
-    def centred(x):
-        return x - (np.bincount(sk, w * x) / W)[sk]
+        def centred(x, c):
+            return x - M[sk, c]
+    else:
+        W = np.bincount(sk, w)
 
-    dg1, dg2 = centred(g1), centred(g2)
+        def centred(x, c):
+            return x - (np.bincount(sk, w * x) / W)[sk]
+
+    dg1, dg2 = centred(g1, 2), centred(g2, 3)
     den = float(np.sum(w * (dg1 * dg1 + dg2 * dg2)))
     if not den > 0:
         return None
-    return float(np.sum(w * (centred(e1) * dg1 + centred(e2) * dg2)) / den) - 1.0
+    return float(np.sum(w * (centred(e1, 0) * dg1 + centred(e2, 1) * dg2)) / den) - 1.0
 
 
-def _fit_bias(y1, y2, g1, g2, w, e1, e2, groups, seeds):
-    """(m, c1, c2): m from the weighted means' response (:func:`_response_m`) where groups measured at
-    +g and -g allow, else from the residuals' fit; c1, c2 from the residuals' fit (:func:`_fit_mc`)."""
+def _fit_bias(y1, y2, g1, g2, w, e1, e2, groups, seeds, means=None):
+    """(m, c1, c2): m from the weighted means' response (:func:`_response_m`, ``means`` its intercepts) where
+    groups measured at +g and -g allow, else from the residuals' fit; c1, c2 from the residuals' fit
+    (:func:`_fit_mc`)."""
     sol = _fit_mc(y1, y2, g1, g2, w)
-    m = _response_m(e1, e2, g1, g2, w, groups, seeds)
+    m = _response_m(e1, e2, g1, g2, w, groups, seeds, means)
     if m is not None:
         sol = np.array([m, sol[1], sol[2]])
     return sol
 
 
 class _Bias:
-    """The per-row inputs of :func:`_fit_bias` of a matched table, evaluated on row subsets."""
+    """The per-row inputs of :func:`_fit_bias` of a matched table, evaluated on row subsets (bins, bootstrap
+    resamples) with the response's intercepts held at the whole table's (:func:`_seed_means`)."""
 
     def __init__(self, tab):
         self.y1, self.y2, self.g1, self.g2, self.w = _residuals(tab)
         self.e1, self.e2 = np.asarray(tab["e1"], float), np.asarray(tab["e2"], float)
         self.groups = np.asarray(tab["group"], np.int64) if "group" in tab.colnames else np.arange(len(tab))
         self.seeds = _pair_codes(tab)
+        self.means = _seed_means(self.e1, self.e2, self.g1, self.g2, self.w, self.groups, self.seeds)
 
     def __call__(self, s):
         return _fit_bias(self.y1[s], self.y2[s], self.g1[s], self.g2[s], self.w[s], self.e1[s], self.e2[s],
-                         self.groups[s], self.seeds[s])
+                         self.groups[s], self.seeds[s], self.means)
 
 
 def bin_bias(tab: Table, idx, n_bins, n_boot=100, rng=None, m_pred=None):
@@ -360,7 +407,7 @@ def fit_alpha_beta(bins: Table, n_grid=81):
 
 
 def calibrate(pairs, n_snr=20, n_size=20, n_boot=100, seed=0, min_per_bin=MIN_PER_BIN, model="binned",
-              size="scalelength"):
+              size="scalelength", seeing_bins=1):
     """The calibration from simulated fields (see the module doc): (result dict, bins table, matched table).
 
     ``pairs``: a list of (measured catalogue, truth table) paths, one per field.
@@ -368,7 +415,10 @@ def calibrate(pairs, n_snr=20, n_size=20, n_boot=100, seed=0, min_per_bin=MIN_PE
     up per galaxy) or ``paper`` (the fitted m = beta / ln(nu) exp(-alpha r nu));
     both are written. ``size``: the binned table's size axis, ``scalelength``
     (arcsec) or ``resolution`` (scalelength / psf_fwhm, which transfers to
-    another seeing; see :class:`CalibrationModel`).
+    another seeing; see :class:`CalibrationModel`). ``seeing_bins`` > 1:
+    also a table per range of the PSF's FWHM (``psf_fwhm``; ranges of equal
+    numbers of galaxies), which the binned model applies in place of the
+    one over all of them (``seeing`` in the result).
     """
     if model not in ("binned", "paper"):
         raise ShearfitValueError(f"calibration model {model!r} is not 'binned' or 'paper'")
@@ -384,7 +434,7 @@ def calibrate(pairs, n_snr=20, n_size=20, n_boot=100, seed=0, min_per_bin=MIN_PE
         raise ShearfitValueError(f"{', '.join(str(t) for _, t in pairs)}: the shear is the same for every galaxy; "
                                  "m and c cannot be separated (simulate with shear_rms > 0, or calibrate from "
                                  "fields with different shears)")
-    if size == "resolution":
+    if size == "resolution" or seeing_bins > 1:
         lacking = [str(m) for m, _ in pairs if "psf_fwhm" not in _read(m, "measured").colnames]
         if lacking:
             raise ShearfitIOError(f"{', '.join(lacking)}: no column psf_fwhm, which a resolution calibration "
@@ -403,11 +453,33 @@ def calibrate(pairs, n_snr=20, n_size=20, n_boot=100, seed=0, min_per_bin=MIN_PE
     fit = fit_alpha_beta(bins)
     tot = _Bias(tab)(np.arange(len(tab)))
     binned = binned_table(tab, idx, ns, nr, bins, groups, sizes)
+    seeing = _seeing_tables(tab, groups, sizes, seeing_bins, n_snr, n_size, n_boot, min_per_bin, rng) \
+        if seeing_bins > 1 else None
     result = dict(fit, n_galaxies=int(len(tab)), n_groups=int(groups.max() + 1), n_snr_bins=int(ns),
                   n_size_bins=int(nr), m_raw=float(tot[0]), c1=float(tot[1]), c2=float(tot[2]),
                   paper_alpha=PAPER_ALPHA, paper_beta=PAPER_BETA, model=model, size=size, binned=binned,
                   measured=[str(m) for m, _ in pairs], truth=[str(t) for _, t in pairs])
+    if seeing is not None:
+        result["seeing"] = seeing
     return result, bins, tab
+
+
+def _seeing_tables(tab, groups, sizes, n_ranges, n_snr, n_size, n_boot, min_per_bin, rng):
+    """Binned tables per range of the PSF's FWHM (galaxies' group means; ranges of equal numbers of groups):
+    {psf_edges, tables, n_galaxies}."""
+    gpsf = _group_mean(groups, tab["psf_fwhm"])
+    edges = [float(v) for v in np.quantile(gpsf[np.bincount(groups) > 0], np.arange(1, n_ranges) / n_ranges)]
+    rng_of = np.searchsorted(np.asarray(edges), gpsf)[groups]
+    tables, counts = [], []
+    for k in range(n_ranges):
+        sel = np.nonzero(rng_of == k)[0]
+        sub = tab[sel]
+        gsub = _group_codes(sub)
+        idx, ns, nr = bin_indices(sub["snr"], sizes[sel], n_snr, n_size, min_per_bin, groups=gsub)
+        bins = bin_bias(sub, idx, ns * nr, n_boot, rng)
+        tables.append(binned_table(sub, idx, ns, nr, bins, gsub, sizes[sel]))
+        counts.append(int(sel.size))
+    return dict(psf_edges=edges, tables=tables, n_galaxies=counts)
 
 
 def binned_table(tab, idx, n_snr, n_size, bins, groups, sizes=None):
@@ -436,6 +508,20 @@ def binned_table(tab, idx, n_snr, n_size, bins, groups, sizes=None):
                 m=np.nan_to_num(m).tolist(), m_err=np.nan_to_num(merr, nan=1.0).tolist())
 
 
+def _table_m(b, snr, x):
+    """m of a binned table ``b`` (snr_edges, size_edges per SNR bin, m) at (snr, size x); outside it, the nearest
+    bin."""
+    m_tab = np.asarray(b["m"], float)
+    ib = np.searchsorted(np.asarray(b["snr_edges"], float), snr)
+    out = np.full(snr.shape, np.nan)
+    for k in range(m_tab.shape[0]):
+        sel = ib == k
+        if np.any(sel):
+            jb = np.searchsorted(np.asarray(b["size_edges"][k], float), x[sel])
+            out[sel] = m_tab[k, jb]
+    return out
+
+
 class CalibrationModel:
     """m(SNR, size) of a calibration: the paper's form with (alpha, beta), or the binned table.
 
@@ -443,11 +529,15 @@ class CalibrationModel:
     galaxy falls in (bins of ``shearfit calibrate``; outside the table, the nearest bin), its size measured as
     ``size`` says: ``scalelength`` (arcsec, the paper's) or ``resolution``, the scalelength over the PSF's FWHM
     at the object (the catalogue's ``psf_fwhm``), which carries the table to a survey of another seeing.
+    ``seeing`` ({psf_edges, tables}): tables fitted in ranges of the PSF's FWHM (arcsec, edges between them),
+    each applied to the galaxies of its range (below the first edge the first, above the last the last) in
+    place of ``binned``, which then holds the table fitted on all of them.
     ``draws(n, rng)`` gives ``n`` models drawn from the calibration's uncertainty (the (alpha, beta)
     likelihood grid, or each bin's m within its bootstrap error) for the systematic covariance.
     """
 
-    def __init__(self, alpha=PAPER_ALPHA, beta=PAPER_BETA, kind="paper", binned=None, grid=None, size="scalelength"):
+    def __init__(self, alpha=PAPER_ALPHA, beta=PAPER_BETA, kind="paper", binned=None, grid=None, size="scalelength",
+                 seeing=None):
         if kind not in ("paper", "binned"):
             raise ShearfitValueError(f"calibration model {kind!r} is not 'paper' or 'binned'")
         if kind == "binned" and binned is None:
@@ -456,30 +546,35 @@ class CalibrationModel:
             raise ShearfitValueError(f"calibration size {size!r} is not one of {', '.join(SIZE_MEASURES)}")
         self.alpha, self.beta, self.kind, self.binned, self.grid = float(alpha), float(beta), kind, binned, grid
         self.size = size if kind == "binned" else "scalelength"
+        self.seeing = seeing if kind == "binned" else None
 
     def m(self, snr, scalelength, psf_fwhm=None):
         """m per galaxy (NaN where SNR <= 1 or the size is not finite); ``psf_fwhm`` (arcsec) is needed by a
-        table of ``size: resolution``."""
+        table of ``size: resolution`` or with ``seeing`` ranges."""
         snr = np.asarray(snr, float)
         r = np.asarray(scalelength, float)
         if self.kind == "paper":
             return calibration_m(snr, r, self.alpha, self.beta)
+        if (self.size == "resolution" or self.seeing) and psf_fwhm is None:
+            raise ShearfitValueError("this calibration's sizes are resolutions (scalelength / psf_fwhm) or its tables "
+                                     "are per seeing: it needs the catalogue's psf_fwhm column")
+        psf = None if psf_fwhm is None else np.broadcast_to(np.asarray(psf_fwhm, float), r.shape)
+        x = r
         if self.size == "resolution":
-            if psf_fwhm is None:
-                raise ShearfitValueError("this calibration's sizes are resolutions (scalelength / psf_fwhm): it needs "
-                                         "the catalogue's psf_fwhm column")
             with np.errstate(divide="ignore", invalid="ignore"):
-                r = r / np.asarray(psf_fwhm, float)
-        b = self.binned
-        m_tab = np.asarray(b["m"], float)
-        ib = np.searchsorted(np.asarray(b["snr_edges"], float), snr)
-        out = np.full(snr.shape, np.nan)
-        for k in range(m_tab.shape[0]):
-            sel = ib == k
-            if np.any(sel):
-                jb = np.searchsorted(np.asarray(b["size_edges"][k], float), r[sel])
-                out[sel] = m_tab[k, jb]
-        return np.where(np.isfinite(snr) & np.isfinite(r) & (snr > 1), out, np.nan)
+                x = r / psf
+        if self.seeing:
+            tables = self.seeing["tables"]
+            ip = np.searchsorted(np.asarray(self.seeing["psf_edges"], float), np.nan_to_num(psf, nan=np.inf))
+            out = np.full(snr.shape, np.nan)
+            for k, b in enumerate(tables):
+                sel = (ip == k) if k < len(tables) - 1 else (ip >= k)
+                if np.any(sel):
+                    out[sel] = _table_m(b, snr[sel], x[sel])
+            out = np.where(np.isfinite(psf), out, np.nan)
+        else:
+            out = _table_m(self.binned, snr, x)
+        return np.where(np.isfinite(snr) & np.isfinite(x) & (snr > 1), out, np.nan)
 
     def m_of(self, tab):
         """m of a catalogue or matched table's rows (its snr, scalelength and, if present, psf_fwhm): an astropy
@@ -494,10 +589,18 @@ class CalibrationModel:
                 raise ShearfitValueError("the calibration has no likelihood grid to draw from")
             a_s, b_s = _grid_samples(*self.grid, n, rng)
             return [CalibrationModel(a, b) for a, b in zip(a_s, b_s)]
-        m = np.asarray(self.binned["m"], float)
-        e = np.asarray(self.binned["m_err"], float)
-        return [CalibrationModel(self.alpha, self.beta, "binned", dict(self.binned, m=(m + e * rng.normal(size=m.shape))
-                                                                      .tolist()), size=self.size) for _ in range(n)]
+
+        def drawn(b):
+            m = np.asarray(b["m"], float)
+            e = np.asarray(b["m_err"], float)
+            return dict(b, m=(m + e * rng.normal(size=m.shape)).tolist())
+
+        out = []
+        for _ in range(n):
+            seeing = None if not self.seeing else dict(self.seeing, tables=[drawn(b) for b in self.seeing["tables"]])
+            out.append(CalibrationModel(self.alpha, self.beta, "binned", drawn(self.binned), size=self.size,
+                                        seeing=seeing))
+        return out
 
 
 def as_model(calibration) -> CalibrationModel:
@@ -518,24 +621,39 @@ def load_calibration(path) -> CalibrationModel:
     if all(k in d for k in ("grid_alpha", "grid_beta", "loglike")):
         grid = _checked_grid(path, d)
     binned = d.get("binned")
+    seeing = d.get("seeing")
     if kind == "binned":
-        try:
-            ns = len(binned["snr_edges"]) + 1
-            m = np.asarray(binned["m"], float)
-            me = np.asarray(binned["m_err"], float)
-            ok = (m.ndim == 2 and m.shape[0] == ns and me.shape == m.shape and len(binned["size_edges"]) == ns
-                  and all(len(e) == m.shape[1] - 1 for e in binned["size_edges"]))
-        except (TypeError, KeyError, ValueError):
-            ok = False
-        if not ok:
+        if not _table_ok(binned):
             raise ShearfitIOError(f"{path}: calibration model binned needs a consistent 'binned' table "
                                   "(snr_edges, size_edges, m, m_err)")
+        if seeing is not None:
+            try:
+                tables, edges = list(seeing["tables"]), [float(v) for v in seeing["psf_edges"]]
+                ok = len(tables) == len(edges) + 1 and all(_table_ok(b) for b in tables) and np.all(np.diff(edges) > 0)
+            except (TypeError, KeyError, ValueError):
+                ok = False
+            if not ok:
+                raise ShearfitIOError(f"{path}: calibration key 'seeing' needs psf_edges and one consistent table "
+                                      "more than edges")
     elif kind != "paper":
         raise ShearfitIOError(f"{path}: calibration key 'model' must be 'paper' or 'binned', not {kind!r}")
     size = str(d.get("size", "scalelength")).lower()
     if size not in SIZE_MEASURES:
         raise ShearfitIOError(f"{path}: calibration key 'size' must be one of {', '.join(SIZE_MEASURES)}, not {size!r}")
-    return CalibrationModel(alpha, beta, kind, binned if kind == "binned" else None, grid, size=size)
+    return CalibrationModel(alpha, beta, kind, binned if kind == "binned" else None, grid, size=size,
+                            seeing=seeing if kind == "binned" else None)
+
+
+def _table_ok(binned):
+    """Whether a binned table's parts agree (edges, m and m_err of matching shapes)."""
+    try:
+        ns = len(binned["snr_edges"]) + 1
+        m = np.asarray(binned["m"], float)
+        me = np.asarray(binned["m_err"], float)
+        return bool(m.ndim == 2 and m.shape[0] == ns and me.shape == m.shape and len(binned["size_edges"]) == ns
+                    and all(len(e) == m.shape[1] - 1 for e in binned["size_edges"]))
+    except (TypeError, KeyError, ValueError):
+        return False
 
 
 #: The calibration ``shearfit measure`` applies where the field configuration names none: the m of each SNR-size
@@ -561,7 +679,7 @@ def default_calibration_record(result, source, closure=None) -> dict:
     (alpha, beta) with their errors, the sample's size, ``source`` (how it was made) and ``closure`` (what
     it leaves on held-out fields)."""
     keep = ("alpha", "beta", "alpha_err", "beta_err", "chi2", "dof", "n_galaxies", "n_groups", "n_snr_bins",
-            "n_size_bins", "paper_alpha", "paper_beta", "model", "size", "binned")
+            "n_size_bins", "paper_alpha", "paper_beta", "model", "size", "binned", "seeing")
     out = {k: result[k] for k in keep if k in result}
     out["source"] = str(source)
     if closure is not None:
