@@ -276,8 +276,8 @@ def test_self_calibrated_fits_have_their_own_packaged_calibration():
     assert "self_calibration=true" in d["source"]
     plain = np.asarray(yaml.safe_load(open(DEFAULT_CALIBRATION))["binned"]["m"], float)
     assert m.shape != plain.shape or not np.allclose(m, plain)
-    # fitted at one seeing, in arcsec; the plain fit's default is in resolution and spans two seeing ranges
-    assert d.get("size", "scalelength") == "scalelength"
+    # in resolution with a table per seeing range, as the plain fit's
+    assert d["size"] == "resolution" and len(d["seeing"]["tables"]) == 2
 
 
 def test_a_resolution_table_carries_to_another_seeing(tmp_path):
