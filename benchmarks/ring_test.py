@@ -249,8 +249,8 @@ def report_bias(tab, args, n_gal):
 
     model = as_model(args.calibration if args.calibration else (PAPER_ALPHA, PAPER_BETA))
     good = tab["fitclass"] == 0
-    if model.size == "resolution" and "psf_fwhm" not in tab.dtype.names:
-        print(f"  (the calibration {args.calibration} is a resolution table: these ring tables have no psf_fwhm)")
+    if (model.size == "resolution" or model.seeing) and "psf_fwhm" not in tab.dtype.names:
+        print(f"  (the calibration {args.calibration} needs psf_fwhm, which these ring tables lack)")
         return
     mc = model.m_of(tab)
     w = np.where(good & np.isfinite(mc), np.nan_to_num(tab["weight"]) if weighted else 1.0, 0.0)
