@@ -435,7 +435,13 @@ def calibrate(pairs, n_snr=20, n_size=20, n_boot=100, seed=0, min_per_bin=MIN_PE
                                  "m and c cannot be separated (simulate with shear_rms > 0, or calibrate from "
                                  "fields with different shears)")
     if size == "resolution" or seeing_bins > 1:
-        lacking = [str(m) for m, _ in pairs if "psf_fwhm" not in _read(m, "measured").colnames]
+        # the fields whose catalogues have no psf_fwhm (the stacked table masks their rows, or has no such column)
+        if "psf_fwhm" not in tab.colnames:
+            lacking = [str(m) for m, _ in pairs]
+        else:
+            masked = np.ma.getmaskarray(tab["psf_fwhm"])
+            bad = set(np.asarray(tab["field"])[masked].tolist())
+            lacking = [str(m) for k, (m, _) in enumerate(pairs) if k in bad]
         if lacking:
             raise ShearfitIOError(f"{', '.join(lacking)}: no column psf_fwhm, which a resolution calibration "
                                   "(size: resolution, scalelength / psf_fwhm) needs: measure again with this version, "
