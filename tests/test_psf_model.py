@@ -136,6 +136,38 @@ def test_oversampled_model_of_an_undersampled_psf():
     assert abs(mm.observed_shape.e2 - mt.observed_shape.e2) < 0.005
 
 
+def test_separable_phase_sums_match_the_full_phase_arrays():
+    """The star DFTs and the centring's Newton steps sum the model times exp(-i kappa . delta) as products over
+    x and then y (the phase separates): the same numbers as the full (n_s, k, k, n, n) phase array gives, on an
+    oversampled model whose aliases make the two axes' orders matter (a swapped axis or alias index fails)."""
+    from shearfit.psf import pixelmodel as pm
+
+    st = _stars(60, seed=4, fwhm0=0.5)
+    model, used, _ = fit_pixel_psf(st, 2, order=1, oversampling=3, iterations=1, ccd_shape=[(4096, 2048)] * 2)
+    rng = np.random.default_rng(5)
+    delta = used.delta + rng.uniform(-0.3, 0.3, (len(used), 2))
+    P = model.star_spectra(used.ccd, used.u, used.v)
+    full = np.sum(P * pm._phases(model.size, 3, delta), axis=(1, 2))
+    full = full / full[:, 0, 0].real[:, None, None]
+    assert np.abs(model.native_dft(used.ccd, used.u, used.v, delta) - full).max() < 1e-12 * np.abs(full).max()
+    # one Newton step of the cross-correlation, from the full array's gradient and Hessian
+    D = np.fft.fft2(np.fft.ifftshift(used.image, axes=(-2, -1)))
+    E = np.conj(D)[:, None, None] * P * pm._phases(model.size, 3, delta)
+    kap = (2 * np.pi / model.size) * pm._fine_freqs(model.size, 3)
+    kx, ky = kap[None, None, :, None, :], kap[None, :, None, :, None]
+    g = np.stack([np.sum(kx * E, axis=(1, 2, 3, 4)).imag, np.sum(ky * E, axis=(1, 2, 3, 4)).imag], axis=1)
+    hxx, hxy, hyy = (-np.sum(a * E, axis=(1, 2, 3, 4)).real for a in (kx * kx, kx * ky, ky * ky))
+    det = hxx * hyy - hxy * hxy
+    step = -np.stack([hyy * g[:, 0] - hxy * g[:, 1], -hxy * g[:, 0] + hxx * g[:, 1]], axis=1) / det[:, None]
+    step *= np.minimum(1.0, 0.5 / np.hypot(step[:, 0], step[:, 1]))[:, None]
+    ok = (hxx < 0) & (det > 0)
+    assert ok.sum() > len(used) // 2
+    one = pm._centre_by_xcorr(model, D, StarSet(*(delta if f == "delta" else getattr(used, f) for f in
+                                                  ("image", "ivar", "delta", "ccd", "u", "v", "x", "y", "snr"))),
+                              n_newton=1)
+    assert np.abs(one[ok] - (delta + step)[ok]).max() < 1e-9
+
+
 def test_native_prior_keeps_noise_out_of_the_high_frequencies():
     # 100 stars at SNR 20-1000: plain least squares (native_width=0, the paper's fit) puts the stars' noise into
     # every frequency, 2 % of P(0) where the true transform is 1e-4; the prior around the model's Moffat takes it

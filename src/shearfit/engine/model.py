@@ -379,7 +379,8 @@ def _moffat_aliases(rs, beta, ny, nx, s):
     (beyond +-2 the Moffat is below 1e-8), set to 1 where |A| <= 1e-12, and
     the mask of |A| > 1e-12 (elsewhere the model's ratio P_s / A is 0); then,
     for the s x s aliases the model keeps, G (flattened) and |G| with their
-    wavevectors and the sampled mode each folds onto. Cached: one exposure's
+    wavevectors and the sampled mode each folds onto, and each mode's largest
+    |G|^2 over those aliases. Cached: one exposure's
     CCD shares one Moffat (App. A fits one near the field centre), so its
     objects reuse these tables.
     """
@@ -400,9 +401,10 @@ def _moffat_aliases(rs, beta, ny, nx, s):
     absG = np.abs(Gs)
     ok = np.abs(A) > 1e-12
     A = np.where(ok, A, 1.0)   # where not ok, the ratio P_s / A is set to 0
-    for arr in (A, ok, Gs, absG):
+    G2max = (absG.reshape(-1, A.size) ** 2).max(axis=0)   # each mode's largest |G|^2 (fine_modes_select)
+    for arr in (A, ok, Gs, absG, G2max):
         arr.setflags(write=False)
-    return A, ok, Gs, absG, KYf, KXf, cs
+    return A, ok, Gs, absG, KYf, KXf, cs, G2max
 
 
 def _centred_rfft2(a):
@@ -431,7 +433,16 @@ def _fine_modes_moffat(psf, ny, nx, s, moffat=None, tolerance=0.0, Ps=None, offs
         rs, beta = _own_moffat(psf, Ps, ny, nx)
     else:
         rs, beta = moffat
-    A, ok, Gs, absG, KYf, KXf, cs = _moffat_aliases(float(rs), float(beta), ny, nx, int(s))
+    A, ok, Gs, absG, KYf, KXf, cs, G2max = _moffat_aliases(float(rs), float(beta), ny, nx, int(s))
+    if USE_KERNEL:
+        # the same selection and products in one pass (fine_modes_select)
+        kyv, _, kxv, _ = _alias_geometry(ny, nx, int(s))[-1]
+        dx, dy = (0.0, 0.0) if offset is None else (float(offset[0]), float(offset[1]))
+        n = Gs.size
+        ky, kx, T, c = np.empty(n), np.empty(n), np.empty(n, complex), np.empty(n, np.int64)
+        m = KERNEL.fine_modes_select(np.ascontiguousarray(Ps, complex).ravel(), A.ravel(), ok.ravel(), absG, Gs,
+                                     G2max, kyv, kxv, dx, dy, int(s), ny, nx // 2 + 1, float(tolerance), ky, kx, T, c)
+        return ky[:m], kx[:m], T[:m], c[:m]
     ratio = np.where(ok, Ps / A, 0.0).ravel()
     # only the modes above ``tolerance`` of the largest |T| (G is real: |T| = |G| |ratio|)
     mag = (absG.reshape(-1, ratio.size) * np.abs(ratio)[None]).ravel()

@@ -13,6 +13,7 @@ the object catalogue on the size-magnitude locus (:func:`stellar_locus`).
 
 from __future__ import annotations
 
+import functools
 import logging
 from dataclasses import dataclass, field
 
@@ -87,12 +88,17 @@ class ExposurePSFResult:
     notes: list = field(default_factory=list)
 
 
-def _integrated_snr(img, w):
-    n = img.shape[-1]
+@functools.lru_cache(maxsize=8)
+def _aperture(n):
+    """The flat indices of the pixels of an n x n stamp within APERTURE_RADIUS of its centre pixel."""
     c = np.arange(n) - n // 2
-    ap = (c[:, None] ** 2 + c[None, :] ** 2) <= APERTURE_RADIUS ** 2
-    flux = float(np.sum(img[ap]))
-    var = float(np.sum(1.0 / w[ap]))
+    return np.flatnonzero((c[:, None] ** 2 + c[None, :] ** 2) <= APERTURE_RADIUS ** 2)
+
+
+def _integrated_snr(img, w):
+    ap = _aperture(img.shape[-1])
+    flux = float(np.sum(img.ravel()[ap]))
+    var = float(np.sum(1.0 / w.ravel()[ap]))
     return flux / np.sqrt(var) if var > 0 else 0.0
 
 

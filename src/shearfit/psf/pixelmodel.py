@@ -111,11 +111,12 @@ def gaussian_centroid(img, step=1.0, sigma=2.0, n_iter=4):
     for _ in range(n_iter):
         wx = np.exp(-0.5 * ((c[None, :] - cx[:, None]) / sigma) ** 2)
         wy = np.exp(-0.5 * ((c[None, :] - cy[:, None]) / sigma) ** 2)
-        wi = wy[:, :, None] * wx[:, None, :] * im
-        tot = wi.sum(axis=(1, 2))
+        # the weight is a product of one in x and one in y: sum over x by a matrix product, then over y
+        rows = im @ np.stack([wx, wx * c[None, :]], axis=2)               # (n, N, 2)
+        tot = np.einsum("sy,sy->s", wy, rows[:, :, 0])
         tot = np.where(tot != 0, tot, 1.0)
-        cx = np.sum(wi * c[None, None, :], axis=(1, 2)) / tot
-        cy = np.sum(wi * c[None, :, None], axis=(1, 2)) / tot
+        cx = np.einsum("sy,sy->s", wy, rows[:, :, 1]) / tot
+        cy = np.einsum("sy,sy->s", wy * c[None, :], rows[:, :, 0]) / tot
     return cx.reshape(lead), cy.reshape(lead)
 
 
@@ -192,11 +193,14 @@ class PixelPSF:
         c = self.coefficients(ccd, u, v)
         return np.tensordot(c, self.spectra, axes=1)
 
-    def native_dft(self, ccd, u, v, delta) -> np.ndarray:
-        """Model DFTs of unit-flux stars at offsets ``delta`` (n_s, 2) on the n-pixel stamp: (n_s, n, n)."""
-        P = self.star_spectra(ccd, u, v)
-        ph = _phases(self.size, self.oversampling, np.atleast_2d(delta))
-        M = np.sum(P * ph, axis=(1, 2))
+    def native_dft(self, ccd, u, v, delta, P=None) -> np.ndarray:
+        """Model DFTs of unit-flux stars at offsets ``delta`` (n_s, 2) on the n-pixel stamp: (n_s, n, n)
+        (``P``: their :meth:`star_spectra`, if already made)."""
+        if P is None:
+            P = self.star_spectra(ccd, u, v)
+        py, px = _axis_phases(self.size, self.oversampling, np.atleast_2d(delta))   # (n_s, k, n) each
+        # the phase is a product of one in x and one in y: the aliases summed along x, then along y
+        M = np.einsum("smyx,smy->syx", np.sum(P * px[:, None, :, None, :], axis=2), py)
         tot = M[:, 0, 0].real
         return M / np.where(tot != 0, tot, 1.0)[:, None, None]
 
@@ -235,11 +239,18 @@ def _fine_freqs(n, k):
     return _signed_freq(n)[None, :] + n * np.arange(-h, h + 1)[:, None]
 
 
-def _phases(n, k, delta):
-    """exp(-2 pi i (j + n m) . delta / n) per star: (n_s, k, k, n, n)."""
+def _axis_phases(n, k, delta):
+    """The factors of :func:`_phases` in y and in x: exp(-2 pi i (j + n m) delta_y / n) and the same in
+    delta_x, each (n_s, k, n)."""
     f = _fine_freqs(n, k)                                      # (k, n)
     px = np.exp(-2j * np.pi * f[None] * delta[:, 0, None, None] / n)   # (n_s, k, n)
     py = np.exp(-2j * np.pi * f[None] * delta[:, 1, None, None] / n)
+    return py, px
+
+
+def _phases(n, k, delta):
+    """exp(-2 pi i (j + n m) . delta / n) per star: (n_s, k, k, n, n)."""
+    py, px = _axis_phases(n, k, delta)
     return py[:, :, None, :, None] * px[:, None, :, None, :]
 
 
@@ -259,6 +270,16 @@ def _term_table(order, n_ccd, ccd_terms, ccd_used, k, alias_order):
         for a, b in monomials(alias_order):
             kind.append(2), tccd.append(-1), powers.append((a, b))
     return np.array(kind), np.array(tccd), np.array(powers, int).reshape(-1, 2)
+
+
+def _as_real(z):
+    """A complex matrix (m, n) as the real one (m, 2 n) of its interleaved real and imaginary parts."""
+    return np.ascontiguousarray(z, complex).view(float)
+
+
+def _as_complex(x):
+    """The inverse of :func:`_as_real`."""
+    return np.ascontiguousarray(x).view(complex)
 
 
 def _solve_modes(model: PixelPSF, D, stars: StarSet, flux, prior=None):
@@ -292,12 +313,14 @@ def _solve_modes(model: PixelPSF, D, stars: StarSet, flux, prior=None):
         lam = np.zeros(n * n) if prior is None else (prior[2] / prior[1] ** 2).ravel()
         on = lam > 0
         coef = np.zeros((T, n * n), complex)
+        # X is real: the complex right-hand sides are solved as their real and imaginary parts side by side
+        # (real arithmetic, a quarter of the complex products'), through _as_real / _as_complex
         if not np.all(on):
-            coef[:, ~on] = np.linalg.lstsq(X, sw * Yc[:, ~on], rcond=None)[0]
+            coef[:, ~on] = _as_complex(np.linalg.lstsq(X, _as_real(sw * Yc[:, ~on]), rcond=None)[0])
         if np.any(on):
             e, V = np.linalg.eigh(X.T @ X)
             e = np.maximum(e, 0.0)
-            R = V.T @ (X.T @ (sw * Yc[:, on]) + lam[on][None, :] * prior[0].reshape(T, -1)[:, on])
+            R = V.T @ (_as_complex(X.T @ _as_real(sw * Yc[:, on])) + lam[on][None, :] * prior[0].reshape(T, -1)[:, on])
             coef[:, on] = V @ (R / (e[:, None] + lam[on][None, :]))
         spectra[:, 0, 0] = coef.reshape(T, n, n)
         return spectra
@@ -347,7 +370,9 @@ def _model_moffat(native: PixelPSF, stars: StarSet, k):
     from ..engine.moffat import fit_moffat, moffat_ft
 
     n = native.size
-    P0 = np.mean(native.star_spectra(stars.ccd, stars.u, stars.v)[:, 0, 0], axis=0)   # (n, n)
+    # the mean of the stars' transforms: the terms' spectra at the stars' mean coefficients
+    cbar = np.mean(native.coefficients(stars.ccd, stars.u, stars.v), axis=0)
+    P0 = np.tensordot(cbar, native.spectra[:, 0, 0], axes=1)                             # (n, n)
     P0 = P0 / P0[0, 0].real
     rs, beta = fit_moffat(P0[:, : n // 2 + 1], 2 * np.pi * np.fft.fftfreq(n), 2 * np.pi * np.fft.rfftfreq(n))
     f = _fine_freqs(n, k)                                   # (k, n) signed fine frequencies per axis
@@ -398,27 +423,33 @@ def _native_prior(model: PixelPSF, stars: StarSet, rel_width, floor=1e-5):
     return mu, rel_width * np.abs(G) + floor
 
 
-def _centre_by_xcorr(model: PixelPSF, D, stars: StarSet, n_newton=6, max_step=0.5):
-    """Offsets maximising each star's band-limited cross-correlation with the model."""
+def _centre_by_xcorr(model: PixelPSF, D, stars: StarSet, n_newton=6, max_step=0.5, P=None):
+    """Offsets maximising each star's band-limited cross-correlation with the model (``P``: the stars'
+    :meth:`PixelPSF.star_spectra`, if already made)."""
     n, k = model.size, model.oversampling
-    P = model.star_spectra(stars.ccd, stars.u, stars.v)          # (n_s, k, k, n, n)
-    Dc = np.conj(D)[:, None, None, :, :]
-    f = _fine_freqs(n, k)
-    kap_x = (2 * np.pi / n) * f[None, :, None, :]                 # (1, k, 1, n) broadcast over (k, k, n, n)
-    kap_y = (2 * np.pi / n) * f[:, None, :, None]
-    KX = np.broadcast_to(kap_x, P.shape[1:])
-    KY = np.broadcast_to(kap_y, P.shape[1:])
-    base = (Dc * P).reshape(P.shape[0], -1)
-    # the gradient and Hessian of sum Re(E) over the modes, E = base x phases: Re(-i kappa E) = kappa Im(E) and
-    # Re(-kappa kappa' E) = -kappa kappa' Re(E), as products of Im(E) and Re(E) with the modes' factors
-    kx, ky = KX.ravel(), KY.ravel()
-    grad_f = np.stack([kx, ky], axis=1)
-    hess_f = -np.stack([kx * kx, kx * ky, ky * ky], axis=1)
+    if P is None:
+        P = model.star_spectra(stars.ccd, stars.u, stars.v)      # (n_s, k, k, n, n)
+    ns, K = P.shape[0], k * n
+    # conj(D) P with rows (m_y, j_y) and columns (m_x, j_x): the phases exp(-i kappa . delta) are a product
+    # of one along the rows and one along the columns, so that the sums of E = base x phases (and of its
+    # products with the modes' kappa_x, kappa_y) are matrix products over the columns, then over the rows
+    B = (np.conj(D)[:, None, None, :, :] * P).transpose(0, 1, 3, 2, 4).reshape(ns, K, K)
+    kap = (2 * np.pi / n) * _fine_freqs(n, k).ravel()             # (K,), (m, j) order on both axes
+    kap2 = kap * kap
     delta = stars.delta.copy()
     for _ in range(n_newton):
-        E = base * _phases(n, k, delta).reshape(base.shape)
-        g = E.imag @ grad_f
-        hxx, hxy, hyy = (E.real @ hess_f).T
+        px = np.exp(-1j * kap[None, :] * delta[:, 0, None])       # (n_s, K)
+        py = np.exp(-1j * kap[None, :] * delta[:, 1, None])
+        Q = B @ np.stack([px, px * kap, px * kap2], axis=2)        # (n_s, K, 3): sum over x of E, kx E, kx^2 E
+        sx = np.einsum("sy,sy->s", py, Q[:, :, 1])                # sum kx E
+        sy = np.einsum("sy,sy->s", py * kap, Q[:, :, 0])          # sum ky E
+        sxx = np.einsum("sy,sy->s", py, Q[:, :, 2])
+        sxy = np.einsum("sy,sy->s", py * kap, Q[:, :, 1])
+        syy = np.einsum("sy,sy->s", py * kap2, Q[:, :, 0])
+        # the gradient and Hessian of sum Re(E) over the modes: Re(-i kappa E) = Im(kappa E),
+        # Re(-kappa kappa' E) = -Re(kappa kappa' E)
+        g = np.stack([sx.imag, sy.imag], axis=1)
+        hxx, hxy, hyy = -sxx.real, -sxy.real, -syy.real
         det = hxx * hyy - hxy * hxy
         ok = (hxx < 0) & (det > 0)
         dx = np.where(ok, -(hyy * g[:, 0] - hxy * g[:, 1]) / np.where(ok, det, 1.0), 0.0)
@@ -430,8 +461,8 @@ def _centre_by_xcorr(model: PixelPSF, D, stars: StarSet, n_newton=6, max_step=0.
     return delta
 
 
-def _star_fluxes(model: PixelPSF, D, stars: StarSet):
-    M = model.native_dft(stars.ccd, stars.u, stars.v, stars.delta)
+def _star_fluxes(model: PixelPSF, D, stars: StarSet, P=None):
+    M = model.native_dft(stars.ccd, stars.u, stars.v, stars.delta, P=P)
     num = np.sum((np.conj(M) * D).real, axis=(1, 2))
     den = np.sum(np.abs(M) ** 2, axis=(1, 2))
     return num / np.where(den > 0, den, 1.0), M
@@ -536,14 +567,15 @@ def fit_pixel_psf(stars: StarSet, n_ccd: int, order: int = 3, oversampling: int 
         model._images = None
         if it == iterations:
             break
+        P = model.star_spectra(st.ccd, st.u, st.v)     # the model at the stars, for this round's steps
         if centre:
-            st.delta = _centre_by_xcorr(model, D, st)
+            st.delta = _centre_by_xcorr(model, D, st, P=P)
             # the model centred on its own centroid: move each star by the model's centroid there
-            fine = _fold_to_fine(model.star_spectra(st.ccd, st.u, st.v), n, k)
+            fine = _fold_to_fine(P, n, k)
             imgs = np.fft.fftshift(np.fft.ifft2(fine), axes=(-2, -1)).real
             mx, my = gaussian_centroid(imgs, 1.0 / k, centroid_sigma)
             st.delta = st.delta + np.stack([mx, my], axis=1)
-        flux, M = _star_fluxes(model, D, st)
+        flux, M = _star_fluxes(model, D, st, P=P)
         if k > 1:
             prior = (prior[0], prior[1], _residual_variance(model, D, st, flux, M))
         elif native_width > 0:
