@@ -524,8 +524,9 @@ def analyse_stamps(stamps: Sequence[np.ndarray], weights: Sequence[np.ndarray], 
 
     comp, n_comp = ndimage.label(snr >= nsigma, structure=_EIGHT)
     if n_comp:
-        peak = ndimage.maximum(snr, comp, index=np.arange(1, n_comp + 1))
-        real = np.concatenate([[False], peak >= min_peak_snr])
+        peak = np.full(n_comp + 1, -np.inf)             # each component's highest SNR
+        np.maximum.at(peak, comp.ravel(), snr.ravel())
+        real = np.concatenate([[False], peak[1:] >= min_peak_snr])
     else:
         real = np.zeros(1, dtype=bool)
     target = _find_target(comp, real, x0, y0)

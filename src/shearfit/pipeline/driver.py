@@ -292,6 +292,13 @@ def _nearest_map(A, shape):
     return np.where(inside, py * nx + px, 0), inside
 
 
+def _inverse2(M):
+    """The inverse of a 2 x 2 matrix in closed form (np.linalg's per-call cost is most of the work here)."""
+    (a, b), (c, d) = M
+    det = a * d - b * c
+    return np.array([[d, -b], [-c, a]]) / det
+
+
 def _carry(a, m):
     """Stamp ``a`` carried through a :func:`_nearest_map` ``m`` (0 where it has no pixel); ``a`` if None."""
     return a if m is None else np.where(m[1], a.ravel()[m[0]], 0)
@@ -312,8 +319,8 @@ def _isophote_analysis(cuts, pc) -> int:
     shape = cuts[0]["image"].shape
     to_ref, from_ref, offsets = [], [], []
     for c in cuts:
-        A = np.linalg.solve(c["J"], J0)          # reference-pixel offsets -> this exposure's
-        B = np.linalg.inv(A)
+        A = _inverse2(c["J"]) @ J0               # reference-pixel offsets -> this exposure's
+        B = _inverse2(A)
         to_ref.append(_nearest_map(A, shape))
         from_ref.append(_nearest_map(B, shape))
         offsets.append(B @ np.asarray(c["offset"], float))   # where its object lands on the reference grid
