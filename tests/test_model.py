@@ -303,6 +303,35 @@ def test_content_memo_checks_every_value():
     assert len(memo) == 6 and "a" not in memo.values()
 
 
+def test_immutable_arrays_are_shared_and_writable_ones_copied():
+    """A read-only array that owns its memory (a given PSF image a CCD's objects share) is kept by the
+    Observation and the memo themselves, and a memo hit on it needs no comparison; a writable array, or a
+    read-only view of one, is copied, so that changing it afterwards changes neither."""
+    from shearfit.engine.model import ContentMemo
+
+    rng = np.random.default_rng(3)
+    psf = rng.uniform(size=(25, 25))
+    psf /= psf.sum()
+    frozen = psf.copy()
+    frozen.setflags(write=False)
+    args = dict(image=np.zeros((32, 32)), weight=np.ones((32, 32)), jacobian=PIX * np.eye(2))
+    assert shearfit.Observation(psf=frozen, **args).psf is frozen
+    view = psf[:]
+    view.setflags(write=False)
+    for a in (psf, view):
+        o = shearfit.Observation(psf=a, **args)
+        assert o.psf is not a and not o.psf.flags.writeable
+        psf[0, 0] += 1.0
+        assert o.psf[0, 0] != psf[0, 0]
+        psf[0, 0] -= 1.0
+    memo = ContentMemo(max_bytes=1 << 20)
+    memo.put(frozen, (), "f")
+    memo.put(psf, (), "p")
+    key_f, key_p = list(memo._d)
+    assert memo._d[key_f][0] is frozen and memo._d[key_p][0] is not psf
+    assert memo.peek(frozen, ()) == "f" and memo.peek(frozen.copy(), ()) == "f"
+
+
 @pytest.mark.skipif(not (DATA / "decam_00154912_12_psfex.psf").exists(), reason="shared real data absent")
 def test_oversampled_psfex_against_the_sampled_image():
     """The 3x oversampled PSFEx image under a rotated, sheared Jacobian, a pure bulge of 0.05": the model is

@@ -21,11 +21,20 @@ __all__ = ["Observation", "FitResult"]
 
 
 def _readonly(a, name, ndim=2):
-    arr = np.array(a, dtype=np.float64, copy=True)
+    if is_immutable(a) and a.dtype == np.float64:
+        arr = a   # read-only and owning its memory (a PSF image a CCD's objects share): shared, not copied
+    else:
+        arr = np.array(a, dtype=np.float64, copy=True)
     if arr.ndim != ndim:
         raise ShearfitValueError(f"Observation {name} must be a {ndim}D array, got shape {arr.shape}")
     arr.setflags(write=False)
     return arr
+
+
+def is_immutable(a) -> bool:
+    """Whether ``a`` is a C-contiguous array that owns its memory and is read-only: no view of it can change
+    its values (short of its owner making it writable again)."""
+    return isinstance(a, np.ndarray) and a.base is None and not a.flags.writeable and a.flags.c_contiguous
 
 
 class Observation:
@@ -53,6 +62,10 @@ class Observation:
         For a native PSF, the circular Moffat (scale radius in pixels, beta)
         that carries it above Nyquist (App. A; see :func:`shearfit.engine.model.psf_moffat`).
         The pipeline fits one per CCD; by default one is fitted to ``psf``.
+
+    The arrays are kept as read-only float64 copies, except a float64 array that is already read-only and
+    owns its memory (no view of it can change it): that one is kept itself, so that many observations sharing one
+    PSF image (a CCD's objects) share the array too.
     """
 
     def __init__(self, image, psf, jacobian, weight=None, psf_oversampling=1, offset=(0.0, 0.0),

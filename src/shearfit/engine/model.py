@@ -35,7 +35,7 @@ from scipy import special
 
 from ..config import FitConfig
 from ..errors import ShearfitValueError
-from ..observation import Observation
+from ..observation import Observation, is_immutable
 from .moffat import fit_moffat, fit_moffats, moffat_ft, moffat_norm
 from .kernel import KERNEL, USE_KERNEL
 
@@ -133,7 +133,8 @@ class ContentMemo:
     """Results computed from an array (a PSF image that the objects of a CCD share, each object holding its
     own copy), remembered by a fingerprint of the array (its shape, type and about 256 of its values) and
     checked against a copy of its whole contents on every hit, so that an array that differs anywhere is
-    computed afresh: cheaper than hashing the contents, as safe. Least recently used entries go first beyond
+    computed afresh: cheaper than hashing the contents, as safe (a read-only array owning its memory is kept
+    itself, and a hit on that very array needs no comparison). Least recently used entries go first beyond
     ``max_bytes`` (copies and results) or ``max_entries``."""
 
     def __init__(self, max_bytes, max_entries=4096):
@@ -155,7 +156,7 @@ class ContentMemo:
         a = np.asarray(a)
         for key in self._by_fp.get(self._fingerprint(a, extra), ()):
             copy, value, _ = self._d[key]
-            if np.array_equal(copy, a):
+            if copy is a or np.array_equal(copy, a):
                 self._d.move_to_end(key)
                 return value
         return default
@@ -164,7 +165,9 @@ class ContentMemo:
         """Remember ``value`` for array ``a`` and ``extra`` (a copy of ``a`` is kept to check later hits)."""
         a = np.asarray(a)
         fp = self._fingerprint(a, extra)
-        copy = np.array(a, copy=True)
+        # a read-only array that owns its memory cannot change: kept itself, so that its own later hits
+        # are recognised without comparing contents
+        copy = a if is_immutable(a) else np.array(a, copy=True)
         size = copy.nbytes + sum(v.nbytes for v in (value if isinstance(value, tuple) else (value,))
                                  if isinstance(v, np.ndarray))
         self._serial += 1

@@ -238,7 +238,16 @@ def _load_psf(spec, n_ccd, index, ccds=None, fit=None):
     if len(idx) != n_ccd:
         raise ShearfitValueError(f"{spec.psf} has {len(idx)} PSF image HDUs but {spec.image} has {n_ccd} CCDs; "
                                  f"a given PSF needs one image HDU per CCD, in the image's order")
-    return _ExposurePSF(images=[read_psf_fits(spec.psf, idx[p]) for p in positions])
+    return _ExposurePSF(images=[_immutable(read_psf_fits(spec.psf, idx[p])) for p in positions])
+
+
+def _immutable(got):
+    """A given PSF (image, oversampling) with the image as a read-only array of its own, which the CCD's
+    objects' Observations and the engine's transforms then share instead of copying."""
+    img, k = got
+    img = np.array(img, dtype=np.float64, copy=True)
+    img.setflags(write=False)
+    return img, k
 
 
 def psf_star_positions(cfg: FieldConfig, cat, ccds):
