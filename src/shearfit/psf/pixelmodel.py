@@ -610,6 +610,8 @@ def _fold_to_fine(P, n, k):
     Its inverse FFT is the model sampled every 1/k pixel (origin at index 0).
     """
     K = k * n
+    if k == 1:   # the native grid: the fine frequencies are the stamp's own, in FFT order
+        return P[:, 0, 0].copy()
     f = _fine_freqs(n, k) % K
     out = np.zeros(P.shape[:1] + (K, K), complex)
     out[:, f[:, None, :, None], f[None, :, None, :]] = P
