@@ -12,6 +12,8 @@ and the peak memory; then, under the profiler, the time of each pipeline stage a
 
     python benchmarks/pipeline_profile.py                   # given and fitted PSFs, then the profile
     python benchmarks/pipeline_profile.py --psf fitted      # only PSF models fitted from the stars
+    python benchmarks/pipeline_profile.py --keep A          # at one commit, then at another:
+    python benchmarks/pipeline_profile.py --compare-with A  # how far the catalogues moved
 """
 
 from __future__ import annotations
@@ -161,6 +163,32 @@ def _warm_up():
     psf_moments(np.array(obs[0].psf, float))
 
 
+def _compare_catalogues(before, after, mode):
+    """How far the ellipticities and weights of catalogue ``after`` moved from ``before`` (the same objects)."""
+    from astropy.table import Table
+
+    label = "given" if mode == "true" else "fitted"
+    if not os.path.exists(before):
+        print(f"\nPSF {label}: no {before} to compare with")
+        return
+    a, b = Table.read(before), Table.read(after)
+    if len(a) != len(b) or not np.array_equal(np.asarray(a["id"]), np.asarray(b["id"])):
+        print(f"\nPSF {label}: {before} holds other objects; not compared")
+        return
+    de = np.hypot(np.asarray(a["e1"], float) - np.asarray(b["e1"], float),
+                  np.asarray(a["e2"], float) - np.asarray(b["e2"], float))
+    both = np.isfinite(de)
+    de = de[both]
+    dw = np.abs(np.asarray(a["weight"], float) - np.asarray(b["weight"], float))[both]
+    err = np.sqrt(np.asarray(a["e_var"], float))[both]
+    rel = de[err > 0] / err[err > 0]
+    flips = int(np.sum(np.asarray(a["fitclass"]) != np.asarray(b["fitclass"])))
+    print(f"\nPSF {label}, against {before}: {de.size} objects measured in both; |delta e| at most "
+          f"{de.max() if de.size else 0:.2e} (at most {rel.max() if rel.size else 0:.1e} of the error on e); "
+          f"more than 1e-7, 1e-5, 1e-4: {int(np.sum(de > 1e-7))}, {int(np.sum(de > 1e-5))}, {int(np.sum(de > 1e-4))}; "
+          f"weight at most {dw.max() if dw.size else 0:.2e} apart; fitclass changed for {flips}")
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--preset", default="small")
@@ -177,6 +205,9 @@ def main(argv=None):
     ap.add_argument("--keep", default=None, help="keep the field in this directory")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="a setting of the engine or the pipeline for every run (e.g. psf_native_width=0)")
+    ap.add_argument("--compare-with", default=None, metavar="DIR",
+                    help="the --keep directory of an earlier run (another commit, the same preset and seed): how far "
+                         "this run's catalogues moved from its shear_true.fits and shear_fitted.fits")
     args = ap.parse_args(argv)
     from shearfit.engine.kernel import kernel_info
 
@@ -228,6 +259,10 @@ def main(argv=None):
                   f"fitted PSFs (medians); pair by pair {', '.join(f'{p:.0f}' for p in pair)} %")
         if args.simultaneous > 0 and len(modes) == 2:
             _simultaneous_pairs(d, args.set, args.simultaneous)
+        if args.compare_with:
+            for mode in modes:
+                _compare_catalogues(os.path.join(args.compare_with, f"shear_{mode}.fits"),
+                                    os.path.join(d, f"shear_{mode}.fits"), mode)
         peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
         print(f"peak memory (max RSS of this process): {peak:.0f} MB")
         if args.no_profile:
