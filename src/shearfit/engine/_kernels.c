@@ -316,14 +316,17 @@ static inline __attribute__((always_inline)) double fast_log2(double x)
 {
     uint64_t u;
     memcpy(&u, &x, sizeof u);
-    uint64_t eu = (u >> 52) | 0x4330000000000000ULL;      /* 2^52 + the biased exponent */
-    uint64_t mu = (u & 0x000FFFFFFFFFFFFFULL) | 0x3FF0000000000000ULL;
+    /* m > sqrt(2) (the double 0x3FF6A09E667F3BCD) where the mantissa's bits exceed 0x6A09E667F3BCD; then m / 2
+       is the exponent 1022 and the exponent one more, all in integer operations (float selects made GCC
+       compute both arms of what follows, see bin_index_f32) */
+    const uint64_t mant = u & 0x000FFFFFFFFFFFFFULL;
+    const uint64_t big = mant > 0x0006A09E667F3BCDULL;
+    uint64_t eu = ((u >> 52) + big) | 0x4330000000000000ULL;      /* 2^52 + the biased exponent (+ 1) */
+    uint64_t mu = mant | (0x3FF0000000000000ULL - (big << 52));
     double ed, m;
     memcpy(&ed, &eu, sizeof ed);
     memcpy(&m, &mu, sizeof m);
-    const int big = m > 1.4142135623730951;
-    m = big ? 0.5 * m : m;
-    const double e = (ed - 4503599627371519.0) + (big ? 1.0 : 0.0);   /* 2^52 + 1023 */
+    const double e = ed - 4503599627371519.0;   /* 2^52 + 1023 */
     const double s = (m - 1.0) / (m + 1.0), s2 = s * s;
     double t = (1.0 / 11.0) * s2 + 1.0 / 9.0;
     t = t * s2 + 1.0 / 7.0;
@@ -430,16 +433,19 @@ static void bin_index_f32(const double *restrict P, Py_ssize_t n_single, double 
     for (Py_ssize_t j = 0; j < n_single; j++) {
         const float k = kf[j];
         const int dc = !(k > 0.0f);
-        const float kk = dc ? 1.0f : k;
         uint32_t u;
-        memcpy(&u, &kk, sizeof u);
-        int32_t e = (int32_t)(u >> 23) - 127;
-        uint32_t mu = (u & 0x007FFFFFu) | 0x3F800000u;
+        memcpy(&u, &k, sizeof u);
+        u = dc ? 0x3F800000u : u;   /* the DC mode: 1 */
+        /* the mantissa m in [sqrt(1/2), sqrt(2)) and its exponent, in integer operations: m > sqrt(2) (the
+           float 0x3FB504F3) where its bits exceed 0x3504F3, and then m / 2 is the exponent 126. Written as
+           float selects (m = big ? m / 2 : m), GCC made both arms of everything after them and blended the
+           results: twice the work */
+        const uint32_t mant = u & 0x007FFFFFu;
+        const uint32_t big = mant > 0x003504F3u;
+        const int32_t e = (int32_t)(u >> 23) - 127 + (int32_t)big;
+        const uint32_t mu = mant | (0x3F800000u - (big << 23));
         float m;
         memcpy(&m, &mu, sizeof m);
-        const int big = m > 1.41421356f;
-        m = big ? 0.5f * m : m;
-        e += big;
         const float s = (m - 1.0f) / (m + 1.0f), s2 = s * s;
         float p = (1.0f / 9.0f) * s2 + 1.0f / 7.0f;
         p = p * s2 + 1.0f / 5.0f;
