@@ -247,6 +247,10 @@ def _validate(stamps, weights, offsets):
     s = np.empty((len(stamps),) + shape)
     w = np.empty_like(s)
     for i, (si, wi) in enumerate(zip(stamps, weights)):
+        if (isinstance(si, np.ndarray) and isinstance(wi, np.ndarray) and si.shape == shape == wi.shape
+                and si.dtype == wi.dtype == np.float64):   # the pipeline's stamps: copied as they are
+            s[i], w[i] = si, wi
+            continue
         si = np.asarray(si, dtype=np.float64)
         if si.shape != shape:
             raise ShearfitValueError(f"stamp {i} has shape {si.shape}, stamp 0 has {shape}")
@@ -260,8 +264,9 @@ def _validate(stamps, weights, offsets):
         raise ShearfitValueError("offsets must be one finite (dx, dy) per exposure")
     # A non-finite or negative-weight pixel carries no information: treat it as masked.
     good = np.isfinite(s) & np.isfinite(w) & (w > 0)
-    w = np.where(good, w, 0.0)
-    s = np.where(good, s, 0.0)
+    if not good.all():
+        w = np.where(good, w, 0.0)
+        s = np.where(good, s, 0.0)
     return s, w, off
 
 
@@ -335,6 +340,13 @@ def _significant_maxima(v, region, nsigma, min_contrast):
     return out
 
 
+def _pad1(a):
+    """``a`` inside a one-pixel border of zeros (np.pad(a, 1), without its per-call overhead)."""
+    out = np.zeros((a.shape[0] + 2, a.shape[1] + 2), dtype=a.dtype)
+    out[1:-1, 1:-1] = a
+    return out
+
+
 def _deblend(snr, region, nsigma, n_levels, min_pixels, min_contrast, spacing):
     """Regions grown from the maxima of ``snr`` inside ``region`` (the footnote of sec. 3.6).
 
@@ -362,8 +374,8 @@ def _deblend(snr, region, nsigma, n_levels, min_pixels, min_contrast, spacing):
     """
     # a one-pixel empty border: every region pixel's 8 neighbours exist, so _grow
     # can gather them by flat index without wrapping round a row
-    region = np.pad(region, 1)
-    v = np.where(region, np.pad(snr, 1), -np.inf)
+    region = _pad1(region)
+    v = np.where(region, _pad1(snr), -np.inf)
     strong = _significant_maxima(v, region, nsigma, min_contrast)
     # Every region the growth makes starts at a local maximum and keeps it as
     # its peak; regions whose peak is not significant are merged below, so
@@ -561,10 +573,11 @@ def analyse_stamps(stamps: Sequence[np.ndarray], weights: Sequence[np.ndarray], 
 
     # Centroid of the smoothed light inside the isophote (positive by construction there).
     f = smooth[box] * rreg
-    yy, xx = np.mgrid[box]
+    yy = np.arange(box[0].start, box[0].stop, dtype=float)
+    xx = np.arange(box[1].start, box[1].stop, dtype=float)
     tot = f.sum()
-    cx = float((f * xx).sum() / tot - x0)
-    cy = float((f * yy).sum() / tot - y0)
+    cx = float((f.sum(axis=0) @ xx) / tot - x0)
+    cy = float((f.sum(axis=1) @ yy) / tot - y0)
     shift = math.hypot(cx, cy)
 
     if n_reg > 1:
