@@ -130,8 +130,8 @@ def _rfft_weights(ny, nx):
 
 
 class ContentMemo:
-    """Results computed from an array (a PSF image that the objects of a CCD share, each object holding its
-    own copy), remembered by a fingerprint of the array (its shape, type and about 256 of its values) and
+    """Results computed from an array (a PSF image that the objects of a CCD share, as one array or each
+    object its own copy), remembered by a fingerprint of the array (its shape, type and about 256 of its values) and
     checked against a copy of its whole contents on every hit, so that an array that differs anywhere is
     computed afresh: cheaper than hashing the contents, as safe (a read-only array owning its memory is kept
     itself, and a hit on that very array needs no comparison). Least recently used entries go first beyond

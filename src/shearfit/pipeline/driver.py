@@ -46,7 +46,7 @@ from ..errors import (FITCLASS_BAD_INPUT, FITCLASS_FEW_EXPOSURES, FITCLASS_FIT_F
                       FITCLASS_OFF_EXPOSURES, FITCLASS_TOO_LARGE, ShearfitIOError, ShearfitValueError)
 from ..calib.calibrate import calibration_m, default_calibration, load_calibration
 from ..engine.measure import measure_object
-from ..engine.model import ContentMemo, psf_moffat
+from ..engine.model import ContentMemo, inv2, psf_moffat
 from ..observation import Observation
 from ..io.fieldconfig import CALIBRATION_MODES, FieldConfig
 from ..io.fits import (METACAL_QUANTITIES, attach_pixels, bad_rows, detached, empty_output_table, provenance_cards,
@@ -301,13 +301,6 @@ def _nearest_map(A, shape):
     return np.where(inside, py * nx + px, 0), inside
 
 
-def _inverse2(M):
-    """The inverse of a 2 x 2 matrix in closed form (np.linalg's per-call cost is most of the work here)."""
-    (a, b), (c, d) = M
-    det = a * d - b * c
-    return np.array([[d, -b], [-c, a]]) / det
-
-
 def _carry(a, m):
     """Stamp ``a`` carried through a :func:`_nearest_map` ``m`` (0 where it has no pixel); ``a`` if None."""
     return a if m is None else np.where(m[1], a.ravel()[m[0]], 0)
@@ -328,8 +321,8 @@ def _isophote_analysis(cuts, pc) -> int:
     shape = cuts[0]["image"].shape
     to_ref, from_ref, offsets = [], [], []
     for c in cuts:
-        A = _inverse2(c["J"]) @ J0               # reference-pixel offsets -> this exposure's
-        B = _inverse2(A)
+        A = inv2(c["J"]) @ J0                    # reference-pixel offsets -> this exposure's (inv2: closed form)
+        B = inv2(A)
         to_ref.append(_nearest_map(A, shape))
         from_ref.append(_nearest_map(B, shape))
         offsets.append(B @ np.asarray(c["offset"], float))   # where its object lands on the reference grid

@@ -314,7 +314,7 @@ def _solve_modes(model: PixelPSF, D, stars: StarSet, flux, prior=None):
         on = lam > 0
         coef = np.zeros((T, n * n), complex)
         # X is real: the complex right-hand sides are solved as their real and imaginary parts side by side
-        # (real arithmetic, a quarter of the complex products'), through _as_real / _as_complex
+        # (real products, half the multiplications of complex ones with a zero imaginary part)
         if not np.all(on):
             coef[:, ~on] = _as_complex(np.linalg.lstsq(X, _as_real(sw * Yc[:, ~on]), rcond=None)[0])
         if np.any(on):
