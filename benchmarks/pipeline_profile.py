@@ -148,6 +148,11 @@ def _simultaneous_pairs(d, settings, n_pairs):
     print(f"  median: given {np.median(rates['true']):.2f}, fitted {np.median(rates['fitted']):.2f} objects per "
           f"CPU-second; **PSF stage {np.median(shares):.0f} %** of the fitted runs (pairs "
           f"{', '.join(f'{x:.0f}' for x in shares)} %)")
+    if len(shares) > 1:
+        # the pairs scatter by several per cent with the machine's load: their mean and its standard error
+        # say how far the PSF stage is known
+        print(f"  mean over the pairs: PSF stage {np.mean(shares):.1f} +- "
+              f"{np.std(shares, ddof=1) / np.sqrt(len(shares)):.1f} % of the fitted runs")
 
 
 def _warm_up():
