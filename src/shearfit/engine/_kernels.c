@@ -1513,9 +1513,9 @@ static PyObject *fine_modes_select(PyObject *self, PyObject *args)
 #define FM_RELEASE RELEASE(&psb, &ab, &okb, &agb, &gb, &gmb, &kyb, &kxb, &oyb, &oxb, &otb, &ocb)
     const Py_ssize_t nc = ny * nxh, na = (Py_ssize_t)s * s, n = na * nc, d = (Py_ssize_t)sizeof(double);
     const int bad = s < 1 || ny < 1 || nxh < 1 || psb.len != 2 * nc * d || ab.len != nc * d || okb.len != nc
-                    || agb.len != n * d || gb.len != n * d || gmb.len != nc * d || kyb.len != s * ny * d || kxb.len != s * nxh * d
-                    || oyb.len < n * d
-                    || oxb.len < n * d || otb.len < 2 * n * d || ocb.len < n * (Py_ssize_t)sizeof(int64_t);
+                    || agb.len != n * d || gb.len != n * d || gmb.len != nc * d || kyb.len != s * ny * d
+                    || kxb.len != s * nxh * d || oyb.len < n * d || oxb.len < n * d || otb.len < 2 * n * d
+                    || ocb.len < n * (Py_ssize_t)sizeof(int64_t);
     if (bad) {
         FM_RELEASE;
         PyErr_SetString(PyExc_ValueError, "fine_modes_select: inconsistent buffers");
