@@ -120,3 +120,36 @@ def test_oversampled_psfs_and_other_interpolants_take_galsims_path(monkeypatch):
             m.setattr(metacal, name, value)
             metacal.metacal_observations(obs, rng=np.random.default_rng(1))
     assert len(calls) == 1
+
+
+def _fold_brute(arr, n):
+    """One band folded point by point from the full plane it stands for: F(i, j) stored for i >= 0, F(-i, -j) =
+    conj F(i, j); every point lands at (i mod n, j mod n), kept where that column is stored (<= n // 2)."""
+    r = arr.shape[1] - 1
+    half = n // 2
+    out = np.zeros((n, half + 1), complex)
+    for j in range(-r, r + 1):
+        for i in range(-r, r + 1):
+            v = arr[j + r, i] if i >= 0 else np.conj(arr[-j + r, -i])
+            if i % n <= half:
+                out[j % n, i % n] += v
+    return out
+
+
+@pytest.mark.parametrize("n", [64, 48, 45, 8, 7])
+def test_band_fold_is_galsims_wrap_and_the_full_planes_fold(n):
+    """The versions' bands are folded onto the FFT grid as the full plane they stand for folds (periodic in n,
+    the stored half's mirrors conjugated), which for even n is GalSim's ``Image.wrap(hermitian='x')``: for
+    bands narrower than the grid, as wide as it, and several times wider (GalSim's own k grid)."""
+    rng = np.random.default_rng(n)
+    half = n // 2
+    for r in sorted({max(half - 2, 0), half, half + 1, n - 1, n, n + 3, 2 * n + 1}):
+        arr = rng.normal(size=(2, 2 * r + 1, r + 1)) + 1j * rng.normal(size=(2, 2 * r + 1, r + 1))
+        mine = metacal.fold_band(arr, n)
+        for b in range(2):
+            assert np.abs(mine[b] - _fold_brute(arr[b], n)).max() < 1e-12
+            if n % 2 == 0 and r >= half:
+                full = galsim.ImageCD(galsim.BoundsI(0, r, -r, r), scale=1.0)
+                full.array[:, :] = arr[b]
+                ref = full.wrap(galsim.BoundsI(0, half, -half, half - 1), hermitian="x").array
+                assert np.abs(mine[b][np.arange(-half, half) % n] - ref).max() < 1e-12

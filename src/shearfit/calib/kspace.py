@@ -35,7 +35,7 @@ from scipy import fft as sfft
 
 from ..engine.kernel import KERNEL, USE_KERNEL
 
-__all__ = ["quintic", "padded_transforms", "kvalues", "band_maxk", "PAD_FACTOR", "MAXK_THRESHOLD"]
+__all__ = ["quintic", "padded_transforms", "kvalues", "band_maxk", "singular_values2", "PAD_FACTOR", "MAXK_THRESHOLD"]
 
 #: The padded grid of the discrete transforms, in widths of the larger image (GalSim's default pad_factor).
 PAD_FACTOR = 4
@@ -141,13 +141,23 @@ def band_maxk(psf_column, xkernel, jac, threshold=MAXK_THRESHOLD):
     amp = np.abs(psf_column) * xx
     above = amp > threshold * abs(psf_column[0, 0])
     jac = np.asarray(jac, float)
-    nyquist = np.pi / np.linalg.svd(jac, compute_uv=False)[0]
+    nyquist = np.pi / singular_values2(jac)[0]
     if not np.any(above):
         return 0.0
-    # |J^-T kappa|^2 as the quadratic form of (J^T J)^-1 over the grid
-    (a, b), (_, c) = np.linalg.inv(jac.T @ jac)
+    # |J^-T kappa|^2 as the quadratic form of (J^T J)^-1 = adj(J^T J) / det(J)^2 over the grid
+    (p, q), (r, s) = jac
+    det2 = (p * s - q * r) ** 2
+    a, b, c = (q * q + s * s) / det2, -(p * q + r * s) / det2, (p * p + r * r) / det2
     k2 = a * kx * kx + 2 * b * kx * ky + c * ky * ky
     return float(min(np.sqrt(np.max(k2[above])), nyquist))
+
+
+def singular_values2(A):
+    """The larger and the smaller singular value of a 2 x 2 matrix (closed form)."""
+    (a, b), (c, d) = np.asarray(A, float)
+    p = a * a + b * b + c * c + d * d
+    q = np.hypot(a * a + b * b - c * c - d * d, 2 * (a * c + b * d))
+    return np.sqrt(0.5 * (p + q)), np.sqrt(max(0.5 * (p - q), 0.0))
 
 
 @functools.lru_cache(maxsize=8)

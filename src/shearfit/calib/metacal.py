@@ -59,10 +59,9 @@ from dataclasses import dataclass, field
 import galsim
 import numpy as np
 from scipy import fft as sfft
-from scipy import ndimage
 
 from ..errors import FITCLASS_GALAXY, ShearfitIOError
-from ..engine.model import psf_moffat, psf_moffats
+from ..engine.model import inv2, psf_moffat, psf_moffats
 from . import kspace
 from ..observation import Observation
 
@@ -92,6 +91,20 @@ _LANCZOS = galsim.Lanczos(15)
 #: The versions of stamps with native PSFs made by shearfit's own k-space operations (:func:`own_kspace_images`;
 #: False: by GalSim's objects, :func:`_galsim_images`).
 OWN_KSPACE = True
+
+
+def _grown(mask, steps):
+    """The mask grown by ``steps`` pixels along rows and columns: scipy's ``ndimage.binary_dilation`` with its
+    default (cross) structure and ``iterations=steps``, by shifted copies."""
+    out = np.array(mask, bool)
+    for _ in range(steps):
+        g = out.copy()
+        g[1:] |= out[:-1]
+        g[:-1] |= out[1:]
+        g[:, 1:] |= out[:, :-1]
+        g[:, :-1] |= out[:, 1:]
+        out = g
+    return out
 
 
 def _wcs(J, k=1):
@@ -241,25 +254,65 @@ class _Drawer:
         return out
 
 
+def fold_band(arr, n):
+    """Bands (``arr``: (bands, 2 r + 1, r + 1), the values F(i, j) at i = 0 .. r, rows j = -r .. r, Hermitian
+    in x) folded onto the n x n grid's rfft layout ((bands, n, n // 2 + 1): rows ky, columns kx), periodic in
+    n: each value lands at (i mod n, j mod n) where that column is stored, and for i > 0 its mirror conj
+    F(i, j) = F(-i, -j) at ((-i) mod n, (-j) mod n) where that one is. For even n this is GalSim's
+    ``Image.wrap(..., hermitian='x')`` onto rows -n/2 .. n/2 - 1 (``tests/test_kspace.py``)."""
+    nb, rows2, r1 = arr.shape
+    r, half = r1 - 1, n // 2
+    out = np.zeros((nb, n, half + 1), complex)
+    if r < n:
+        # rows j = 0 .. r, then j = -r .. -1 at n - r .. n - 1; columns i <= n / 2 where they are, and the
+        # mirrors of i = n - n // 2 .. r (the others are not stored) at n - i, rows -j, conjugated
+        rows = np.zeros((nb, n, r1), complex)
+        rows[:, :r + 1] = arr[:, r:]
+        rows[:, n - r:] += arr[:, :r]
+        m = min(r, half) + 1
+        out[:, :, :m] = rows[:, :, :m]
+        lo = max(n - half, 1)
+        if lo <= r:
+            sub = rows[:, :, lo:]
+            mirror = np.concatenate([sub[:, :1], sub[:, :0:-1]], axis=1).conj()   # rows -j mod n
+            out[:, :, n - r:n - lo + 1] += mirror[:, :, ::-1]
+        return out
+    rows = np.zeros((nb, n, r1), complex)
+    j = np.arange(-r, r + 1) % n
+    for s in range(0, rows2, n):   # n consecutive rows land on distinct rows
+        rows[:, j[s:s + n]] += arr[:, s:s + n]
+    i = np.arange(r1)
+    mirror = rows[:, (-np.arange(n)) % n].conj()
+    for s in range(0, r1, n):      # n consecutive columns land on distinct columns
+        cols = i[s:s + n]
+        x = cols % n
+        keep = x <= half
+        out[:, :, x[keep]] += rows[:, :, cols[keep]]
+        xm = (-cols) % n
+        keep = (xm <= half) & (cols > 0)
+        out[:, :, xm[keep]] += mirror[:, :, cols[keep]]
+    return out
+
+
 def band_images(shape, n, items):
     """The images on a stamp of ``shape`` of k images given on bands: ``items`` is a list of (r, arr), arr the
     transform (an image's, as GalSim's drawFFT makes its k image: surface brightness per pixel, origin at
     pixel (ny // 2, nx // 2)) at the wavevectors 2 pi (i, j) / n of the pixel frame, i = 0 .. r, j = -r .. r
     (rows j), zero beyond; the images are periodic on the n x n grid. A band that reaches the grid's Nyquist
-    row or column is folded onto the grid by GalSim's ``Image.wrap`` (Hermitian in x), as ``drawFFT`` folds
-    its k image before the transform."""
+    row or column is folded onto the grid as GalSim's ``Image.wrap`` (Hermitian in x) folds it (:func:`fold_band`),
+    as ``drawFFT`` folds its k image before the transform."""
     ny, nx = shape
     half = n // 2
     cols = min(max(r for r, _ in items), half) + 1
     spec = np.zeros((len(items), n, cols), np.complex128)
+    wide = {}
     for b, (r, arr) in enumerate(items):
         if r < half:
             spec[b, np.arange(-r, r + 1) % n, :r + 1] = arr
         else:
-            full = galsim.ImageCD(galsim.BoundsI(0, r, -r, r), scale=1.0)
-            full.array[:, :] = arr
-            folded = full.wrap(galsim.BoundsI(0, half, -half, half - 1), hermitian="x").array
-            spec[b, np.arange(-half, half) % n, :] = folded
+            wide.setdefault(r, []).append(b)
+    for bands in wide.values():
+        spec[bands] = fold_band(np.stack([items[b][1] for b in bands]), n)
     # f(x) = (1 / 4 pi^2) sum_k F(k) exp(i k.x) dk^2 with dk = 2 pi / n, irfft2's own normalisation,
     # evaluated only at the stamp's rows and columns: the transform over ky of the band's columns,
     # the stamp's rows of it, then the real transform over kx
@@ -269,14 +322,6 @@ def band_images(shape, n, items):
     if cols < half + 1:
         rows = np.concatenate([rows, np.zeros(rows.shape[:2] + (half + 1 - cols,), rows.dtype)], axis=2)
     return list(sfft.irfft(rows, n=n, axis=2, workers=1)[:, :, ix])
-
-
-def _singular_values(A):
-    """The larger and the smaller singular value of a 2 x 2 matrix (closed form)."""
-    (a, b), (c, d) = np.asarray(A, float)
-    p = a * a + b * b + c * c + d * d
-    q = np.hypot(a * a + b * b - c * c - d * d, 2 * (a * c + b * d))
-    return np.sqrt(0.5 * (p + q)), np.sqrt(max(0.5 * (p - q), 0.0))
 
 
 def _galsim_images(image, noise, psf_image, wcs, psf_wcs, delta, names):
@@ -301,6 +346,14 @@ def _galsim_images(image, noise, psf_image, wcs, psf_wcs, delta, names):
     return _Drawer(image.shape, wcs).draw(products, bands)
 
 
+@functools.lru_cache(maxsize=64)
+def _shear_matrix(g1, g2):
+    """GalSim's matrix of the shear (g1, g2), which acts on sky positions (read-only, shared)."""
+    m = galsim.Shear(g1=g1, g2=g2).getMatrix()
+    m.setflags(write=False)
+    return m
+
+
 def own_kspace_images(image, noise, psf, J, delta, names, fft_size=None):
     """The images of :func:`metacal_observations`' products, [version, its noise] per name of ``names``, from
     shearfit's own k-space operations (:mod:`shearfit.calib.kspace`) instead of GalSim's objects, for a PSF
@@ -313,7 +366,7 @@ def own_kspace_images(image, noise, psf, J, delta, names, fft_size=None):
     table = kspace.padded_transforms([image, noise, psf], n)
     psf_table = table[2:3]
     J = np.asarray(J, float)
-    jit = np.linalg.inv(J).T
+    jit = inv2(J).T
     xk = _LANCZOS.kval
     maxk = kspace.band_maxk(table[2], xk, J)
     dk = 2 * np.pi / n_small
@@ -321,14 +374,14 @@ def own_kspace_images(image, noise, psf, J, delta, names, fft_size=None):
     to_table = n / (2 * np.pi)
     grids = {}
     items = []
-    smax_j = _singular_values(J)[0]
+    smax_j = kspace.singular_values2(J)[0]
     for name in names:
         s1, s2 = VERSIONS[name]
-        S = galsim.Shear(g1=s1 * delta, g2=s2 * delta).getMatrix()   # on sky positions, unit determinant
+        S = _shear_matrix(s1 * delta, s2 * delta)   # on sky positions, unit determinant
         A = S @ jit     # kappa -> the deconvolved profile's sky wavevector S^T K (S symmetric)
         # the grid's half-width: the band's disc seen in the pixel frame, and no wider than the new PSF's band
         # (beyond it the product is below the threshold)
-        r = int(np.ceil(maxk / (_singular_values(A)[1] * dk))) + 1
+        r = int(np.ceil(maxk / (kspace.singular_values2(A)[1] * dk))) + 1
         r = min(r, int(np.ceil(maxk / dilation * smax_j / dk)))
         if r not in grids:
             j, i = np.mgrid[-r:r + 1, 0:r + 1]
@@ -338,7 +391,9 @@ def own_kspace_images(image, noise, psf, J, delta, names, fft_size=None):
             grids[r] = (kap, gamma)
         kap, gamma = grids[r]
         sky = A @ kap
-        inside = np.nonzero(np.sum(sky * sky, axis=0) <= maxk * maxk)[0]
+        # the band's edge: maxk is the norm of one of the padded grid's wavevectors, which for the noshear
+        # version may be one of these too, so it is inside however rounding computes the two norms
+        inside = np.nonzero(np.sum(sky * sky, axis=0) <= maxk * maxk * (1 + 1e-12))[0]
         kp = (J.T @ sky[:, inside]) * to_table   # the sheared wavevectors in the pixel frame: M kappa, M = J^T S J^-T
         v = kspace.kvalues(table, kp[0], kp[1])
         f = gamma[inside] / v[:, 2]
@@ -385,7 +440,7 @@ def metacal_observations(obs: Observation, delta=0.01, rng=None, versions=tuple(
         # and its correlation doubles the processed noise's instead of symmetrising it
         log.warning("metacal: a %d x %d stamp is not square; its noise is not symmetrised", *w.shape)
     nrot = np.rot90(noise, 1) if square else noise
-    mask = ndimage.binary_dilation(~good, iterations=_MASK_GROW)
+    mask = _grown(~good, _MASK_GROW)
     mask[:_EDGE, :] = mask[-_EDGE:, :] = True
     mask[:, :_EDGE] = mask[:, -_EDGE:] = True
     var_in = float(np.mean(sigma[~mask] ** 2)) if np.any(~mask) else 1.0
@@ -394,27 +449,25 @@ def metacal_observations(obs: Observation, delta=0.01, rng=None, versions=tuple(
         images = own_kspace_images(image, nrot, obs.psf, J, delta, names)
     else:
         images = _galsim_images(image, nrot, obs.psf, _wcs(J), _wcs(J, k), delta, names)
+    images = np.asarray(images)
+    nims = np.rot90(images[1::2], -1, axes=(1, 2)) if square else images[1::2]
+    # the versions' noise: the original, processed, plus the added field: twice the added field's variance,
+    # measured on the noshear version and used for all, so that every version is fitted with the same weights
+    # (and the same Fourier modes)
+    var_out = float(np.mean(nims[0][~mask] ** 2)) if np.any(~mask) else var_in
+    scale = var_in / max(2.0 * var_out, 1e-300)
+    weight = np.where(mask, 0.0, w * scale)
+    sums = images[0::2] + nims
     out = {}
-    weight = None
     first = None
     for v, name in enumerate(names):
-        im, nim = images[2 * v], images[2 * v + 1]
-        if square:
-            nim = np.rot90(nim, -1)
-        if weight is None:
-            # the versions' noise: the original, processed, plus the added field: twice the added field's
-            # variance, measured on the noshear version and used for all, so that every version is fitted
-            # with the same weights (and the same Fourier modes)
-            var_out = float(np.mean(nim[~mask] ** 2)) if np.any(~mask) else var_in
-            scale = var_in / max(2.0 * var_out, 1e-300)
-            weight = np.where(mask, 0.0, w * scale)
         if name in versions:
             if first is None:
-                first = Observation(image=im + nim, weight=weight, psf=psf_img, psf_oversampling=k, jacobian=J,
+                first = Observation(image=sums[v], weight=weight, psf=psf_img, psf_oversampling=k, jacobian=J,
                                     offset=tuple(obs.offset), flux_scale=obs.flux_scale, psf_moffat=moffat)
                 out[name] = first
             else:   # the versions share the first one's weight, PSF and geometry
-                out[name] = first.with_image(im + nim)
+                out[name] = first.with_image(sums[v])
     return out
 
 
