@@ -399,6 +399,22 @@ def test_detached_ccds_attach_the_same_pixels(tmp_path):
     assert again[0].weight is None and again[0].noise_ivar > 0
 
 
+def test_attached_wcs_is_parsed_once_per_file_version(tmp_path):
+    """A process attaching a field's CCDs for chunk after chunk parses each WCS once; a file rewritten since
+    (another size or modification time) is parsed again, and gives its new WCS."""
+    image_path, weight_path, _ = two_ccd_exposure(tmp_path)
+    meta = detached(read_exposure(image_path, weight_path))
+    first, second = attach_pixels(meta), attach_pixels(meta)
+    assert all(a.wcs is b.wcs for a, b in zip(first, second))
+    with fits.open(image_path) as h:
+        h[1].header["CRVAL1"] = h[1].header["CRVAL1"] + 0.01
+        h.writeto(image_path, overwrite=True)
+    os.utime(image_path, ns=(os.stat(image_path).st_atime_ns, os.stat(image_path).st_mtime_ns + 10**9))
+    third = attach_pixels(meta)
+    assert third[0].wcs is not first[0].wcs
+    assert third[0].wcs.wcs.crval[0] == pytest.approx(first[0].wcs.wcs.crval[0] + 0.01)
+
+
 def test_pickled_detached_ccds_give_the_same_wcs_bit_for_bit(tmp_path):
     # a worker gets the CCDs pickled; astropy pickles a WCS through a header with fewer digits, so the
     # WCS must come from the file again or a worker's catalogue differs from one process's (at 1e-12)

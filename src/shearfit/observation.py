@@ -10,6 +10,8 @@ arcsec, +u west, +v north::
 
 from __future__ import annotations
 
+import math
+import weakref
 from dataclasses import dataclass, field
 from typing import Optional
 
@@ -29,6 +31,29 @@ def _readonly(a, name, ndim=2):
         raise ShearfitValueError(f"Observation {name} must be a {ndim}D array, got shape {arr.shape}")
     arr.setflags(write=False)
     return arr
+
+
+def _finite(a) -> bool:
+    """Whether every value of a small array is finite (Python floats: a tenth of numpy's per-call cost)."""
+    return all(map(math.isfinite, a.ravel().tolist()))
+
+
+#: The sums of immutable PSF images already checked, by id: (a weak reference to the array, its sum). A CCD's
+#: objects share one PSF image; an immutable array's sum cannot change.
+_PSF_SUMS: dict = {}
+
+
+def _psf_sum(psf) -> float:
+    if not is_immutable(psf):
+        return float(psf.sum())
+    hit = _PSF_SUMS.get(id(psf))
+    if hit is not None and hit[0]() is psf:
+        return hit[1]
+    if len(_PSF_SUMS) >= 256:
+        _PSF_SUMS.clear()
+    total = float(psf.sum())
+    _PSF_SUMS[id(psf)] = (weakref.ref(psf), total)
+    return total
 
 
 def is_immutable(a) -> bool:
@@ -85,16 +110,19 @@ class Observation:
         if k < 1 or k != psf_oversampling:
             raise ShearfitValueError(f"Observation psf_oversampling must be a positive integer, got {psf_oversampling!r}")
         self.psf_oversampling = k
-        psum = float(self.psf.sum())
-        if not np.isfinite(psum) or abs(psum - 1.0) > 1e-3:
+        psum = _psf_sum(self.psf)
+        if not math.isfinite(psum) or abs(psum - 1.0) > 1e-3:
             raise ShearfitValueError(f"Observation psf must sum to 1 (sums to {psum:.6g})")
         J = np.array(jacobian, dtype=np.float64)
-        if J.shape != (2, 2) or not np.all(np.isfinite(J)) or abs(np.linalg.det(J)) <= 0:
+        if J.shape != (2, 2) or not _finite(J):
+            raise ShearfitValueError("Observation jacobian must be a finite, invertible 2x2 array")
+        (a, b), (c, d) = J.tolist()
+        if not abs(a * d - b * c) > 0:
             raise ShearfitValueError("Observation jacobian must be a finite, invertible 2x2 array")
         J.setflags(write=False)
         self.jacobian = J
         off = np.array(offset, dtype=np.float64)
-        if off.shape != (2,) or not np.all(np.isfinite(off)):
+        if off.shape != (2,) or not _finite(off):
             raise ShearfitValueError("Observation offset must be a pair of finite numbers (dx, dy)")
         off.setflags(write=False)
         self.offset = off

@@ -98,7 +98,8 @@ def psf_fwhm_arcsec(jacobian, oversampling=1, moments=None):
     NaN where the moments failed. The noise-bias calibration's resolution (``scalelength / psf_fwhm``) uses it."""
     if moments is None:
         return np.nan
-    return float(2.3548 * moments[0] / oversampling * np.sqrt(abs(np.linalg.det(np.asarray(jacobian, float)))))
+    (a, b), (c, d) = np.asarray(jacobian, float).tolist()
+    return float(2.3548 * moments[0] / oversampling * np.sqrt(abs(a * d - b * c)))
 
 
 def psf_ellipticity(psf, jacobian, oversampling=1, moments=None):
@@ -108,15 +109,14 @@ def psf_ellipticity(psf, jacobian, oversampling=1, moments=None):
     (M_sky = J M J^T), then turned into the reduced-shear ellipticity.
     ``moments`` (from :func:`psf_moments`) avoids measuring them again.
     """
-    import galsim
-
     moments = psf_moments(psf) if moments is None else moments
     if moments is None:
         return np.nan, np.nan
     s = moments[0] / oversampling
     g1, g2 = moments[1]
-    # moment matrix of an elliptical Gaussian of size s and reduced shear g (det = s^4)
-    S = galsim.Shear(g1=g1, g2=g2).getMatrix()
+    # moment matrix of an elliptical Gaussian of size s and reduced shear g (det = s^4): s^2 S S^T, S the
+    # shear's matrix (GalSim's Shear.getMatrix) [[1 + g1, g2], [g2, 1 - g1]] / sqrt(1 - |g|^2)
+    S = np.array([[1 + g1, g2], [g2, 1 - g1]]) / np.sqrt(1 - g1 * g1 - g2 * g2)
     M = (s * s) * S @ S.T
     Ms = jacobian @ M @ jacobian.T
     a, b, c = Ms[0, 0], Ms[1, 1], Ms[0, 1]
@@ -379,7 +379,7 @@ def measure_field(cfg: FieldConfig, out_path=None, progress=False, processes=1, 
     dec = np.where(bad, np.nan, np.asarray(cat["dec"], float))
     hits = locate_all([exposures[e][0][c] for e, c in flat], ra, dec)
     # from here on the pixels are opened per chunk (memory-mapped), by whichever process measures it, and
-    # the pages each object read are released after it: memory does not grow with the field or the run
+    # the pages the objects read are released every few objects: memory does not grow with the field or the run
     exposures = _detached_exposures(exposures)
     metacal = cfg.calibration == "metacal"
     table = empty_output_table(cat, metacal=metacal)
@@ -544,16 +544,23 @@ def _attached(exposures):
 
 
 def _measure_objects(exposures, hits, mags, ids, cfg):
-    """One chunk's objects: the exposures' memory maps opened once, the pages each object read released after
-    it (an object touches about 5 MB of pages on 7 exposures; kept, a chunk's would add up)."""
+    """One chunk's objects: the exposures' memory maps opened once, the pages the objects read released every
+    :data:`RELEASE_EVERY` objects and at the end (an object touches about 5 MB of pages on 7 exposures; kept, a
+    chunk's would add up; released after every object, the next one, often on the same rows, reads them again)."""
+    hits = list(hits)
     opened = _attached(exposures)
     geometry = _chunk_geometry(opened, hits)
     rows = []
-    for h, m, i in zip(hits, mags, ids):
+    for n, (h, m, i) in enumerate(zip(hits, mags, ids)):
         rows.append(_measure_one(h, opened, m, cfg, cfg.pipeline, i, geometry))
-        for ccds, _ in opened:
-            release_pages(ccds)
+        if (n + 1) % RELEASE_EVERY == 0 or n + 1 == len(hits):
+            for ccds, _ in opened:
+                release_pages(ccds)
     return rows
+
+
+#: Objects measured between releases of the exposures' memory-mapped pages (:func:`shearfit.io.fits.release_pages`).
+RELEASE_EVERY = 8
 
 
 def _chunk_geometry(exposures, hits) -> dict:
