@@ -18,6 +18,10 @@ Two references:
   nothing; the PSFEx model, a Lanczos-interpolated image, has 1.4e-3 of its peak at |k| = 2 pi per pixel
   (the interpolant's replicas), which sampling folds onto the low modes (0.2 % of a point source's flux).
 
+Then, for native PSF images, what the samples cannot tell (``ambiguity``): the model's PSF has the true PSF's
+samples, and where the two still give a small galaxy different images, no renderer that sees only the samples
+can be close to both.
+
     python benchmarks/render_accuracy.py            # the whole grid (a few minutes)
     python benchmarks/render_accuracy.py --quick    # r = 0.05" and 1", the worst shapes
 """
@@ -89,6 +93,40 @@ def errors(r, e, bulge, psf_pix, J, oversampling):
     return tuple(float(np.abs(mod - ref).max() / ref.max()) for ref in refs)
 
 
+def native_samples(psf_pix, n):
+    """The PSF's values at the centres of an n x n pixel grid (origin at pixel (n // 2, n // 2)), as a star
+    records them: drawn FINE times finer and decimated, unit sum."""
+    fine = psf_pix.drawImage(nx=n * FINE, ny=n * FINE, scale=1.0 / FINE, method="no_pixel", use_true_center=False,
+                             dtype=np.float64).array
+    start = (n * FINE // 2) % FINE
+    out = fine[start::FINE, start::FINE][:n, :n]
+    return out / out.sum()
+
+
+def ambiguity(psf_pix, J, sizes, shapes, bulges):
+    """What a native PSF image cannot tell: the model's own PSF (the samples inside the pixels' Nyquist band,
+    the App. A Moffat above it) has the true PSF's samples (checked on a point source, r = 1e-4", at the stamp
+    centre), yet the two PSFs give a galaxy different images. Returns (point source against the samples, the
+    worst |image with the model's PSF - image with the true PSF| / peak over the galaxies): any renderer that
+    sees only the samples is at least half of the latter from one of the two."""
+    n = 48
+    S = native_samples(psf_pix, 2 * n)
+    c = slice(n - n // 2, n + n // 2)
+    obs = shearfit.Observation(image=np.zeros((n, n)), weight=np.ones((n, n)), psf=S, jacobian=J)
+    point = shearfit.render_object(obs, 0.0, 0.0, 1e-4, 0.0, 1.0, config={"alias_correction": "moffat"})
+    consistency = float(np.abs(point - S[c, c]).max() / S[c, c].max())
+    worst = 0.0
+    wcs = galsim.JacobianWCS(*J.ravel())
+    for r, e, (B, is_bulge) in itertools.product(sizes, shapes, bulges):
+        conv = galsim.Convolve(wcs.toImage(galaxy_profile(r, B, e[0], e[1], flux=1.0, is_bulge=is_bulge)), psf_pix)
+        ref = sampled_reference(conv, n)
+        obs = shearfit.Observation(image=ref, weight=np.ones_like(ref), psf=S, jacobian=J, offset=OFFSET)
+        mod = shearfit.render_object(obs, e[0], e[1], r, 1.0 if is_bulge else B, 1.0,
+                                     config={"alias_correction": "moffat"})
+        worst = max(worst, float(np.abs(mod - ref).max() / ref.max()))
+    return consistency, worst
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--quick", action="store_true", help="r = 0.05 and 1 arcsec, two shapes")
@@ -113,6 +151,17 @@ def main(argv=None):
         label = "native + App. A Moffat" if os_ == 1 else f"{os_}x oversampled"
         print(f"| {psf_name} | {label} | {jname} | {worst[0][0]:.1e} | {worst[0][1]} | {worst[1][0]:.1e} | "
               f"{worst[1][1]} |", flush=True)
+    small = tuple(r for r in sizes if r <= 0.2)
+    print(f"\nNative PSF images as a star records them (the PSF's values at the pixel centres), r = "
+          f"{', '.join(map(str, small))} arcsec, plain Jacobian: two PSFs with these samples, the true one and the "
+          f"model's (samples inside the Nyquist band, App. A Moffat above), and the images they give\n")
+    print("| PSF | model's point source vs the samples | images of the two PSFs, worst apart | no renderer of the "
+          "samples is closer to both than |")
+    print("|---|---|---|---|")
+    J = jacobians()["plain"]
+    for psf_name in ("Moffat", "PSFEx"):
+        consistency, apart = ambiguity(psf_in_pixels(psf_name, J, psfex), J, small, shapes, bulges)
+        print(f"| {psf_name} | {consistency:.1e} | {apart:.1e} | {apart / 2:.1e} |", flush=True)
 
 
 if __name__ == "__main__":
