@@ -363,6 +363,16 @@ def test_joint_modes_with_other_data():
     assert np.max(np.abs(reused.z - jm.z)) > 1e-3 * np.max(np.abs(jm.z))   # the data did change
     noisier = [replace(e, sigma2=2 * e.sigma2) for e in exps2]
     assert jm.with_data(noisier) is None
+    # the binning's packed modes: the geometry (order, basis, q, pairs) shared with the first version's, the
+    # data's linear vectors the second's own, all equal to those packed afresh
+    from shearfit.engine.likelihood import _bins_geometry, _packed_bins
+
+    _packed_bins(jm)
+    shared = jm.with_data(exps2)
+    assert _bins_geometry(shared) is _bins_geometry(jm)
+    for a, b in zip(_packed_bins(shared), _packed_bins(fresh)):
+        np.testing.assert_array_equal(a, b)
+    assert not np.array_equal(_packed_bins(shared)[1], _packed_bins(jm)[1])
 
 
 def test_binned_modes_match_every_mode():

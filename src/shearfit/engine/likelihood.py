@@ -93,9 +93,11 @@ class JointModes:
             return None
         out = replace(self, z=dm.merged_z(exposures) * dm.phase, yy=float(sum(ex.yy for ex in exposures)),
                       npix=int(sum(ex.npix for ex in exposures)))
-        factors = getattr(self, "_factors", None)
-        if factors is not None:
-            out._factors = factors
+        # what depends on the modes alone, not on the data, is shared
+        for name in ("_factors", "_bins32_geometry"):
+            cached = getattr(self, name, None)
+            if cached is not None:
+                setattr(out, name, cached)
         return out
 
     def group_factors(self):
@@ -201,30 +203,45 @@ def _packed_bins(jm):
     """
     cache = getattr(jm, "_bins32", None)
     if cache is None:
-        # the modes in packed()'s order (alone first, then the groups'), without its rows of doubles and the
-        # groups' factors, which only the unbinned kernel needs
+        order, b3, qcol, gsel, pa, pb, ph = _bins_geometry(jm)
+        c8 = np.zeros((order.size, 8), np.float32)
+        c8[:, :6] = linear_vectors(jm)[:, order].T
+        c8[:, 6] = qcol
+        cache = jm._bins32 = (b3, c8, gsel, pa, pb, ph)
+    return cache
+
+
+def _bins_geometry(jm):
+    """What :func:`_packed_bins` takes from the modes alone, not from the data (cached, and carried by
+    :meth:`JointModes.with_data` to another version's modes): the modes' order (alone on their sampled mode
+    first, then the fold groups', as packed()'s, without its rows of doubles and the groups' factors, which
+    only the unbinned kernel needs), b3, the q column (float32) and the fold groups' pairs."""
+    cache = getattr(jm, "_bins32_geometry", None)
+    if cache is None:
         singles = jm.single_modes()
         n_single = singles.size
         order = np.concatenate([singles, jm.multi])
         n = order.size
         b3 = np.zeros((n, 4), np.float32)
         b3[:, :3] = jm.basis[:, order].T
-        c8 = np.zeros((n, 8), np.float32)
-        c8[:, :6] = linear_vectors(jm)[:, order].T
-        c8[:n_single, 6] = jm.q[singles]
+        qcol = np.zeros(n, np.float32)
+        qcol[:n_single] = jm.q[singles]
         pa = pb = np.zeros(0, np.int64)
         ph = np.zeros(0)
         gsel = np.zeros(0, np.int64)
         if jm.multi.size:
             Hr = sparse.coo_matrix(sparse.csr_matrix(jm.H).real)
-            c8[n_single:, 6] = Hr.diagonal()
+            qcol[n_single:] = Hr.diagonal()
             up = (Hr.row < Hr.col) & (Hr.data != 0)
             rows, cols = Hr.row[up].astype(np.int64), Hr.col[up].astype(np.int64)
             gsel, inv = np.unique(np.concatenate([rows, cols]), return_inverse=True)
             pa, pb = np.ascontiguousarray(inv[:rows.size]), np.ascontiguousarray(inv[rows.size:])
             ph = np.ascontiguousarray(2.0 * Hr.data[up])
             gsel = np.ascontiguousarray(gsel + n_single, dtype=np.int64)
-        cache = jm._bins32 = (b3, c8, gsel, pa.astype(np.int64), pb.astype(np.int64), ph)
+        cache = (order, b3, qcol, gsel, pa.astype(np.int64), pb.astype(np.int64), ph)
+        for arr in cache:
+            arr.setflags(write=False)
+        jm._bins32_geometry = cache
     return cache
 
 
