@@ -181,10 +181,67 @@ def metacal_report(objs, cfg, passes):
     the ratio is taken per pass and its median reported.
     """
     from shearfit.calib import metacal
+    from shearfit.engine import measure as engine_measure
+    from shearfit.engine.kernel import KERNEL
+
+    # inside measure_metacal: the noshear fit, the four sheared versions' replays, and the replays' mode binning
+    split = {"noshear": 0.0, "replays": 0.0, "binning": 0.0, "on": False, "replay": False}
+    plain_measure = engine_measure._measure
+    plain_bins = getattr(KERNEL, "make_bins", None)
+
+    def measured(*a, **k):
+        if not split["on"]:
+            return plain_measure(*a, **k)
+        split["replay"] = k.get("plan") is not None
+        t0 = time.perf_counter()
+        try:
+            return plain_measure(*a, **k)
+        finally:
+            split["replays" if split["replay"] else "noshear"] += time.perf_counter() - t0
+
+    def binned(*a):
+        t0 = time.perf_counter()
+        try:
+            return plain_bins(*a)
+        finally:
+            if split["on"] and split["replay"]:
+                split["binning"] += time.perf_counter() - t0
 
     rng = np.random.default_rng(0)
     rows = []
+    engine_measure._measure = measured
+    if plain_bins is not None:
+        KERNEL.make_bins = binned
+    try:
+        rows = _metacal_passes(objs, cfg, passes, metacal, rng, split)
+    finally:
+        engine_measure._measure = plain_measure
+        if plain_bins is not None:
+            KERNEL.make_bins = plain_bins
+    rows = np.array(rows) / len(objs)
+    ratio = rows[:, 3] / rows[:, 0]
+    k = int(np.argsort(ratio)[len(ratio) // 2])
+    tp, ti, tg, tm = rows[k, :4]
+    print(f"\nmetacal, {len(objs)} galaxies, plain and metacal fits timed galaxy by galaxy, {len(rows)} passes:")
+    print(f"  {1 / tm:.2f} galaxies / s / core ({1e3 * tm:.1f} ms per galaxy) against {1 / tp:.2f} plain "
+          f"({1e3 * tp:.1f} ms): {tm / tp:.2f} x the plain engine (median pass; passes "
+          f"{ratio.min():.2f}-{ratio.max():.2f} x)")
+    print(f"  of which the images of the five versions and their symmetrising noise {1e3 * ti:.1f} ms "
+          f"({ti / tp:.2f} x a plain fit), the five fits and the new PSFs' Moffats {1e3 * (tm - ti):.1f} ms "
+          f"({(tm - ti) / tp:.2f} x)")
+    ns, rp, bn = rows[k, 4:7]
+    print(f"  the fits: noshear {1e3 * ns:.1f} ms ({ns / tp:.2f} x), the four replays {1e3 * rp:.1f} ms ({rp / tp:.2f} x; "
+          f"their mode binning {1e3 * bn:.1f} ms)")
+    print(f"  the same images by GalSim's objects (metacal.OWN_KSPACE = False): {1e3 * tg:.1f} ms "
+          f"({tg / tp:.2f} x a plain fit, {tg / ti:.2f} x shearfit's own)")
+
+
+def _metacal_passes(objs, cfg, passes, metacal, rng, split):
+    """metacal_report's timed passes: per pass (plain, images, GalSim's images, metacal, noshear fit, replays,
+    replays' binning) summed over the galaxies."""
+    rows = []
     for _ in range(max(passes, 1)):
+        split.update(noshear=0.0, replays=0.0, binning=0.0)
         tp = ti = tg = tm = 0.0
         for o, t in objs:
             t0 = time.perf_counter()
@@ -202,23 +259,15 @@ def metacal_report(objs, cfg, passes):
             finally:
                 metacal.OWN_KSPACE = True
             t3 = time.perf_counter()
-            metacal.measure_metacal(o, t["mag"], cfg, rng=rng)
+            split["on"] = True
+            try:
+                metacal.measure_metacal(o, t["mag"], cfg, rng=rng)
+            finally:
+                split["on"] = False
             t4 = time.perf_counter()
             tp, ti, tg, tm = tp + t1 - t0, ti + t2 - t1, tg + t3 - t2, tm + t4 - t3
-        rows.append((tp, ti, tg, tm))
-    rows = np.array(rows) / len(objs)
-    ratio = rows[:, 3] / rows[:, 0]
-    k = int(np.argsort(ratio)[len(ratio) // 2])
-    tp, ti, tg, tm = rows[k]
-    print(f"\nmetacal, {len(objs)} galaxies, plain and metacal fits timed galaxy by galaxy, {len(rows)} passes:")
-    print(f"  {1 / tm:.2f} galaxies / s / core ({1e3 * tm:.1f} ms per galaxy) against {1 / tp:.2f} plain "
-          f"({1e3 * tp:.1f} ms): {tm / tp:.2f} x the plain engine (median pass; passes "
-          f"{ratio.min():.2f}-{ratio.max():.2f} x)")
-    print(f"  of which the images of the five versions and their symmetrising noise {1e3 * ti:.1f} ms "
-          f"({ti / tp:.2f} x a plain fit), the five fits and the new PSFs' Moffats {1e3 * (tm - ti):.1f} ms "
-          f"({(tm - ti) / tp:.2f} x)")
-    print(f"  the same images by GalSim's objects (metacal.OWN_KSPACE = False): {1e3 * tg:.1f} ms "
-          f"({tg / tp:.2f} x a plain fit, {tg / ti:.2f} x shearfit's own)")
+        rows.append((tp, ti, tg, tm, split["noshear"], split["replays"], split["binning"]))
+    return rows
 
 
 def metacal_image_profile(objs):
