@@ -287,3 +287,26 @@ def test_self_calibrated_fits_get_their_own_default_calibration(field):
     hdr = fits.getheader(out, 1)
     assert "self-cal" in hdr.comments["CALALPHA"]
     assert json.loads(hdr["SFCONFIG"])["self_calibration"] is True
+
+
+def test_psf_ellipticity_is_the_sheared_gaussians_on_the_sky():
+    """The PSF's ellipticity column: a Gaussian PSF sheared by g in the sky frame, drawn by GalSim through each
+    exposure's Jacobian (plain, rotated by 30 degrees with 4 % shear, flipped), gives g back from its adaptive
+    moments carried to the sky (to HSM's precision); and its FWHM column the Gaussian's, 2.3548 sigma."""
+    import galsim
+
+    from shearfit.pipeline.driver import psf_ellipticity, psf_fwhm_arcsec, psf_moments
+
+    th = np.radians(30.0)
+    rot = np.array([[np.cos(th), -np.sin(th)], [np.sin(th), np.cos(th)]])
+    g, sigma = (0.06, -0.035), 0.3
+    for J in (0.2 * np.eye(2), 0.2 * np.diag([1.04, 0.96]) @ rot, 0.2 * np.array([[-1.0, 0.0], [0.0, 1.0]])):
+        wcs = galsim.JacobianWCS(*J.ravel())
+        img = galsim.Gaussian(sigma=sigma).shear(g1=g[0], g2=g[1]).drawImage(
+            nx=48, ny=48, wcs=wcs, method="no_pixel", use_true_center=False).array
+        img /= img.sum()
+        mom = psf_moments(img)
+        e1, e2 = psf_ellipticity(img, J, moments=mom)
+        assert abs(e1 - g[0]) < 2e-3 and abs(e2 - g[1]) < 2e-3, (J, e1, e2)
+        # det(M_sky) = sigma_sky^4 for any shear: the FWHM of the sky Gaussian
+        assert psf_fwhm_arcsec(J, moments=mom) == pytest.approx(2.3548 * sigma, rel=2e-3)

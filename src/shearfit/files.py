@@ -49,8 +49,8 @@ class _StrictLoader(getattr(yaml, "CSafeLoader", yaml.SafeLoader)):
     string and then a confusing type error; YAML 1.2 (and every user) reads it
     as a number. A duplicate key silently keeps the last value in PyYAML,
     which hides typos in long configs. Where PyYAML has libyaml, its C parser
-    reads the text (the packaged calibration tables: 0.37 s in the pure-Python
-    parser, a run's largest fixed cost); the constructors are the same.
+    reads the text (in the pure-Python parser the packaged calibration tables
+    were a run's largest fixed cost); the constructors are the same.
     """
 
 

@@ -34,7 +34,8 @@ def _readonly(a, name, ndim=2):
 
 
 def _finite(a) -> bool:
-    """Whether every value of a small array is finite (Python floats: a tenth of numpy's per-call cost)."""
+    """Whether every value of a small array is finite (on Python floats: cheaper than numpy's calls on arrays
+    this small)."""
     return all(map(math.isfinite, a.ravel().tolist()))
 
 

@@ -748,7 +748,7 @@ def release_pages(ccds) -> None:
 
 #: The WCS that :func:`attach_pixels` read, by (file, HDU, the file's size and modification time): a process
 #: that measures several chunks of a field parses each CCD's WCS once (astropy's parse of a TPV or SIP header
-#: takes milliseconds, a chunk's 14 CCDs a tenth of a second). The WCS objects are only read from.
+#: takes milliseconds a CCD). The WCS objects are only read from.
 _ATTACHED_WCS: dict = {}
 
 
