@@ -6,7 +6,7 @@ from dataclasses import dataclass, replace
 from typing import Iterable, Sequence
 
 import numpy as np
-from scipy import stats
+from scipy import special
 
 from . import priors
 from ..config import as_config
@@ -205,7 +205,9 @@ def _result(obs, cfg, mag, jm, like, samples, n_samples, centroid_shift, return_
     dof = max(jm.npix - _NPAR_GALAXY, 1)
     allowance = (like.best_snr * cfg.star_psf_error) ** 2 if np.isfinite(like.best_snr) else 0.0
     fstat = max(chi2_star - chi2_gal - allowance, 0.0) / (_NPAR_GALAXY - _NPAR_STAR) / max(chi2_gal / dof, 1e-12)
-    pvalue = float(stats.f.sf(fstat, _NPAR_GALAXY - _NPAR_STAR, dof))
+    # the F distribution's survival function: scipy.stats.f.sf is this ufunc behind argument handling that costs
+    # more than it (fstat >= 0 or NaN, where the two agree)
+    pvalue = float(special.fdtrc(_NPAR_GALAXY - _NPAR_STAR, dof, fstat))
     is_star = pvalue > cfg.star_pvalue and mag <= cfg.star_faint_limit
     result = FitResult(
         e1=est.e1, e2=est.e2, e_var=est.e_var,
