@@ -115,10 +115,7 @@ class Observation:
         if not math.isfinite(psum) or abs(psum - 1.0) > 1e-3:
             raise ShearfitValueError(f"Observation psf must sum to 1 (sums to {psum:.6g})")
         J = np.array(jacobian, dtype=np.float64)
-        if J.shape != (2, 2) or not _finite(J):
-            raise ShearfitValueError("Observation jacobian must be a finite, invertible 2x2 array")
-        (a, b), (c, d) = J.tolist()
-        if not abs(a * d - b * c) > 0:
+        if not (J.shape == (2, 2) and _finite(J) and abs(J[0, 0] * J[1, 1] - J[0, 1] * J[1, 0]) > 0):
             raise ShearfitValueError("Observation jacobian must be a finite, invertible 2x2 array")
         J.setflags(write=False)
         self.jacobian = J

@@ -59,6 +59,7 @@ from dataclasses import dataclass, field
 import galsim
 import numpy as np
 from scipy import fft as sfft
+from scipy import ndimage
 
 from ..errors import FITCLASS_GALAXY, ShearfitIOError
 from ..engine.model import inv2, psf_moffat, psf_moffats
@@ -91,20 +92,6 @@ _LANCZOS = galsim.Lanczos(15)
 #: The versions of stamps with native PSFs made by shearfit's own k-space operations (:func:`own_kspace_images`;
 #: False: by GalSim's objects, :func:`_galsim_images`).
 OWN_KSPACE = True
-
-
-def _grown(mask, steps):
-    """The mask grown by ``steps`` pixels along rows and columns: scipy's ``ndimage.binary_dilation`` with its
-    default (cross) structure and ``iterations=steps``, by shifted copies."""
-    out = np.array(mask, bool)
-    for _ in range(steps):
-        g = out.copy()
-        g[1:] |= out[:-1]
-        g[:-1] |= out[1:]
-        g[:, 1:] |= out[:, :-1]
-        g[:, :-1] |= out[:, 1:]
-        out = g
-    return out
 
 
 def _wcs(J, k=1):
@@ -440,7 +427,7 @@ def metacal_observations(obs: Observation, delta=0.01, rng=None, versions=tuple(
         # and its correlation doubles the processed noise's instead of symmetrising it
         log.warning("metacal: a %d x %d stamp is not square; its noise is not symmetrised", *w.shape)
     nrot = np.rot90(noise, 1) if square else noise
-    mask = _grown(~good, _MASK_GROW)
+    mask = ndimage.binary_dilation(~good, iterations=_MASK_GROW)
     mask[:_EDGE, :] = mask[-_EDGE:, :] = True
     mask[:, :_EDGE] = mask[:, -_EDGE:] = True
     var_in = float(np.mean(sigma[~mask] ** 2)) if np.any(~mask) else 1.0
