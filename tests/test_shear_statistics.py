@@ -57,3 +57,43 @@ def test_ring_reduced():
 def test_ring_full():
     est, err = _run(n_gal=60, n_exp=7, seed=6)
     _check(est, err, estimator_allowance=0.015)
+
+
+def _synthetic_rings(n_gal=40, m0=0.01, k=3.0, seed=3):
+    """Rings whose estimates respond to shear with exactly 1 + m0 (plus a noise shared by each +g / -g pair) and
+    whose weights exp(k e_par) grow with the estimate's component along the galaxy's own ellipticity."""
+    rng = np.random.default_rng(seed)
+    rows = {c: [] for c in ("galaxy", "rotation", "sign", "e1", "e2", "weight", "fitclass")}
+    for i in range(n_gal):
+        e0 = rng.uniform(0.1, 0.6) * np.exp(2j * rng.uniform(0, np.pi))
+        for j in range(4):
+            e = e0 * np.exp(1j * np.pi * j / 2)
+            noise = complex(*rng.normal(0, 0.05, 2))
+            for sign in (1, -1):
+                est = e + sign * (1 + m0) * complex(*G) + noise
+                par = (est * np.conj(e)).real / abs(e)
+                for c, v in (("galaxy", i), ("rotation", j), ("sign", sign), ("e1", est.real), ("e2", est.imag),
+                             ("weight", np.exp(k * par)), ("fitclass", 0)):
+                    rows[c].append(v)
+    return {c: np.array(v) for c, v in rows.items()}
+
+
+def test_paired_weights_remove_the_weights_response_to_shear():
+    """Weights that grow as a shear makes a galaxy more elliptical make the weighted mean over-respond; each
+    pair's mean weight (``paired_weights``) leaves exactly the estimates' own m, whatever the weights' dependence
+    on galaxy, orientation and noise; a star's weight stays 0 and its pair's member keeps its own."""
+    from shearfit.calib.bias import paired_weights
+
+    tab = _synthetic_rings()
+    n = 40
+    rng = np.random.default_rng(0)
+    raw, _ = shear_bias(ring_sums(tab, n), G, 10, rng)
+    assert np.all(raw[:2] > 0.01 + 0.01)   # the weights' response adds to m
+    paired = dict(tab, weight=paired_weights(tab))
+    est, _ = shear_bias(ring_sums(paired, n), G, 10, rng)
+    np.testing.assert_allclose(est[:2], 0.01, atol=1e-12)
+    tab["fitclass"][0] = 1
+    w = paired_weights(tab)
+    assert w[0] == 0 and w[1] == tab["weight"][1]
+    with pytest.raises(shearfit.errors.ShearfitValueError, match="pair"):
+        paired_weights(dict(tab, sign=np.ones_like(tab["sign"])))

@@ -39,6 +39,7 @@ from ..errors import ShearfitValueError
 
 __all__ = [
     "ring_sums",
+    "paired_weights",
     "bias_from_sums",
     "mean_shear_from_sums",
     "bootstrap_counts",
@@ -105,6 +106,38 @@ def ring_sums(table, n_galaxies: int, weighted: bool = True) -> np.ndarray:
     for k, v in enumerate((w, w * e1, w * e2)):
         np.add.at(sums[k], (galaxy, col), v)
     return sums
+
+
+def paired_weights(table) -> np.ndarray:
+    """Each object's weight replaced by the mean over its pair: the same galaxy and orientation (``galaxy`` and
+    ``rotation`` columns) at ``+g`` and at ``-g``, drawn with the same noise.
+
+    The weights then do not respond to the shear, while each keeps its dependence on the galaxy, its
+    orientation and its noise: m with the weights as measured less m with these is the part of m that comes
+    from the weights' response to shear (a weight that grows as a shear makes a galaxy more elliptical makes
+    the weighted mean over-respond). Where a pair's other member is not a galaxy (``fitclass != 0``) the object
+    keeps its own weight; non-galaxies get 0.
+
+    Returns
+    -------
+    ndarray
+        One weight per row of ``table``.
+    """
+    fitclass = np.asarray(table["fitclass"])
+    good = fitclass == _GALAXY
+    w = np.where(good, np.nan_to_num(np.asarray(table["weight"], dtype=np.float64)), 0.0)
+    sign = np.asarray(table["sign"])
+    key = np.stack([np.asarray(table["galaxy"], np.int64), np.asarray(table["rotation"], np.int64)], axis=1)
+    _, inv = np.unique(key, axis=0, return_inverse=True)
+    inv = inv.ravel()
+    n = int(inv.max()) + 1 if inv.size else 0
+    members = np.bincount(inv, minlength=n)
+    signs = np.bincount(inv, sign > 0, minlength=n)
+    if np.any((members > 2) | ((members == 2) & (signs != 1))):
+        raise ShearfitValueError("paired_weights: a (galaxy, rotation) pair must hold one +g and one -g object")
+    both = (np.bincount(inv, good, minlength=n) == 2)[inv]
+    mean = (np.bincount(inv, w, minlength=n) / 2.0)[inv]
+    return np.where(both, mean, w)
 
 
 def mean_shear_from_sums(sums, counts=None) -> np.ndarray:
