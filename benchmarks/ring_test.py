@@ -70,7 +70,7 @@ from shearfit.simulate import ring_set  # noqa: E402
 from shearfit.simulate.field import truth_galaxies  # noqa: E402
 from shearfit.simulate.outside import outside_population, outside_profile  # noqa: E402
 from shearfit.simulate.stamps import NegatedNormal  # noqa: E402
-from shearfit.calib.bias import (format_with_error, galaxy_column, ring_sums, shear_bias,  # noqa: E402
+from shearfit.calib.bias import (format_with_error, galaxy_column, paired_weights, ring_sums, shear_bias,  # noqa: E402
                                           shear_bias_by_snr)
 
 # m(SNR) is printed when snr_max / snr_min exceeds this: a narrower range has no noise-bias trend to see.
@@ -244,6 +244,13 @@ def report_bias(tab, args, n_gal):
           f"resamplings of {n_gal} galaxies):")
     print(f"  m1 = {format_with_error(est[0], err[0])}    c1 = {format_with_error(est[2], err[2])}")
     print(f"  m2 = {format_with_error(est[1], err[1])}    c2 = {format_with_error(est[3], err[3])}")
+    if weighted and "rotation" in tab.dtype.names:
+        # each object with its +g / -g pair's mean weight: m without the weights' response to shear
+        paired = tab.copy()
+        paired["weight"] = paired_weights(tab)
+        pe, perr = shear_bias(ring_sums(paired, n_gal), g, args.n_bootstrap, np.random.default_rng([args.seed, 12345]))
+        print(f"  with each pair's mean weight (no weight responds to the shear): m1 = "
+              f"{format_with_error(pe[0], perr[0])}, m2 = {format_with_error(pe[1], perr[1])}")
     # the simulation calibration of the paper (or a calibration file): m(nu, r) of the measured galaxies
     from shearfit.calib.calibrate import PAPER_ALPHA, PAPER_BETA, as_model
 
