@@ -115,16 +115,17 @@ def paired_weights(table) -> np.ndarray:
     The weights then do not respond to the shear, while each keeps its dependence on the galaxy, its
     orientation and its noise: m with the weights as measured less m with these is the part of m that comes
     from the weights' response to shear (a weight that grows as a shear makes a galaxy more elliptical makes
-    the weighted mean over-respond). Where a pair's other member is not a galaxy (``fitclass != 0``) the object
-    keeps its own weight; non-galaxies get 0.
+    the weighted mean over-respond). Where a pair's other member is not counted by :func:`ring_sums` (not a
+    galaxy, ``fitclass != 0``, or no finite ellipticity) the object keeps its own weight; those not counted get 0.
 
     Returns
     -------
     ndarray
         One weight per row of ``table``.
     """
-    fitclass = np.asarray(table["fitclass"])
-    good = fitclass == _GALAXY
+    # the objects ring_sums counts: galaxies with finite ellipticities
+    good = ((np.asarray(table["fitclass"]) == _GALAXY) & np.isfinite(np.asarray(table["e1"], dtype=np.float64))
+            & np.isfinite(np.asarray(table["e2"], dtype=np.float64)))
     w = np.where(good, np.nan_to_num(np.asarray(table["weight"], dtype=np.float64)), 0.0)
     sign = np.asarray(table["sign"])
     key = np.stack([np.asarray(table["galaxy"], np.int64), np.asarray(table["rotation"], np.int64)], axis=1)
