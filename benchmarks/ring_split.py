@@ -1,12 +1,17 @@
 #!/usr/bin/env python
 """m and c of a ring-test table (benchmarks/ring_test.py --out) split by true scalelength and by sigma_e.
 
-    python benchmarks/ring_split.py ring.fits [--r-bins 0,0.15,0.3,10] [--unweighted | --paired-weights]
+    python benchmarks/ring_split.py ring.fits [--r-bins 0,0.15,0.3,10] [--unweighted | --paired-weights |
+                                              --isotropic-weights]
 
 ``--paired-weights``: each object's weight replaced by the mean over its pair (the same galaxy, orientation and
 noise at +g and at -g; ``shearfit.calib.bias.paired_weights``), so that no weight responds to the shear while
 each keeps its dependence on the galaxy, its orientation and its noise. m with lensfit's weights less m with
 paired weights is the part of m that comes from the weights' response to shear.
+
+``--isotropic-weights``: each weight the mean weight of its bin of measured SNR and circularised scalelength
+(``shearfit.calib.weights.isotropic_weights``, 10 x 10 equal-number bins): weights that a catalogue without
+ring pairs can use, and that do not respond to shear either.
 """
 
 import argparse
@@ -15,14 +20,17 @@ import numpy as np
 from astropy.table import Table
 
 from shearfit.calib.bias import paired_weights, ring_sums, shear_bias
+from shearfit.calib.weights import isotropic_weights
 
 
-def main(path, r_bins=(0, 0.15, 0.3, 10), unweighted=False, paired=False):
+def main(path, r_bins=(0, 0.15, 0.3, 10), unweighted=False, paired=False, isotropic=False):
     t = Table.read(path)
     if unweighted:   # unit weights for the galaxies (fitclass 0), none for the rest
         t["weight"] = np.where(t["fitclass"] == 0, 1.0, 0.0)
     elif paired:
         t["weight"] = paired_weights(t)
+    elif isotropic:
+        t["weight"] = isotropic_weights(t)
     plus = t[t["sign"] > 0]
     g = np.array([plus["g1"][0], plus["g2"][0]])   # the shear of the +g set
     n = int(t["galaxy"].max()) + 1
@@ -58,7 +66,9 @@ if __name__ == "__main__":
     ap.add_argument("--unweighted", action="store_true", help="unit weights for fitclass 0 instead of lensfit's")
     ap.add_argument("--paired-weights", action="store_true",
                     help="each weight the mean over its +g / -g pair: weights that do not respond to the shear")
+    ap.add_argument("--isotropic-weights", action="store_true",
+                    help="each weight the mean of its bin of SNR and circularised scalelength")
     a = ap.parse_args()
-    if a.unweighted and a.paired_weights:
-        ap.error("--unweighted and --paired-weights exclude each other")
-    main(a.table, [float(x) for x in a.r_bins.split(",")], a.unweighted, a.paired_weights)
+    if a.unweighted + a.paired_weights + a.isotropic_weights > 1:
+        ap.error("--unweighted, --paired-weights and --isotropic-weights exclude each other")
+    main(a.table, [float(x) for x in a.r_bins.split(",")], a.unweighted, a.paired_weights, a.isotropic_weights)

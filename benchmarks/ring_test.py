@@ -72,6 +72,7 @@ from shearfit.simulate.outside import outside_population, outside_profile  # noq
 from shearfit.simulate.stamps import NegatedNormal  # noqa: E402
 from shearfit.calib.bias import (format_with_error, galaxy_column, paired_weights, ring_sums, shear_bias,  # noqa: E402
                                           shear_bias_by_snr)
+from shearfit.calib.weights import isotropic_weights  # noqa: E402
 
 # m(SNR) is printed when snr_max / snr_min exceeds this: a narrower range has no noise-bias trend to see.
 WIDE_SNR_RATIO = 2.5
@@ -251,6 +252,12 @@ def report_bias(tab, args, n_gal):
         pe, perr = shear_bias(ring_sums(paired, n_gal), g, args.n_bootstrap, np.random.default_rng([args.seed, 12345]))
         print(f"  with each pair's mean weight (no weight responds to the shear): m1 = "
               f"{format_with_error(pe[0], perr[0])}, m2 = {format_with_error(pe[1], perr[1])}")
+    if weighted and "snr" in tab.dtype.names and "scalelength" in tab.dtype.names:
+        iso = tab.copy()
+        iso["weight"] = isotropic_weights(tab)
+        ie, ierr = shear_bias(ring_sums(iso, n_gal), g, args.n_bootstrap, np.random.default_rng([args.seed, 12345]))
+        print(f"  with isotropic weights (each the mean of its bin of SNR and circularised size): m1 = "
+              f"{format_with_error(ie[0], ierr[0])}, m2 = {format_with_error(ie[1], ierr[1])}")
     # the simulation calibration of the paper (or a calibration file): m(nu, r) of the measured galaxies
     from shearfit.calib.calibrate import PAPER_ALPHA, PAPER_BETA, as_model
 
