@@ -61,8 +61,9 @@ def isotropic_weights(table, n_snr: int = 10, n_size: int = 10) -> np.ndarray:
     -------
     ndarray
         One weight per row: the bin's mean of ``weight`` over its galaxies (``fitclass == 0`` with finite
-        ``e1``, ``e2``, ``snr`` and ``scalelength``; a zero weight counts as zero), and 0 for every other row.
-        Each bin's sum of weights is kept.
+        ``e1``, ``e2``, ``snr`` and ``scalelength``), and 0 for every other row. A galaxy whose own weight is 0
+        (a likelihood as broad as the prior) counts as 0 in its bin's mean and gets that mean too: whether a
+        likelihood is that broad also depends on the shear. Each bin's sum of weights is kept.
     """
     if int(n_snr) < 1 or int(n_size) < 1:
         raise ShearfitValueError(f"isotropic_weights: n_snr and n_size must be >= 1, got {n_snr}, {n_size}")
