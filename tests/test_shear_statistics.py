@@ -102,7 +102,7 @@ def test_paired_weights_remove_the_weights_response_to_shear():
 def test_isotropic_weights_remove_the_weights_response_to_shear():
     """A catalogue's own bins of SNR and circularised scalelength (which a shear keeps) give every orientation of
     a galaxy the same weight: the weighted mean's m is the estimates' own, while the galaxies' weights still
-    differ from bin to bin and each bin's sum of weights is kept."""
+    differ from bin to bin and the total weight is kept."""
     from shearfit.calib.weights import isotropic_weights
 
     tab = _synthetic_rings()

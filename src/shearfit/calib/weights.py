@@ -24,12 +24,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..errors import ShearfitValueError
+from ..errors import FITCLASS_GALAXY, ShearfitValueError
 
 __all__ = ["isotropic_weights", "circularised_scalelength"]
-
-#: ``fitclass`` of galaxies (see :mod:`shearfit.errors`).
-_GALAXY = 0
 
 
 def circularised_scalelength(scalelength, e1, e2):
@@ -76,7 +73,7 @@ def isotropic_weights(table, n_snr: int = 10, n_size: int = 10) -> np.ndarray:
     w = np.asarray(cols["weight"], np.float64)
     snr = np.asarray(cols["snr"], np.float64)
     size = circularised_scalelength(cols["scalelength"], cols["e1"], cols["e2"])
-    good = ((cols["fitclass"] == _GALAXY) & np.isfinite(w) & np.isfinite(snr) & np.isfinite(size)
+    good = ((cols["fitclass"] == FITCLASS_GALAXY) & np.isfinite(w) & np.isfinite(snr) & np.isfinite(size)
             & np.isfinite(np.asarray(cols["e1"], np.float64)) & np.isfinite(np.asarray(cols["e2"], np.float64)))
     out = np.zeros(w.shape)
     if not np.any(good):
