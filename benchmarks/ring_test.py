@@ -245,19 +245,18 @@ def report_bias(tab, args, n_gal):
           f"resamplings of {n_gal} galaxies):")
     print(f"  m1 = {format_with_error(est[0], err[0])}    c1 = {format_with_error(est[2], err[2])}")
     print(f"  m2 = {format_with_error(est[1], err[1])}    c2 = {format_with_error(est[3], err[3])}")
+    # the same rings with weights that do not respond to the shear: each +g / -g pair's mean weight (ring
+    # tables), and the mean of each bin of SNR and circularised size (what a catalogue can use)
+    others = []
     if weighted and "rotation" in tab.dtype.names:
-        # each object with its +g / -g pair's mean weight: m without the weights' response to shear
-        paired = tab.copy()
-        paired["weight"] = paired_weights(tab)
-        pe, perr = shear_bias(ring_sums(paired, n_gal), g, args.n_bootstrap, np.random.default_rng([args.seed, 12345]))
-        print(f"  with each pair's mean weight (no weight responds to the shear): m1 = "
-              f"{format_with_error(pe[0], perr[0])}, m2 = {format_with_error(pe[1], perr[1])}")
+        others.append(("each pair's mean weight (no weight responds to the shear)", paired_weights))
     if weighted and "snr" in tab.dtype.names and "scalelength" in tab.dtype.names:
-        iso = tab.copy()
-        iso["weight"] = isotropic_weights(tab)
-        ie, ierr = shear_bias(ring_sums(iso, n_gal), g, args.n_bootstrap, np.random.default_rng([args.seed, 12345]))
-        print(f"  with isotropic weights (each the mean of its bin of SNR and circularised size): m1 = "
-              f"{format_with_error(ie[0], ierr[0])}, m2 = {format_with_error(ie[1], ierr[1])}")
+        others.append(("isotropic weights (each the mean of its bin of SNR and circularised size)", isotropic_weights))
+    for label, weights_of in others:
+        alt = tab.copy()
+        alt["weight"] = weights_of(tab)
+        ae, aerr = shear_bias(ring_sums(alt, n_gal), g, args.n_bootstrap, np.random.default_rng([args.seed, 12345]))
+        print(f"  with {label}: m1 = {format_with_error(ae[0], aerr[0])}, m2 = {format_with_error(ae[1], aerr[1])}")
     # the simulation calibration of the paper (or a calibration file): m(nu, r) of the measured galaxies
     from shearfit.calib.calibrate import PAPER_ALPHA, PAPER_BETA, as_model
 
