@@ -21,6 +21,7 @@ one), a profile grouped by stage and the process's peak memory.
     python benchmarks/speed.py --scaling           # growth with exposures and stamp size
     python benchmarks/speed.py --workers 2         # 2 worker processes against one
     python benchmarks/speed.py --isa-ab baseline   # the loops in use against the portable ones, interleaved
+    python benchmarks/speed.py --moffat-ab         # the compiled App. A Moffat fits against the numpy ones
     python benchmarks/speed.py --check             # how far the speed settings move the estimates
     python benchmarks/speed.py --check --check-each   # and each setting's own effect
 """
@@ -105,7 +106,7 @@ def isa_ab_report(sets, cfg, level):
     to minute, more than the levels differ)."""
     import importlib
 
-    from shearfit.engine import kernel, likelihood, sampling
+    from shearfit.engine import kernel, likelihood, model, moffat, sampling
 
     module = next(m for name, m, keys in kernel.LEVELS if level in keys or level == name)
     other = importlib.import_module(f"shearfit.engine.{module}")
@@ -115,8 +116,9 @@ def isa_ab_report(sets, cfg, level):
         return
 
     def use(mod):
-        likelihood.KERNEL = sampling.KERNEL = mod
+        likelihood.KERNEL = sampling.KERNEL = model.KERNEL = moffat.KERNEL = mod
         likelihood._load_special()
+        moffat._load_bessel()
 
     t = {mine: 0.0, other: 0.0}
     n = 0
@@ -133,6 +135,39 @@ def isa_ab_report(sets, cfg, level):
         use(mine)
     print(f"\n{mine.kernel_isa()} against {other.kernel_isa()}, {n} galaxies timed alternately in one process: "
           f"{1e3 * t[mine] / n:.1f} against {1e3 * t[other] / n:.1f} ms per galaxy, x{t[other] / t[mine]:.2f}")
+
+
+def moffat_ab_report(sets, cfg):
+    """The App. A Moffat's fits and tables (one per exposure of every object here) made by the compiled kernel
+    against the numpy lines they replaced (moffat_lm, moffat_table), galaxy by galaxy in one process, and
+    the largest difference in e between the two."""
+    from shearfit.engine import model, moffat
+
+    if not moffat.USE_KERNEL_BESSEL:
+        print("\n--moffat-ab: the compiled Moffat fit is not in use (no kernel, or scipy's kv not found)")
+        return
+    t = {True: 0.0, False: 0.0}
+    de = 0.0
+    n = 0
+    try:
+        for s in sets[1:] or sets:
+            for o, tr in s:
+                e = {}
+                for flag in ((True, False) if n % 2 == 0 else (False, True)):
+                    moffat.USE_KERNEL_BESSEL = flag
+                    model._OWN_MOFFAT.clear()          # no fit or table remembered from the other version
+                    model._moffat_aliases.cache_clear()
+                    t0 = time.perf_counter()
+                    r = shearfit.measure_object(o, mag=tr["mag"], config=cfg)
+                    t[flag] += time.perf_counter() - t0
+                    e[flag] = (r.e1, r.e2)
+                de = max(de, float(np.nanmax(np.abs(np.subtract(e[True], e[False])))))
+                n += 1
+    finally:
+        moffat.USE_KERNEL_BESSEL = True
+    print(f"\nApp. A Moffat fits and tables compiled against numpy, {n} galaxies timed alternately in one process: "
+          f"{1e3 * t[True] / n:.1f} against {1e3 * t[False] / n:.1f} ms per galaxy, x{t[False] / t[True]:.3f}; "
+          f"largest |delta e| {de:.1e}")
 
 
 def workers_report(objs, cfg, n_workers):
@@ -364,6 +399,9 @@ def main(argv=None):
     ap.add_argument("--isa-ab", metavar="LEVEL", default=None,
                     help="also time the loops in use against another level (avx512, avx2, baseline), galaxy by "
                          "galaxy in this process")
+    ap.add_argument("--moffat-ab", action="store_true",
+                    help="also time the App. A Moffat fits and tables made by the compiled kernel against the numpy "
+                         "lines, galaxy by galaxy in this process")
     ap.add_argument("--constant-psf", action="store_true",
                     help="one PSF image for every exposure of every galaxy (as the GREAT challenges' constant-PSF "
                          "branches): the App. A Moffat is fitted once and remembered")
@@ -441,6 +479,8 @@ def main(argv=None):
         check_report(objs, cfg, res, args.seed, each=args.check_each)
     if args.isa_ab:
         isa_ab_report(sets, cfg, args.isa_ab)
+    if args.moffat_ab:
+        moffat_ab_report(sets, cfg)
     if args.workers > 1:
         workers_report([g for s in sets[:2] for g in s], cfg, args.workers)
     if args.scaling:

@@ -197,9 +197,10 @@ def test_psf_moffat_recovers_galsims_moffat(beta, rs, tol):
 def test_moffat_fit_starts_near_its_solution(monkeypatch):
     """The fit starts where the ring averages fall to 0.5 and 0.15 say (moffat._start): the same solution as
     from the old start (a Gaussian's half-power width, beta = 3) to 1e-7, in fewer transform evaluations
-    over a range of PSFs."""
+    over a range of PSFs (counted on the numpy iterations, the compiled ones' reference)."""
     from shearfit.engine import moffat
 
+    monkeypatch.setattr(moffat, "USE_KERNEL_BESSEL", False)
     real = moffat.moffat_ft_dlogs
     old_start = moffat._start
     calls = []
@@ -251,6 +252,36 @@ def test_moffat_table_is_the_exact_transform(rs, beta):
     got = _moffat_table(k, rs, beta)
     assert np.abs(got - exact).max() < 1e-7
     assert np.all(got[exact < 1e-31] == 0.0)
+    # the compiled table (with scipy's kv and gamma) is the numpy lines' to rounding, nodes and zeros alike
+    ref = _moffat_table(k, rs, beta, use_kernel=False)
+    assert np.abs(got - ref).max() < 1e-14
+    assert np.array_equal(got == 0.0, ref == 0.0)
+
+
+@pytest.mark.skipif(not __import__("shearfit.engine.moffat", fromlist=["x"]).USE_KERNEL_BESSEL,
+                    reason="the compiled Moffat fit needs the kernel and scipy's cython_special")
+def test_compiled_moffat_fit_is_the_numpy_fit(monkeypatch):
+    """The compiled Levenberg-Marquardt (moffat_lm) runs the numpy lines' iterations: on Moffats of beta
+    1.5-6 and a Gaussian (beta at its bound, the size refitted with beta held), drawn by GalSim with a little
+    noise, the same (rs, beta) to 1e-7 (seen: 2e-9), and the same transform inside the band to 2e-9 of its
+    peak (seen: 4e-10). (Where a large beta makes rs and beta nearly degenerate, rounding can stop the two
+    further apart along the valley: the transform is what the alias correction uses.)"""
+    from shearfit.engine import moffat
+    from shearfit.engine.moffat import moffat_ft
+
+    k = np.linspace(0.0, 0.7 * np.pi, 200)
+    cases = [(1.5, 2.0), (1.8, 2.5), (2.5, 3.5), (3.5, 4.5), (6.0, 3.0), (None, 3.0)]
+    for i, (beta, fwhm) in enumerate(cases):
+        prof = galsim.Gaussian(fwhm=fwhm) if beta is None else galsim.Moffat(beta=beta, fwhm=fwhm)
+        im = galsim.Convolve(prof.shear(g1=0.04, g2=-0.02), galsim.Pixel(1.0)).drawImage(
+            nx=48, ny=48, scale=1.0, method="no_pixel").array
+        im = im + np.random.default_rng(i).normal(0, 1e-5, im.shape)
+        monkeypatch.setattr(moffat, "USE_KERNEL_BESSEL", True)
+        got = psf_moffat(im)
+        monkeypatch.setattr(moffat, "USE_KERNEL_BESSEL", False)
+        ref = psf_moffat(im)
+        assert np.allclose(got, ref, rtol=1e-7, atol=0), (beta, fwhm, got, ref)
+        assert np.abs(moffat_ft(k, *got) - moffat_ft(k, *ref)).max() < 2e-9, (beta, fwhm, got, ref)
 
 
 def test_own_moffat_is_remembered_by_the_psfs_contents():

@@ -1416,6 +1416,20 @@ static PyObject *quintic_kvalues(PyObject *self, PyObject *args)
  * the exponential of the cubic Hermite interpolant of a logarithm through the nodes (table indices, increasing),
  * with values lv and slopes d/dk there; the rest of out untouched.
  */
+static void hermite_log_fill(double k0, double dk, const int64_t *N, Py_ssize_t m, const double *LV,
+                             const double *SL, double *O)
+{
+    for (Py_ssize_t s = 0; s + 1 < m; s++) {
+        const double ka = k0 + (double)N[s] * dk, h = (double)(N[s + 1] - N[s]) * dk;
+        const double a0 = LV[s], a1 = h * SL[s], b0 = LV[s + 1], b1 = h * SL[s + 1];
+        for (int64_t i = N[s]; i < N[s + 1]; i++) {
+            const double t = (k0 + (double)i * dk - ka) / h, t2 = t * t, t3 = t2 * t;
+            O[i] = (2 * t3 - 3 * t2 + 1) * a0 + (t3 - 2 * t2 + t) * a1 + (-2 * t3 + 3 * t2) * b0 + (t3 - t2) * b1;
+        }
+    }
+    vexp_shift(O + N[0], 0.0, O + N[0], (Py_ssize_t)(N[m - 1] - N[0]));
+}
+
 static PyObject *hermite_log_table(PyObject *self, PyObject *args)
 {
     double k0, dk;
@@ -1434,15 +1448,7 @@ static PyObject *hermite_log_table(PyObject *self, PyObject *args)
     const double *LV = (const double *)lvb.buf, *SL = (const double *)slb.buf;
     double *O = (double *)out.buf;
     Py_BEGIN_ALLOW_THREADS
-    for (Py_ssize_t s = 0; s + 1 < m; s++) {
-        const double ka = k0 + (double)N[s] * dk, h = (double)(N[s + 1] - N[s]) * dk;
-        const double a0 = LV[s], a1 = h * SL[s], b0 = LV[s + 1], b1 = h * SL[s + 1];
-        for (int64_t i = N[s]; i < N[s + 1]; i++) {
-            const double t = (k0 + (double)i * dk - ka) / h, t2 = t * t, t3 = t2 * t;
-            O[i] = (2 * t3 - 3 * t2 + 1) * a0 + (t3 - 2 * t2 + t) * a1 + (-2 * t3 + 3 * t2) * b0 + (t3 - t2) * b1;
-        }
-    }
-    vexp_shift(O + N[0], 0.0, O + N[0], (Py_ssize_t)(N[m - 1] - N[0]));
+    hermite_log_fill(k0, dk, N, m, LV, SL, O);
     Py_END_ALLOW_THREADS
     RELEASE(&nb, &lvb, &slb, &out);
     Py_RETURN_NONE;
@@ -1596,6 +1602,222 @@ static PyObject *kernel_isa(PyObject *self, PyObject *args)
     return PyUnicode_FromString(KERNEL_LEVEL);
 }
 
+/*
+ * The App. A Moffat's fit (moffat._levenberg_marquardt, whose numpy lines stay as the reference and the
+ * fallback; a test checks they agree): the same Levenberg-Marquardt, row after row, with scipy.special's own
+ * kv and gamma (their cython_special C entry points, given once by set_bessel).
+ *
+ * moffat_lm(kr, VR, P, free0, free1, max_iter, ftol, xtol): P (m rows of (log rs, log(beta - 1))) fitted in
+ * place, row r to the ring averages VR[r] at the n wavenumbers kr; free0, free1: which parameters vary.
+ */
+typedef double (*kv_fn)(double, double, int);
+static kv_fn sp_kv = NULL;
+static special_fn sp_gamma = NULL;
+static const char *KV_SIG = "double (double, double, int __pyx_skip_dispatch)";
+
+static PyObject *set_bessel(PyObject *self, PyObject *args)
+{
+    PyObject *c1, *c2;
+    if (!PyArg_ParseTuple(args, "OO", &c1, &c2)) return NULL;
+    if (!PyCapsule_IsValid(c1, KV_SIG) || !PyCapsule_IsValid(c2, SPECIAL_SIG)) {
+        PyErr_SetString(PyExc_ValueError, "set_bessel: capsules of kv 'double (double, double, int)' and gamma "
+                        "'double (double, int)' needed");
+        return NULL;
+    }
+    sp_kv = (kv_fn)PyCapsule_GetPointer(c1, KV_SIG);
+    sp_gamma = (special_fn)PyCapsule_GetPointer(c2, SPECIAL_SIG);
+    Py_RETURN_NONE;
+}
+
+/* the residuals R = f - v, their sum of squares and the Jacobian J (n x 2: d/dlog rs, d/dlog nu) at
+   q = (log rs, log nu), as moffat.moffat_ft_dlogs: f = c x^nu K_nu(x), df/dlog rs = -c x^(nu+1) K_(nu-1)(x),
+   df/dlog nu by a forward difference of 1e-7 */
+static double moffat_eval(const double *kr, const double *v, Py_ssize_t n, const double *q, double *R, double *J)
+{
+    const double h = 1e-7;
+    const double nu = exp(q[1]), nu2 = nu * exp(h), rs = exp(q[0]);
+    const double c = pow(2.0, 1.0 - nu) / sp_gamma(nu, 0), c2 = pow(2.0, 1.0 - nu2) / sp_gamma(nu2, 0);
+    double cost = 0.0;
+    for (Py_ssize_t k = 0; k < n; k++) {
+        const double x = kr[k] * rs;
+        const double f0 = c * pow(x, nu) * sp_kv(nu, x, 0);
+        J[2 * k] = -c * pow(x, nu + 1.0) * sp_kv(nu - 1.0, x, 0);
+        J[2 * k + 1] = (c2 * pow(x, nu2) * sp_kv(nu2, x, 0) - f0) / h;
+        R[k] = f0 - v[k];
+        cost += R[k] * R[k];
+    }
+    return cost;
+}
+
+static int lm_small(const double *q, const double *p, const double *xtol)
+{
+    return fabs(q[0] - p[0]) <= *xtol * (fabs(p[0]) + *xtol) && fabs(q[1] - p[1]) <= *xtol * (fabs(p[1]) + *xtol);
+}
+
+static PyObject *moffat_lm(PyObject *self, PyObject *args)
+{
+    Py_buffer kb, vb, pb;
+    int free0, free1, max_iter;
+    double ftol, xtol;
+    if (!PyArg_ParseTuple(args, "y*y*w*iiidd", &kb, &vb, &pb, &free0, &free1, &max_iter, &ftol, &xtol)) return NULL;
+    const Py_ssize_t n = kb.len / (Py_ssize_t)sizeof(double), m = pb.len / (2 * (Py_ssize_t)sizeof(double));
+    if (sp_kv == NULL || sp_gamma == NULL || n < 1 || vb.len != m * n * (Py_ssize_t)sizeof(double)
+        || pb.len != 2 * m * (Py_ssize_t)sizeof(double) || !(free0 || free1)) {
+        RELEASE(&kb, &vb, &pb);
+        PyErr_SetString(PyExc_ValueError, "moffat_lm: inconsistent buffers (or set_bessel not called)");
+        return NULL;
+    }
+    double *buf = (double *)malloc(6 * n * sizeof(double));
+    if (buf == NULL) { RELEASE(&kb, &vb, &pb); return PyErr_NoMemory(); }
+    const double *kr = (const double *)kb.buf;
+    double *P = (double *)pb.buf;
+    Py_BEGIN_ALLOW_THREADS
+    double *R = buf, *J = buf + n, *Rq = buf + 3 * n, *Jq = buf + 4 * n;
+    const int fr[2] = {free0, free1};
+    for (Py_ssize_t r = 0; r < m; r++) {
+        const double *v = (const double *)vb.buf + r * n;
+        double *p = P + 2 * r;
+        double lam = 1e-3;
+        double cost = moffat_eval(kr, v, n, p, R, J);
+        for (int it = 0; it < max_iter; it++) {
+            /* the normal equations of the free parameters, damped by lam times their diagonal */
+            double a00 = 0, a01 = 0, a11 = 0, g0 = 0, g1 = 0;
+            for (Py_ssize_t k = 0; k < n; k++) {
+                a00 += J[2 * k] * J[2 * k];
+                a01 += J[2 * k] * J[2 * k + 1];
+                a11 += J[2 * k + 1] * J[2 * k + 1];
+                g0 += J[2 * k] * R[k];
+                g1 += J[2 * k + 1] * R[k];
+            }
+            double step[2] = {0.0, 0.0};
+            if (fr[0] && fr[1]) {
+                const double A[2][2] = {{a00 + lam * (a00 + 1e-30), a01}, {a01, a11 + lam * (a11 + 1e-30)}};
+                const double g[2] = {g0, g1};
+                /* LU with partial pivoting, as LAPACK's gesv; an exactly singular pivot stops the fit */
+                const int pv = fabs(A[1][0]) > fabs(A[0][0]) ? 1 : 0, o = 1 - pv;
+                if (A[pv][0] == 0.0) { step[0] = step[1] = NAN; }
+                else {
+                    const double l = A[o][0] * (1.0 / A[pv][0]), u11 = A[o][1] - l * A[pv][1];
+                    if (u11 == 0.0) { step[0] = step[1] = NAN; }
+                    else {
+                        const double x1 = (g[o] - l * g[pv]) / u11;
+                        step[1] = -x1;
+                        step[0] = -((g[pv] - A[pv][1] * x1) / A[pv][0]);
+                    }
+                }
+            } else {
+                const int f = fr[0] ? 0 : 1;
+                const double a = f ? a11 + lam * (a11 + 1e-30) : a00 + lam * (a00 + 1e-30), g = f ? g1 : g0;
+                step[f] = a == 0.0 ? NAN : -(g / a);
+            }
+            const int bad = !(isfinite(step[0]) && isfinite(step[1]));
+            double q[2] = {p[0], p[1]};
+            for (int t = 0; t < 2; t++)
+                if (fr[t]) {
+                    const double s = bad ? 0.0 : step[t];
+                    q[t] += s < -2.0 ? -2.0 : (s > 2.0 ? 2.0 : s);
+                }
+            if (bad || lm_small(q, p, &xtol)) break;   /* a singular system, or a step below the tolerance */
+            const double cq = moffat_eval(kr, v, n, q, Rq, Jq);
+            const int accept = isfinite(cq) && cq <= cost;
+            const int converged = accept && ((cost - cq <= ftol * cost) || lm_small(q, p, &xtol));
+            if (accept) {
+                p[0] = q[0];
+                p[1] = q[1];
+                cost = cq;
+                memcpy(R, Rq, n * sizeof(double));
+                memcpy(J, Jq, 2 * n * sizeof(double));
+            }
+            lam = accept ? (lam / 3.0 > 1e-12 ? lam / 3.0 : 1e-12) : lam * 4.0;
+            if (converged || (!accept && lam > 1e12)) break;
+        }
+    }
+    Py_END_ALLOW_THREADS
+    free(buf);
+    RELEASE(&kb, &vb, &pb);
+    Py_RETURN_NONE;
+}
+
+/* the Moffat's transform c x^nu K_nu(x) at x = k rs (1 at x <= 1e-8), as moffat.moffat_ft */
+static double moffat_ft1(double x, double nu, double c)
+{
+    return x > 1e-8 ? c * pow(x, nu) * sp_kv(nu, x, 0) : 1.0;
+}
+
+/*
+ * moffat_table(k, rs, beta, x_exact, h0, grow, floor, out): model._moffat_table's numbers (its numpy lines stay
+ * as the reference and the fallback; a test checks they agree) on the uniform grid k: exact up to x = k rs =
+ * x_exact, beyond it the cubic Hermite interpolant of the logarithm through exact nodes h0 + grow x apart, with
+ * the exact slopes -rs K_(nu-1) / K_nu there, and 0 beyond the last node above floor. scipy's kv and gamma
+ * (set_bessel).
+ */
+static PyObject *moffat_table(PyObject *self, PyObject *args)
+{
+    Py_buffer kb, ob;
+    double rs, beta, x_exact, h0, grow, floor_;
+    if (!PyArg_ParseTuple(args, "y*ddddddw*", &kb, &rs, &beta, &x_exact, &h0, &grow, &floor_, &ob)) return NULL;
+    const Py_ssize_t n = kb.len / (Py_ssize_t)sizeof(double);
+    if (sp_kv == NULL || sp_gamma == NULL || n < 2 || ob.len != kb.len || !(rs > 0) || !(beta > 1) || !(grow > 0)) {
+        RELEASE(&kb, &ob);
+        PyErr_SetString(PyExc_ValueError, "moffat_table: inconsistent arguments (or set_bessel not called)");
+        return NULL;
+    }
+    const double *k = (const double *)kb.buf;
+    double *out = (double *)ob.buf;
+    const double nu = beta - 1.0, c = pow(2.0, 1.0 - nu) / sp_gamma(nu, 0);
+    const double dx = (k[1] - k[0]) * rs;
+    const Py_ssize_t j = (Py_ssize_t)ceil(x_exact / dx);
+    int done = 0, nomem = 0;
+    if (n - j >= 8) {
+        const double a = x_exact + h0 / grow;
+        const double top = (k[n - 1] * rs + h0 / grow) / a;
+        const Py_ssize_t count = (Py_ssize_t)ceil(log(top) / log1p(grow)) + 1;
+        int64_t *nodes = (int64_t *)malloc((count > 0 ? count : 1) * sizeof(int64_t));
+        double *buf = (double *)malloc(3 * (count > 0 ? count : 1) * sizeof(double));
+        if (nodes == NULL || buf == NULL) nomem = 1;
+        Py_ssize_t nn = 0;
+        for (Py_ssize_t i = 0; !nomem && i < count; i++) {
+            double xi = a * pow(1.0 + grow, (double)i) - h0 / grow;
+            double r = nearbyint(xi / dx);
+            int64_t v = r < (double)j ? (int64_t)j : (r > (double)(n - 1) ? (int64_t)(n - 1) : (int64_t)r);
+            if (nn == 0 || v != nodes[nn - 1]) nodes[nn++] = v;
+        }
+        if (!nomem) {
+            double *V = buf, *KV = buf + count, *LV = buf + 2 * count;
+            Py_ssize_t m = 0;
+            for (Py_ssize_t i = 0; i < nn; i++) {
+                const double xn = k[nodes[i]] * rs;
+                KV[i] = sp_kv(nu, xn, 0);
+                V[i] = c * pow(xn, nu) * KV[i];
+                m += V[i] >= floor_;
+            }
+            if (m >= 4) {
+                for (Py_ssize_t i = 0; i < n; i++) out[i] = 0.0;
+                for (Py_ssize_t i = 0; i < j; i++) out[i] = moffat_ft1(k[i] * rs, nu, c);
+                /* the slopes d log f / dk at the nodes, in KV's place */
+                for (Py_ssize_t i = 0; i < m; i++) {
+                    const double xn = k[nodes[i]] * rs;
+                    KV[i] = -rs * sp_kv(nu - 1.0, xn, 0) / KV[i];
+                    LV[i] = log(V[i]);
+                }
+                hermite_log_fill(k[0], k[1] - k[0], nodes, m, LV, KV, out);
+                for (Py_ssize_t i = 0; i < m; i++) out[nodes[i]] = V[i];
+                done = 1;
+            }
+        }
+        free(nodes);
+        free(buf);
+    }
+    if (!done && !nomem)
+        for (Py_ssize_t i = 0; i < n; i++) {
+            const double v = moffat_ft1(k[i] * rs, nu, c);
+            out[i] = v < floor_ ? 0.0 : v;
+        }
+    RELEASE(&kb, &ob);
+    if (nomem) return PyErr_NoMemory();
+    return PyBool_FromLong(done);
+}
+
 /* the instruction-set levels the CPU supports, as x86-64 micro-architecture levels (GCC and clang on
  * x86-64; elsewhere an empty tuple: only the baseline module exists) */
 static PyObject *cpu_levels(PyObject *self, PyObject *args)
@@ -1642,6 +1864,9 @@ static PyMethodDef methods[] = {
      "per_octave, low_f, low_g, zero_f, zero_g, ratio2, pair_basis, pair_a, pair_b, pair_h, out)"},
     {"quintic_kvalues", quintic_kvalues, METH_VARARGS, "quintic_kvalues(table, n, ntab, tx, ty, out)"},
     {"hermite_log_table", hermite_log_table, METH_VARARGS, "hermite_log_table(k0, dk, nodes, lv, slope, out)"},
+    {"set_bessel", set_bessel, METH_VARARGS, "set_bessel(kv_capsule, gamma_capsule)"},
+    {"moffat_lm", moffat_lm, METH_VARARGS, "moffat_lm(kr, VR, P, free0, free1, max_iter, ftol, xtol)"},
+    {"moffat_table", moffat_table, METH_VARARGS, "moffat_table(k, rs, beta, x_exact, h0, grow, floor, out) -> nodes used"},
     {"alias_sums", alias_sums, METH_VARARGS, "alias_sums(table, i0, w0, w1, kept, A, Gs)"},
     {"fine_modes_select", fine_modes_select, METH_VARARGS,
      "fine_modes_select(Ps, A, ok, absG, Gs, absG2max, kyv, kxv, dx, dy, s, ny, nxh, tolerance, ky, kx, T, c) -> m"},

@@ -28,7 +28,7 @@ import importlib.util
 import os
 import warnings
 
-__all__ = ["KERNEL", "USE_KERNEL", "kernel_info", "LEVELS"]
+__all__ = ["KERNEL", "USE_KERNEL", "kernel_info", "LEVELS", "special_capsules"]
 
 #: Instruction-set levels, lowest first: (name, module, the SHEARFIT_ISA values that select it).
 LEVELS = (("baseline", "_kernels", ("baseline", "portable", "x86-64", "default")),
@@ -82,6 +82,18 @@ KERNEL, _NOTE, _REQUEST = _load()
 
 #: The compiled loops run (else the numpy ones).
 USE_KERNEL = KERNEL is not None
+
+
+def special_capsules(name) -> list:
+    """The C entry points of ``scipy.special.cython_special``'s ``name`` (its fused versions: the caller
+    tries each against the signature it needs); [] where scipy's build does not export them."""
+    try:
+        from scipy.special import cython_special
+        caps = cython_special.__pyx_capi__
+    except (ImportError, AttributeError):   # pragma: no cover - depends on scipy's build
+        return []
+    return [c for k, c in caps.items() if k == name or (k.endswith(name) and k.startswith("__pyx_fuse_")
+                                                         and k[len("__pyx_fuse_"):-len(name)].isdigit())]
 
 
 def _found(module) -> bool:

@@ -33,7 +33,7 @@ from scipy.interpolate import CubicSpline
 
 from ..config import FitConfig
 from ..errors import ShearfitValueError
-from .kernel import KERNEL, USE_KERNEL
+from .kernel import KERNEL, USE_KERNEL, special_capsules
 from .model import ExposureModes, indices_by_shape, inv2, shape_matrix
 
 
@@ -891,22 +891,13 @@ def _load_special():
     points, double versions); False where they cannot be found (the numpy path is used then)."""
     if KERNEL is None:
         return False
-    try:
-        from scipy.special import cython_special
-        caps = cython_special.__pyx_capi__
-    except (ImportError, AttributeError):   # pragma: no cover - depends on scipy's build
-        return False
-
-    def candidates(name):
-        return [c for k, c in caps.items() if k == name or (k.endswith(name) and k.startswith("__pyx_fuse_")
-                                                              and k[len("__pyx_fuse_"):-len(name)].isdigit())]
     # log Ei on a grid, with its derivative, for cubic interpolation (from 1, clear of Ei's root at 0.37,
     # to the asymptotic series' start)
     x = np.arange(_EI_TABLE_FROM, _EI_SERIES_FROM + 2 * _EI_TABLE_STEP, _EI_TABLE_STEP)
     ei = special.expi(x)
     table = np.ascontiguousarray(np.stack([np.log(ei), np.exp(x) / (x * ei)], axis=1))
-    for c1 in candidates("erfcx"):
-        for c2 in candidates("expi"):
+    for c1 in special_capsules("erfcx"):
+        for c2 in special_capsules("expi"):
             try:
                 KERNEL.set_special(c1, c2, table, float(x[0]), _EI_TABLE_STEP)
                 return True

@@ -36,6 +36,7 @@ from scipy import special
 from ..config import FitConfig
 from ..errors import ShearfitValueError
 from ..observation import Observation, is_immutable
+from . import moffat as _moffat
 from .moffat import fit_moffat, fit_moffats, moffat_ft, moffat_norm
 from .kernel import KERNEL, USE_KERNEL
 
@@ -321,7 +322,7 @@ def _alias_geometry(ny, nx, s):
     return ktab, i0, w0, w1, sel, KYf, KXf, cs, (kyv, iy, kxv, ix)
 
 
-def _moffat_table(k, rs, beta, x_exact=1.0, h0=0.04, grow=0.02, floor=1e-30):
+def _moffat_table(k, rs, beta, x_exact=1.0, h0=0.04, grow=0.02, floor=1e-30, use_kernel=True):
     """moffat_ft on a uniform grid k, set to zero where it falls below ``floor``.
 
     Exact up to x = k rs = ``x_exact`` (where the transform of beta < 2 has its cusp); beyond, the cubic
@@ -332,9 +333,16 @@ def _moffat_table(k, rs, beta, x_exact=1.0, h0=0.04, grow=0.02, floor=1e-30):
     most of the table's time. Within 3.6e-8 of the exact values (tests/test_model.py, beta 1.2-21 and rs
     0.05-50 pixels: bound 1e-7), far below the error of the linear interpolation in the table. The
     transform decreases monotonically (its derivative is -c x^nu K_(nu-1)(x)), so it is zero beyond the last
-    node above the floor.
+    node above the floor. The compiled kernel (``moffat_table``, with scipy's kv and gamma) makes the same
+    numbers to rounding (tests/test_model.py) without the array operations' overhead, which was most of a
+    table's time where every exposure of every object had its own PSF and so its own Moffat.
     """
     n = k.size
+    if use_kernel and _moffat.USE_KERNEL_BESSEL:
+        out = np.empty(n)
+        KERNEL.moffat_table(np.ascontiguousarray(k, dtype=float), float(rs), float(beta), float(x_exact), float(h0),
+                            float(grow), float(floor), out)
+        return out
     dx = (k[1] - k[0]) * rs
     j = int(np.ceil(x_exact / dx))
     if n - j >= 8:
