@@ -21,6 +21,8 @@ pipeline's throughput.
     python benchmarks/field_test.py --wcs plain rotated distorted     # all three on the same galaxies, differences
     python benchmarks/field_test.py --psf both --psf-fwhm 0.36 0.38 --true-psf-oversampling 3 \
         --fitted-oversampling 1 3 --star-snr 200 2000                 # undersampled: native vs 3x fitted model
+    python benchmarks/field_test.py --n-galaxies 320 --n-ccd 16 --metacal --antithetic --wcs distorted
+                                      # metacal, each field with its antithetic twin (pixel and metacal noise negated)
 
 With ``--psf fitted`` or ``both`` every CCD also holds stars (a star
 catalogue is given; at the default ``--spacing`` a star 31 pixels from a large galaxy blends with it:
@@ -53,6 +55,8 @@ from shearfit.app.cli import main as shearfit_main
 from shearfit.calib.bias import ring_sums, shear_bias
 from shearfit.simulate.field import truth_galaxies
 from shearfit.simulate.stamps import galaxy_profile, mag_to_flux
+# benchmarks/ring_test.py, beside this script: the metacal columns, estimator and bootstrap
+from ring_test import METACAL_FIELDS, report_metacal
 
 PIX = 0.187
 RA0, DEC0 = 35.0, -4.0
@@ -132,7 +136,10 @@ def draw(prof, n, pos, args):
     return out
 
 
-def make_field(d, sign, args, gals, psfs, sigma, stars=None, with_psf=True, wcs_mode="plain", psf_settings=None):
+def make_field(d, sign, args, gals, psfs, sigma, stars=None, with_psf=True, wcs_mode="plain", psf_settings=None,
+               noise_sign=1):
+    """Write one field (``sign`` of the shear) and its config; ``noise_sign`` -1 writes the antithetic twin: the
+    same pixel noise negated."""
     g = sign * np.array(args.shear)
     specs = []
     rng_noise = np.random.default_rng(args.seed + 1000)   # the same noise for +g and -g
@@ -172,7 +179,7 @@ def make_field(d, sign, args, gals, psfs, sigma, stars=None, with_psf=True, wcs_
                     b = st.bounds & img.bounds
                     img[b] += st[b]
             noise = rng_noise.normal(0.0, sigma, (NPIX, NPIX))
-            data = img.array + (0.0 if args.noise_free else noise)
+            data = img.array + (0.0 if args.noise_free else noise_sign * noise)
             hdus.append(fits.ImageHDU(data, header=h))
             whdus.append(fits.ImageHDU(np.full((NPIX, NPIX), 1 / sigma ** 2, dtype=np.float32), header=h))
             os_k = args.true_psf_oversampling
@@ -238,6 +245,14 @@ def main(argv=None):
     ap.add_argument("--noise-free", action="store_true", help="noise-free images, weights of the SNR range")
     ap.add_argument("--shear", type=float, nargs=2, default=[0.03, -0.02])
     ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--antithetic", action="store_true",
+                    help="also measure each field's antithetic twin (its pixel noise negated, and with --metacal "
+                         "metacal's symmetrising noise too: metacal_noise_sign=-1): the twin's objects join their "
+                         "rings, and the terms odd in the noise cancel within each ring")
+    ap.add_argument("--metacal", action="store_true",
+                    help="measure with calibration: metacal and report the metacal shear bias (<R>^-1 <e> per sign) "
+                         "beside lensfit's on the noshear images")
+    ap.add_argument("--n-bootstrap", type=int, default=500, help="bootstrap resamplings of the rings")
     ap.add_argument("--processes", type=int, default=os.cpu_count())
     ap.add_argument("--keep", default=None, help="keep the fields in this directory")
     ap.add_argument("--psf", choices=["given", "fitted", "both"], default="given",
@@ -336,24 +351,31 @@ def main(argv=None):
     settings = {name: st for name, _, st in psf_variants}
     label = {v: (v[1] if len(args.wcs) == 1 else f"{v[0]} WCS, {v[1]}") for v in variants}
     tables = {}
+    twins = (+1, -1) if args.antithetic else (+1,)
     t_meas = 0.0
     n_meas = 0
     with tempfile.TemporaryDirectory() as tmp:
         base_dir = args.keep or tmp
-        for sign in (+1, -1):
+        for sign, twin in [(s, t) for s in (+1, -1) for t in twins]:
             for v in variants:
                 wcs_mode, name, with_psf = v
-                d = os.path.join(base_dir, ("plus" if sign > 0 else "minus") +
+                d = os.path.join(base_dir, ("plus" if sign > 0 else "minus") + ("_twin" if twin < 0 else "") +
                                  ("" if len(variants) == 1 else f"_{wcs_mode}_{name.replace(' ', '')}"))
                 os.makedirs(d, exist_ok=True)
                 out = os.path.join(d, "shear.fits")
+                what = f"{'+g' if sign > 0 else '-g'}{', twin' if twin < 0 else ''}"
                 if args.reuse and os.path.exists(out):
-                    tables[(v, sign)] = Table.read(out)
-                    print(f"field {'+g' if sign > 0 else '-g'} ({label[v]}): read from {out}", flush=True)
+                    tables[(v, sign, twin)] = Table.read(out)
+                    print(f"field {what} ({label[v]}): read from {out}", flush=True)
                     continue
                 t0 = time.perf_counter()
+                run_settings = dict(settings[name])
+                if args.metacal:
+                    run_settings["calibration"] = "metacal"
+                    if twin < 0:
+                        run_settings["metacal_noise_sign"] = -1
                 cfgpath = make_field(d, sign, args, gals, psfs, sigma, stars=stars, with_psf=with_psf,
-                                     wcs_mode=wcs_mode, psf_settings=settings[name])
+                                     wcs_mode=wcs_mode, psf_settings=run_settings, noise_sign=twin)
                 t_sim = time.perf_counter() - t0
                 t0 = time.perf_counter()
                 rc = shearfit_main(["measure", cfgpath, "--out", out, "--quiet", "-j", str(args.processes)])
@@ -361,20 +383,21 @@ def main(argv=None):
                 n_meas += len(gals)
                 if rc != 0:
                     raise SystemExit(f"shearfit measure failed ({rc})")
-                tables[(v, sign)] = Table.read(out)
-                print(f"field {'+g' if sign > 0 else '-g'} ({label[v]}): simulated in {t_sim:.0f} s, measured in "
+                tables[(v, sign, twin)] = Table.read(out)
+                print(f"field {what} ({label[v]}): simulated in {t_sim:.0f} s, measured in "
                       f"{time.perf_counter() - t0:.0f} s", flush=True)
     if n_meas:
         print(f"\nshearfit measure: {n_meas / t_meas / args.processes:.2f} objects/s per process "
               f"({args.processes} processes, PSF fitting included where fitted)")
     results = {}
     for v in variants:
-        results[label[v]] = report({s: tables[(v, s)] for s in (+1, -1)}, gals, args, label[v], v[0])
+        results[label[v]] = report({k[1:]: t for k, t in tables.items() if k[0] == v}, gals, args, label[v], v[0])
     if len(variants) > 1:
         # differences from the first variant, resampling the same rings for all
         rng_b = np.random.default_rng(0)
         g = np.array(args.shear)
-        sums = {v: ring_sums(_rows({s: tables[(v, s)] for s in (+1, -1)}, gals), args.n_galaxies) for v in variants}
+        sums = {v: ring_sums(_rows({k[1:]: t for k, t in tables.items() if k[0] == v}, gals), args.n_galaxies)
+                for v in variants}
         ref = variants[0]
         subsets = [("", np.arange(args.n_galaxies))] + [(f" (rings of scalelength {what})", rings)
                                                          for what, rings in size_subsets(gals, args)]
@@ -392,13 +415,17 @@ def main(argv=None):
 
 
 def _rows(tables, gals):
-    rows = {k: [] for k in ("galaxy", "sign", "e1", "e2", "e_var", "weight", "fitclass", "m")}
-    for sign, t in tables.items():
+    """The objects of every field as one table: ``tables`` maps (sign, twin) to a catalogue (the twin's objects
+    are more members of their rings); the metacal columns come along where the catalogues have them."""
+    cols = ("e1", "e2", "e_var", "weight", "fitclass", "m") + METACAL_FIELDS
+    rows = {k: [] for k in ("galaxy", "sign", "twin") + cols}
+    for (sign, twin), t in tables.items():
         for gal, row in zip(gals, t):
-            for key, val in (("galaxy", gal["ring"]), ("sign", sign), ("e1", row["e1"]), ("e2", row["e2"]),
-                             ("e_var", row["e_var"]), ("weight", row["weight"]), ("fitclass", row["fitclass"]),
-                             ("m", row["m"] if "m" in t.colnames else np.nan)):
-                rows[key].append(val)
+            rows["galaxy"].append(gal["ring"])
+            rows["sign"].append(sign)
+            rows["twin"].append(twin)
+            for key in cols:
+                rows[key].append(row[key] if key in t.colnames else np.nan)
     return {k: np.array(v) for k, v in rows.items()}
 
 
@@ -416,9 +443,11 @@ def size_subsets(gals, args):
 
 def report(tables, gals, args, name, wcs_mode):
     tab = _rows(tables, gals)
-    est, err = shear_bias(ring_sums(tab, args.n_galaxies), np.array(args.shear), 500, np.random.default_rng(0))
+    est, err = shear_bias(ring_sums(tab, args.n_galaxies), np.array(args.shear), args.n_bootstrap,
+                          np.random.default_rng(0))
     fc = tab["fitclass"]
-    print(f"\n[{name} PSF] {args.n_galaxies} rings x 4 x 2 shears, {args.n_exposures} exposures x {args.n_ccd} CCDs, "
+    print(f"\n[{name} PSF] {args.n_galaxies} rings x 4{' x 2 twins' if args.antithetic else ''} x 2 shears, "
+          f"{args.n_exposures} exposures x {args.n_ccd} CCDs, "
           f"WCS {wcs_mode}, "
           f"{f'noise sigma {args.noise_sigma:g}' if args.noise_sigma else f'SNR {args.snr_min:.0f}-{args.snr_max:.0f}'}"
           f"{' (noise-free)' if args.noise_free else ''}, "
@@ -442,6 +471,8 @@ def report(tables, gals, args, name, wcs_mode):
         est_s, err_s = shear_bias(ring_sums(kept, args.n_galaxies), np.array(args.shear), 500, np.random.default_rng(0))
         print(f"  without the star/galaxy selection ({int(star.sum())} objects classified as stars kept): "
               f"m1 = {est_s[0]:+.5f} +/- {err_s[0]:.5f}, m2 = {est_s[1]:+.5f} +/- {err_s[1]:.5f}")
+    if args.metacal:
+        report_metacal(Table(tab), args, args.n_galaxies)
     subsets = size_subsets(gals, args)
     if subsets:
         sums = ring_sums(tab, args.n_galaxies)

@@ -184,6 +184,14 @@ def test_pipeline_metacal_columns(tmp_path):
     assert main(["measure", str(d / "field_truepsf.yaml"), "calibration=metacal", "--out", str(out2),
                  "--quiet"]) == 0
     assert np.array_equal(np.asarray(Table.read(out2)["R11"]), np.asarray(t["R11"]), equal_nan=True)
+    # metacal_noise_sign=-1 (an antithetic twin's run) negates the symmetrising noise: every galaxy's response
+    # moves (a single object's R is noisy: 0.4-1.2 here), their median stays a response's
+    out3 = tmp_path / "mc3.fits"
+    assert main(["measure", str(d / "field_truepsf.yaml"), "calibration=metacal", "metacal_noise_sign=-1",
+                 "--out", str(out3), "--quiet"]) == 0
+    r3 = np.asarray(Table.read(out3)["R11"])[gal]
+    assert np.all(np.isfinite(r3)) and np.all(r3 != np.asarray(t["R11"])[gal])
+    assert 0.3 < np.median(r3) < 1.5
 
 
 def test_xipm_and_calibrate_read_a_metacal_catalogue(tmp_path):

@@ -92,6 +92,11 @@ class PipelineConfig:
     metacal_seed: int = setting(
         0, "with calibration: metacal, seed of the symmetrising noise fields (one stream per object id)",
         "implementation")
+    metacal_noise_sign: int = setting(
+        1, "with calibration: metacal, 1, or -1 to negate the symmetrising noise fields: a simulated field's "
+        "antithetic twin (the same field with its pixel noise negated) measured with -1 and the field measured "
+        "with 1 cancel the terms odd in either noise (benchmarks/field_test.py --antithetic)",
+        "implementation")
 
     psf_size: int = setting(25, "side of the fitted PSF model and of the star stamps, native pixels (odd)", "sec. 5")
     psf_oversampling: int = setting(
@@ -142,6 +147,8 @@ class PipelineConfig:
                                      f"of MiB, positive, or 0 for no limit")
         if self.chunk_size < 1:
             raise ShearfitValueError(f"setting chunk_size={self.chunk_size!r} must be at least 1")
+        if self.metacal_noise_sign not in (1, -1):
+            raise ShearfitValueError(f"setting metacal_noise_sign={self.metacal_noise_sign!r} must be 1 or -1")
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)

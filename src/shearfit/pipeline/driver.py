@@ -827,6 +827,10 @@ def _measure_on_stamps(hits, exposures, mag, cfg, pc, obj_id, size, geometry=Non
         from ..calib.metacal import SHEARED, measure_metacal   # GalSim is imported only for metacal runs
 
         rng = np.random.default_rng([int(pc.metacal_seed) & _U64, int(obj_id) & _U64])
+        if pc.metacal_noise_sign < 0:   # the antithetic twin of a simulated field: minus the same noise
+            from ..simulate.stamps import NegatedNormal
+
+            rng = NegatedNormal(rng)
         mc = measure_metacal(obs, mag, cfg.fit, pc.metacal_delta, rng)
         res = mc.noshear
         extra = {f"{q}_{v}": getattr(mc.results[v], q) for v in SHEARED for q, _, _ in METACAL_QUANTITIES}
