@@ -477,10 +477,20 @@ def report(tables, gals, args, name, wcs_mode):
     if subsets:
         sums = ring_sums(tab, args.n_galaxies)
         for lab, sel in subsets:
-            e_s, r_s = shear_bias(sums[:, sel], np.array(args.shear), 500, np.random.default_rng(0))
+            e_s, r_s = shear_bias(sums[:, sel], np.array(args.shear), args.n_bootstrap, np.random.default_rng(0))
             print(f"  rings of scalelength {lab} ({sel.size}): m1 = {e_s[0]:+.5f} +/- {r_s[0]:.5f}, "
                   f"m2 = {e_s[1]:+.5f} +/- {r_s[1]:.5f}, c1 = {e_s[2]:+.6f} +/- {r_s[2]:.6f}, "
                   f"c2 = {e_s[3]:+.6f} +/- {r_s[3]:.6f}")
+        if args.metacal:
+            for lab, sel in subsets:
+                # the subset's rings renumbered 0 .. n - 1, for the metacal report's bootstrap over rings
+                number = np.full(args.n_galaxies, -1)
+                number[sel] = np.arange(sel.size)
+                rows = number[tab["galaxy"]] >= 0
+                sub = Table({k: v[rows] for k, v in tab.items()})
+                sub["galaxy"] = number[tab["galaxy"][rows]]
+                print(f"\n  rings of scalelength {lab} ({sel.size}), metacal:", end="")
+                report_metacal(sub, args, sel.size)
     return est, err
 
 
