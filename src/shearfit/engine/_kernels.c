@@ -1649,9 +1649,10 @@ static double moffat_eval(const double *kr, const double *v, Py_ssize_t n, const
     return cost;
 }
 
-static int lm_small(const double *q, const double *p, const double *xtol)
+/* whether the step from p to q is below the tolerance in both parameters (numpy: np.all(|Q - P| <= ...)) */
+static int lm_small(const double *q, const double *p, double xtol)
 {
-    return fabs(q[0] - p[0]) <= *xtol * (fabs(p[0]) + *xtol) && fabs(q[1] - p[1]) <= *xtol * (fabs(p[1]) + *xtol);
+    return fabs(q[0] - p[0]) <= xtol * (fabs(p[0]) + xtol) && fabs(q[1] - p[1]) <= xtol * (fabs(p[1]) + xtol);
 }
 
 static PyObject *moffat_lm(PyObject *self, PyObject *args)
@@ -1717,10 +1718,10 @@ static PyObject *moffat_lm(PyObject *self, PyObject *args)
                     const double s = bad ? 0.0 : step[t];
                     q[t] += s < -2.0 ? -2.0 : (s > 2.0 ? 2.0 : s);
                 }
-            if (bad || lm_small(q, p, &xtol)) break;   /* a singular system, or a step below the tolerance */
+            if (bad || lm_small(q, p, xtol)) break;   /* a singular system, or a step below the tolerance */
             const double cq = moffat_eval(kr, v, n, q, Rq, Jq);
             const int accept = isfinite(cq) && cq <= cost;
-            const int converged = accept && ((cost - cq <= ftol * cost) || lm_small(q, p, &xtol));
+            const int converged = accept && ((cost - cq <= ftol * cost) || lm_small(q, p, xtol));
             if (accept) {
                 p[0] = q[0];
                 p[1] = q[1];

@@ -158,7 +158,7 @@ def _levenberg_marquardt(kr, VR, P, free, max_iter, ftol, xtol, use_kernel=True)
 
     The compiled kernel (``moffat_lm``) runs the same iterations row after row, with scipy's kv and gamma: the
     same fit to rounding (a test checks they agree), without the array operations' overhead per iteration,
-    which made these fits a sixth of the cost of a galaxy whose exposures each had their own PSF."""
+    most of these fits' cost where every exposure of every object has its own PSF."""
     free = np.asarray(free)
     P = np.array(P, dtype=float)
     if use_kernel and USE_KERNEL_BESSEL:
