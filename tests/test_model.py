@@ -263,9 +263,10 @@ def test_moffat_table_is_the_exact_transform(rs, beta):
 def test_compiled_moffat_fit_is_the_numpy_fit(monkeypatch):
     """The compiled Levenberg-Marquardt (moffat_lm) runs the numpy lines' iterations: on Moffats of beta
     1.5-6 and a Gaussian (beta at its bound, the size refitted with beta held), drawn by GalSim with a little
-    noise, the same (rs, beta) to 1e-7 (seen: 2e-9), and the same transform inside the band to 2e-9 of its
-    peak (seen: 4e-10). (Where a large beta makes rs and beta nearly degenerate, rounding can stop the two
-    further apart along the valley: the transform is what the alias correction uses.)"""
+    noise, the same (rs, beta) to 1e-7 and the same transform inside the band to 2e-9 of its peak (both
+    bounds well above the differences rounding makes). (Where a large beta makes rs and beta nearly
+    degenerate, rounding can stop the two further apart along the valley: the transform is what the alias
+    correction uses.)"""
     from shearfit.engine import moffat
     from shearfit.engine.moffat import moffat_ft
 
