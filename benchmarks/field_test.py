@@ -468,7 +468,8 @@ def report(tables, gals, args, name, wcs_mode):
         star = fc == 1
         kept = dict(tab, fitclass=np.where(star, 0, fc),
                     weight=np.where(star, lensing_weight(tab["e_var"], FitConfig()), tab["weight"]))
-        est_s, err_s = shear_bias(ring_sums(kept, args.n_galaxies), np.array(args.shear), 500, np.random.default_rng(0))
+        est_s, err_s = shear_bias(ring_sums(kept, args.n_galaxies), np.array(args.shear), args.n_bootstrap,
+                                  np.random.default_rng(0))
         print(f"  without the star/galaxy selection ({int(star.sum())} objects classified as stars kept): "
               f"m1 = {est_s[0]:+.5f} +/- {err_s[0]:.5f}, m2 = {est_s[1]:+.5f} +/- {err_s[1]:.5f}")
     if args.metacal:
