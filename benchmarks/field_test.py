@@ -366,6 +366,8 @@ def main(argv=None):
                 what = f"{'+g' if sign > 0 else '-g'}{', twin' if twin < 0 else ''}"
                 if args.reuse and os.path.exists(out):
                     tables[(v, sign, twin)] = Table.read(out)
+                    if with_psf and getattr(args, "psf_sky", None) is None:
+                        args.psf_sky = exposure_psfs(d, args.n_exposures)
                     print(f"field {what} ({label[v]}): read from {out}", flush=True)
                     continue
                 t0 = time.perf_counter()
@@ -384,6 +386,8 @@ def main(argv=None):
                 if rc != 0:
                     raise SystemExit(f"shearfit measure failed ({rc})")
                 tables[(v, sign, twin)] = Table.read(out)
+                if with_psf and getattr(args, "psf_sky", None) is None:
+                    args.psf_sky = exposure_psfs(d, args.n_exposures)
                 print(f"field {what} ({label[v]}): simulated in {t_sim:.0f} s, measured in "
                       f"{time.perf_counter() - t0:.0f} s", flush=True)
     if n_meas:
@@ -441,6 +445,31 @@ def size_subsets(gals, args):
             for op, sel in (("<", r < args.size_split), (">=", r >= args.size_split)) if sel.sum() > 1]
 
 
+def exposure_psfs(d, n_exposures):
+    """Per exposure of the field in ``d``, its given PSF on its first CCD as the catalogue's psf_e1, psf_e2 and
+    psf_fwhm measure it (adaptive moments carried to the sky by the local Jacobian at the CCD's centre): rows
+    (e1, e2, FWHM arcsec)."""
+    import warnings
+
+    from astropy.wcs import WCS, FITSFixedWarning
+
+    from shearfit.io.wcs import local_jacobian
+    from shearfit.pipeline.driver import psf_ellipticity, psf_fwhm_arcsec, psf_moments
+
+    rows = []
+    for e in range(n_exposures):
+        with fits.open(os.path.join(d, f"exp{e}.fits")) as im, fits.open(os.path.join(d, f"exp{e}.psf.fits")) as ps:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", FITSFixedWarning)
+                w = WCS(im[1].header)
+            ny, nx = im[1].data.shape
+            J = np.asarray(local_jacobian(w, nx / 2, ny / 2), float).reshape(2, 2)
+            k = int(ps[1].header.get("OVERSAMP", 1))
+            m = psf_moments(ps[1].data)
+            rows.append(psf_ellipticity(ps[1].data, J, k, moments=m) + (psf_fwhm_arcsec(J, k, moments=m),))
+    return np.array(rows, float)
+
+
 def report(tables, gals, args, name, wcs_mode):
     tab = _rows(tables, gals)
     est, err = shear_bias(ring_sums(tab, args.n_galaxies), np.array(args.shear), args.n_bootstrap,
@@ -454,6 +483,15 @@ def report(tables, gals, args, name, wcs_mode):
           f"scalelength >= {args.min_size}\"")
     print(f"  m1 = {est[0]:+.5f} +/- {err[0]:.5f}    c1 = {est[2]:+.6f} +/- {err[2]:.6f}")
     print(f"  m2 = {est[1]:+.5f} +/- {err[1]:.5f}    c2 = {est[3]:+.6f} +/- {err[3]:.6f}")
+    sky = getattr(args, "psf_sky", None)
+    if sky is not None:
+        # a PSF leakage alpha makes c = alpha e_psf, e_psf the exposures' PSF ellipticity as the fits weigh them:
+        # for small galaxies the sharpest exposures count most (about as FWHM^-4)
+        g, w = sky[:, :2], sky[:, 2] ** -4.0
+        gw = w @ g / w.sum()
+        print(f"  the exposures' given PSFs (sky frame, adaptive moments, CCD 1): ellipticity mean ({g[:, 0].mean():+.4f}, "
+              f"{g[:, 1].mean():+.4f}), weighted by FWHM^-4 ({gw[0]:+.4f}, {gw[1]:+.4f}); FWHM {sky[:, 2].min():.2f}-"
+              f"{sky[:, 2].max():.2f}\"")
     good = (fc == 0) & np.isfinite(tab["m"]) & (np.nan_to_num(tab["weight"]) > 0)
     if good.any():
         # the catalogue's m column (the calibration in force, shearfit's default unless --set calibration=...)

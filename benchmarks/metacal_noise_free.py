@@ -17,6 +17,7 @@ the ring tests of ``ring_test.py --metacal`` need a million objects).
 
     python benchmarks/metacal_noise_free.py --n-galaxies 60
     python benchmarks/metacal_noise_free.py --n-galaxies 60 --population odd
+    python benchmarks/metacal_noise_free.py --n-galaxies 60 --metacal-psf round
     python benchmarks/metacal_noise_free.py --n-galaxies 60 --variants 2:quintic:cubic,0:quintic:cubic
     python benchmarks/metacal_noise_free.py --n-galaxies 60 --variants 1.333:quintic:quintic:own,1.333:quintic:quintic:galsim
 
@@ -61,6 +62,8 @@ def main(argv=None):
                     help="keep the stamps' noise (the same at 0 and +-h) and metacal's symmetrising noise: the "
                          "per-galaxy scatter of A - R and of A_free - A then shows what limits the noisy ring tests")
     ap.add_argument("--antithetic", action="store_true", help="with --noisy: also each galaxy's antithetic twin")
+    ap.add_argument("--metacal-psf", choices=["dilated", "round"], default="dilated",
+                    help="metacal's new PSF (shearfit.calib.metacal.metacal_observations' psf)")
     ap.add_argument("--variants", default=None,
                     help="comma-separated WRAP:STAMP_INTERPOLANT:PSF_INTERPOLANT image settings to compare")
     args = ap.parse_args(argv)
@@ -81,7 +84,8 @@ def main(argv=None):
     print(f"{args.n_galaxies} {'noisy' if args.noisy else 'noise-free'} galaxies"
           f"{' and their antithetic twins' if len(twins) > 1 else ''} ({args.population} population, SNR "
           f"{args.snr_min:g}-{args.snr_max:g}{'' if args.noisy else ' weights'}, mag {args.mag_min:g}-{args.mag_max:g}), "
-          f"7 exposures; true shears +-{h:g}, metacal delta {args.delta:g}; rendered in {time.perf_counter() - t0:.0f} s")
+          f"7 exposures; true shears +-{h:g}, metacal delta {args.delta:g}, new PSF {args.metacal_psf}; rendered in "
+          f"{time.perf_counter() - t0:.0f} s")
     shipped = (f"{metacal.WRAP_STAMPS:g}:{metacal.K_INTERPOLANT}:{metacal.PSF_K_INTERPOLANT}:"
                f"{'own' if metacal.OWN_KSPACE else 'galsim'}")
     for variant in (args.variants.split(",") if args.variants else [shipped]):
@@ -95,7 +99,8 @@ def main(argv=None):
         try:
             t0 = time.perf_counter()
             rows = [[fixed_sample_responses(sets[twin], i, h, args.delta, cfg, args.seed, args.noisy, twin,
-                                            free=args.noisy) for twin in twins] for i in range(args.n_galaxies)]
+                                            free=args.noisy, psf=args.metacal_psf) for twin in twins]
+                    for i in range(args.n_galaxies)]
         finally:
             metacal.WRAP_STAMPS, metacal.K_INTERPOLANT, metacal.PSF_K_INTERPOLANT, metacal.OWN_KSPACE = saved
         # a galaxy (with its twin) counts where every fit of it measured a galaxy; twins averaged

@@ -143,7 +143,7 @@ def _work(task):
                 mrng = np.random.default_rng([int(seed.generate_state(1)[0]), truth["rotation"]])
                 if noise_sign < 0:   # the twin's symmetrising noise is minus the first's too
                     mrng = NegatedNormal(mrng)
-                mc = measure_metacal(obs, truth["mag"], cfg, rng=mrng)
+                mc = measure_metacal(obs, truth["mag"], cfg, rng=mrng, psf=opts.get("metacal_psf", "dilated"))
                 res = mc.noshear
                 rec["fitclass"] = int(res.fitclass)
                 for name in RESULT_FIELDS:
@@ -245,6 +245,7 @@ def report_bias(tab, args, n_gal):
           f"resamplings of {n_gal} galaxies):")
     print(f"  m1 = {format_with_error(est[0], err[0])}    c1 = {format_with_error(est[2], err[2])}")
     print(f"  m2 = {format_with_error(est[1], err[1])}    c2 = {format_with_error(est[3], err[3])}")
+    print_leakage(est[2:4], err[2:4], args)
     # the same rings with weights that do not respond to the shear: each +g / -g pair's mean weight (ring
     # tables), and the mean of each bin of SNR and circularised size (what a catalogue can use)
     others = []
@@ -301,6 +302,17 @@ def report_bias(tab, args, n_gal):
                   f"{format_with_error(e_b[0], err_b[0])}   {format_with_error(e_b[1], err_b[1])}")
 
 
+def print_leakage(c, err, args):
+    """With --psf-e-fixed: the PSF leakage alpha = c_i / e_psf,i of each component whose PSF ellipticity is not 0."""
+    e_psf = getattr(args, "psf_e_fixed", None)
+    if not e_psf:
+        return
+    parts = [f"alpha{i + 1} = c{i + 1} / {e:+g} = {format_with_error(c[i] / e, err[i] / abs(e))}"
+             for i, e in enumerate(e_psf) if e != 0]
+    if parts:
+        print(f"  PSF leakage (every exposure's PSF ellipticity ({e_psf[0]:+g}, {e_psf[1]:+g})): " + ", ".join(parts))
+
+
 def report_metacal(tab, args, n_gal):
     """m and c of the metacal shear <R>^-1 <e> per sign (shear and selection response), bootstrap errors."""
     from astropy.table import Table
@@ -349,6 +361,7 @@ def report_metacal(tab, args, n_gal):
           f"of {n_gal} galaxies):")
     print(f"  m1 = {format_with_error(est[0], err[0])}    c1 = {format_with_error(est[2], err[2])}")
     print(f"  m2 = {format_with_error(est[1], err[1])}    c2 = {format_with_error(est[3], err[3])}")
+    print_leakage(est[2:4], err[2:4], args)
     print(f"  without the response (raw lensfit on the metacal noshear images): m1 = "
           f"{format_with_error(est[4], err[4])}, m2 = {format_with_error(est[5], err[5])}")
     print(f"  with the diagonal of <R> only (isotropic galaxies have no off-diagonal response): m1 = "
@@ -425,6 +438,9 @@ def parse_args(argv=None):
     p.add_argument("--psf-fwhm", type=float, nargs=2, default=[0.5, 0.8], metavar=("MIN", "MAX"),
                    help="Moffat FWHM range, arcsec, uniform per exposure (the closure fields: 0.55 0.85)")
     p.add_argument("--psf-e-max", type=float, default=0.1, help="PSF |e| uniform up to this (fields: 0.08)")
+    p.add_argument("--psf-e-fixed", type=float, nargs=2, default=None, metavar=("E1", "E2"),
+                   help="every exposure's PSF ellipticity (e1, e2) instead of random ones: c is then the PSF "
+                        "leakage, and alpha = c / e_psf is printed")
     p.add_argument("--noise-sigma", type=float, default=None,
                    help="one pixel sigma for every galaxy (counts, zero point 30) instead of the target SNR: "
                         "the SNR follows from magnitude and size as on a field (the closure fields: 4.29)")
@@ -462,6 +478,8 @@ def parse_args(argv=None):
                         "metacal's symmetrising noise): the terms odd in the noise cancel within each ring")
     p.add_argument("--metacal", action="store_true",
                    help="measure the five metacal versions of every object and report the metacal shear bias")
+    p.add_argument("--metacal-psf", choices=["dilated", "round"], default="dilated",
+                   help="with --metacal: the versions' new PSF (shearfit.calib.metacal.metacal_observations' psf)")
     p.add_argument("--with-plain", action="store_true",
                    help="with --metacal: also measure every object with plain lensfit (columns plain_*)")
     p.add_argument("--plain", action="store_true",
@@ -597,10 +615,12 @@ def main(argv=None):
         return report_tables(args)
     opts = {
         "shear": tuple(args.shear), "dry_run": args.dry_run, "config": cfg, "metacal": args.metacal,
+        "metacal_psf": args.metacal_psf,
         "antithetic": args.antithetic, "with_plain": args.with_plain and args.metacal,
         "ring_kwargs": dict(n_rotations=args.n_rotations, n_exposures=args.n_exposures,
                             snr_range=(args.snr_min, args.snr_max), mag_range=(args.mag_min, args.mag_max),
                             psf_fwhm_range=tuple(args.psf_fwhm), psf_e_max=args.psf_e_max,
+                            psf_e_fixed=tuple(args.psf_e_fixed) if args.psf_e_fixed else None,
                             noise_sigma=args.noise_sigma,
                             stamp_size=args.stamp_size, psf_oversampling=args.psf_oversampling,
                             rotate_exposures=args.rotate_exposures, add_noise=not args.noise_free,

@@ -207,7 +207,7 @@ def stage_report(stats):
             print(f"    {name:42s} {cum:7.3f} s  {100 * cum / total:5.1f} %")
 
 
-def metacal_report(objs, cfg, passes):
+def metacal_report(objs, cfg, passes, psf="dilated"):
     """Metacal (the images of five versions, five joint fits) against the plain engine, same objects.
 
     The plain fit, the metacal images alone (shearfit's own k-space operations, and GalSim's objects as
@@ -248,7 +248,7 @@ def metacal_report(objs, cfg, passes):
     if plain_bins is not None:
         KERNEL.make_bins = binned
     try:
-        rows = _metacal_passes(objs, cfg, passes, metacal, rng, split)
+        rows = _metacal_passes(objs, cfg, passes, metacal, rng, split, psf)
     finally:
         engine_measure._measure = plain_measure
         if plain_bins is not None:
@@ -257,7 +257,8 @@ def metacal_report(objs, cfg, passes):
     ratio = rows[:, 3] / rows[:, 0]
     k = int(np.argsort(ratio)[len(ratio) // 2])
     tp, ti, tg, tm = rows[k, :4]
-    print(f"\nmetacal, {len(objs)} galaxies, plain and metacal fits timed galaxy by galaxy, {len(rows)} passes:")
+    print(f"\nmetacal ({psf} new PSF), {len(objs)} galaxies, plain and metacal fits timed galaxy by galaxy, {len(rows)} "
+          f"passes:")
     print(f"  {1 / tm:.2f} galaxies / s / core ({1e3 * tm:.1f} ms per galaxy) against {1 / tp:.2f} plain "
           f"({1e3 * tp:.1f} ms): {tm / tp:.2f} x the plain engine (median pass; passes "
           f"{ratio.min():.2f}-{ratio.max():.2f} x)")
@@ -271,7 +272,7 @@ def metacal_report(objs, cfg, passes):
           f"({tg / tp:.2f} x a plain fit, {tg / ti:.2f} x shearfit's own)")
 
 
-def _metacal_passes(objs, cfg, passes, metacal, rng, split):
+def _metacal_passes(objs, cfg, passes, metacal, rng, split, psf="dilated"):
     """metacal_report's timed passes: per pass (plain, images, GalSim's images, metacal, noshear fit, replays,
     replays' binning) summed over the galaxies."""
     rows = []
@@ -285,18 +286,18 @@ def _metacal_passes(objs, cfg, passes, metacal, rng, split):
             # the images as measure_metacal makes them (the new PSFs' App. A Moffats are fitted there, as one
             # batch per object: counted with the fits)
             for ob in o:
-                metacal.metacal_observations(ob, 0.01, rng, fit_moffat=False)
+                metacal.metacal_observations(ob, 0.01, rng, fit_moffat=False, psf=psf)
             t2 = time.perf_counter()
             metacal.OWN_KSPACE = False
             try:
                 for ob in o:
-                    metacal.metacal_observations(ob, 0.01, rng, fit_moffat=False)
+                    metacal.metacal_observations(ob, 0.01, rng, fit_moffat=False, psf=psf)
             finally:
                 metacal.OWN_KSPACE = True
             t3 = time.perf_counter()
             split["on"] = True
             try:
-                metacal.measure_metacal(o, t["mag"], cfg, rng=rng)
+                metacal.measure_metacal(o, t["mag"], cfg, rng=rng, psf=psf)
             finally:
                 split["on"] = False
             t4 = time.perf_counter()
@@ -408,6 +409,8 @@ def main(argv=None):
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="engine setting")
     ap.add_argument("--metacal", action="store_true",
                     help="also time the metacal measurement (five versions per object) against the plain one")
+    ap.add_argument("--metacal-psf", choices=["dilated", "round"], default="dilated",
+                    help="with --metacal: the versions' new PSF (shearfit.calib.metacal.metacal_observations' psf)")
     ap.add_argument("--check-each", action="store_true",
                     help="with --check, also each speed setting alone at its exact value (its own effect)")
     ap.add_argument("--check", action="store_true",
@@ -473,7 +476,7 @@ def main(argv=None):
     print("\n  top functions by internal time:")
     pstats.Stats(prof).sort_stats("tottime").print_stats(8)
     if args.metacal:
-        metacal_report(objs, cfg, args.passes)
+        metacal_report(objs, cfg, args.passes, args.metacal_psf)
         metacal_image_profile(objs)
     if args.check:
         check_report(objs, cfg, res, args.seed, each=args.check_each)

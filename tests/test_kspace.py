@@ -86,17 +86,19 @@ def test_band_edge_is_where_galsims_psf_transform_falls_below_the_threshold(J):
 
 @pytest.mark.parametrize("J", JACOBIANS)
 @pytest.mark.parametrize("snr", [None, 40])
-def test_own_versions_are_galsims_with_its_band(J, snr, monkeypatch):
+@pytest.mark.parametrize("psf", ["dilated", "round"])
+def test_own_versions_are_galsims_with_its_band(J, snr, psf, monkeypatch):
     """Given GalSim's band (its maxk of the PSF), the versions made by shearfit's own k-space operations are
     those of GalSim's objects to 1e-6 of the peak without noise and 2e-5 with it (the two pad the PSF's
-    transform differently), weights to 1e-5, on a reflected and on a rotated, sheared pixel grid."""
+    transform differently), weights to 1e-5, on a reflected and on a rotated, sheared pixel grid; with either
+    new PSF (the round one's image convolved as an interpolated image by both)."""
     obs = _obs(0.3, (0.2, -0.1), snr=snr, n_exp=1, seed=4, J=J)[0]
     maxk = metacal._interpolated(obs.psf, metacal._wcs(J), calculate_maxk=True).maxk
     monkeypatch.setattr(kspace, "band_maxk", lambda *a, **k: maxk)
     out = {}
     for own in (True, False):
         monkeypatch.setattr(metacal, "OWN_KSPACE", own)
-        out[own] = metacal.metacal_observations(obs, rng=np.random.default_rng(5))
+        out[own] = metacal.metacal_observations(obs, rng=np.random.default_rng(5), psf=psf)
     good = out[False]["noshear"].weight > 0
     peak = np.abs(out[False]["noshear"].image[good]).max()
     tol = 1e-6 if snr is None else 2e-5
@@ -153,3 +155,59 @@ def test_band_fold_is_galsims_wrap_and_the_full_planes_fold(n):
                 full.array[:, :] = arr[b]
                 ref = full.wrap(galsim.BoundsI(0, half, -half, half - 1), hermitian="x").array
                 assert np.abs(mine[b][np.arange(-half, half) % n] - ref).max() < 1e-12
+
+
+@pytest.mark.parametrize("J", JACOBIANS + [PIX * np.array([[0.62, 0.79], [0.8, -0.6]])])
+def test_round_envelope_is_below_the_dilated_psf_in_every_direction_and_close_to_it(J):
+    """metacal's round new PSF (``psf='round'``): at every point of the padded grid inside the band its
+    envelope lies below the point's |transform| (the dilated PSF's at |K| / dilation), interpolated linearly in
+    |K| or in |K|^2, it falls from 1 to 0
+    without rising, and against GalSim's transform of the interpolated PSF, dilated, it stays below the least
+    over 360 directions at every |K| (to 1e-6 of the flux) and within 0.05 of the flux of it inside the band
+    (seen: 0.038, where the transform falls fastest across the bins one grid step wide)."""
+    d = 1.02
+    xk = metacal._LANCZOS.kval
+    for beta, (g1, g2) in ((2.5, (0.08, 0.0)), (4.5, (0.0, -0.1)), (3.0, (0.05, 0.05))):
+        psf = galsim.Moffat(fwhm=0.65, beta=beta).shear(g1=g1, g2=g2)
+        img = psf.drawImage(nx=25, ny=25, wcs=metacal._wcs(J)).array
+        n = kspace.padded_size(img.shape, (48, 48))
+        col = kspace.padded_transforms([img], n)[0]
+        maxk = kspace.band_maxk(col, xk, J)
+        knots, vals = kspace.round_envelope(col, xk, J, d, maxk)
+        assert vals[0] == 1.0 and vals[-1] == 0.0 and np.all(np.diff(vals) <= 0) and knots[-1] > maxk / d
+        kx, ky, xx = kspace._band_grid(n, xk)
+        amp = np.abs(col) * xx / (abs(col[0, 0]) * xx[0, 0])
+        jit = np.linalg.inv(J).T
+        ksky = np.hypot(jit[0, 0] * kx + jit[0, 1] * ky, jit[1, 0] * kx + jit[1, 1] * ky)
+        inside = ksky <= maxk
+        for power in (1, 2):   # linear in |K|, and in |K|^2 (round_psf's)
+            env = np.interp((ksky[inside] / d) ** power, knots ** power, vals)
+            assert np.all(env <= amp[inside] * (1 + 1e-12)), power
+        ii = metacal._interpolated(img, metacal._wcs(J)).dilate(d)
+        ang = np.linspace(0, np.pi, 361)[:-1]
+        for K in np.linspace(0.0, 0.97 * maxk / d, 25):
+            least = min(abs(ii.kValue(galsim.PositionD(K * np.cos(a), K * np.sin(a)))) for a in ang) / ii.flux
+            env = np.interp(K, knots, vals)
+            assert env <= least + 1e-6 and env >= least - 0.05, (beta, K, env, least)
+
+
+@pytest.mark.parametrize("J", JACOBIANS)
+def test_round_psf_image_is_round_on_the_sky_and_wider_than_the_psf(J):
+    """The round PSF's image (drawn through the exposure's Jacobian, a flip in the first): GalSim's adaptive
+    moments of it as a sky-frame profile give |e| < 1e-3 (seen: 4e-4) for PSFs of |e| up to 0.2, and a size
+    between the PSF's and 1.3 times it (seen: 1.13-1.17)."""
+    for beta, (g1, g2) in ((2.5, (0.08, 0.0)), (4.5, (0.0, -0.1))):
+        psf = galsim.Moffat(fwhm=0.65, beta=beta).shear(g1=g1, g2=g2)
+        img = psf.drawImage(nx=25, ny=25, wcs=metacal._wcs(J)).array
+        rimg = metacal.round_psf(img, J, 0.01, (48, 48))
+        assert abs(rimg.sum() - 1) < 1e-12
+
+        def sky_moments(a):
+            prof = metacal._interpolated(a, metacal._wcs(J))
+            m = galsim.hsm.FindAdaptiveMom(prof.drawImage(nx=96, ny=96, scale=PIX / 3, method="no_pixel"))
+            return m.observed_shape.e1, m.observed_shape.e2, m.moments_sigma
+
+        e1, e2, s = sky_moments(rimg)
+        _, _, s0 = sky_moments(img)
+        assert np.hypot(e1, e2) < 1e-3, (e1, e2)
+        assert s0 < s < 1.3 * s0, (s, s0)

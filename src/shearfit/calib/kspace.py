@@ -35,7 +35,8 @@ from scipy import fft as sfft
 
 from ..engine.kernel import KERNEL, USE_KERNEL
 
-__all__ = ["quintic", "padded_transforms", "kvalues", "band_maxk", "singular_values2", "PAD_FACTOR", "MAXK_THRESHOLD"]
+__all__ = ["quintic", "padded_transforms", "kvalues", "band_maxk", "round_envelope", "singular_values2", "PAD_FACTOR",
+           "MAXK_THRESHOLD"]
 
 #: The padded grid of the discrete transforms, in widths of the larger image (GalSim's default pad_factor).
 PAD_FACTOR = 4
@@ -150,6 +151,48 @@ def band_maxk(psf_column, xkernel, jac, threshold=MAXK_THRESHOLD):
     a, b, c = (q * q + s * s) / det2, -(p * q + r * s) / det2, (p * p + r * r) / det2
     k2 = a * kx * kx + 2 * b * kx * ky + c * ky * ky
     return float(min(np.sqrt(np.max(k2[above])), nyquist))
+
+
+def round_envelope(psf_column, xkernel, jac, dilation, maxk):
+    """A round new PSF for metacal (its ``psf='round'``): as a function of the sky wavenumber \\|K\\|, the least over
+    directions of the dilated PSF's \\|transform\\| (``psf_column`` as :func:`band_maxk` takes it, times the
+    x-interpolant's transform), made non-increasing in \\|K\\|, and 0 beyond the dilated band ``maxk / dilation``.
+
+    The dilated PSF's transform at K is the PSF's at ``dilation K``, so each point kappa of the padded grid,
+    of sky wavevector J^-T kappa, gives the dilated PSF's \\|transform\\| at \\|J^-T kappa\\| / dilation. These are
+    taken in bins one grid step wide in \\|K\\| (the step along the Jacobian's longer sky axis), the least of each
+    bin, then the running least outwards. The result lies below the dilated PSF's \\|transform\\| in every
+    direction (to the interpolation between the bins), so that dividing by the sheared PSF and multiplying by it
+    amplifies nothing more than the dilated PSF does, and it is a function of \\|K\\| alone: a round PSF on the
+    sky, whose images carry no PSF anisotropy into the ellipticities. Returns (knots, values) in \\|K\\|
+    (values[0] = 1 at K = 0; 0 from the last knot on), for an interpolation that stays between each knot's
+    value and the next's (linear in \\|K\\|, or in \\|K\\|^2 as :func:`shearfit.calib.metacal.round_psf` takes it,
+    smooth at K = 0)."""
+    n = psf_column.shape[1]
+    kx, ky, xx = _band_grid(n, xkernel)
+    amp = np.abs(psf_column) * xx
+    amp /= amp[0, 0]   # the flux: 1 at K = 0
+    jac = np.asarray(jac, float)
+    (p, q), (r, s) = jac
+    det2 = (p * s - q * r) ** 2
+    a, b, c = (q * q + s * s) / det2, -(p * q + r * s) / det2, (p * p + r * r) / det2
+    ksky = np.sqrt(np.maximum(a * kx * kx + 2 * b * kx * ky + c * ky * ky, 0.0)) / dilation
+    edge = maxk / dilation
+    step = 2 * np.pi / n / singular_values2(jac)[0]   # the grid's step in sky |K| along its longer axis
+    nbin = int(edge / step) + 1   # bins from i step, i = 0 .. nbin - 1, all below or at the band's edge
+    inside = ksky <= edge
+    which = np.minimum((ksky[inside] / step).astype(np.int64), nbin - 1)
+    least = np.full(nbin, np.inf)
+    np.minimum.at(least, which, amp[inside])
+    least[0] = 1.0   # at K = 0 (the bin's other points lie above the chord from there to the next bin's least)
+    least = np.minimum(np.minimum.accumulate(least), 1.0)
+    # each bin's least at its lower edge (the envelope is non-increasing, so the bin's points lie at or beyond
+    # it; between two edges the interpolation stays below both), then zero beyond the band
+    knots = step * np.arange(nbin)
+    values = least
+    if knots[-1] < edge:
+        knots, values = np.append(knots, edge), np.append(values, least[-1])
+    return np.append(knots, edge * (1 + 1e-9)), np.append(values, 0.0)
 
 
 def singular_values2(A):

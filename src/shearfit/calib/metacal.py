@@ -8,7 +8,12 @@ in each component in the sky frame (the stamp's WCS is the exposure's
 Jacobian, so the shear acts on the catalogue's (u, v) axes), and convolved
 with the PSF dilated by 1 + 2 delta, which is wider than the sheared
 original in every direction. The same without the shear gives the
-``noshear`` version. All five versions carry the same new PSF.
+``noshear`` version. All five versions carry the same new PSF. With
+``psf='round'`` (the pipeline's ``metacal_psf: round``) the new PSF is
+instead the round envelope below the dilated PSF in every direction
+(:func:`round_psf`): the response is multiplicative, so PSF anisotropy that
+the estimator leaks into the ellipticities would pass through it; on round
+versions there is none to leak.
 
 For a PSF given on the stamp's pixels (the usual case) these operations are
 shearfit's own (:func:`own_kspace_images`, :mod:`shearfit.calib.kspace`):
@@ -61,7 +66,7 @@ import numpy as np
 from scipy import fft as sfft
 from scipy import ndimage
 
-from ..errors import FITCLASS_GALAXY, ShearfitIOError
+from ..errors import FITCLASS_GALAXY, ShearfitIOError, ShearfitValueError
 from ..engine.model import inv2, psf_moffat, psf_moffats
 from . import kspace
 from ..observation import Observation
@@ -75,6 +80,9 @@ __all__ = ["VERSIONS", "SHEARED", "metacal_observations", "measure_metacal", "Me
 VERSIONS = {"noshear": (0, 0), "1p": (1, 0), "1m": (-1, 0), "2p": (0, 1), "2m": (0, -1)}
 SHEARED = ("1p", "1m", "2p", "2m")
 
+#: The versions' new PSF (:func:`metacal_observations`' ``psf``): the exposure's PSF dilated by 1 + 2 delta, or
+#: the round envelope below it (:func:`round_psf`).
+RECONVOLUTION_PSFS = ("dilated", "round")
 #: Pixels masked around a masked pixel and along the stamp's edge in the processed stamps.
 _MASK_GROW = 2
 _EDGE = 3
@@ -311,15 +319,18 @@ def band_images(shape, n, items):
     return list(sfft.irfft(rows, n=n, axis=2, workers=1)[:, :, ix])
 
 
-def _galsim_images(image, noise, psf_image, wcs, psf_wcs, delta, names):
+def _galsim_images(image, noise, psf_image, wcs, psf_wcs, delta, names, new_psf_image=None):
     """The images of :func:`metacal_observations`' products, [version, its noise] per name of ``names``, from
     GalSim's objects (interpolated images, ``Deconvolve``, ``shear``, ``dilate``) drawn by :class:`_Drawer`:
-    the reference for :func:`own_kspace_images`, and the path for oversampled PSFs."""
+    the reference for :func:`own_kspace_images`, and the path for oversampled PSFs. ``new_psf_image``: the new
+    PSF's image on the PSF's pixels (:func:`round_psf`'s), as an interpolated image, instead of the dilated
+    PSF."""
     gal = _interpolated(image, wcs, k_interpolant=K_INTERPOLANT)
     nint = _interpolated(noise, wcs, k_interpolant=K_INTERPOLANT)
     psf = _interpolated(psf_image, psf_wcs, calculate_maxk=True, k_interpolant=PSF_K_INTERPOLANT)
     inv_psf = galsim.Deconvolve(psf)
-    new_psf = psf.dilate(1.0 + 2.0 * abs(delta))
+    new_psf = (psf.dilate(1.0 + 2.0 * abs(delta)) if new_psf_image is None else
+               _interpolated(new_psf_image, psf_wcs, calculate_maxk=True, k_interpolant=PSF_K_INTERPOLANT))
     products, bands = [], []
     for name in names:
         s1, s2 = VERSIONS[name]
@@ -341,17 +352,20 @@ def _shear_matrix(g1, g2):
     return m
 
 
-def own_kspace_images(image, noise, psf, J, delta, names, fft_size=None):
+def own_kspace_images(image, noise, psf, J, delta, names, fft_size=None, new_psf=None):
     """The images of :func:`metacal_observations`' products, [version, its noise] per name of ``names``, from
     shearfit's own k-space operations (:mod:`shearfit.calib.kspace`) instead of GalSim's objects, for a PSF
     image on the stamp's pixels: the stamp's, its noise's and the PSF's discrete transforms once, each
     version's sheared wavevectors interpolated with one set of quintic weights for the three; drawn on the
-    same periodic grid of :data:`WRAP_STAMPS` stamp widths (``fft_size``) as :class:`_Drawer`."""
+    same periodic grid of :data:`WRAP_STAMPS` stamp widths (``fft_size``) as :class:`_Drawer`. ``new_psf``: the
+    new PSF's image on the stamp's pixels (:func:`round_psf`'s) instead of the dilated PSF: its transform as an
+    interpolated image, as :func:`_galsim_images` takes it."""
     shape = image.shape
     n_small = int(fft_size) if fft_size else sfft.next_fast_len(int(np.ceil(WRAP_STAMPS * max(shape))))
     n = kspace.padded_size(shape, psf.shape)
-    table = kspace.padded_transforms([image, noise, psf], n)
-    psf_table = table[2:3]
+    table = kspace.padded_transforms([image, noise, psf] + ([] if new_psf is None else [new_psf]), n)
+    psf_table = table[2:3] if new_psf is None else table[3:4]
+    table = table[:3]
     J = np.asarray(J, float)
     jit = inv2(J).T
     xk = _LANCZOS.kval
@@ -373,7 +387,7 @@ def own_kspace_images(image, noise, psf, J, delta, names, fft_size=None):
         if r not in grids:
             j, i = np.mgrid[-r:r + 1, 0:r + 1]
             kap = dk * np.stack([i.ravel(), j.ravel()]).astype(float)
-            d = dilation * kap
+            d = dilation * kap if new_psf is None else kap
             gamma = kspace.kvalues(psf_table, d[0] * to_table, d[1] * to_table)[:, 0] * xk(d[0]) * xk(d[1])
             grids[r] = (kap, gamma)
         kap, gamma = grids[r]
@@ -391,14 +405,45 @@ def own_kspace_images(image, noise, psf, J, delta, names, fft_size=None):
     return band_images(shape, n_small, items)
 
 
+def round_psf(psf, J, delta, shape, fft_size=None):
+    """The round new PSF of ``psf='round'``: the image, on the pixels of the PSF image ``psf`` (whose Jacobian is
+    ``J``: the stamp's divided by the oversampling) and normalised to unit sum, of the round envelope below the
+    PSF dilated by 1 + 2 delta in every direction (:func:`shearfit.calib.kspace.round_envelope`, a function of
+    the sky's \\|K\\| alone), drawn from it on a periodic grid of :data:`WRAP_STAMPS` times ``shape`` (the stamp's,
+    or the oversampled PSF's own) as :func:`own_kspace_images` draws the stamps. The versions are then
+    convolved with this image as an interpolated image (its transform is round to the PSF image's sampling and
+    size: GalSim's adaptive moments give \\|e\\| < 1e-3, ``tests/test_kspace.py``), so that the fits' PSF is
+    exactly the versions'."""
+    n_small = int(fft_size) if fft_size else sfft.next_fast_len(int(np.ceil(WRAP_STAMPS * max(shape))))
+    n = kspace.padded_size(psf.shape)
+    column = kspace.padded_transforms([psf], n)[0]
+    J = np.asarray(J, float)
+    xk = _LANCZOS.kval
+    maxk = kspace.band_maxk(column, xk, J)
+    knots, values = kspace.round_envelope(column, xk, J, 1.0 + 2.0 * abs(delta), maxk)
+    dk = 2 * np.pi / n_small
+    r = int(np.ceil(knots[-1] * kspace.singular_values2(J)[0] / dk)) + 1
+    j, i = np.mgrid[-r:r + 1, 0:r + 1]
+    kap = dk * np.stack([i.ravel(), j.ravel()]).astype(float)
+    # linear in |K|^2 between the knots: smooth at K = 0, as a PSF's transform is (1 - c K^2)
+    k2 = np.sum((inv2(J).T @ kap) ** 2, axis=0)
+    arr = np.interp(k2, knots ** 2, values, right=0.0).astype(complex)
+    image = band_images(psf.shape, n_small, [(r, arr.reshape(2 * r + 1, r + 1))])[0]
+    return image / image.sum()
+
+
 def metacal_observations(obs: Observation, delta=0.01, rng=None, versions=tuple(VERSIONS),
-                         fit_moffat=True) -> dict:
+                         fit_moffat=True, psf="dilated") -> dict:
     """The metacal versions of one exposure's stamp: ``{version: Observation}`` (see the module doc).
 
     ``rng`` (numpy Generator) draws the symmetrising noise field. ``fit_moffat=False``: where the
     observation gives no App. A Moffat, the versions carry none either (:func:`measure_metacal` fits those
-    of all the exposures as one batch, the same numbers).
+    of all the exposures as one batch, the same numbers). ``psf``: the versions' new PSF, 'dilated' (the
+    exposure's PSF dilated by 1 + 2 delta) or 'round' (:func:`round_psf`: the round envelope below it, whose
+    images carry no PSF anisotropy into the ellipticities).
     """
+    if psf not in RECONVOLUTION_PSFS:
+        raise ShearfitValueError(f"metacal: psf={psf!r} must be one of {', '.join(RECONVOLUTION_PSFS)}")
     rng = np.random.default_rng() if rng is None else rng
     J = obs.jacobian
     k = obs.psf_oversampling
@@ -406,14 +451,23 @@ def metacal_observations(obs: Observation, delta=0.01, rng=None, versions=tuple(
     good = w > 0
     image = np.where(good, obs.image, 0.0)
     dilation = 1.0 + 2.0 * abs(delta)
-    # its image: a dilation commutes with the Jacobian, so it is drawn in the PSF's own pixel frame, where the
-    # interpolation is separable (GalSim's drawImage of the dilated interpolated PSF to 1e-7 of the peak)
-    psf_img = dilated_image(obs.psf, dilation)
-    psf_img /= psf_img.sum()
+    own = OWN_KSPACE and k == 1 and WRAP_STAMPS and K_INTERPOLANT == PSF_K_INTERPOLANT == "quintic"
+    if psf == "round":
+        # on the PSF's pixels (J / k), drawn on the stamp's periodic grid (the oversampled PSF's own for k > 1:
+        # the same width on the sky)
+        psf_img = round_psf(obs.psf, J / k, delta, obs.image.shape if k == 1 else obs.psf.shape)
+    else:
+        # its image: a dilation commutes with the Jacobian, so it is drawn in the PSF's own pixel frame, where the
+        # interpolation is separable (GalSim's drawImage of the dilated interpolated PSF to 1e-7 of the peak)
+        psf_img = dilated_image(obs.psf, dilation)
+        psf_img /= psf_img.sum()
     # the App. A Moffat of the new PSF: the exposure's own, dilated the same way (so objects sharing an
-    # exposure's Moffat share its alias tables); fitted to the new PSF only when none was given
+    # exposure's Moffat share its alias tables); fitted to the new PSF only when none was given (and always to
+    # the round PSF)
     if k != 1:
         moffat = None
+    elif psf == "round":
+        moffat = psf_moffat(psf_img) if fit_moffat else None
     elif obs.psf_moffat is not None:
         moffat = (float(obs.psf_moffat[0]) * dilation, float(obs.psf_moffat[1]))
     else:
@@ -432,10 +486,11 @@ def metacal_observations(obs: Observation, delta=0.01, rng=None, versions=tuple(
     mask[:, :_EDGE] = mask[:, -_EDGE:] = True
     var_in = float(np.mean(sigma[~mask] ** 2)) if np.any(~mask) else 1.0
     names = ("noshear",) + tuple(v for v in versions if v != "noshear")
-    if OWN_KSPACE and k == 1 and WRAP_STAMPS and K_INTERPOLANT == PSF_K_INTERPOLANT == "quintic":
-        images = own_kspace_images(image, nrot, obs.psf, J, delta, names)
+    if own:
+        images = own_kspace_images(image, nrot, obs.psf, J, delta, names, new_psf=psf_img if psf == "round" else None)
     else:
-        images = _galsim_images(image, nrot, obs.psf, _wcs(J), _wcs(J, k), delta, names)
+        images = _galsim_images(image, nrot, obs.psf, _wcs(J), _wcs(J, k), delta, names,
+                                new_psf_image=psf_img if psf == "round" else None)
     images = np.asarray(images)
     nims = np.rot90(images[1::2], -1, axes=(1, 2)) if square else images[1::2]
     # the versions' noise: the original, processed, plus the added field: twice the added field's variance,
@@ -493,8 +548,9 @@ def _fit_new_moffats(per_exp):
 
 
 def measure_metacal(observations, mag, config=None, delta=0.01, rng=None, replay_margin=10.0,
-                    replay_first_margin=REPLAY_FIRST_MARGIN) -> MetacalResult:
-    """Measure the five metacal versions of one object jointly over its exposures (see the module doc)."""
+                    replay_first_margin=REPLAY_FIRST_MARGIN, psf="dilated") -> MetacalResult:
+    """Measure the five metacal versions of one object jointly over its exposures (see the module doc); ``psf``:
+    the versions' new PSF, 'dilated' or 'round' (:func:`metacal_observations`)."""
     from dataclasses import replace
 
     from ..config import as_config
@@ -504,7 +560,7 @@ def measure_metacal(observations, mag, config=None, delta=0.01, rng=None, replay
     config = as_config(config)
     if config.e_grid_min > E_GRID_MIN:
         config = replace(config, e_grid_min=E_GRID_MIN)
-    per_exp = [metacal_observations(o, delta, rng, fit_moffat=False) for o in observations]
+    per_exp = [metacal_observations(o, delta, rng, fit_moffat=False, psf=psf) for o in observations]
     _fit_new_moffats(per_exp)
     out = MetacalResult(delta=float(delta))
     # the sheared versions replay the noshear fit's choices (modes, position, size nodes, ellipticity

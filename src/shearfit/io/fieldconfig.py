@@ -98,6 +98,11 @@ class PipelineConfig:
         "with 1 cancel the terms odd in either noise (benchmarks/field_test.py --antithetic)",
         "implementation")
 
+    metacal_psf: str = setting(
+        "dilated", "with calibration: metacal, the versions' new PSF: 'dilated' (the exposure's PSF dilated by "
+        "1 + 2 metacal_delta) or 'round' (the round envelope below it, a function of |k| alone: no PSF anisotropy "
+        "reaches the ellipticities; PSFs on the stamp's pixels only)", "Sheldon & Huff 2017", ("dilated", "round"))
+
     psf_size: int = setting(25, "side of the fitted PSF model and of the star stamps, native pixels (odd)", "sec. 5")
     psf_oversampling: int = setting(
         1, "PSF model samples per pixel: 1 is the paper's native model (sinc-centred stars); 3 reconstructs "
@@ -149,6 +154,8 @@ class PipelineConfig:
             raise ShearfitValueError(f"setting chunk_size={self.chunk_size!r} must be at least 1")
         if self.metacal_noise_sign not in (1, -1):
             raise ShearfitValueError(f"setting metacal_noise_sign={self.metacal_noise_sign!r} must be 1 or -1")
+        if self.metacal_psf not in ("dilated", "round"):
+            raise ShearfitValueError(f"setting metacal_psf={self.metacal_psf!r} must be 'dilated' or 'round'")
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)

@@ -426,7 +426,8 @@ def measure_field(cfg: FieldConfig, out_path=None, progress=False, processes=1, 
         # the response is measured per galaxy (R11 .. R22): no simulation-based m
         table["m"] = np.where(measured, 0.0, np.nan)
         cards += [("CALMODE", "metacal", "shear response: metacal (R columns)"),
-                  ("MCDELTA", cfg.pipeline.metacal_delta, "metacal shear step")]
+                  ("MCDELTA", cfg.pipeline.metacal_delta, "metacal shear step"),
+                  ("MCPSF", cfg.pipeline.metacal_psf, "metacal new PSF: dilated or round")]
     else:
         if calibration is not None:
             src = os.path.basename(cfg.calibration)
@@ -831,7 +832,7 @@ def _measure_on_stamps(hits, exposures, mag, cfg, pc, obj_id, size, geometry=Non
             from ..simulate.stamps import NegatedNormal
 
             rng = NegatedNormal(rng)
-        mc = measure_metacal(obs, mag, cfg.fit, pc.metacal_delta, rng)
+        mc = measure_metacal(obs, mag, cfg.fit, pc.metacal_delta, rng, psf=pc.metacal_psf)
         res = mc.noshear
         extra = {f"{q}_{v}": getattr(mc.results[v], q) for v in SHEARED for q, _, _ in METACAL_QUANTITIES}
         extra.update({f"R{i + 1}{j + 1}": float(mc.R[i, j]) for i in range(2) for j in range(2)})

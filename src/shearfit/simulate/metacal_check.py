@@ -47,14 +47,15 @@ def shear_sets(n_galaxies, h, seed, **ring_kwargs):
     return {s: ring_set(n_galaxies, s, np.random.default_rng(seed), n_rotations=1, **ring_kwargs) for s in shears}
 
 
-def fixed_sample_responses(sets, i, h, delta, config, seed, noisy=False, twin=False, free=True):
+def fixed_sample_responses(sets, i, h, delta, config, seed, noisy=False, twin=False, free=True, psf="dilated"):
     """Galaxy ``i`` of :func:`shear_sets`: its diagonal responses ``(R, A, A_free, fitclasses)``.
 
     R: metacal's; A: the noshear fit's to the true shear, both replaying the choices of the unsheared
     noshear fit; A_free (None unless ``free``): the same true-shear difference with each noshear image
     fitted on its own (its own modes, position, sizes and samples: the estimator as it runs on data).
     ``noisy``: the stamps carry their noise and metacal its symmetrising noise (minus both for the
-    antithetic ``twin``); otherwise the symmetrising noise is :class:`QuietNormal`.
+    antithetic ``twin``); otherwise the symmetrising noise is :class:`QuietNormal`. ``psf``: metacal's new PSF
+    (:func:`shearfit.calib.metacal.metacal_observations`).
     """
     def rng(j):
         # exposure j's symmetrising noise: its own field, the same for the galaxy at 0 and +-h
@@ -64,7 +65,7 @@ def fixed_sample_responses(sets, i, h, delta, config, seed, noisy=False, twin=Fa
         return NegatedNormal(r) if twin else r
 
     def prepared(obs, j, versions=tuple(metacal.VERSIONS)):
-        v = metacal.metacal_observations(obs, delta, rng(j), versions=versions)
+        v = metacal.metacal_observations(obs, delta, rng(j), versions=versions, psf=psf)
         return v if noisy else rescaled(v)
 
     per = [prepared(ob, j) for j, ob in enumerate(sets[(0.0, 0.0)][i][0])]

@@ -356,7 +356,7 @@ def ring_set(n_galaxies, shear, rng, n_rotations=4, n_exposures=7, snr_range=(10
              psf_fwhm_range=(0.5, 0.8), psf_beta_range=(2.5, 4.5), psf_e_max=0.1, pixel_scale=0.187,
              stamp_size=48, psf_oversampling=1, max_dither=0.5, cfg=None, noise_seed=None,
              rotate_exposures=False, gsparams=None, population=None, add_noise=True, noise_sign=1,
-             jacobian_jitter=0.0, profile=None, noise_sigma=None):
+             jacobian_jitter=0.0, profile=None, noise_sigma=None, psf_e_fixed=None):
     """Ring sets of GalSim-simulated galaxies, all with one applied shear.
 
     Every galaxy is drawn from the paper's population at a magnitude uniform in
@@ -388,6 +388,10 @@ def ring_set(n_galaxies, shear, rng, n_rotations=4, n_exposures=7, snr_range=(10
         Moffat FWHM (arcsec) and beta, uniform per exposure.
     psf_e_max : float
         PSF |e| is uniform in [0, psf_e_max], at a uniform random angle.
+    psf_e_fixed : (float, float), optional
+        Every exposure's PSF ellipticity (e1, e2) instead (the random ones are still drawn, so every
+        other draw is the same): with one PSF direction for all galaxies, the additive bias c of a ring
+        test is the PSF leakage alpha e_psf, which random directions average away.
     pixel_scale : float
         Arcsec per pixel.
     stamp_size : int
@@ -453,6 +457,9 @@ def ring_set(n_galaxies, shear, rng, n_rotations=4, n_exposures=7, snr_range=(10
     for i in range(int(n_galaxies)):
         gal = _draw_galaxy(rng, sampler, cfg, n_exposures, snr_range, mag_range, psf_fwhm_range, psf_beta_range,
                            psf_e_max, pixel_scale, stamp_size, max_dither, truncation, rotate_exposures)
+        if psf_e_fixed is not None:
+            gal["psf_e1"] = np.full(n_exposures, float(psf_e_fixed[0]))
+            gal["psf_e2"] = np.full(n_exposures, float(psf_e_fixed[1]))
         psfs = [moffat_psf(f, b, pe1, pe2, gsparams=gsparams)
                 for f, b, pe1, pe2 in zip(gal["psf_fwhm"], gal["psf_beta"], gal["psf_e1"], gal["psf_e2"])]
         Js = [pixel_scale * _rotation(a) for a in gal["jacobian_angles"]]
