@@ -313,8 +313,9 @@ def print_leakage(c, err, args):
         print(f"  PSF leakage (every exposure's PSF ellipticity ({e_psf[0]:+g}, {e_psf[1]:+g})): " + ", ".join(parts))
 
 
-def report_metacal(tab, args, n_gal):
-    """m and c of the metacal shear <R>^-1 <e> per sign (shear and selection response), bootstrap errors."""
+def _metacal_bias(tab, args, n_gal):
+    """``bias(galaxies)`` of a metacal ring table: (m1, m2, c1, c2, raw m1, m2, diagonal m1, m2), <R_gamma>,
+    R_S of the galaxies given (a galaxy's rings at both signs; the bootstrap resamples them)."""
     from astropy.table import Table
 
     from shearfit.calib.metacal import ensemble_response
@@ -352,6 +353,32 @@ def report_metacal(tab, args, n_gal):
         return (np.concatenate([(gp - gm) / (2 * g) - 1, (gp + gm) / 2, raw_m, diag_m]), (Rgp + Rgm) / 2,
                 (Rsp + Rsm) / 2)
 
+    return bias
+
+
+def report_metacal_difference(tab, other, args, n_gal):
+    """Metacal m and c of ``tab`` less those of ``other``, a run on the same galaxies and noise (another new PSF,
+    say): the same galaxies resampled for both, so that what they share cancels from the errors."""
+    a, b = _metacal_bias(tab, args, n_gal), _metacal_bias(other, args, n_gal)
+    ids = np.arange(n_gal)
+    est = a(ids)[0] - b(ids)[0]
+    rng = np.random.default_rng([args.seed, 54322])
+    boots = []
+    for _ in range(args.n_bootstrap):
+        sel = rng.choice(ids, ids.size)
+        boots.append(a(sel)[0] - b(sel)[0])
+    err = np.std(boots, axis=0)
+    print(f"\nmetacal, these tables less --paired-with's ({n_gal} galaxies resampled together, {args.n_bootstrap} "
+          f"bootstrap resamplings):")
+    print(f"  delta m1 = {format_with_error(est[0], err[0])}    delta c1 = {format_with_error(est[2], err[2])}")
+    print(f"  delta m2 = {format_with_error(est[1], err[1])}    delta c2 = {format_with_error(est[3], err[3])}")
+    print(f"  with the diagonal of <R> only: delta m1 = {format_with_error(est[6], err[6])}, delta m2 = "
+          f"{format_with_error(est[7], err[7])}")
+
+
+def report_metacal(tab, args, n_gal):
+    """m and c of the metacal shear <R>^-1 <e> per sign (shear and selection response), bootstrap errors."""
+    bias = _metacal_bias(tab, args, n_gal)
     ids = np.arange(n_gal)
     est, Rg, Rs = bias(ids)
     rng = np.random.default_rng([args.seed, 54321])
@@ -489,6 +516,9 @@ def parse_args(argv=None):
     p.add_argument("--reference-tables", nargs="+", metavar="TABLE",
                    help="with --from-tables: a simulation calibration, the m of these ring tables (plain lensfit, "
                         "same SNR range, e.g. the paper's population) applied as (1 + m) / (1 + m_ref) - 1")
+    p.add_argument("--paired-with", nargs="+", metavar="TABLE", default=None,
+                   help="with --from-tables and --metacal: also the metacal m and c of these tables less those of "
+                        "TABLE (a run on the same galaxies and noise), the same galaxies resampled for both")
     p.add_argument("--from-tables", nargs="+", metavar="TABLE",
                    help="report on per-object tables written by earlier runs (--out) instead of simulating: "
                         "runs of different --seed add up (their galaxies are renumbered); give the shear, SNR "
@@ -594,6 +624,17 @@ def report_tables(args):
               f"m2 = {format_with_error(cal[1], cal_err[1])}")
     if args.metacal:
         report_metacal(tab, args, n_gal)
+        if args.paired_with:
+            try:
+                other, n_other = read_tables(args.paired_with)
+            except (OSError, ValueError, KeyError) as exc:
+                print(f"ring_test.py: error: {exc}", file=sys.stderr)
+                return 2
+            if n_other != n_gal or len(other) != len(tab):
+                print(f"ring_test.py: error: --paired-with: {n_other} galaxies and {len(other)} objects, not "
+                      f"{n_gal} and {len(tab)}", file=sys.stderr)
+                return 2
+            report_metacal_difference(tab, other, args, n_gal)
     report_families(tab, args)
     return 0
 
