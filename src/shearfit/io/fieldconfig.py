@@ -101,7 +101,8 @@ class PipelineConfig:
     metacal_psf: str = setting(
         "dilated", "with calibration: metacal, the versions' new PSF: 'dilated' (the exposure's PSF dilated by "
         "1 + 2 metacal_delta) or 'round' (the round envelope below it, a function of |k| alone: no PSF anisotropy "
-        "reaches the ellipticities; PSFs on the stamp's pixels only)", "Sheldon & Huff 2017", ("dilated", "round"))
+        "reaches the ellipticities, at the price of noisier responses for the smallest galaxies)", "Sheldon & Huff 2017",
+        ("dilated", "round"))
 
     psf_size: int = setting(25, "side of the fitted PSF model and of the star stamps, native pixels (odd)", "sec. 5")
     psf_oversampling: int = setting(
