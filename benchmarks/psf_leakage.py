@@ -5,7 +5,8 @@ The ring test of ring_test.py draws new PSFs for every galaxy, so leakage
 averages away there; here every galaxy sees the same PSF (ellipticity
 --psf-e along e1), at --n-exposures exposures, noise-free images with the
 weights of the SNR range (the expected likelihood), rings of 4 with +-g.
-Prints m, c and alpha = c1 / e_psf overall and split by scalelength.
+Prints m, c and alpha = c1 / e_psf overall and split by scalelength. With noise, antithetic twins and metacal,
+``ring_test.py --psf-e-fixed E1 E2`` measures the same leakage.
 
     python benchmarks/psf_leakage.py --n-galaxies 24 --psf-e 0.08
 """
