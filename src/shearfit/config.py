@@ -17,7 +17,7 @@ from typing import Any, Mapping
 
 from .errors import ShearfitKeyError, ShearfitValueError
 
-__all__ = ["FitConfig", "fit_config_from_mapping", "as_config", "describe", "setting", "coerce_setting"]
+__all__ = ["FitConfig", "fit_config_from_mapping", "as_config", "describe", "setting", "check_choices", "coerce_setting"]
 
 
 def setting(default, help, ref="", choices=None):
@@ -175,11 +175,7 @@ class FitConfig:
         "source cannot be told apart by the F-test", "sec. 3.2 and its footnote")
 
     def __post_init__(self):
-        for f in fields(self):
-            choices = f.metadata.get("choices")
-            value = getattr(self, f.name)
-            if choices is not None and value not in choices:
-                raise ShearfitValueError(f"setting {f.name}={value!r} is not one of {', '.join(map(repr, choices))}")
+        check_choices(self)
         positive = ["disk_e_max", "disk_e_a", "bulge_fraction_sigma", "size_alpha", "size_rd_over_a",
                     "truncation", "bulge_size_ratio", "delta_chi2_crit", "flux_halfwidth", "e_grid_start",
                     "e_grid_min", "weight_e_max", "sigma_pop"]
@@ -208,6 +204,16 @@ class FitConfig:
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)
+
+
+def check_choices(settings) -> None:
+    """Raise :class:`ShearfitValueError` (one line naming the setting) where a field of the settings dataclass
+    ``settings`` declared with ``choices`` (:func:`setting`) holds another value."""
+    for f in fields(settings):
+        choices = f.metadata.get("choices")
+        value = getattr(settings, f.name)
+        if choices is not None and value not in choices:
+            raise ShearfitValueError(f"setting {f.name}={value!r} is not one of {', '.join(map(repr, choices))}")
 
 
 def coerce_setting(name: str, ftype, value, source: str | None = None):

@@ -23,7 +23,7 @@ from dataclasses import dataclass, field, fields
 from typing import Any, Mapping, Optional, Sequence
 
 
-from ..config import FitConfig, coerce_setting, fit_config_from_mapping, setting
+from ..config import FitConfig, check_choices, coerce_setting, fit_config_from_mapping, setting
 from ..files import load_yaml
 from ..errors import ShearfitError, ShearfitIOError, ShearfitKeyError, ShearfitValueError
 
@@ -96,7 +96,7 @@ class PipelineConfig:
         1, "with calibration: metacal, 1, or -1 to negate the symmetrising noise fields: a simulated field's "
         "antithetic twin (the same field with its pixel noise negated) measured with -1 and the field measured "
         "with 1 cancel the terms odd in either noise (benchmarks/field_test.py --antithetic)",
-        "implementation")
+        "implementation", (1, -1))
 
     metacal_psf: str = setting(
         "dilated", "with calibration: metacal, the versions' new PSF: 'dilated' (the exposure's PSF dilated by "
@@ -132,6 +132,7 @@ class PipelineConfig:
                                   "(shearfit psf diagnostics)", "sec. 5")
 
     def __post_init__(self):
+        check_choices(self)
         if self.psf_size < 5 or self.psf_size % 2 == 0:
             raise ShearfitValueError(f"setting psf_size={self.psf_size!r} must be an odd number of at least 5")
         if self.psf_oversampling < 1 or self.psf_oversampling % 2 == 0:
@@ -153,10 +154,6 @@ class PipelineConfig:
                                      f"of MiB, positive, or 0 for no limit")
         if self.chunk_size < 1:
             raise ShearfitValueError(f"setting chunk_size={self.chunk_size!r} must be at least 1")
-        if self.metacal_noise_sign not in (1, -1):
-            raise ShearfitValueError(f"setting metacal_noise_sign={self.metacal_noise_sign!r} must be 1 or -1")
-        if self.metacal_psf not in ("dilated", "round"):
-            raise ShearfitValueError(f"setting metacal_psf={self.metacal_psf!r} must be 'dilated' or 'round'")
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)
