@@ -222,17 +222,21 @@ def metacal_report(objs, cfg, passes, psf="dilated"):
     # inside measure_metacal: the noshear fit, the four sheared versions' replays, and the replays' mode binning
     split = {"noshear": 0.0, "replays": 0.0, "binning": 0.0, "on": False, "replay": False}
     plain_measure = engine_measure._measure
+    plain_replays = engine_measure._replay_all
     plain_bins = getattr(KERNEL, "make_bins", None)
 
-    def measured(*a, **k):
-        if not split["on"]:
-            return plain_measure(*a, **k)
-        split["replay"] = k.get("plan") is not None
-        t0 = time.perf_counter()
-        try:
-            return plain_measure(*a, **k)
-        finally:
-            split["replays" if split["replay"] else "noshear"] += time.perf_counter() - t0
+    def timed_as(fn, replay):
+        def run(*a, **k):
+            if not split["on"] or split["replay"]:   # (a replay's own fallback, already counted)
+                return fn(*a, **k)
+            split["replay"] = replay
+            t0 = time.perf_counter()
+            try:
+                return fn(*a, **k)
+            finally:
+                split["replays" if replay else "noshear"] += time.perf_counter() - t0
+                split["replay"] = False
+        return run
 
     def binned(*a):
         t0 = time.perf_counter()
@@ -244,13 +248,15 @@ def metacal_report(objs, cfg, passes, psf="dilated"):
 
     rng = np.random.default_rng(0)
     rows = []
-    engine_measure._measure = measured
+    engine_measure._measure = timed_as(plain_measure, False)
+    engine_measure._replay_all = timed_as(plain_replays, True)
     if plain_bins is not None:
         KERNEL.make_bins = binned
     try:
         rows = _metacal_passes(objs, cfg, passes, metacal, rng, split, psf)
     finally:
         engine_measure._measure = plain_measure
+        engine_measure._replay_all = plain_replays
         if plain_bins is not None:
             KERNEL.make_bins = plain_bins
     rows = np.array(rows) / len(objs)

@@ -422,6 +422,13 @@ def test_binned_modes_match_every_mode():
     assert abs(binned.e2 - plain.e2) < 1e-3 * np.sqrt(plain.e_var)
 
 
+def _distorted_observations(n_exp, seed, snr):
+    """A noisy galaxy on exposures whose Jacobians differ by a camera's distortion (1e-3), and the generator."""
+    rng = np.random.default_rng(seed)
+    jac = [PIX * (np.eye(2) + rng.normal(0, 1e-3, (2, 2))) for _ in range(n_exp)]
+    return rng, _observations(0.3, (0.2, 0.1), n_exp=n_exp, jacobians=jac, noise=True, snr=snr)
+
+
 def test_mode_bins_do_not_depend_on_the_modes_order():
     """Exposures whose Jacobians differ by a camera's distortion (1e-3) see one sky mode at near-equal K, so
     that many modes share their bins. The bins are those of any other order of the modes (to float32 rounding), and the
@@ -435,9 +442,7 @@ def test_mode_bins_do_not_depend_on_the_modes_order():
     if not likelihood.USE_KERNEL:
         pytest.skip("compiled kernel not built")
     cfg = shearfit.FitConfig()
-    rng = np.random.default_rng(5)
-    jac = [PIX * (np.eye(2) + rng.normal(0, 1e-3, (2, 2))) for _ in range(4)]
-    obs = _observations(0.3, (0.2, 0.1), n_exp=4, jacobians=jac, noise=True, snr=60)
+    rng, obs = _distorted_observations(4, 5, 60)
     jm = join_exposures([prepare_exposure(o, cfg) for o in obs], cfg.mode_chi2_tolerance)
     b3, c8 = _packed_bins(jm)[:2]
     assert jm.multi.size > 0                            # the fold groups' modes are binned too
@@ -464,6 +469,57 @@ def test_mode_bins_do_not_depend_on_the_modes_order():
     for f in ("hf", "hg", "grad_f", "hess_g", "ff", "gg", "fg"):
         x, y = getattr(binned, f), getattr(every, f)
         assert np.max(np.abs(x - y)) <= 1e-5 * np.max(np.abs(y)), f
+
+
+def test_mode_bins_of_versions_are_each_versions_own():
+    """mode_bins_versions bins versions of one object on the same modes (JointModes.with_data: metacal's) at
+    once: entry i * V + v is version v's bins at ellipticity i, byte for byte mode_bins' of that version, and
+    models summed from them are that version's. make_bins refuses weights that are not V sets of the modes'."""
+    from shearfit.engine import likelihood
+    from shearfit.engine.kernel import KERNEL
+    from shearfit.engine.likelihood import (_packed_bins, join_exposures, mode_bins, mode_bins_versions, model_sums,
+                                            shares_bins_geometry)
+    from shearfit.engine.model import prepare_exposures
+    from shearfit.engine.profiles import fast_pair
+
+    if not likelihood.USE_KERNEL:
+        pytest.skip("compiled kernel not built")
+    cfg = shearfit.FitConfig()
+    rng, obs = _distorted_observations(3, 8, 40)
+    ex0 = prepare_exposures(obs, cfg)
+    jm0 = join_exposures(ex0, cfg.mode_chi2_tolerance)
+    jms = [jm0]
+    for _ in range(2):   # other pixels, the same noise and PSFs
+        other = [o.with_image(o.image + rng.normal(0, 0.3, o.image.shape) / np.sqrt(o.weight)) for o in obs]
+        jms.append(jm0.with_data(prepare_exposures(other, cfg, likes=ex0)))
+    assert shares_bins_geometry(jms) and jm0.multi.size > 0
+    assert not np.array_equal(_packed_bins(jms[1])[1], _packed_bins(jm0)[1])
+    e1, e2 = rng.uniform(-0.7, 0.7, (2, 11))
+    together = mode_bins_versions(jms, e1, e2, 16)
+    nv = len(jms)
+    lo, off = np.frombuffer(together.lo, np.int64), np.frombuffer(together.offsets, np.int64)
+    cols, dc = np.frombuffer(together.columns), np.frombuffer(together.dc)
+    assert lo.size == e1.size * nv and together.shape.shape == (e1.size * nv, 3)
+    r = np.geomspace(0.05, 1.5, 4)
+    for v, jm in enumerate(jms):
+        own = mode_bins(jm, e1, e2, 16)
+        olo, ooff = np.frombuffer(own.lo, np.int64), np.frombuffer(own.offsets, np.int64)
+        ocols, odc = np.frombuffer(own.columns), np.frombuffer(own.dc)
+        for i in range(e1.size):
+            k = i * nv + v
+            assert lo[k] == olo[i] and off[k + 1] - off[k] == ooff[i + 1] - ooff[i]
+            n = 7 * (ooff[i + 1] - ooff[i])
+            assert np.array_equal(cols[7 * off[k]:7 * off[k] + n], ocols[7 * ooff[i]:7 * ooff[i] + n])
+            assert np.array_equal(dc[8 * k:8 * k + 8], odc[8 * i:8 * i + 8])
+        assert np.array_equal(together.shape[v::nv], own.shape)
+        E1, E2, R = np.repeat(e1, r.size), np.repeat(e2, r.size), np.tile(r, e1.size)
+        idx = np.repeat(np.arange(e1.size), r.size)
+        a = model_sums(jm, E1, E2, R, fast_pair(), 0.8, bins=own, bin_index=idx).packed()
+        b = model_sums(jm0, E1, E2, R, fast_pair(), 0.8, bins=together, bin_index=idx * nv + v).packed()
+        assert np.array_equal(a, b)
+    b3, c8 = _packed_bins(jm0)[:2]
+    with pytest.raises(ValueError, match="inconsistent"):
+        KERNEL.make_bins(together.shape[:3], b3, c8, 16, 2)
 
 
 def test_log_table_is_the_profiles_transform():

@@ -336,6 +336,36 @@ def test_replays_that_evaluate_near_the_cut_first_give_the_same_estimates():
     assert fewer >= 8
 
 
+def test_versions_replayed_together_are_replayed_one_by_one(monkeypatch):
+    """measure_versions evaluates the sheared versions' replays together (VersionLikelihoods: one binning per
+    ellipticity for all four, one marginalisation call): the estimates of replaying each version on its own,
+    to rounding (the compiled marginalisation's vector exponentials may differ in the last place with an
+    element's position in a batch), with and without a first margin."""
+    from shearfit.calib.metacal import VERSIONS
+    from shearfit.engine import likelihood, sampling
+    from shearfit.engine.measure import _measure, measure_versions
+
+    if not likelihood.USE_KERNEL:
+        pytest.skip("compiled kernel not built")
+    joint = []
+    real = sampling.VersionLikelihoods._chunk
+    monkeypatch.setattr(sampling.VersionLikelihoods, "_chunk", lambda self, *a: joint.append(len(self.likes))
+                        or real(self, *a))
+    for seed, first_margin in ((1, None), (2, 1.0)):
+        obs = _obs(0.25, (0.3, -0.1), snr=25, seed=seed)
+        per = [metacal_observations(o, 0.01, np.random.default_rng(seed)) for o in obs]
+        versions = [[v[name] for v in per] for name in VERSIONS]
+        together = measure_versions(versions, 23.0, margin=10.0, first_margin=first_margin)
+        ref, plan = _measure(versions[0], 23.0, shearfit.FitConfig(), False, margin=10.0)
+        assert _fields(together[0]) == _fields(ref)
+        for v, res in zip(versions[1:], together[1:]):
+            alone = _measure(v, 23.0, shearfit.FitConfig(), False, plan=plan, margin=10.0,
+                             first_margin=first_margin)[0]
+            assert np.allclose(_fields(res), _fields(alone), rtol=1e-12, atol=1e-15)
+            assert (res.fitclass, res.n_samples, res.n_models) == (alone.fitclass, alone.n_samples, alone.n_models)
+    assert joint and max(joint) == 4
+
+
 def test_replay_needs_the_same_psfs():
     from shearfit.errors import ShearfitValueError
     from shearfit.engine.measure import measure_versions

@@ -47,7 +47,10 @@ the sheared versions replay them (:func:`shearfit.engine.measure.measure_version
 so that their estimates differ only through their pixels, and evaluate only
 the samples within ``replay_margin`` nats of the posterior cut (those within
 ``REPLAY_FIRST_MARGIN`` first, the rest only where the version's posterior
-moved enough for them to matter: the same estimates).
+moved enough for them to matter: the same estimates). The four replays are
+evaluated together, each ellipticity's mode bins placed once for all of them
+(:class:`shearfit.engine.sampling.VersionLikelihoods`): each version's own
+numbers, to rounding.
 ``R_ij = (e_i[j+] - e_i[j-]) / (2 delta)`` per galaxy, and an ensemble
 shear is ``<R>^-1 <e>`` with the lensfit weights of the ``noshear`` fit.
 Cuts and weights computed from measured quantities respond to the shear too

@@ -509,21 +509,24 @@ static void bin_scatter(const float *C8, Py_ssize_t n_single, const int *idx, co
 #define BPAD 8     /* bins per ellipticity padded to a multiple of this (one vector), with zero weights */
 
 /*
- * make_bins(shape, basis32, channels32, bins_per_octave) -> (lo, offsets, columns, dc): for
+ * make_bins(shape, basis32, channels32, bins_per_octave[, versions]) -> (lo, offsets, columns, dc): for
  * each ellipticity e (its shape coefficients c11, c12, c22), its bins lo[e] .. lo[e] + n - 1 (kappa_b =
  * 2^(b / nb)), every bin from the lowest to the highest a mode reached, padded with empty bins to a
  * multiple of BPAD: n = offsets[e + 1] - offsets[e]. Their weights are in columns, channel after channel
  * (NCH channels of n doubles from NCH offsets[e]); the DC bin's weights in dc[8 e .. 8 e + 6].
- * Every output is bytes (int64 and float64).
+ * With versions = V > 1, channels32 holds V sets of the modes' weights one after the other (versions of one
+ * object on the same modes: metacal's), and every output has an entry per ellipticity and version, e V + v
+ * (the ellipticity's bin positions and weights found once, then each version's weights scattered with
+ * them: the same numbers as V calls). Every output is bytes (int64 and float64).
  */
 static PyObject *make_bins(PyObject *self, PyObject *args)
 {
     Py_buffer shape, b3, c8;
-    int nb;
-    if (!PyArg_ParseTuple(args, "y*y*y*i", &shape, &b3, &c8, &nb)) return NULL;
+    int nb, nv = 1;
+    if (!PyArg_ParseTuple(args, "y*y*y*i|i", &shape, &b3, &c8, &nb, &nv)) return NULL;
     Py_ssize_t n_e = shape.len / (3 * (Py_ssize_t)sizeof(double));
     Py_ssize_t n_single = b3.len / (4 * (Py_ssize_t)sizeof(float));
-    if (c8.len != 8 * n_single * (Py_ssize_t)sizeof(float) || nb < 1 || nb > 4096) {
+    if (nv < 1 || c8.len != (Py_ssize_t)nv * 8 * n_single * (Py_ssize_t)sizeof(float) || nb < 1 || nb > 4096) {
         RELEASE(&shape, &b3, &c8);
         PyErr_SetString(PyExc_ValueError, "make_bins: inconsistent buffers");
         return NULL;
@@ -533,9 +536,10 @@ static PyObject *make_bins(PyObject *self, PyObject *args)
     int *idx = (int *)malloc(ns * sizeof(int));
     double *frac = (double *)malloc(ns * sizeof(double));   /* scratch: each mode's K^T C K or position */
     float *w4 = (float *)malloc(4 * ns * sizeof(float));      /* its four weights */
-    long long *off = (long long *)malloc((n_e + 1) * sizeof(long long));
-    long long *los = (long long *)malloc((n_e > 0 ? n_e : 1) * sizeof(long long));
-    double *dc = (double *)calloc(8 * (n_e > 0 ? n_e : 1), sizeof(double));
+    const Py_ssize_t n_out = n_e * nv;   /* entries: ellipticity e, version v at e nv + v */
+    long long *off = (long long *)malloc((n_out + 1) * sizeof(long long));
+    long long *los = (long long *)malloc((n_out > 0 ? n_out : 1) * sizeof(long long));
+    double *dc = (double *)calloc(8 * (n_out > 0 ? n_out : 1), sizeof(double));
     float *A = NULL;
     double *cols = NULL;
     Py_ssize_t capA = 0, capC = 0, ncol = 0;
@@ -561,34 +565,37 @@ static PyObject *make_bins(PyObject *self, PyObject *args)
             A = posix_memalign(&pa, 64, capA * 8 * sizeof(float)) == 0 ? (float *)pa : NULL;
             if (A == NULL) { nomem = 1; break; }
         }
-        memset(A, 0, (nbin + 1) * 8 * sizeof(float));
-        bin_scatter((const float *)c8.buf, n_single, idx, w4, lo, nbin, A);
-        if (NCH * (ncol + npad) > capC) {
-            capC = 2 * NCH * (ncol + npad);
-            double *r = (double *)realloc(cols, capC * sizeof(double));
-            if (r == NULL) { nomem = 1; break; }
-            cols = r;
+        for (int v = 0; v < nv; v++) {
+            const Py_ssize_t ev = e * nv + v;
+            memset(A, 0, (nbin + 1) * 8 * sizeof(float));
+            bin_scatter((const float *)c8.buf + (Py_ssize_t)v * 8 * n_single, n_single, idx, w4, lo, nbin, A);
+            if (NCH * (ncol + npad) > capC) {
+                capC = 2 * NCH * (ncol + npad);
+                double *r = (double *)realloc(cols, capC * sizeof(double));
+                if (r == NULL) { nomem = 1; break; }
+                cols = r;
+            }
+            off[ev] = ncol;
+            los[ev] = nbin > 0 ? lo : 0;
+            double *blk = cols + NCH * ncol;
+            for (int t = 0; t < NCH; t++) {
+                double *ch = blk + t * npad;
+                for (Py_ssize_t b = 0; b < nbin; b++) ch[b] = A[8 * b + t];
+                for (Py_ssize_t b = nbin; b < npad; b++) ch[b] = 0.0;
+            }
+            for (int t = 0; t < NCH; t++) dc[8 * ev + t] = A[8 * nbin + t];
+            ncol += npad;
         }
-        off[e] = ncol;
-        los[e] = nbin > 0 ? lo : 0;
-        double *blk = cols + NCH * ncol;
-        for (int t = 0; t < NCH; t++) {
-            double *ch = blk + t * npad;
-            for (Py_ssize_t b = 0; b < nbin; b++) ch[b] = A[8 * b + t];
-            for (Py_ssize_t b = nbin; b < npad; b++) ch[b] = 0.0;
-        }
-        for (int t = 0; t < NCH; t++) dc[8 * e + t] = A[8 * nbin + t];
-        ncol += npad;
     }
-    off[n_e] = ncol;
+    off[n_out] = ncol;
     Py_END_ALLOW_THREADS
 
     PyObject *res = NULL;
     if (!nomem) {
-        PyObject *l = PyBytes_FromStringAndSize((const char *)los, n_e * sizeof(long long));
-        PyObject *o = PyBytes_FromStringAndSize((const char *)off, (n_e + 1) * sizeof(long long));
+        PyObject *l = PyBytes_FromStringAndSize((const char *)los, n_out * sizeof(long long));
+        PyObject *o = PyBytes_FromStringAndSize((const char *)off, (n_out + 1) * sizeof(long long));
         PyObject *c = PyBytes_FromStringAndSize((const char *)cols, NCH * ncol * sizeof(double));
-        PyObject *d = PyBytes_FromStringAndSize((const char *)dc, 8 * n_e * sizeof(double));
+        PyObject *d = PyBytes_FromStringAndSize((const char *)dc, 8 * n_out * sizeof(double));
         if (l && o && c && d) res = PyTuple_Pack(4, l, o, c, d);
         Py_XDECREF(l);
         Py_XDECREF(o);

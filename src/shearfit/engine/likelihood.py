@@ -93,7 +93,9 @@ class JointModes:
             return None
         out = replace(self, z=dm.merged_z(exposures) * dm.phase, yy=float(sum(ex.yy for ex in exposures)),
                       npix=int(sum(ex.npix for ex in exposures)))
-        # what depends on the modes alone, not on the data, is shared
+        # what depends on the modes alone, not on the data, is shared (the binning's geometry made first, so
+        # that the versions bin together: mode_bins_versions)
+        _bins_geometry(self)
         for name in ("_factors", "_bins32_geometry"):
             cached = getattr(self, name, None)
             if cached is not None:
@@ -582,6 +584,37 @@ def mode_bins(jm: JointModes, e1, e2, bins_per_octave) -> ModeBins:
     lo, offsets, columns, dc = KERNEL.make_bins(shape, b3, c8, int(bins_per_octave))
     return ModeBins(shape=shape, bins_per_octave=int(bins_per_octave), lo=lo, offsets=offsets, columns=columns,
                     dc=dc)
+
+
+def shares_bins_geometry(jms) -> bool:
+    """Whether JointModes (versions of one object: :meth:`JointModes.with_data`'s) share the modes' geometry,
+    so that :func:`mode_bins_versions` can bin them together."""
+    b3 = _packed_bins(jms[0])[0]
+    return all(_packed_bins(j)[0] is b3 for j in jms[1:])
+
+
+def versions_channels(jms) -> np.ndarray:
+    """The versions' binned weights (:func:`_packed_bins`' c8) one after the other, for
+    :func:`mode_bins_versions`."""
+    if not shares_bins_geometry(jms):
+        raise ShearfitValueError("mode_bins_versions: the versions do not share their modes")
+    return np.concatenate([_packed_bins(j)[1] for j in jms])
+
+
+def mode_bins_versions(jms, e1, e2, bins_per_octave, channels=None) -> ModeBins:
+    """:func:`mode_bins` of several versions of one object at once (JointModes on the same modes, with other
+    data: :func:`shares_bins_geometry`): entry ``i * V + v`` of the result is version v's bins at
+    ellipticity i, the same numbers as ``mode_bins(jms[v], ...)``'s entry i. Each ellipticity's bin
+    positions and interpolation weights are found once for the V versions. ``channels``:
+    :func:`versions_channels` of ``jms``, made once for many calls."""
+    nv = len(jms)
+    c8 = versions_channels(jms) if channels is None else channels
+    shape = np.ascontiguousarray(np.stack(shape_matrix(np.atleast_1d(np.asarray(e1, float)),
+                                                       np.atleast_1d(np.asarray(e2, float))), axis=1))
+    b3 = _packed_bins(jms[0])[0]
+    lo, offsets, columns, dc = KERNEL.make_bins(shape, b3, c8, int(bins_per_octave), nv)
+    return ModeBins(shape=np.ascontiguousarray(np.repeat(shape, nv, axis=0)), bins_per_octave=int(bins_per_octave),
+                    lo=lo, offsets=offsets, columns=columns, dc=dc)
 
 
 def _model_sums_binned(jm, bins, e_index, r2, fast, ratio):

@@ -16,8 +16,8 @@ from .likelihood import coarse_peak, find_position, flux_position_marginal, join
 from .model import model_ft, prepare_exposures
 from ..observation import FitResult, Observation
 from .profiles import de_vaucouleurs, exponential_disk, fast_pair
-from .sampling import (EllipticityLikelihood, Samples, adaptive_samples, estimate, log_population_weights,
-                       replay_samples, two_pass_samples)
+from .sampling import (EllipticityLikelihood, Samples, VersionLikelihoods, adaptive_samples, estimate,
+                       log_population_weights, replay_samples, replay_versions, two_pass_samples)
 
 __all__ = ["measure_object", "measure_objects", "measure_versions", "FitPlan"]
 
@@ -140,11 +140,7 @@ def _measure(obs, mag, cfg, return_samples, plan=None, margin=np.inf, first_marg
     ellipticity samples within ``margin`` nats of its posterior cut) instead of making its own.
     """
     fast = fast_pair(cfg.truncation)
-    if plan is not None and plan.exposures is not None and len(plan.observations) == len(obs):
-        exposures = prepare_exposures(obs, cfg, likes=[ex if _same_modes(o, r) else None
-                                                       for o, r, ex in zip(obs, plan.observations, plan.exposures)])
-    else:
-        exposures = prepare_exposures(obs, cfg)
+    exposures = prepare_exposures(obs, cfg) if plan is None else _replay_exposures(obs, cfg, plan)
     if plan is None:
         disk = exponential_disk(cfg.truncation)
         jm = join_exposures(exposures, cfg.mode_chi2_tolerance, fold_tolerance=cfg.fold_chi2_tolerance)
@@ -177,21 +173,40 @@ def _measure(obs, mag, cfg, return_samples, plan=None, margin=np.inf, first_marg
         plan = FitPlan(keep=jm.keep, shift=(du, dv), size_nodes=x, r_center=like.r_center, centres=like.centres,
                        samples=samples, observations=list(obs), exposures=exposures, joint=jm, decoupled=jm.decoupled)
     else:
-        if plan.keep is not None and [k.size for k in plan.keep] != [e.kx.size for e in exposures]:
-            raise ShearfitValueError("a replayed fit needs the same PSFs (Fourier modes) as the fit it replays")
-        # the same modes (PSFs, Jacobians, offsets and noise): only the data's weights z change
-        same = plan.joint is not None and plan.exposures is not None and len(plan.exposures) == len(exposures) \
-            and all(e.kx is r.kx for e, r in zip(exposures, plan.exposures))
-        jm = plan.joint.with_data(exposures) if same else None
-        if jm is None:
-            jm = shift_joint(join_exposures(exposures, keep=plan.keep, decoupled=plan.decoupled), *plan.shift)
-        pix = jm.pixel_scale
-        shift = float(np.hypot(*plan.shift))
-        like = EllipticityLikelihood(jm, cfg, mag, fast, plan.size_nodes, plan.r_center)
-        like.fixed_centres = plan.centres
+        jm, like = _replay_likelihood(exposures, mag, cfg, plan)
         samples = replay_samples(like, plan.samples, cfg, margin, first_margin)
-        n_samples = int(np.count_nonzero(samples.evaluated))
+        return _replayed_result(obs, cfg, mag, jm, like, samples, plan, return_samples), plan
     return _result(obs, cfg, mag, jm, like, samples, n_samples, shift / pix, return_samples), plan
+
+
+def _replay_exposures(obs, cfg, plan):
+    """The Fourier modes of a version of the object ``plan`` was made from (its modes reused where the
+    version's observations reduce to the same)."""
+    if plan.exposures is not None and len(plan.observations) == len(obs):
+        return prepare_exposures(obs, cfg, likes=[ex if _same_modes(o, r) else None
+                                                  for o, r, ex in zip(obs, plan.observations, plan.exposures)])
+    return prepare_exposures(obs, cfg)
+
+
+def _replay_likelihood(exposures, mag, cfg, plan):
+    """The joint modes and the likelihood of a version that replays ``plan`` (its size nodes and centres)."""
+    if plan.keep is not None and [k.size for k in plan.keep] != [e.kx.size for e in exposures]:
+        raise ShearfitValueError("a replayed fit needs the same PSFs (Fourier modes) as the fit it replays")
+    # the same modes (PSFs, Jacobians, offsets and noise): only the data's weights z change
+    same = plan.joint is not None and plan.exposures is not None and len(plan.exposures) == len(exposures) \
+        and all(e.kx is r.kx for e, r in zip(exposures, plan.exposures))
+    jm = plan.joint.with_data(exposures) if same else None
+    if jm is None:
+        jm = shift_joint(join_exposures(exposures, keep=plan.keep, decoupled=plan.decoupled), *plan.shift)
+    like = EllipticityLikelihood(jm, cfg, mag, fast_pair(cfg.truncation), plan.size_nodes, plan.r_center)
+    like.fixed_centres = plan.centres
+    return jm, like
+
+
+def _replayed_result(obs, cfg, mag, jm, like, samples, plan, return_samples=False):
+    shift = float(np.hypot(*plan.shift))
+    return _result(obs, cfg, mag, jm, like, samples, int(np.count_nonzero(samples.evaluated)),
+                   shift / jm.pixel_scale, return_samples)
 
 
 def _result(obs, cfg, mag, jm, like, samples, n_samples, centroid_shift, return_samples):
@@ -325,7 +340,9 @@ def measure_versions(versions: Sequence[Sequence[Observation]], mag: float, conf
     so that differences between the versions' estimates follow the
     differences between their pixels smoothly. The versions must carry the
     same PSFs, Jacobians and weights. ``margin`` and ``first_margin``: which samples a replay evaluates
-    (:func:`shearfit.engine.sampling.replay_samples`). Returns one FitResult per version.
+    (:func:`shearfit.engine.sampling.replay_samples`). The replays are evaluated together where the versions
+    share the first's Fourier modes (:class:`shearfit.engine.sampling.VersionLikelihoods`), each version's
+    estimate that of its own replay to rounding. Returns one FitResult per version.
     """
     cfg = as_config(config)
     versions = [list(v) for v in versions]
@@ -337,22 +354,51 @@ def measure_versions(versions: Sequence[Sequence[Observation]], mag: float, conf
     versions = [[v[i] for i in usable] for v in versions]
     if not usable:
         return [FitResult(fitclass=FITCLASS_FEW_EXPOSURES, message="no usable exposure") for _ in versions]
-    plan = None
-    out = []
+    try:
+        res, plan = _measure(versions[0], float(mag), cfg, False, margin=margin, first_margin=first_margin)
+    except _FIT_ERRORS as exc:
+        if isinstance(exc, ShearfitValueError):
+            raise
+        res, plan = _failed(versions[0], exc), None
+    if plan is None:   # nothing to replay: the reference stopped before sampling
+        return [res] + [measure_object(v, mag, cfg) for v in versions[1:]]
+    return [res] + _replay_all(versions[1:], float(mag), cfg, plan, margin, first_margin)
+
+
+_FIT_ERRORS = (np.linalg.LinAlgError, FloatingPointError, ZeroDivisionError, ValueError)
+
+
+def _failed(obs, exc):
+    return FitResult(fitclass=FITCLASS_FIT_FAILED, n_exposures_used=len(obs), message=f"fit failed: {exc}")
+
+
+def _replay_all(versions, mag, cfg, plan, margin, first_margin):
+    """The versions' replays of ``plan``, their likelihoods evaluated together
+    (:class:`shearfit.engine.sampling.VersionLikelihoods`: the same numbers as one replay after another, which
+    is what a version whose setup fails, and every version where the joint evaluation fails, gets)."""
+    ready, out = [], [None] * len(versions)
     for k, obs in enumerate(versions):
         try:
-            res, made = _measure(obs, float(mag), cfg, False, plan=plan, margin=margin,
-                                 first_margin=first_margin)
-        except (np.linalg.LinAlgError, FloatingPointError, ZeroDivisionError, ValueError) as exc:
+            ready.append((k, obs) + _replay_likelihood(_replay_exposures(obs, cfg, plan), mag, cfg, plan))
+        except _FIT_ERRORS as exc:
             if isinstance(exc, ShearfitValueError):
                 raise
-            res, made = FitResult(fitclass=FITCLASS_FIT_FAILED, n_exposures_used=len(obs),
-                                  message=f"fit failed: {exc}"), None
-        if k == 0:
-            if made is None:   # nothing to replay: the reference stopped before sampling
-                return [res] + [measure_object(v, mag, cfg) for v in versions[1:]]
-            plan = made
-        out.append(res)
+            out[k] = _failed(obs, exc)
+    try:
+        likes = VersionLikelihoods([r[3] for r in ready])
+        samples = replay_versions(likes, plan.samples, cfg, margin, first_margin) if ready else []
+        for (k, obs, jm, like), s in zip(ready, samples):
+            out[k] = _replayed_result(obs, cfg, mag, jm, like, s, plan)
+    except _FIT_ERRORS as exc:
+        if isinstance(exc, ShearfitValueError):
+            raise
+        for k, obs, _, _ in ready:   # one at a time, so that one version's failure is its own
+            try:
+                out[k] = _measure(obs, mag, cfg, False, plan=plan, margin=margin, first_margin=first_margin)[0]
+            except _FIT_ERRORS as exc2:
+                if isinstance(exc2, ShearfitValueError):
+                    raise
+                out[k] = _failed(obs, exc2)
     return out
 
 

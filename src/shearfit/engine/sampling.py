@@ -19,17 +19,18 @@ exceeds 1 % of its maximum, the 1D variance and the weight of eq. (weight).
 from __future__ import annotations
 
 import functools
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 
 import numpy as np
 
 from . import priors
 from ..config import FitConfig
 from .kernel import KERNEL, USE_KERNEL
-from .likelihood import (interp_matrix, linear_vectors, flux_position_marginal, mode_bins,
-                         model_sums, spline_matrix)
+from .likelihood import (Marginal, interp_matrix, linear_vectors, flux_position_marginal, mode_bins,
+                         mode_bins_versions, model_sums, shares_bins_geometry, spline_matrix, versions_channels)
 
-__all__ = ["EllipticityLikelihood", "Samples", "adaptive_samples", "two_pass_samples", "replay_samples",
+__all__ = ["EllipticityLikelihood", "VersionLikelihoods", "Samples", "adaptive_samples", "two_pass_samples",
+           "replay_samples", "replay_versions",
            "estimate", "lensing_weight"]
 
 
@@ -256,15 +257,18 @@ class EllipticityLikelihood:
 
     def _nodes(self, e1, e2, rc, bins, index):
         """The size nodes of the samples (their bins at ``index``), marginalised, and the size integral."""
+        R = rc[:, None] * np.exp(self.x)[None, :]
+        nr = self.x.size
+        sums = self._sums(np.repeat(e1, nr), np.repeat(e2, nr), R.ravel(), bins, np.repeat(index, nr))
+        return self._size_integral(e1, e2, R, flux_position_marginal(sums, self.cfg, self.jm.pixel_scale))
+
+    def _size_integral(self, e1, e2, R, mg):
+        """The size integral of the samples from their size nodes ``R`` (n_e, n_nodes) marginalised (``mg``,
+        the nodes row after row)."""
         cfg = self.cfg
         ne = e1.size
         nr = self.x.size
-        R = rc[:, None] * np.exp(self.x)[None, :]
-        E1 = np.repeat(e1, nr)
-        E2 = np.repeat(e2, nr)
-        sums = self._sums(E1, E2, R.ravel(), bins, np.repeat(index, nr))
-        self.n_models += E1.size
-        mg = flux_position_marginal(sums, cfg, self.jm.pixel_scale)
+        self.n_models += ne * nr
         # best single-component fit among galaxies (r > 0), for the star/galaxy test
         chi2 = np.minimum(mg.chi2_disk, mg.chi2_bulge)
         i = int(np.argmin(chi2))
@@ -344,6 +348,64 @@ class EllipticityLikelihood:
                       mean_r=(pa * mean_r[0] + pb * mean_r[1]) / tot,
                       mean_b=(pa * mean_b_d + pb * 1.0) / tot,
                       mean_flux=(pa * mean_f[0] + pb * mean_f[1]) / tot)
+
+
+class VersionLikelihoods:
+    """The likelihoods of versions of one object, evaluated together where they can be.
+
+    Versions on the same Fourier modes (:meth:`shearfit.engine.likelihood.JointModes.with_data`: metacal's
+    sheared versions of a noshear fit) whose likelihoods take their size centres from one fit
+    (``fixed_centres``, the replays of :func:`replay_samples`) are binned together
+    (:func:`shearfit.engine.likelihood.mode_bins_versions`: each ellipticity's bins found once), and their
+    size nodes summed and marginalised in one call each: per version the same numbers as its own
+    ``like(e1, e2)``, which is what the others get.
+    """
+
+    def __init__(self, likes):
+        self.likes = list(likes)
+        l0 = self.likes[0]
+        self.joint = (len(self.likes) > 1 and USE_KERNEL and l0.cfg.mode_bins_per_octave > 0
+                      and l0.fixed_centres is not None and l0.locate_widths is None
+                      and all(lk.fixed_centres is l0.fixed_centres and lk.locate_widths is None and lk.cfg == l0.cfg
+                              and lk.fast is l0.fast and lk.mag == l0.mag and lk.chunk == l0.chunk
+                              and np.array_equal(lk.x, l0.x) and lk.jm.pixel_scale == l0.jm.pixel_scale
+                              for lk in self.likes[1:])
+                      and shares_bins_geometry([lk.jm for lk in self.likes]))
+        self.channels = versions_channels([lk.jm for lk in self.likes]) if self.joint else None
+
+    def __call__(self, e1, e2, versions=None) -> list:
+        """``[like(e1, e2) for like in likes]``, over the likelihoods ``versions`` (indices; None: all)."""
+        if versions is not None and list(versions) != list(range(len(self.likes))):
+            return VersionLikelihoods([self.likes[v] for v in versions])(e1, e2)
+        e1 = np.atleast_1d(np.asarray(e1, float))
+        e2 = np.atleast_1d(np.asarray(e2, float))
+        if not self.joint:
+            return [like(e1, e2) for like in self.likes]
+        step = self.likes[0].chunk
+        out = [self._chunk(e1[i:i + step], e2[i:i + step]) for i in range(0, e1.size, step)]
+        return [EPoint(*[np.concatenate([getattr(o[v], f) for o in out]) for f in EPoint.__dataclass_fields__])
+                for v in range(len(self.likes))]
+
+    def _chunk(self, e1, e2):
+        likes = self.likes
+        l0 = likes[0]
+        nv, ne, nr = len(likes), e1.size, l0.x.size
+        keys = e_key(e1, e2)
+        bins = mode_bins_versions([lk.jm for lk in likes], e1, e2, l0.cfg.mode_bins_per_octave,
+                                  channels=self.channels)
+        rc = np.array([l0.fixed_centres[k] for k in keys])
+        for lk in likes:
+            lk.centres.update(zip(keys, rc.tolist()))
+        R = rc[:, None] * np.exp(l0.x)[None, :]
+        m = ne * nr
+        # the models version after version; version v's bins at ellipticity i are entry i * nv + v
+        index = (np.repeat(np.arange(ne), nr)[None, :] * nv + np.arange(nv)[:, None]).ravel()
+        sums = l0._sums(np.tile(np.repeat(e1, nr), nv), np.tile(np.repeat(e2, nr), nv), np.tile(R.ravel(), nv),
+                        bins, index)
+        mg = flux_position_marginal(sums, l0.cfg, l0.jm.pixel_scale)
+        return [lk._size_integral(e1, e2, R, Marginal(*[getattr(mg, f.name)[v * m:(v + 1) * m]
+                                                        for f in fields(Marginal)]))
+                for v, lk in enumerate(likes)]
 
 
 @dataclass
@@ -629,39 +691,52 @@ def replay_samples(like: EllipticityLikelihood, ref: Samples, cfg: FitConfig, ma
     peak (a small shear moves the posterior), so the samples left out stay below the cut and the estimate is
     the one with ``margin`` alone.
     """
+    return replay_versions(VersionLikelihoods([like]), ref, cfg, margin, first_margin)[0]
+
+
+def replay_versions(likes: VersionLikelihoods, ref: Samples, cfg: FitConfig, margin: float,
+                    first_margin: float = None) -> list:
+    """:func:`replay_samples` of every version of ``likes``, their likelihoods evaluated together (the same
+    numbers, one Samples per version)."""
     ok = np.isfinite(ref.logpost) & (ref.area > 0)
     n = ref.e1.size
-    logl = np.full(n, -np.inf)
-    logpost = np.full(n, -np.inf)
+    nv = len(likes.likes)
     fields_ = ("logl_disk", "logl_bulge", "mean_r", "mean_b", "mean_flux")
-    cols = {f: np.full(n, np.nan) for f in fields_}
-    sel = np.zeros(n, bool)
+    logl = [np.full(n, -np.inf) for _ in range(nv)]
+    logpost = [np.full(n, -np.inf) for _ in range(nv)]
+    cols = [{f: np.full(n, np.nan) for f in fields_} for _ in range(nv)]
+    sel = [np.zeros(n, bool) for _ in range(nv)]
 
-    def evaluate(which):
-        pt = like(ref.e1[which], ref.e2[which])
-        logl[which], logpost[which] = _mix(pt, ref.e1[which], ref.e2[which], cfg)
-        for f in fields_:
-            cols[f][which] = getattr(pt, f)
+    def evaluate(which, versions):
+        for v, pt in zip(versions, likes(ref.e1[which], ref.e2[which], versions=versions)):
+            logl[v][which], logpost[v][which] = _mix(pt, ref.e1[which], ref.e2[which], cfg)
+            for f in fields_:
+                cols[v][f][which] = getattr(pt, f)
 
     if np.any(ok):
         top = np.max(ref.logpost[ok])
         full = ok & (ref.logpost > top + np.log(cfg.posterior_cut) - margin)
-        sel = full
         if first_margin is not None and first_margin < margin:
-            sel = ok & (ref.logpost > top + np.log(cfg.posterior_cut) - first_margin)
-            evaluate(sel)
-            lp = logpost[sel]
-            good = np.isfinite(lp)
-            change = np.abs((lp[good] - lp[good].max()) - (ref.logpost[sel][good] - top)) if np.any(good) else [np.inf]
-            if not (2 * np.max(change) < first_margin):
-                rest = full & ~sel
-                if np.any(rest):
-                    evaluate(rest)
-                sel = full
+            first = ok & (ref.logpost > top + np.log(cfg.posterior_cut) - first_margin)
+            evaluate(first, list(range(nv)))
+            more = []
+            for v in range(nv):
+                sel[v] = first
+                lp = logpost[v][first]
+                good = np.isfinite(lp)
+                change = (np.abs((lp[good] - lp[good].max()) - (ref.logpost[first][good] - top)) if np.any(good)
+                          else [np.inf])
+                if not (2 * np.max(change) < first_margin):
+                    more.append(v)
+                    sel[v] = full
+            rest = full & ~first
+            if more and np.any(rest):
+                evaluate(rest, more)
         else:
-            evaluate(sel)
-    return Samples(e1=ref.e1, e2=ref.e2, area=ref.area, logl=logl, logpost=logpost, point=EPoint(**cols),
-                   evaluated=sel)
+            evaluate(full, list(range(nv)))
+            sel = [full] * nv
+    return [Samples(e1=ref.e1, e2=ref.e2, area=ref.area, logl=logl[v], logpost=logpost[v],
+                    point=EPoint(**cols[v]), evaluated=sel[v]) for v in range(nv)]
 
 
 @dataclass
