@@ -129,3 +129,24 @@ def test_prepass_must_be_a_power_of_two_of_the_start():
     for bad in (0.24, 0.16, 0.08):
         with pytest.raises(ShearfitValueError, match="e_grid_prepass"):
             FitConfig(e_grid_prepass=bad)
+
+
+@pytest.mark.parametrize("settings", [{}, {"disk_e_max": 0.7, "disk_e0": 0.05, "bulge_e_b": 3.0}])
+def test_the_samplers_lattice_priors_are_the_priors_at_its_points(settings):
+    """The sampler takes the ellipticity priors of its lattice points from one table per set of the priors'
+    settings: the same numbers as the priors evaluated at those points, and another table for other settings."""
+    from shearfit.engine import priors
+    from shearfit.engine.sampling import _lattice_log_priors
+
+    cfg = FitConfig(**settings)
+    unit, half = cfg.e_grid_min, 120
+    pd, pb = _lattice_log_priors(cfg, unit, half)
+    rng = np.random.default_rng(3)
+    i, j = rng.integers(-half, half + 1, (2, 400))
+    e1, e2 = i.astype(float) * unit, j.astype(float) * unit
+    with np.errstate(divide="ignore"):
+        assert np.array_equal(pd[i + half, j + half], np.log(priors.disk_e_density(e1, e2, cfg)))
+        assert np.array_equal(pb[i + half, j + half], np.log(priors.bulge_e_density(e1, e2, cfg)))
+    assert np.isneginf(pd[half + 45, half]) and np.isfinite(pd[half + 30, half])   # zero beyond e_max
+    if settings:
+        assert not np.array_equal(pd, _lattice_log_priors(FitConfig(), unit, half)[0])

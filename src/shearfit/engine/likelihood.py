@@ -195,21 +195,21 @@ def _block_factors(A, sizes):
 
 
 def _packed_bins(jm):
-    """Every mode, compact for binning (cached): (b3, c8, pair_modes, pair_a, pair_b, pair_h).
+    """Every mode, compact for binning (cached): (b3, c8, pair_basis, pair_a, pair_b, pair_h).
 
     b3: the basis [kx^2, 2 kx ky, ky^2, 0] and c8: the weights [lin0..lin5, q, 0] of every mode, in float32
     (the bins sum them in float64; 6e-8 relative per mode is far below the binning's own error), the modes
     alone on their sampled mode first, then the fold groups' (``jm.multi``), whose q is the diagonal of Re H.
     The groups' cross terms are the pairs (a < b) of their modes with Re H_ab != 0: pair_h = 2 Re H_ab, and
-    pair_a, pair_b index pair_modes, the rows of b3 of the modes in a pair.
+    pair_a, pair_b index pair_basis, the rows of b3 of the modes in a pair.
     """
     cache = getattr(jm, "_bins32", None)
     if cache is None:
-        order, b3, qcol, gsel, pa, pb, ph = _bins_geometry(jm)
+        order, b3, qcol, pair_basis, pa, pb, ph = _bins_geometry(jm)
         c8 = np.zeros((order.size, 8), np.float32)
         c8[:, :6] = linear_vectors(jm)[:, order].T
         c8[:, 6] = qcol
-        cache = jm._bins32 = (b3, c8, gsel, pa, pb, ph)
+        cache = jm._bins32 = (b3, c8, pair_basis, pa, pb, ph)
     return cache
 
 
@@ -217,7 +217,8 @@ def _bins_geometry(jm):
     """What :func:`_packed_bins` takes from the modes alone, not from the data (cached, and carried by
     :meth:`JointModes.with_data` to another version's modes): the modes' order (alone on their sampled mode
     first, then the fold groups', as packed()'s, without its rows of doubles and the groups' factors, which
-    only the unbinned kernel needs), b3, the q column (float32) and the fold groups' pairs."""
+    only the unbinned kernel needs), b3, the q column (float32) and the fold groups' pairs (the rows of b3 of
+    their modes, and per pair its two modes among them and 2 Re H_ab)."""
     cache = getattr(jm, "_bins32_geometry", None)
     if cache is None:
         singles = jm.single_modes()
@@ -232,15 +233,17 @@ def _bins_geometry(jm):
         ph = np.zeros(0)
         gsel = np.zeros(0, np.int64)
         if jm.multi.size:
-            Hr = sparse.coo_matrix(sparse.csr_matrix(jm.H).real)
-            qcol[n_single:] = Hr.diagonal()
-            up = (Hr.row < Hr.col) & (Hr.data != 0)
-            rows, cols = Hr.row[up].astype(np.int64), Hr.col[up].astype(np.int64)
+            H = jm.H if sparse.isspmatrix_csr(jm.H) else sparse.csr_matrix(jm.H)
+            hrow, hcol, hdata = _csr_entries(H)
+            hdata = hdata.real
+            qcol[n_single:] = H.diagonal().real
+            up = (hrow < hcol) & (hdata != 0)
+            rows, cols = hrow[up].astype(np.int64), hcol[up].astype(np.int64)
             gsel, inv = np.unique(np.concatenate([rows, cols]), return_inverse=True)
             pa, pb = np.ascontiguousarray(inv[:rows.size]), np.ascontiguousarray(inv[rows.size:])
-            ph = np.ascontiguousarray(2.0 * Hr.data[up])
+            ph = np.ascontiguousarray(2.0 * hdata[up])
             gsel = np.ascontiguousarray(gsel + n_single, dtype=np.int64)
-        cache = (order, b3, qcol, gsel, pa.astype(np.int64), pb.astype(np.int64), ph)
+        cache = (order, b3, qcol, np.ascontiguousarray(b3[gsel]), pa.astype(np.int64), pb.astype(np.int64), ph)
         for arr in cache:
             arr.setflags(write=False)
         jm._bins32_geometry = cache
@@ -411,10 +414,10 @@ def _weak_couplings(msizes, Hm, s2, tolerance):
     """Which fold groups' cross terms can be dropped: a group's off-diagonal elements of H change any model's
     chi^2 by at most S^2 sum_(a != b) |H_ab| (|R| <= 1, ``s2`` = S^2 as in the noise-aware cut); the groups
     with the weakest such bounds are decoupled while their sum stays within ``tolerance``."""
-    Hc = Hm.tocoo()
+    row, col, data = _csr_entries(Hm)
     gid = np.repeat(np.arange(msizes.size), msizes)
-    off = Hc.row != Hc.col
-    bound = np.bincount(gid[Hc.row[off]], np.abs(Hc.data[off]), msizes.size) * s2
+    off = row != col
+    bound = np.bincount(gid[row[off]], np.abs(data[off]), msizes.size) * s2
     t = _drop_threshold(bound, tolerance)
     return bound <= t if t is not None else np.zeros(msizes.size, bool)
 
@@ -427,7 +430,20 @@ def _decouple(q, multi, msizes, Hm, decoupled):
     q = q.copy()
     q[multi[out]] = Hm.diagonal().real[out]
     stay = np.nonzero(~out)[0]
-    return q, multi[stay], msizes[~decoupled], Hm[stay][:, stay].tocsr()
+    # Hm[stay][:, stay] (a group's elements stay within the group: rows and columns of the kept ones)
+    row, col, data = _csr_entries(Hm)
+    new = np.full(multi.size, -1, np.int64)
+    new[stay] = np.arange(stay.size)
+    e = (new[row] >= 0) & (new[col] >= 0)
+    indptr = np.concatenate([[0], np.cumsum(np.bincount(new[row[e]], minlength=stay.size))])
+    H = sparse.csr_matrix((data[e], new[col[e]], indptr), shape=(stay.size, stay.size))
+    return q, multi[stay], msizes[~decoupled], H
+
+
+def _csr_entries(H):
+    """(row, col, data) of a csr matrix's stored entries, in its order."""
+    row = np.repeat(np.arange(H.shape[0]), np.diff(H.indptr))
+    return row, H.indices, H.data
 
 
 def join_exposures(exposures: list[ExposureModes], chi2_tolerance: float = 0.0, keep=None,
@@ -619,12 +635,12 @@ def mode_bins_versions(jms, e1, e2, bins_per_octave, channels=None) -> ModeBins:
 
 def _model_sums_binned(jm, bins, e_index, r2, fast, ratio):
     out = np.empty((r2.size, 15))
-    b3, _, gsel, pa, pb, ph = _packed_bins(jm)
+    _, _, pair_basis, pa, pb, ph = _packed_bins(jm)
     lt = fast.log_table(bins.bins_per_octave)
     KERNEL.binned_sums(bins.shape, np.ascontiguousarray(r2), np.ascontiguousarray(e_index, dtype=np.int64),
                          bins.lo, bins.offsets, bins.columns, bins.dc, bins.bins_per_octave, lt.rows[0], lt.rows[1],
                          lt.m, lt.n_col, lt.start, lt.per_octave, lt.low[0], lt.low[1], lt.zero[0], lt.zero[1],
-                         float(ratio) ** 2, np.ascontiguousarray(b3[gsel]), pa, pb, ph, out)
+                         float(ratio) ** 2, pair_basis, pa, pb, ph, out)
     return ModelSums.from_kernel(out)
 
 
@@ -642,11 +658,13 @@ def model_sums(jm: JointModes, e1, e2, r, fast, bulge_size_ratio=1.0, lin=None, 
     bins already made.
     """
     e1 = np.atleast_1d(np.asarray(e1, float))
-    e2 = np.atleast_1d(np.asarray(e2, float))
-    r = np.broadcast_to(np.atleast_1d(np.asarray(r, float)), e1.shape)
+    r = np.atleast_1d(np.asarray(r, float))
+    if r.shape != e1.shape:
+        r = np.broadcast_to(r, e1.shape)
     r2 = r * r
     if USE_KERNEL and use_kernel and bins is not None:
         return _model_sums_binned(jm, bins, bin_index, r2, fast, bulge_size_ratio)
+    e2 = np.atleast_1d(np.asarray(e2, float))
     if USE_KERNEL and use_kernel and bins_per_octave > 0:
         # runs of consecutive models with one ellipticity share their bins
         new = np.ones(e1.size, bool)
@@ -958,8 +976,10 @@ def flux_position_marginal(sums: ModelSums, cfg: FitConfig, pixel_scale=None, us
 
 def _log_zb(cfg):
     """log of the normalisation of the truncated-Gaussian B prior on [0, 1]."""
-    sb = cfg.bulge_fraction_sigma
-    b0 = cfg.bulge_fraction_mean
+    return _log_zb_of(cfg.bulge_fraction_sigma, cfg.bulge_fraction_mean)
+
+
+def _log_zb_of(sb, b0):
     return float(np.log(np.sqrt(np.pi / 2) * sb * (special.erf((1 - b0) / (np.sqrt(2) * sb))
                                                     - special.erf(-b0 / (np.sqrt(2) * sb)))))
 
@@ -972,15 +992,24 @@ def _position_bounds(cfg, pixel_scale):
     return dict(mu_min=1.0 / radius ** 2, max_step=radius)
 
 
-@functools.lru_cache(maxsize=32)
 def _marginal_setup(cfg, pixel_scale):
-    """The compiled marginalisation's grids, spline matrices and parameters for a configuration."""
-    u = np.linspace(0.0, 1.0, cfg.n_flux)
+    """The compiled marginalisation's grids, spline matrices and parameters for a configuration, cached on the
+    settings they depend on (a fit calls this a few hundred times, and hashing every field of a FitConfig
+    cost more than the lookup)."""
+    return _marginal_setup_cached(cfg.n_flux, cfg.bulge_fraction_sigma, cfg.bulge_fraction_mean,
+                                  cfg.delta_chi2_crit, cfg.max_centroid_shift, cfg.flux_prior_slope,
+                                  cfg.flux_halfwidth, pixel_scale)
+
+
+@functools.lru_cache(maxsize=32)
+def _marginal_setup_cached(n_flux, sb, b0, delta_chi2_crit, max_centroid_shift, flux_prior_slope, flux_halfwidth,
+                           pixel_scale):
+    u = np.linspace(0.0, 1.0, n_flux)
     uf = np.linspace(0.0, 1.0, SPLINE_FINE)
-    bounds = _position_bounds(cfg, pixel_scale)
-    par = np.array([cfg.bulge_fraction_sigma ** 2, cfg.bulge_fraction_mean, _log_zb(cfg), 0.5 * cfg.delta_chi2_crit,
-                    bounds.get("mu_min", 0.0), bounds.get("max_step", np.inf), cfg.flux_prior_slope,
-                    cfg.flux_halfwidth, 1.0 if bounds else 0.0, 0.0])
+    radius = None if pixel_scale is None else max_centroid_shift * float(pixel_scale)   # _position_bounds'
+    par = np.array([sb ** 2, b0, _log_zb_of(sb, b0), 0.5 * delta_chi2_crit,
+                    0.0 if radius is None else 1.0 / radius ** 2, np.inf if radius is None else radius,
+                    flux_prior_slope, flux_halfwidth, 0.0 if radius is None else 1.0, 0.0])
     return u, uf, np.ascontiguousarray(spline_matrix(u, uf)), np.ascontiguousarray(interp_matrix(u, uf)), par
 
 
@@ -1089,7 +1118,8 @@ def coarse_peak(exposures, jacobians, disk, r_ref, half_width, step, keep=None):
     return float(GU[i]), float(GV[i])
 
 
-def find_position(jm: JointModes, disk, r_ref, max_shift_arcsec, start=(0.0, 0.0), n_newton=8, cell=None):
+def find_position(jm: JointModes, disk, r_ref, max_shift_arcsec, start=(0.0, 0.0), n_newton=8, cell=None,
+                  use_kernel=True):
     """Sky offset (du, dv) of the cross-correlation peak of a round reference model.
 
     For centrally symmetric galaxy models the noise-free cross-correlation
@@ -1097,12 +1127,18 @@ def find_position(jm: JointModes, disk, r_ref, max_shift_arcsec, start=(0.0, 0.0
     size (h is then symmetric about it), so one search per object serves all
     models; each model's residual offset is handled to second order later.
     Newton steps from ``start`` (see ``coarse_peak``), each at most ``cell``.
-    Returns (du, dv, ok).
+    Returns (du, dv, ok). The compiled kernel (``KERNEL.find_peak``) takes the same steps as the numpy
+    lines here (``use_kernel=False``), which stay as the reference.
     """
     R = disk.ft_rho2(r_ref * r_ref * (jm.kx ** 2 + jm.ky ** 2))
     zr = jm.z * R
-    x = np.array(start, dtype=float)
     cell = jm.pixel_scale if cell is None else cell
+    if USE_KERNEL and use_kernel:
+        c = np.ascontiguousarray
+        u, v, status = KERNEL.find_peak(c(jm.kx, dtype=float), c(jm.ky, dtype=float), c(zr, dtype=complex),
+                                        float(start[0]), float(start[1]), float(cell), int(n_newton))
+        return float(u), float(v), status == 0 and bool(np.hypot(u, v) <= max_shift_arcsec)
+    x = np.array(start, dtype=float)
     K = np.stack([jm.kx, jm.ky])
     for _ in range(n_newton):
         p = zr * np.exp(-1j * (x @ K))

@@ -382,6 +382,16 @@ def _moffat_table(k, rs, beta, x_exact=1.0, h0=0.04, grow=0.02, floor=1e-30, use
     return out
 
 
+@functools.lru_cache(maxsize=8)
+def _kept_aliases(ny, nx, s):
+    """The indices, among the 5 x 5 aliases of ``_alias_geometry``, of the s x s ones kept."""
+    i0, sel = _alias_geometry(ny, nx, s)[1], _alias_geometry(ny, nx, s)[4]
+    na = i0.shape[0]
+    kept = np.arange(na * na).reshape(na, na)[sel, sel].ravel()
+    kept.setflags(write=False)
+    return kept
+
+
 @functools.lru_cache(maxsize=64)
 def _moffat_aliases(rs, beta, ny, nx, s):
     """The Moffat (times the pixel response) at every alias of the stamp's rfft modes.
@@ -400,8 +410,7 @@ def _moffat_aliases(rs, beta, ny, nx, s):
     mtab = _moffat_table(ktab, rs, beta)
     if USE_KERNEL:
         # the same sums in one pass, without the (5, 5, ny, nx/2 + 1) array G
-        na = i0.shape[0]
-        kept = np.arange(na * na).reshape(na, na)[sel, sel].ravel()
+        kept = _kept_aliases(ny, nx, s)
         A = np.empty(i0.shape[2:])
         Gs = np.empty(kept.size * A.size)
         KERNEL.alias_sums(mtab, i0, w0, w1, kept, A, Gs)

@@ -510,16 +510,19 @@ def size_prior_pdf(r, mag, cfg: FitConfig | None = None):
     return _scalar_or_array(out)
 
 
-def log_size_prior_per_lnr(lnr, mag, cfg: FitConfig | None = None):
+def log_size_prior_per_lnr(lnr, mag, cfg: FitConfig | None = None, ln_a: float | None = None):
     r""":math:`\ln[p(r)\,r]`, the size prior per unit :math:`\ln r`, at :math:`\ln r` (arcsec).
 
     :func:`size_prior_pdf` in the form the size integral uses (it integrates
     over :math:`\ln r`): :math:`\ln[\alpha / (a^2 \Gamma(2/\alpha))] + 2 \ln r
     - (r/a)^\alpha`, without the underflow of :math:`p(r)` far in its tail.
+    ``ln_a``: :math:`\ln a` of ``mag`` where already known (a fit evaluates this many times for one
+    magnitude); the same numbers.
     """
     cfg = _cfg(cfg)
     alpha = float(cfg.size_alpha)
-    ln_a = math.log(float(size_prior_scale(mag, cfg)))
+    if ln_a is None:
+        ln_a = math.log(float(size_prior_scale(mag, cfg)))
     lnr = np.asarray(lnr, dtype=float)
     return math.log(alpha / math.gamma(2.0 / alpha)) - 2 * ln_a + 2 * lnr - np.exp(alpha * (lnr - ln_a))
 

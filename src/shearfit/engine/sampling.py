@@ -19,6 +19,7 @@ exceeds 1 % of its maximum, the 1D variance and the weight of eq. (weight).
 from __future__ import annotations
 
 import functools
+import math
 from dataclasses import dataclass, field, fields
 
 import numpy as np
@@ -114,6 +115,14 @@ class EllipticityLikelihood:
         self.centres = {}
         self.fixed_centres = None
 
+    @property
+    def ln_a(self):
+        """ln of the size prior's scale a at this object's magnitude (made once)."""
+        v = self.__dict__.get("_ln_a")
+        if v is None:
+            v = self._ln_a = math.log(float(priors.size_prior_scale(self.mag, self.cfg)))
+        return v
+
     def centre(self, e1, e2):
         """Predicted best scalelength at ellipticity e from the round model's.
 
@@ -193,7 +202,8 @@ class EllipticityLikelihood:
         ld0, lb0 = log_population_weights(cfg)
         y = np.logaddexp(ld0 + mg.logl_disk, lb0 + mg.logl_bulge).reshape(R.shape)
         shift = _prior_axis_shift(e1, e2, cfg)
-        lpr = priors.log_size_prior_per_lnr(np.log(R) + (0.0 if shift is None else shift[:, None]), self.mag, cfg)
+        lpr = priors.log_size_prior_per_lnr(np.log(R) + (0.0 if shift is None else shift[:, None]), self.mag, cfg,
+                                            ln_a=self.ln_a)
         y = y + lpr
         y = np.where(np.isfinite(y), y, -1e300)
         k = np.clip(np.argmax(y, axis=1), 1, n - 2)
@@ -301,12 +311,12 @@ class EllipticityLikelihood:
         rf = np.exp(lnrf)
         # the size prior at the scalelength of size_prior_axis (ln r + prior_shift per sample; 0: the semi-major)
         sh = 0.0 if prior_shift is None else prior_shift[:, None]
-        logprior = priors.log_size_prior_per_lnr(lnrf + sh, self.mag, cfg)
+        logprior = priors.log_size_prior_per_lnr(lnrf + sh, self.mag, cfg, ln_a=self.ln_a)
         # from r = 0 to the first node (r = r_min sqrt(u)): p(r) dr = [p(r)/r] (r_min^2 / 2) du, smooth
         # down to r = 0, where p(r) ~ r; log L there is linear in r^2 between the point source and the node
         u = self._SEG_U
         lnr0 = np.maximum(lnrf[:, :1] + self._SEG_HALF_LOG_U[None, :], np.log(1e-12))
-        lsegprior = priors.log_size_prior_per_lnr(lnr0 + sh, self.mag, cfg) - 2 * lnr0
+        lsegprior = priors.log_size_prior_per_lnr(lnr0 + sh, self.mag, cfg, ln_a=self.ln_a) - 2 * lnr0
         l0 = np.array([float(self.zero.logl_disk[0]), float(self.zero.logl_bulge[0])])
         logmix = np.array(log_population_weights(cfg))
         if USE_KERNEL and use_kernel and KERNEL is not None and x.size <= 512:
@@ -421,16 +431,43 @@ class Samples:
     evaluated: np.ndarray = field(default=None, repr=False)   # replays only: the samples evaluated
 
 
-def _mix(point: EPoint, e1, e2, cfg):
+def _mix(point: EPoint, e1, e2, cfg, log_priors=None):
+    """log L and log posterior of the samples, the two populations mixed; ``log_priors``: the disk's and the
+    bulge's log ellipticity priors at (e1, e2) where already known (:func:`_lattice_log_priors`)."""
     ld0, lb0 = log_population_weights(cfg)
     la = ld0 + point.logl_disk
     lb = lb0 + point.logl_bulge
     logl = np.logaddexp(la, lb)
-    with np.errstate(divide="ignore"):
-        pd = np.log(priors.disk_e_density(e1, e2, cfg))
-        pb = np.log(priors.bulge_e_density(e1, e2, cfg))
+    if log_priors is None:
+        log_priors = _log_e_priors(e1, e2, cfg)
+    pd, pb = log_priors
     logpost = np.logaddexp(la + pd, lb + pb)
     return logl, logpost
+
+
+def _log_e_priors(e1, e2, cfg):
+    with np.errstate(divide="ignore"):
+        return np.log(priors.disk_e_density(e1, e2, cfg)), np.log(priors.bulge_e_density(e1, e2, cfg))
+
+
+def _lattice_log_priors(cfg, unit, half):
+    """The log ellipticity priors (disk, bulge) at every point (i, j) unit of the lattice [-half, half]^2, as
+    two arrays indexed [i + half, j + half]: the same numbers as at those points' e1, e2 (made once per set of
+    the priors' settings; every fit samples the same lattice)."""
+    return _lattice_log_priors_cached(cfg.disk_e_max, cfg.disk_e0, cfg.disk_e_a, cfg.bulge_e_b, cfg.bulge_e_c,
+                                      unit, half)
+
+
+@functools.lru_cache(maxsize=8)
+def _lattice_log_priors_cached(disk_e_max, disk_e0, disk_e_a, bulge_e_b, bulge_e_c, unit, half):
+    cfg = FitConfig(disk_e_max=disk_e_max, disk_e0=disk_e0, disk_e_a=disk_e_a, bulge_e_b=bulge_e_b,
+                    bulge_e_c=bulge_e_c)
+    e = np.arange(-half, half + 1, dtype=float) * unit
+    E1, E2 = np.meshgrid(e, e, indexing="ij")
+    out = _log_e_priors(E1, E2, cfg)
+    for a in out:
+        a.setflags(write=False)
+    return out
 
 
 def _prior_axis_shift(e1, e2, cfg):
@@ -476,9 +513,15 @@ class _Store:
         new = [k for k in ij if k not in self.keys]
         if not new:
             return
-        arr = np.array(new, dtype=float) * self.unit
+        ij = np.array(new)
+        arr = ij.astype(float) * self.unit
         pt = self.like(arr[:, 0], arr[:, 1])
-        logl, logpost = _mix(pt, arr[:, 0], arr[:, 1], self.cfg)
+        lp = None
+        if np.all(np.abs(ij) <= self.half):   # (every sampler's points are: _box clips to the lattice)
+            pd, pb = _lattice_log_priors(self.cfg, self.unit, self.half)
+            i, j = ij[:, 0] + self.half, ij[:, 1] + self.half
+            lp = (pd[i, j], pb[i, j])
+        logl, logpost = _mix(pt, arr[:, 0], arr[:, 1], self.cfg, log_priors=lp)
         base = len(self.e1)
         for n, k in enumerate(new):
             self.keys[k] = base + n
