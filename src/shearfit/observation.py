@@ -151,8 +151,11 @@ class Observation:
 
     @property
     def pixel_scale(self) -> float:
-        """sqrt(|det J|): the local linear pixel size in arcsec."""
-        return float(np.sqrt(abs(np.linalg.det(self.jacobian))))
+        """sqrt(|det J|): the local linear pixel size in arcsec (made once per Jacobian)."""
+        made = self.__dict__.get("_pixel_scale")
+        if made is None or made[0] is not self.jacobian:
+            made = self._pixel_scale = (self.jacobian, float(np.sqrt(abs(np.linalg.det(self.jacobian)))))
+        return made[1]
 
     def __repr__(self):
         return (f"Observation(shape={self.shape}, psf_shape={self.psf.shape}, "
