@@ -233,7 +233,7 @@ def _bins_geometry(jm):
         ph = np.zeros(0)
         gsel = np.zeros(0, np.int64)
         if jm.multi.size:
-            H = jm.H if sparse.isspmatrix_csr(jm.H) else sparse.csr_matrix(jm.H)
+            H = jm.H.tocsr()
             hrow, hcol, hdata = _csr_entries(H)
             hdata = hdata.real
             qcol[n_single:] = H.diagonal().real

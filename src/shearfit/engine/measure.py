@@ -384,9 +384,10 @@ def _replay_all(versions, mag, cfg, plan, margin, first_margin):
             if isinstance(exc, ShearfitValueError):
                 raise
             out[k] = _failed(obs, exc)
+    if not ready:
+        return out
     try:
-        likes = VersionLikelihoods([r[3] for r in ready])
-        samples = replay_versions(likes, plan.samples, cfg, margin, first_margin) if ready else []
+        samples = replay_versions(VersionLikelihoods([r[3] for r in ready]), plan.samples, cfg, margin, first_margin)
         for (k, obs, jm, like), s in zip(ready, samples):
             out[k] = _replayed_result(obs, cfg, mag, jm, like, s, plan)
     except _FIT_ERRORS as exc:
