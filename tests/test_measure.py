@@ -842,3 +842,27 @@ def test_size_prior_axis_moves_an_unresolved_galaxys_likelihood_mean():
     assert abs(out[0.35, "major"] - 0.35) > 0.03 and abs(out[0.35, "minor"] - 0.35) < 0.015
     for axis in ("major", "area", "minor"):
         assert abs(out[0.0, axis]) < 2e-3
+
+
+def test_a_fit_leaves_the_garbage_collector_as_it_found_it():
+    """measure_object pauses Python's cyclic garbage collector during the fit only: enabled or disabled before,
+    the same after, a failed fit included."""
+    import gc
+
+    obs = _observations(0.3, (0.2, 0.1), n_exp=2)
+    assert gc.isenabled()
+    shearfit.measure_object(obs, 22.5)
+    assert gc.isenabled()
+    gc.disable()
+    try:
+        shearfit.measure_object(obs, 22.5)
+        assert not gc.isenabled()
+    finally:
+        gc.enable()
+    # an error raised inside the paused part (a replay on other PSFs)
+    from shearfit.engine.measure import measure_versions
+    other = [shearfit.Observation(image=o.image, weight=o.weight, psf=o.psf[2:-2, 2:-2] / o.psf[2:-2, 2:-2].sum(),
+                                  jacobian=o.jacobian, offset=o.offset) for o in obs]
+    with pytest.raises(shearfit.ShearfitValueError, match="same PSFs"):
+        measure_versions([obs, other], 22.5)
+    assert gc.isenabled()

@@ -260,3 +260,19 @@ def test_profile_metadata(profiles):
 def test_invalid_arguments(call):
     with pytest.raises(ShearfitValueError):
         call()
+
+
+@pytest.mark.parametrize("make", [lambda: exponential_disk(), lambda: de_vaucouleurs(), lambda: exponential_disk(3.0)])
+def test_ft_rho2_is_np_interp_of_its_table(make):
+    """ft_rho2 looks its nodes up by bucket (the compiled table_interp) where it can: np.interp's numbers, bit
+    for bit, at random rho2 over 14 decades, negative ones, the nodes themselves and their neighbours, the
+    ends, zero, infinities and NaN."""
+    prof = make()
+    xp, fp = prof.rho2_nodes, prof.ft_nodes
+    rng = np.random.default_rng(4)
+    x = np.concatenate([rng.uniform(-1, 1, 500), 10 ** rng.uniform(-5, 9, 5000), xp, np.nextafter(xp, 0),
+                        np.nextafter(xp, np.inf), xp[-3:] * 1.0000001, [0.0, -0.0, np.inf, -np.inf, np.nan]])
+    rng.shuffle(x)
+    assert np.array_equal(prof.ft_rho2(x), np.interp(x, xp, fp, right=0.0), equal_nan=True)
+    y = x[:5 * (x.size // 5)].reshape(-1, 5)   # any shape
+    assert np.array_equal(prof.ft_rho2(y), np.interp(y, xp, fp, right=0.0), equal_nan=True)

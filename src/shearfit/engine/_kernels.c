@@ -1917,6 +1917,63 @@ static PyObject *find_peak(PyObject *self, PyObject *args)
     return Py_BuildValue("ddi", x, y, status);
 }
 
+/*
+ * table_interp(x, xp, fp, index, base, shift, right, out): np.interp(x, xp, fp, right=right) (left = fp[0]),
+ * the same numbers (the same slope and sum, not fused), for a table xp of non-negative, increasing nodes with
+ * xp[0] = 0 (the profiles' rho^2 tables). np.interp bisects the table for every unsorted x; here a node at or
+ * below x comes from the bucket of x's bit pattern (index[b], int32: the last node at or below the bucket's
+ * start, buckets of 2^shift patterns from the pattern ``base`` of xp[1]), and a few steps forward find x's node.
+ */
+__attribute__((optimize("fp-contract=off")))
+static PyObject *table_interp(PyObject *self, PyObject *args)
+{
+    Py_buffer xb, xpb, fpb, ib, ob;
+    long long base;
+    int shift;
+    double right;
+    if (!PyArg_ParseTuple(args, "y*y*y*y*Lidw*", &xb, &xpb, &fpb, &ib, &base, &shift, &right, &ob)) return NULL;
+    const Py_ssize_t n = xb.len / (Py_ssize_t)sizeof(double), m = xpb.len / (Py_ssize_t)sizeof(double);
+    const Py_ssize_t nidx = ib.len / (Py_ssize_t)sizeof(int);
+    if (fpb.len != xpb.len || ob.len != xb.len || m < 3 || nidx < 1 || shift < 0 || shift > 62 || base < 0) {
+        RELEASE(&xb, &xpb, &fpb, &ib, &ob);
+        PyErr_SetString(PyExc_ValueError, "table_interp: inconsistent buffers");
+        return NULL;
+    }
+    const double *X = (const double *)xb.buf, *XP = (const double *)xpb.buf, *FP = (const double *)fpb.buf;
+    const int *IDX = (const int *)ib.buf;
+    double *O = (double *)ob.buf;
+    for (Py_ssize_t b = 0; b < nidx; b++) {
+        if (IDX[b] < 0 || IDX[b] > m - 1) {
+            RELEASE(&xb, &xpb, &fpb, &ib, &ob);
+            PyErr_SetString(PyExc_ValueError, "table_interp: index outside the table");
+            return NULL;
+        }
+    }
+    Py_BEGIN_ALLOW_THREADS
+    for (Py_ssize_t i = 0; i < n; i++) {
+        const double x = X[i];
+        if (x != x) { O[i] = x; continue; }
+        if (x < XP[0]) { O[i] = FP[0]; continue; }
+        if (x > XP[m - 1]) { O[i] = right; continue; }
+        if (x == XP[m - 1]) { O[i] = FP[m - 1]; continue; }
+        Py_ssize_t j = 0;
+        if (x >= XP[1]) {
+            long long bits;
+            memcpy(&bits, &x, sizeof bits);
+            long long b = (bits - base) >> shift;
+            j = (Py_ssize_t)IDX[b < nidx ? b : nidx - 1];
+            if (j > m - 2) j = m - 2;
+            while (j < m - 2 && XP[j + 1] <= x) j++;
+        }
+        if (XP[j] == x) { O[i] = FP[j]; continue; }
+        const double slope = (FP[j + 1] - FP[j]) / (XP[j + 1] - XP[j]);
+        O[i] = slope * (x - XP[j]) + FP[j];
+    }
+    Py_END_ALLOW_THREADS
+    RELEASE(&xb, &xpb, &fpb, &ib, &ob);
+    Py_RETURN_NONE;
+}
+
 static PyMethodDef methods[] = {
     {"kernel_isa", kernel_isa, METH_NOARGS, "kernel_isa() -> the instruction-set level this module was built for"},
     {"cpu_levels", cpu_levels, METH_NOARGS, "cpu_levels() -> the instruction-set levels this CPU runs"},
@@ -1929,6 +1986,8 @@ static PyMethodDef methods[] = {
      "size_marginal(ld, lb, fd, fb, bd, logprior, lsegprior, spline, interp, xf, u, rf, l0, logmix, out)"},
     {"make_bins", make_bins, METH_VARARGS,
      "make_bins(shape, basis32, channels32, bins_per_octave[, versions]) -> (lo, offsets, columns, dc)"},
+    {"table_interp", table_interp, METH_VARARGS,
+     "table_interp(x, xp, fp, index, base, shift, right, out): np.interp(x, xp, fp, right=right), bucketed search"},
     {"find_peak", find_peak, METH_VARARGS,
      "find_peak(kx, ky, zr, x0, y0, cell, n_newton) -> (x, y, status): the cross-correlation peak's Newton steps"},
     {"binned_sums", binned_sums, METH_VARARGS,

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import contextlib
+import gc
 from dataclasses import dataclass, replace
 from typing import Iterable, Sequence
 
@@ -58,6 +60,21 @@ def _size_range(jm, cfg, mag, fast):
     return float(med), float(lo), float(hi)
 
 
+@contextlib.contextmanager
+def _no_cyclic_gc():
+    """Python's cyclic garbage collector paused for one fit, as it was before afterwards: a fit makes and drops
+    thousands of small containers, whose collection rounds (each also walking the older generations in turn)
+    cost a few per cent of it, and leaves little cyclic garbage (collected once the collector runs again)."""
+    was = gc.isenabled()
+    if was:
+        gc.disable()
+    try:
+        yield
+    finally:
+        if was:
+            gc.enable()
+
+
 def measure_object(observations: Sequence[Observation], mag: float, config=None,
                    return_samples: bool = False) -> FitResult:
     """Measure the ellipticity of one object jointly on all its exposures.
@@ -89,9 +106,10 @@ def measure_object(observations: Sequence[Observation], mag: float, config=None,
     if not obs:
         return FitResult(fitclass=FITCLASS_FEW_EXPOSURES, message="no usable exposure")
     try:
-        res, plan = _measure(obs, float(mag), cfg, return_samples)
-        if cfg.self_calibration and plan is not None and res.fitclass >= FITCLASS_GALAXY:
-            _self_calibrate(obs, float(mag), cfg, res, plan)
+        with _no_cyclic_gc():
+            res, plan = _measure(obs, float(mag), cfg, return_samples)
+            if cfg.self_calibration and plan is not None and res.fitclass >= FITCLASS_GALAXY:
+                _self_calibrate(obs, float(mag), cfg, res, plan)
         return res
     except (np.linalg.LinAlgError, FloatingPointError, ZeroDivisionError, ValueError) as exc:
         if isinstance(exc, ShearfitValueError):
@@ -355,14 +373,16 @@ def measure_versions(versions: Sequence[Sequence[Observation]], mag: float, conf
     if not usable:
         return [FitResult(fitclass=FITCLASS_FEW_EXPOSURES, message="no usable exposure") for _ in versions]
     try:
-        res, plan = _measure(versions[0], float(mag), cfg, False, margin=margin, first_margin=first_margin)
+        with _no_cyclic_gc():
+            res, plan = _measure(versions[0], float(mag), cfg, False, margin=margin, first_margin=first_margin)
     except _FIT_ERRORS as exc:
         if isinstance(exc, ShearfitValueError):
             raise
         res, plan = _failed(versions[0], exc), None
     if plan is None:   # nothing to replay: the reference stopped before sampling
         return [res] + [measure_object(v, mag, cfg) for v in versions[1:]]
-    return [res] + _replay_all(versions[1:], float(mag), cfg, plan, margin, first_margin)
+    with _no_cyclic_gc():
+        return [res] + _replay_all(versions[1:], float(mag), cfg, plan, margin, first_margin)
 
 
 _FIT_ERRORS = (np.linalg.LinAlgError, FloatingPointError, ZeroDivisionError, ValueError)

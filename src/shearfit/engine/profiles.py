@@ -75,6 +75,7 @@ from numpy.polynomial.legendre import leggauss
 from scipy import special
 
 from ..errors import ShearfitValueError
+from .kernel import KERNEL, USE_KERNEL
 
 __all__ = ["RadialProfile", "exponential_disk", "de_vaucouleurs", "sersic"]
 
@@ -466,7 +467,28 @@ class RadialProfile:
             float64, same shape as ``rho2``; within 2e-6 of the exact
             transform.
         """
-        return np.interp(rho2, self.rho2_nodes, self.ft_nodes, right=0.0)
+        x = np.asarray(rho2, dtype=float)
+        if USE_KERNEL and x.size >= 64:
+            out = np.empty(x.shape)
+            KERNEL.table_interp(np.ascontiguousarray(x), self.rho2_nodes, self.ft_nodes, *self._buckets(), 0.0, out)
+            return out
+        return np.interp(x, self.rho2_nodes, self.ft_nodes, right=0.0)
+
+    def _buckets(self):
+        """The compiled lookup's index of the rho2 table (``KERNEL.table_interp``: np.interp's numbers, its
+        node found from x's bit pattern instead of by bisection): per bucket of 2^shift bit patterns from
+        rho2_nodes[1]'s, the last node at or below its start; about 2 buckets per node (a small index: x's are
+        looked up in no order)."""
+        made = self.__dict__.get("_bucket_index")
+        if made is None:
+            xp = self.rho2_nodes
+            base = int(xp[1:2].view(np.int64)[0])
+            top = int(xp[-1:].view(np.int64)[0])
+            shift = max(0, int(np.ceil(np.log2(max(top - base, 1) / (2.0 * xp.size)))))
+            starts = (base + (np.arange(((top - base) >> shift) + 1, dtype=np.int64) << shift)).view(np.float64)
+            index = np.ascontiguousarray(np.searchsorted(xp, starts, side="right") - 1, dtype=np.int32)
+            made = self._bucket_index = (index, base, shift)
+        return made
 
     def ft(self, k):
         """R at wavenumber k (convenience wrapper of :meth:`ft_rho2`).
