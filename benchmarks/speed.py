@@ -351,7 +351,8 @@ def metacal_image_profile(objs):
 
 
 #: the settings that trade exactness for speed, at their exact values
-EXACT = {"mode_bins_per_octave": 0, "n_flux": 11, "fold_chi2_tolerance": 0.0, "e_grid_prepass": 0.0}
+EXACT = {"mode_bins_per_octave": 0, "n_flux": 11, "fold_chi2_tolerance": 0.0, "e_grid_prepass": 0.0, "tail_skip": 0.0,
+         "size_reuse_distance": 0.0}
 
 
 def check_report(objs, cfg, res, seed, each=False):

@@ -557,19 +557,21 @@ def measure_metacal(observations, mag, config=None, delta=0.01, rng=None, replay
     from dataclasses import replace
 
     from ..config import as_config
-    from ..engine.measure import measure_versions
+    from ..engine.measure import measure_versions, paused_gc
 
     rng = np.random.default_rng() if rng is None else rng
     config = as_config(config)
     if config.e_grid_min > E_GRID_MIN:
         config = replace(config, e_grid_min=E_GRID_MIN)
-    per_exp = [metacal_observations(o, delta, rng, fit_moffat=False, psf=psf) for o in observations]
-    _fit_new_moffats(per_exp)
+    # Python's cyclic garbage collector paused for the object's images and fits (a few per cent of them)
+    with paused_gc():
+        per_exp = [metacal_observations(o, delta, rng, fit_moffat=False, psf=psf) for o in observations]
+        _fit_new_moffats(per_exp)
+        # the sheared versions replay the noshear fit's choices (modes, position, size nodes, ellipticity
+        # samples): their estimates then differ only through their pixels (measure_versions)
+        results = measure_versions([[v[name] for v in per_exp] for name in VERSIONS], mag, config,
+                                   margin=replay_margin, first_margin=replay_first_margin)
     out = MetacalResult(delta=float(delta))
-    # the sheared versions replay the noshear fit's choices (modes, position, size nodes, ellipticity
-    # samples): their estimates then differ only through their pixels (measure_versions)
-    results = measure_versions([[v[name] for v in per_exp] for name in VERSIONS], mag, config,
-                               margin=replay_margin, first_margin=replay_first_margin)
     out.results = dict(zip(VERSIONS, results))
     R = np.full((2, 2), np.nan)
     for j, (p, m) in enumerate((("1p", "1m"), ("2p", "2m"))):

@@ -21,7 +21,7 @@ from .profiles import de_vaucouleurs, exponential_disk, fast_pair
 from .sampling import (EllipticityLikelihood, Samples, VersionLikelihoods, adaptive_samples, estimate,
                        log_population_weights, replay_samples, replay_versions, two_pass_samples)
 
-__all__ = ["measure_object", "measure_objects", "measure_versions", "FitPlan"]
+__all__ = ["measure_object", "measure_objects", "measure_versions", "FitPlan", "paused_gc"]
 
 # free parameters of the galaxy (e1, e2, x, y, r, S, B) and of a point source (x, y, S)
 _NPAR_GALAXY = 7
@@ -61,10 +61,11 @@ def _size_range(jm, cfg, mag, fast):
 
 
 @contextlib.contextmanager
-def _no_cyclic_gc():
-    """Python's cyclic garbage collector paused for one fit, as it was before afterwards: a fit makes and drops
-    thousands of small containers, whose collection rounds (each also walking the older generations in turn)
-    cost a few per cent of it, and leaves little cyclic garbage (collected once the collector runs again)."""
+def paused_gc():
+    """Python's cyclic garbage collector paused for one fit (a context manager), as it was before afterwards: a
+    fit makes and drops thousands of small containers, whose collection rounds (each also walking the older
+    generations in turn) cost a few per cent of it, and leaves little cyclic garbage (collected once the
+    collector runs again)."""
     was = gc.isenabled()
     if was:
         gc.disable()
@@ -106,7 +107,7 @@ def measure_object(observations: Sequence[Observation], mag: float, config=None,
     if not obs:
         return FitResult(fitclass=FITCLASS_FEW_EXPOSURES, message="no usable exposure")
     try:
-        with _no_cyclic_gc():
+        with paused_gc():
             res, plan = _measure(obs, float(mag), cfg, return_samples)
             if cfg.self_calibration and plan is not None and res.fitclass >= FITCLASS_GALAXY:
                 _self_calibrate(obs, float(mag), cfg, res, plan)
@@ -373,7 +374,7 @@ def measure_versions(versions: Sequence[Sequence[Observation]], mag: float, conf
     if not usable:
         return [FitResult(fitclass=FITCLASS_FEW_EXPOSURES, message="no usable exposure") for _ in versions]
     try:
-        with _no_cyclic_gc():
+        with paused_gc():
             res, plan = _measure(versions[0], float(mag), cfg, False, margin=margin, first_margin=first_margin)
     except _FIT_ERRORS as exc:
         if isinstance(exc, ShearfitValueError):
@@ -381,7 +382,7 @@ def measure_versions(versions: Sequence[Sequence[Observation]], mag: float, conf
         res, plan = _failed(versions[0], exc), None
     if plan is None:   # nothing to replay: the reference stopped before sampling
         return [res] + [measure_object(v, mag, cfg) for v in versions[1:]]
-    with _no_cyclic_gc():
+    with paused_gc():
         return [res] + _replay_all(versions[1:], float(mag), cfg, plan, margin, first_margin)
 
 
