@@ -385,7 +385,8 @@ def _moffat_table(k, rs, beta, x_exact=1.0, h0=0.04, grow=0.02, floor=1e-30, use
 @functools.lru_cache(maxsize=8)
 def _kept_aliases(ny, nx, s):
     """The indices, among the 5 x 5 aliases of ``_alias_geometry``, of the s x s ones kept."""
-    i0, sel = _alias_geometry(ny, nx, s)[1], _alias_geometry(ny, nx, s)[4]
+    geometry = _alias_geometry(ny, nx, s)
+    i0, sel = geometry[1], geometry[4]
     na = i0.shape[0]
     kept = np.arange(na * na).reshape(na, na)[sel, sel].ravel()
     kept.setflags(write=False)
