@@ -39,6 +39,11 @@ made from other tables (the paper's population, say) is applied to them with ``-
     python benchmarks/ring_test.py --from-tables odd_s*.fits --reference-tables paper_s*.fits \
         --snr-min 10 --snr-max 40
 
+Two runs on the same galaxies and noise that differ by a setting (``--set``) compare object by object, with
+the m and c differences' errors from the same galaxies resampled for both (much smaller than either's own)::
+
+    python benchmarks/ring_test.py --from-tables A.fits --paired-with B.fits --snr-min 20 --snr-max 40 --seed 11
+
 ``--antithetic`` also measures each object's antithetic twin (minus the noise): the terms odd in the
 noise cancel within a ring, which shrinks the errors on c several times; on m the twins gain less
 (the noise of the metacal response is largely even in the noise).
@@ -70,8 +75,8 @@ from shearfit.simulate import ring_set  # noqa: E402
 from shearfit.simulate.field import truth_galaxies  # noqa: E402
 from shearfit.simulate.outside import outside_population, outside_profile  # noqa: E402
 from shearfit.simulate.stamps import NegatedNormal  # noqa: E402
-from shearfit.calib.bias import (format_with_error, galaxy_column, paired_weights, ring_sums, shear_bias,  # noqa: E402
-                                          shear_bias_by_snr)
+from shearfit.calib.bias import (bias_from_sums, bootstrap_counts, format_with_error, galaxy_column,  # noqa: E402
+                                  paired_weights, ring_sums, shear_bias, shear_bias_by_snr)
 from shearfit.calib.weights import isotropic_weights  # noqa: E402
 
 # m(SNR) is printed when snr_max / snr_min exceeds this: a narrower range has no noise-bias trend to see.
@@ -376,6 +381,30 @@ def report_metacal_difference(tab, other, args, n_gal):
           f"{format_with_error(est[7], err[7])}")
 
 
+def report_plain_difference(tab, other, args, n_gal):
+    """Plain lensfit m and c of ``tab`` less those of ``other``, a run on the same galaxies and noise with another
+    setting (``--set``): the same galaxies resampled for both, and the objects' differences in e."""
+    ok = (tab["fitclass"] == 0) & (other["fitclass"] == 0)
+    de = np.stack([tab["e1"][ok] - other["e1"][ok], tab["e2"][ok] - other["e2"][ok]], axis=1)
+    err = np.sqrt(other["e_var"][ok])
+    g = np.array(args.shear, dtype=float)
+    weighted = not args.unweighted
+    sa, sb = ring_sums(tab, n_gal, weighted), ring_sums(other, n_gal, weighted)
+    est = bias_from_sums(sa, g) - bias_from_sums(sb, g)
+    counts = bootstrap_counts(n_gal, args.n_bootstrap, np.random.default_rng([args.seed, 54323]))
+    bad = int(np.sum(tab["fitclass"] != other["fitclass"]))
+    err_d = np.std(bias_from_sums(sa, g, counts) - bias_from_sums(sb, g, counts), axis=0)
+    print(f"\nthese tables less --paired-with's ({n_gal} galaxies resampled together, {args.n_bootstrap} bootstrap "
+          f"resamplings):")
+    print(f"  delta m1 = {format_with_error(est[0], err_d[0])}    delta c1 = {format_with_error(est[2], err_d[2])}")
+    print(f"  delta m2 = {format_with_error(est[1], err_d[1])}    delta c2 = {format_with_error(est[3], err_d[3])}")
+    if de.size:
+        print(f"  e of the {int(ok.sum())} objects measured as galaxies in both ({bad} objects' fitclass differs): "
+              f"rms difference {np.sqrt(np.mean(de ** 2)):.1e}, largest {np.abs(de).max():.1e}; in units of the "
+              f"error on e rms {np.sqrt(np.mean((de / err[:, None]) ** 2)):.1e}, largest "
+              f"{np.max(np.abs(de).max(axis=1) / err):.1e}")
+
+
 def report_metacal(tab, args, n_gal):
     """m and c of the metacal shear <R>^-1 <e> per sign (shear and selection response), bootstrap errors."""
     bias = _metacal_bias(tab, args, n_gal)
@@ -517,8 +546,9 @@ def parse_args(argv=None):
                    help="with --from-tables: a simulation calibration, the m of these ring tables (plain lensfit, "
                         "same SNR range, e.g. the paper's population) applied as (1 + m) / (1 + m_ref) - 1")
     p.add_argument("--paired-with", nargs="+", metavar="TABLE", default=None,
-                   help="with --from-tables and --metacal: also the metacal m and c of these tables less those of "
-                        "TABLE (a run on the same galaxies and noise), the same galaxies resampled for both")
+                   help="with --from-tables: also the m and c of these tables less those of TABLE (a run on the "
+                        "same galaxies and noise with another setting), the same galaxies resampled for both (metacal's "
+                        "with --metacal; else plain lensfit's, with the objects' differences in e)")
     p.add_argument("--from-tables", nargs="+", metavar="TABLE",
                    help="report on per-object tables written by earlier runs (--out) instead of simulating: "
                         "runs of different --seed add up (their galaxies are renumbered); give the shear, SNR "
@@ -624,17 +654,22 @@ def report_tables(args):
               f"m2 = {format_with_error(cal[1], cal_err[1])}")
     if args.metacal:
         report_metacal(tab, args, n_gal)
-        if args.paired_with:
-            try:
-                other, n_other = read_tables(args.paired_with)
-            except (OSError, ValueError, KeyError) as exc:
-                print(f"ring_test.py: error: {exc}", file=sys.stderr)
-                return 2
-            if n_other != n_gal or len(other) != len(tab):
-                print(f"ring_test.py: error: --paired-with: {n_other} galaxies and {len(other)} objects, not "
-                      f"{n_gal} and {len(tab)}", file=sys.stderr)
-                return 2
+    if args.paired_with:
+        try:
+            other, n_other = read_tables(args.paired_with)
+            if args.plain:
+                other = _plain_columns(other)
+        except (OSError, ValueError, KeyError) as exc:
+            print(f"ring_test.py: error: {exc}", file=sys.stderr)
+            return 2
+        if n_other != n_gal or len(other) != len(tab):
+            print(f"ring_test.py: error: --paired-with: {n_other} galaxies and {len(other)} objects, not "
+                  f"{n_gal} and {len(tab)}", file=sys.stderr)
+            return 2
+        if args.metacal:
             report_metacal_difference(tab, other, args, n_gal)
+        else:
+            report_plain_difference(tab, other, args, n_gal)
     report_families(tab, args)
     return 0
 

@@ -288,7 +288,8 @@ def _drop_threshold(b, tolerance):
 def _mode_bounds(exposures):
     """Per exposure, each mode's w |T_j|^2 / (N sigma^2), and S^2 for S the bound on the flux of the brightest
     model the data allow (a point source at 3 times its fitted flux plus 5 sigma; None where no mode has
-    weight): a mode can change any model's chi^2 by at most S^2 times its value (|R| <= 1)."""
+    weight): a model's own term of chi^2 in a mode, w |S R T_j|^2 / (N sigma^2), is at most S^2 times its value
+    (|R| <= 1)."""
     h = 0.0
     ff = 0.0
     bounds = []
@@ -308,10 +309,14 @@ def _mode_bounds(exposures):
 def _noise_aware_cut(exposures, chi2_tolerance, mode_bounds=None):
     """Per exposure, the modes to keep so that the dropped ones matter less than ``chi2_tolerance``.
 
-    A mode j can change any model's chi^2 by at most S^2 w |T_j|^2/(N sigma^2)
+    A model's own term of chi^2 in mode j is at most S^2 w |T_j|^2/(N sigma^2)
     (|R| <= 1), S bounded from above by the point-source fit's flux: the
     weakest modes are dropped while their summed bound stays below the
-    tolerance (all exposures together). ``mode_bounds``: :func:`_mode_bounds`'s, if already made.
+    tolerance (all exposures together). The modes' cross terms with the data
+    are not bounded so: dropping the modes drops their data, noise mostly, and
+    with it a scatter of e that grows as the square root of the tolerance
+    (``benchmarks/speed.py --check`` reports it). ``mode_bounds``:
+    :func:`_mode_bounds`'s, if already made.
     """
     bounds, s2 = _mode_bounds(exposures) if mode_bounds is None else mode_bounds
     if s2 is None:
