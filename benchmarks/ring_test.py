@@ -405,6 +405,18 @@ def report_plain_difference(tab, other, args, n_gal):
               f"{np.max(np.abs(de).max(axis=1) / err):.1e}")
 
 
+def report_lensfit(tab, args, n_gal):
+    """The lensfit shear bias of the table's e. In a --metacal run those are lensfit's fits of metacal's noshear
+    images (their noise is the original's processed plus the symmetrising field), so the report says so; the plain
+    fits of the original images of a --with-plain run follow."""
+    if args.metacal:
+        print("\nlensfit on metacal's noshear images:", end="")
+    report_bias(tab, args, n_gal)
+    if args.metacal and "plain_e1" in tab.dtype.names:
+        print("\nplain lensfit on the original images (--with-plain):", end="")
+        report_bias(_plain_columns(tab), args, n_gal)
+
+
 def report_metacal(tab, args, n_gal):
     """m and c of the metacal shear <R>^-1 <e> per sign (shear and selection response), bootstrap errors."""
     bias = _metacal_bias(tab, args, n_gal)
@@ -640,7 +652,7 @@ def report_tables(args):
         print(f"ring_test.py: error: {exc}", file=sys.stderr)
         return 2
     print(f"ring test from {len(args.from_tables)} table(s): {n_gal} galaxies, {len(tab)} objects")
-    report_bias(tab, args, n_gal)
+    report_lensfit(tab, args, n_gal)
     if ref is not None:
         g = np.array(args.shear, dtype=float)
         rng = np.random.default_rng([args.seed, 777])
@@ -749,7 +761,7 @@ def main(argv=None):
     else:
         rate = n_obj / t_meas if t_meas > 0 else np.nan
         print(f"; measurement {t_meas / n_obj * 1e3:.1f} ms per object = {rate:.2f} galaxies / s / process")
-        report_bias(tab, args, args.n_galaxies)
+        report_lensfit(tab, args, args.n_galaxies)
         if args.metacal:
             report_metacal(tab, args, args.n_galaxies)
         report_families(tab, args)
