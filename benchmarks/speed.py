@@ -356,7 +356,7 @@ EXACT = {"mode_bins_per_octave": 0, "n_flux": 11, "fold_chi2_tolerance": 0.0, "e
 
 #: the noise-aware mode cut off: every Fourier mode the PSF passes (psf_mode_tolerance) enters the likelihood.
 #: The cut drops data, the modes whose models' own power is weakest; what those modes' noise did to e goes
-#: with them, so its effect is a scatter of e (it grows as the square root of the tolerance), reported apart
+#: with them, so its effect is a scatter of e (it grows about as the square root of the tolerance), reported apart
 MODE_CUT = {"mode_chi2_tolerance": 0.0}
 
 
@@ -373,8 +373,7 @@ def check_report(objs, cfg, res, seed, each=False):
             ("faint set, SNR 7-15", faint, [shearfit.measure_object(o, mag=t["mag"], config=cfg) for o, t in faint]))
     cases = [EXACT] + ([{k: v} for k, v in EXACT.items()] if each else []) + [MODE_CUT]
     for case in cases:
-        what = ("the mode cut (it drops data: the modes where the models' own power is weakest): these settings "
-                "against"
+        what = ("the mode cut (it drops data: the modes where the models' own power is weakest): these settings against"
                 if case is MODE_CUT else "check: these settings against")
         print(f"\n{what} {', '.join(f'{k}={v}' for k, v in case.items())}")
         exact = replace(cfg, **case)

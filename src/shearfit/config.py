@@ -103,7 +103,7 @@ class FitConfig:
         0.01, "Fourier modes are dropped, weakest first, while the brightest model the data allow (a point source at 3x "
         "the fitted flux plus 5 sigma) has at most this much chi^2 of its own in them in total. The data in them go "
         "too, and with them a scatter of e (0.01: rms 0.4-0.5 % of its error, at most 2.5 %, against 0 at 3.6 times "
-        "the cost; it grows as the square root of this; benchmarks/speed.py --check)", "DESIGN: speed")
+        "the cost; it grows about as the square root of this; benchmarks/speed.py --check)", "DESIGN: speed")
     fold_chi2_tolerance: float = setting(
         0.01, "the cross terms of fold groups (modes that alias onto one sampled mode) are dropped, weakest first, "
         "while the chi^2 they could change for that brightest model stays below this in total (their own terms "

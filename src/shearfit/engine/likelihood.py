@@ -307,14 +307,15 @@ def _mode_bounds(exposures):
 
 
 def _noise_aware_cut(exposures, chi2_tolerance, mode_bounds=None):
-    """Per exposure, the modes to keep so that the dropped ones matter less than ``chi2_tolerance``.
+    """Per exposure, the modes to keep so that the brightest model's own chi^2 in the dropped ones stays below
+    ``chi2_tolerance``.
 
     A model's own term of chi^2 in mode j is at most S^2 w |T_j|^2/(N sigma^2)
     (|R| <= 1), S bounded from above by the point-source fit's flux: the
     weakest modes are dropped while their summed bound stays below the
     tolerance (all exposures together). The modes' cross terms with the data
     are not bounded so: dropping the modes drops their data, noise mostly, and
-    with it a scatter of e that grows as the square root of the tolerance
+    with it a scatter of e that grows about as the square root of the tolerance
     (``benchmarks/speed.py --check`` reports it). ``mode_bounds``:
     :func:`_mode_bounds`'s, if already made.
     """
