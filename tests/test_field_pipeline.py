@@ -310,3 +310,34 @@ def test_psf_ellipticity_is_the_sheared_gaussians_on_the_sky():
         assert abs(e1 - g[0]) < 2e-3 and abs(e2 - g[1]) < 2e-3, (J, e1, e2)
         # det(M_sky) = sigma_sky^4 for any shear: the FWHM of the sky Gaussian
         assert psf_fwhm_arcsec(J, moments=mom) == pytest.approx(2.3548 * sigma, rel=2e-3)
+
+
+def test_measure_field_holds_blas_to_one_thread(field, monkeypatch):
+    """shearfit measure -j 1 (in this process) runs with one BLAS thread, as its workers do, and restores it."""
+    from blasthreads import openblas_thread_counts
+
+    from shearfit.pipeline import driver
+
+    libs = openblas_thread_counts()
+    if not libs:
+        pytest.skip("no OpenBLAS found through /proc/self/maps (not Linux, or another BLAS)")
+    before = [get() for get, _ in libs]
+    seen = []
+    real = driver._measure_chunk
+
+    def chunk(k):
+        seen.append([get() for get, _ in libs])
+        return real(k)
+
+    monkeypatch.setattr(driver, "_measure_chunk", chunk)
+    d, _ = field
+    try:
+        for _, put in libs:
+            put(2)
+        assert main(["measure", str(d / "field.yaml"), "--out", str(d / "shear_threads.fits"), "--quiet", "-j", "1"]) == 0
+        after = [get() for get, _ in libs]
+    finally:
+        for (_, put), n in zip(libs, before):
+            put(n)
+    assert seen and all(s == [1] * len(libs) for s in seen)
+    assert after == [2] * len(libs)

@@ -7,7 +7,9 @@
   module globals set in the parent, so that both start methods see it.
 - One BLAS / OpenMP thread per worker: the pool gives the parallelism, and
   several threads per process make the engine's small matrix products slower,
-  not faster (the throughput is quoted per process).
+  not faster (the throughput is quoted per process). Runs in the caller's
+  process (``shearfit measure -j 1``, ``measure_objects(processes=1)``) hold
+  its BLAS to one thread for their duration too (:func:`single_threaded`).
 """
 
 from __future__ import annotations

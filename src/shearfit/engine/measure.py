@@ -441,7 +441,8 @@ def measure_objects(objects: Iterable[Sequence[Observation]], mags, config=None,
     progress : bool
         Show a progress bar.
     processes : int
-        Worker processes; results do not depend on it.
+        Worker processes; results do not depend on it. With one, the objects are measured in this
+        process with its BLAS held to one thread (restored after), as each worker's is.
     """
     cfg = as_config(config)
     objects = list(objects)
@@ -456,8 +457,12 @@ def measure_objects(objects: Iterable[Sequence[Observation]], mags, config=None,
                 from tqdm import tqdm
                 it = tqdm(it, total=len(tasks), desc="measuring")
             return list(it)
+    from ..workers import single_threaded
+
     it = tasks
     if progress:
         from tqdm import tqdm
         it = tqdm(it, total=len(tasks), desc="measuring")
-    return [_measure_one(t) for t in it]
+    # one BLAS thread, as in a worker (restored after): more threads cost CPU time and save no wall time
+    with single_threaded():
+        return [_measure_one(t) for t in it]
