@@ -37,6 +37,8 @@ def main(argv=None):
     ap.add_argument("--alias-width", type=float, default=0.5, help="relative width of the above-Nyquist prior")
     ap.add_argument("--native-width", type=float, default=1.0,
                     help="relative width of the native model's prior (0: plain least squares, the paper's fit)")
+    ap.add_argument("--iterations", type=int, default=2,
+                    help="rounds of star centring and refitting after the first fit (the pipeline's psf_iterations)")
     a = ap.parse_args(argv)
     rng = np.random.default_rng(a.seed)
     n, k = a.size, a.oversampling
@@ -68,9 +70,10 @@ def main(argv=None):
                  y=y, snr=snr)
     t0 = time.perf_counter()
     model, used, info = fit_pixel_psf(st, 2, order=a.order, oversampling=k, ccd_shape=[(4096, 2048)] * 2,
-                                      alias_width=a.alias_width, native_width=a.native_width)
+                                      alias_width=a.alias_width, native_width=a.native_width,
+                                      iterations=a.iterations)
     print(f"{N} stars (SNR {a.snr_min:.0f}-1000), FWHM {a.fwhm}\" ({a.fwhm / PIX:.1f} pixels), order {a.order}, "
-          f"oversampling {k}: fitted in {time.perf_counter() - t0:.1f} s, {len(used)} stars kept")
+          f"oversampling {k}, {a.iterations} iterations: fitted in {time.perf_counter() - t0:.1f} s, {len(used)} stars kept")
     res, de, rings = [], [], []
     # rings of |k| (radians per native pixel) for the transform's error; Nyquist is pi
     edges = np.array([0.0, 1.0, 2.0, 2.5, np.pi, k * np.pi * np.sqrt(2) + 1e-9])

@@ -89,10 +89,14 @@ class ExposurePSFResult:
 
 
 @functools.lru_cache(maxsize=8)
+@functools.lru_cache(maxsize=8)
 def _aperture(n):
-    """The flat indices of the pixels of an n x n stamp within APERTURE_RADIUS of its centre pixel."""
+    """The flat indices of the pixels of an n x n stamp within APERTURE_RADIUS of its centre pixel (read-only,
+    shared)."""
     c = np.arange(n) - n // 2
-    return np.flatnonzero((c[:, None] ** 2 + c[None, :] ** 2) <= APERTURE_RADIUS ** 2)
+    ap = np.flatnonzero((c[:, None] ** 2 + c[None, :] ** 2) <= APERTURE_RADIUS ** 2)
+    ap.setflags(write=False)
+    return ap
 
 
 def _integrated_snr(img, w):
@@ -114,25 +118,27 @@ def select_stars(ccds, ra, dec, others_ra, others_dec, pc, frame: FieldFrame):
     cand = np.zeros(len(ccds), int)
     rows = {k: [] for k in ("image", "ivar", "delta", "ccd", "x", "y", "snr")}
     index = []
-    trees = {}
-    for obj, c, x, y in zip(hits.object, hits.ccd, hits.x, hits.y):
+    # per candidate, whether another object lies within psf_isolation_radius: those within it less those within
+    # 0.5 pixel (the star itself is in the catalogue of objects too, at distance ~0), one query per CCD
+    crowded = np.zeros(hits.object.size, bool)
+    for c in np.unique(hits.ccd):
+        on = np.flatnonzero(hits.ccd == c)
+        h2 = locate_all([ccds[c]], others_ra, others_dec)
+        if h2.x.size:
+            tree = cKDTree(np.stack([h2.x, h2.y], axis=1))
+            pts = np.stack([hits.x[on], hits.y[on]], axis=1)
+            crowded[on] = (tree.query_ball_point(pts, pc.psf_isolation_radius, return_length=True)
+                           > tree.query_ball_point(pts, 0.5, return_length=True))
+    for obj, c, x, y, near in zip(hits.object, hits.ccd, hits.x, hits.y, crowded):
         cand[c] += 1
         ccd = ccds[c]
         st = cut_stamp(ccd.image, ccd.pixel_weight, x, y, n)
         if st is None or np.any(st.weight <= 0):
             rejected["off CCD edge or unusable pixel"] += 1
             continue
-        if c not in trees:
-            h2 = locate_all([ccd], others_ra, others_dec)
-            trees[c] = cKDTree(np.stack([h2.x, h2.y], axis=1)) if h2.x.size else None
-        tree = trees[c]
-        if tree is not None:
-            # the star itself is in the catalogue of objects too, at distance ~0
-            near = tree.query_ball_point([x, y], pc.psf_isolation_radius)
-            d = [np.hypot(*(tree.data[i] - [x, y])) for i in near]
-            if sum(1 for dd in d if dd > 0.5) > 0:
-                rejected["neighbour"] += 1
-                continue
+        if near:
+            rejected["neighbour"] += 1
+            continue
         peak = float(st.image[n // 2, n // 2])
         if np.isfinite(ccd.saturate) and peak > pc.psf_saturation_fraction * ccd.saturate:
             rejected["saturated"] += 1
