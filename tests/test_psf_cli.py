@@ -109,3 +109,34 @@ def test_psf_command_selects_stars_from_the_locus(field):
     # the stars of the catalogue, and none of the 16 galaxies (a galaxy would spoil the model)
     assert n_stars - 6 <= summary["n_stars"][0] <= n_stars
     assert _check_model(next(out.glob("*.psfmodel.fits"))) < 5e-4
+
+
+def test_psf_command_holds_blas_to_one_thread(field, monkeypatch, tmp_path):
+    """shearfit psf fits its star models with one BLAS thread (no wall time to gain from more) and restores it."""
+    from blasthreads import openblas_thread_counts
+
+    from shearfit.pipeline import driver
+
+    libs = openblas_thread_counts()
+    if not libs:
+        pytest.skip("no OpenBLAS found through /proc/self/maps (not Linux, or another BLAS)")
+    before = [get() for get, _ in libs]
+    seen = []
+    real = driver.fit_exposure_psf
+
+    def fit(*args, **kwargs):
+        seen.append([get() for get, _ in libs])
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(driver, "fit_exposure_psf", fit)
+    d, _ = field
+    try:
+        for _, put in libs:
+            put(2)
+        assert main(["psf", str(d / "stars.yaml"), "--out", str(tmp_path / "psf"), "--no-bootstrap", "--quiet"]) == 0
+        after = [get() for get, _ in libs]
+    finally:
+        for (_, put), n in zip(libs, before):
+            put(n)
+    assert seen == [[1] * len(libs)]
+    assert after == [2] * len(libs)

@@ -187,31 +187,34 @@ def _cmd_psf(args):
     from ..pipeline.driver import fit_exposure_psf
     from ..psf.build import write_psf_model
     from ..psf.diagnostics import psf_diagnostics, write_diagnostics
+    from ..workers import single_threaded
 
     cfg = load_field_config(args.config, overrides=args.overrides)
     out = args.out or os.path.join(os.path.dirname(os.path.abspath(args.config)), "psf")
     os.makedirs(out, exist_ok=True)
     cat = read_catalog(cfg.catalog)
     summary = []
-    for k, spec in enumerate(cfg.exposures):
-        ccds = read_exposure(spec.image, spec.weight)
-        stem = os.path.splitext(os.path.basename(spec.image))[0]
-        res = fit_exposure_psf(cfg, cat, ccds, f"exposure {k} ({spec.image})")
-        prefix = os.path.join(out, stem)
-        write_psf_model(res.model, f"{prefix}.psfmodel.fits")
-        diag = psf_diagnostics(res, ccds, n_bootstrap=0 if args.no_bootstrap else cfg.pipeline.psf_bootstrap,
-                               pc=cfg.pipeline)
-        paths = write_diagnostics(diag, res, prefix)
-        g = diag["grid"]
-        summary.append(dict(exposure=k, image=spec.image, model=f"{prefix}.psfmodel.fits", n_stars=len(res.stars),
-                            ccds_used=int(res.model.ccd_used.sum()), n_ccd=len(ccds),
-                            mean_e1=float(np.nanmean(g["e1"])), mean_e2=float(np.nanmean(g["e2"])),
-                            rms_offset=float(np.sqrt(np.mean(res.info["offset"] ** 2)))))
-        if not args.quiet:
-            print(f"exposure {k}: {len(res.stars)} stars on {int(res.model.ccd_used.sum())}/{len(ccds)} CCDs; "
-                  f"model {prefix}.psfmodel.fits; diagnostics {', '.join(paths)}")
-            for note in res.notes:
-                print(f"  {note}")
+    # one BLAS thread, as in shearfit measure: the star fits' small products gain no wall time from more
+    with single_threaded():
+        for k, spec in enumerate(cfg.exposures):
+            ccds = read_exposure(spec.image, spec.weight)
+            stem = os.path.splitext(os.path.basename(spec.image))[0]
+            res = fit_exposure_psf(cfg, cat, ccds, f"exposure {k} ({spec.image})")
+            prefix = os.path.join(out, stem)
+            write_psf_model(res.model, f"{prefix}.psfmodel.fits")
+            diag = psf_diagnostics(res, ccds, n_bootstrap=0 if args.no_bootstrap else cfg.pipeline.psf_bootstrap,
+                                   pc=cfg.pipeline)
+            paths = write_diagnostics(diag, res, prefix)
+            g = diag["grid"]
+            summary.append(dict(exposure=k, image=spec.image, model=f"{prefix}.psfmodel.fits", n_stars=len(res.stars),
+                                ccds_used=int(res.model.ccd_used.sum()), n_ccd=len(ccds),
+                                mean_e1=float(np.nanmean(g["e1"])), mean_e2=float(np.nanmean(g["e2"])),
+                                rms_offset=float(np.sqrt(np.mean(res.info["offset"] ** 2)))))
+            if not args.quiet:
+                print(f"exposure {k}: {len(res.stars)} stars on {int(res.model.ccd_used.sum())}/{len(ccds)} CCDs; "
+                      f"model {prefix}.psfmodel.fits; diagnostics {', '.join(paths)}")
+                for note in res.notes:
+                    print(f"  {note}")
     Table(rows=[tuple(s.values()) for s in summary], names=list(summary[0].keys())).write(
         os.path.join(out, "psf_summary.fits"), overwrite=True)
     return 0
