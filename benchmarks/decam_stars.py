@@ -96,14 +96,15 @@ def mirror(stars, info, rng, pixel_scale=0.263, fwhm_px=None):
     return out
 
 
-def run(stars, order, rng, clip):
+def run(stars, order, rng, clip, native_width=1.0, iterations=2):
     n = len(stars)
     rows = []
     t0 = time.time()
     for i in range(n):
         others = np.ones(n, bool)
         others[i] = False
-        model, _, _ = fit_pixel_psf(stars.subset(others), 1, order=order, iterations=3, clip=clip)
+        model, _, _ = fit_pixel_psf(stars.subset(others), 1, order=order, iterations=iterations, clip=clip,
+                                    native_width=native_width)
         st1 = stars.subset(np.array([i]))
         star, mimg, flux = held_out(model, st1)
         var = 1.0 / stars.ivar[i]
@@ -165,6 +166,10 @@ def main(argv=None):
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--clip", type=float, default=5.0, help="fit's outlier clip (robust sigmas; 0 = none)")
     ap.add_argument("--no-mirror", action="store_true", help="skip the GalSim mirror of the catalogue")
+    ap.add_argument("--native-width", type=float, default=1.0,
+                    help="relative width of the native model's prior (the pipeline's psf_native_width; 0: the paper's "
+                         "plain least squares)")
+    ap.add_argument("--iterations", type=int, default=2, help="the fit's centring rounds (psf_iterations)")
     args = ap.parse_args(argv)
     if not os.path.exists(args.catalog):
         sys.exit(f"{args.catalog}: no such file (pass --catalog)")
@@ -176,10 +181,10 @@ def main(argv=None):
           f"(median {np.median(stars.snr):.0f})")
     sims = None if args.no_mirror else mirror(stars, info, rng)
     for order in args.orders:
-        rows, dt = run(stars, order, rng, args.clip)
+        rows, dt = run(stars, order, rng, args.clip, args.native_width, args.iterations)
         summary(rows, f"DECam stars, order {order}", dt)
         if sims is not None:
-            rows, dt = run(sims, order, rng, args.clip)
+            rows, dt = run(sims, order, rng, args.clip, args.native_width, args.iterations)
             summary(rows, f"GalSim mirror (Moffat, known PSF), order {order}", dt)
 
 
