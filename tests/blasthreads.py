@@ -1,5 +1,7 @@
 """Test helper: the thread counts of the OpenBLAS libraries this process has loaded."""
 
+import contextlib
+
 
 def openblas_thread_counts():
     """The thread count of every OpenBLAS this process has loaded (numpy's and scipy's), as (getter, setter)
@@ -23,3 +25,16 @@ def openblas_thread_counts():
                     get.restype, put.argtypes = ctypes.c_int, [ctypes.c_int]
                     found.append((get, put))
     return found
+
+
+@contextlib.contextmanager
+def threads_set_to(libs, n):
+    """Every library of ``libs`` (:func:`openblas_thread_counts`) at ``n`` threads for the block, then back."""
+    before = [get() for get, _ in libs]
+    try:
+        for _, put in libs:
+            put(n)
+        yield
+    finally:
+        for (_, put), k in zip(libs, before):
+            put(k)

@@ -314,14 +314,13 @@ def test_psf_ellipticity_is_the_sheared_gaussians_on_the_sky():
 
 def test_measure_field_holds_blas_to_one_thread(field, monkeypatch):
     """shearfit measure -j 1 (in this process) runs with one BLAS thread, as its workers do, and restores it."""
-    from blasthreads import openblas_thread_counts
+    from blasthreads import openblas_thread_counts, threads_set_to
 
     from shearfit.pipeline import driver
 
     libs = openblas_thread_counts()
     if not libs:
         pytest.skip("no OpenBLAS found through /proc/self/maps (not Linux, or another BLAS)")
-    before = [get() for get, _ in libs]
     seen = []
     real = driver._measure_chunk
 
@@ -331,13 +330,8 @@ def test_measure_field_holds_blas_to_one_thread(field, monkeypatch):
 
     monkeypatch.setattr(driver, "_measure_chunk", chunk)
     d, _ = field
-    try:
-        for _, put in libs:
-            put(2)
+    with threads_set_to(libs, 2):
         assert main(["measure", str(d / "field.yaml"), "--out", str(d / "shear_threads.fits"), "--quiet", "-j", "1"]) == 0
         after = [get() for get, _ in libs]
-    finally:
-        for (_, put), n in zip(libs, before):
-            put(n)
     assert seen and all(s == [1] * len(libs) for s in seen)
     assert after == [2] * len(libs)

@@ -12,7 +12,7 @@ import pytest
 import shearfit
 from shearfit.errors import (FITCLASS_CENTROID, FITCLASS_FEW_EXPOSURES, FITCLASS_GALAXY, FITCLASS_STAR,
                              ShearfitKeyError, ShearfitValueError)
-from blasthreads import openblas_thread_counts
+from blasthreads import openblas_thread_counts, threads_set_to
 from shearfit.simulate.stamps import draw_psf_image, draw_stamp, galaxy_profile, moffat_psf, noise_for_snr
 
 PIX = 0.187
@@ -876,16 +876,10 @@ def test_measure_objects_in_process_holds_blas_to_one_thread(monkeypatch):
     libs = openblas_thread_counts()
     if not libs:
         pytest.skip("no OpenBLAS found through /proc/self/maps (not Linux, or another BLAS)")
-    before = [get() for get, _ in libs]
-    for _, put in libs:
-        put(2)
     seen = []
     monkeypatch.setattr(measure_mod, "_measure_one", lambda t: seen.append([get() for get, _ in libs]) or None)
-    try:
+    with threads_set_to(libs, 2):
         shearfit.measure_objects([[], []], 22.0, processes=1)
         after = [get() for get, _ in libs]
-    finally:
-        for (_, put), n in zip(libs, before):
-            put(n)
     assert seen == [[1] * len(libs)] * 2
     assert after == [2] * len(libs)

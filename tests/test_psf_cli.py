@@ -113,14 +113,13 @@ def test_psf_command_selects_stars_from_the_locus(field):
 
 def test_psf_command_holds_blas_to_one_thread(field, monkeypatch, tmp_path):
     """shearfit psf fits its star models with one BLAS thread (no wall time to gain from more) and restores it."""
-    from blasthreads import openblas_thread_counts
+    from blasthreads import openblas_thread_counts, threads_set_to
 
     from shearfit.pipeline import driver
 
     libs = openblas_thread_counts()
     if not libs:
         pytest.skip("no OpenBLAS found through /proc/self/maps (not Linux, or another BLAS)")
-    before = [get() for get, _ in libs]
     seen = []
     real = driver.fit_exposure_psf
 
@@ -130,13 +129,8 @@ def test_psf_command_holds_blas_to_one_thread(field, monkeypatch, tmp_path):
 
     monkeypatch.setattr(driver, "fit_exposure_psf", fit)
     d, _ = field
-    try:
-        for _, put in libs:
-            put(2)
+    with threads_set_to(libs, 2):
         assert main(["psf", str(d / "stars.yaml"), "--out", str(tmp_path / "psf"), "--no-bootstrap", "--quiet"]) == 0
         after = [get() for get, _ in libs]
-    finally:
-        for (_, put), n in zip(libs, before):
-            put(n)
     assert seen == [[1] * len(libs)]
     assert after == [2] * len(libs)

@@ -89,7 +89,6 @@ class ExposurePSFResult:
 
 
 @functools.lru_cache(maxsize=8)
-@functools.lru_cache(maxsize=8)
 def _aperture(n):
     """The flat indices of the pixels of an n x n stamp within APERTURE_RADIUS of its centre pixel (read-only,
     shared)."""
