@@ -314,13 +314,15 @@ def test_psf_ellipticity_is_the_sheared_gaussians_on_the_sky():
 
 def test_measure_field_holds_blas_to_one_thread(field, monkeypatch):
     """shearfit measure -j 1 (in this process) runs with one BLAS thread, as its workers do, and restores it."""
-    from blasthreads import openblas_thread_counts, threads_set_to
+    from blasthreads import threads_set_to
+
+    from shearfit.workers import thread_controls
 
     from shearfit.pipeline import driver
 
-    libs = openblas_thread_counts()
+    libs = thread_controls()
     if not libs:
-        pytest.skip("no OpenBLAS found through /proc/self/maps (not Linux, or another BLAS)")
+        pytest.skip("no BLAS or OpenMP thread control found through /proc/self/maps (not Linux)")
     seen = []
     real = driver._measure_chunk
 

@@ -12,7 +12,8 @@ import pytest
 import shearfit
 from shearfit.errors import (FITCLASS_CENTROID, FITCLASS_FEW_EXPOSURES, FITCLASS_GALAXY, FITCLASS_STAR,
                              ShearfitKeyError, ShearfitValueError)
-from blasthreads import openblas_thread_counts, threads_set_to
+from blasthreads import threads_set_to
+from shearfit.workers import thread_controls
 from shearfit.simulate.stamps import draw_psf_image, draw_stamp, galaxy_profile, moffat_psf, noise_for_snr
 
 PIX = 0.187
@@ -873,9 +874,9 @@ def test_measure_objects_in_process_holds_blas_to_one_thread(monkeypatch):
     """In-process batches run with one BLAS thread, as the workers do, and leave the caller's count as it was."""
     import shearfit.engine.measure as measure_mod
 
-    libs = openblas_thread_counts()
+    libs = thread_controls()
     if not libs:
-        pytest.skip("no OpenBLAS found through /proc/self/maps (not Linux, or another BLAS)")
+        pytest.skip("no BLAS or OpenMP thread control found through /proc/self/maps (not Linux)")
     seen = []
     monkeypatch.setattr(measure_mod, "_measure_one", lambda t: seen.append([get() for get, _ in libs]) or None)
     with threads_set_to(libs, 2):

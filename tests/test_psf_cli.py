@@ -113,13 +113,15 @@ def test_psf_command_selects_stars_from_the_locus(field):
 
 def test_psf_command_holds_blas_to_one_thread(field, monkeypatch, tmp_path):
     """shearfit psf fits its star models with one BLAS thread (no wall time to gain from more) and restores it."""
-    from blasthreads import openblas_thread_counts, threads_set_to
+    from blasthreads import threads_set_to
+
+    from shearfit.workers import thread_controls
 
     from shearfit.pipeline import driver
 
-    libs = openblas_thread_counts()
+    libs = thread_controls()
     if not libs:
-        pytest.skip("no OpenBLAS found through /proc/self/maps (not Linux, or another BLAS)")
+        pytest.skip("no BLAS or OpenMP thread control found through /proc/self/maps (not Linux)")
     seen = []
     real = driver.fit_exposure_psf
 

@@ -20,7 +20,8 @@ import os
 import sys
 import warnings
 
-__all__ = ["SINGLE_THREAD_ENV", "mp_context", "process_pool", "single_threaded", "limit_threads", "environment"]
+__all__ = ["SINGLE_THREAD_ENV", "mp_context", "process_pool", "single_threaded", "limit_threads", "thread_controls",
+           "environment"]
 
 #: Environment of the worker processes: one BLAS / OpenMP thread each.
 SINGLE_THREAD_ENV = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1",
@@ -67,31 +68,17 @@ def single_threaded():
         restore()
 
 
-def limit_threads():
-    """Limit already-loaded BLAS and OpenMP libraries to one thread; return a function that restores them.
-
-    Environment variables act only on libraries loaded later, and a forked
-    worker inherits the parent's loaded OpenBLAS with its thread count (several
-    threads per process make the engine's small matrix products slower, not
-    faster). Uses threadpoolctl when it is installed, else calls the
-    libraries' own setters found in ``/proc/self/maps`` (Linux); elsewhere it
-    does nothing.
-    """
-    try:
-        from threadpoolctl import threadpool_limits
-    except ImportError:
-        pass
-    else:
-        limits = threadpool_limits(1)
-        return limits.restore_original_limits
-    restore = []
+def thread_controls():
+    """(getter, setter) of the thread count of every BLAS (OpenBLAS) and OpenMP library this process has loaded,
+    found in ``/proc/self/maps`` and called through ctypes; empty where there is no such file (not Linux)."""
     try:
         import ctypes
 
         with open("/proc/self/maps", encoding="utf-8", errors="replace") as fh:
             paths = {line.split()[-1] for line in fh if line.rstrip().endswith((".so", ".dylib")) or ".so." in line}
     except (OSError, ImportError):
-        return lambda: None
+        return []
+    found = []
     for path in sorted(paths):
         name = os.path.basename(path).lower()
         if "openblas" in name:
@@ -110,10 +97,33 @@ def limit_threads():
             if setter is None or getter is None:
                 continue
             setter.argtypes, getter.restype = [ctypes.c_int], ctypes.c_int
-            old = int(getter())
-            setter(1)
-            restore.append((setter, old))
+            found.append((getter, setter))
             break
+    return found
+
+
+def limit_threads():
+    """Limit already-loaded BLAS and OpenMP libraries to one thread; return a function that restores them.
+
+    Environment variables act only on libraries loaded later, and a forked
+    worker inherits the parent's loaded OpenBLAS with its thread count (several
+    threads per process make the engine's small matrix products slower, not
+    faster). Uses threadpoolctl when it is installed, else calls the
+    libraries' own setters (:func:`thread_controls`, Linux); elsewhere it
+    does nothing.
+    """
+    try:
+        from threadpoolctl import threadpool_limits
+    except ImportError:
+        pass
+    else:
+        limits = threadpool_limits(1)
+        return limits.restore_original_limits
+    restore = []
+    for getter, setter in thread_controls():
+        old = int(getter())
+        setter(1)
+        restore.append((setter, old))
 
     def _restore():
         for setter, old in restore:
