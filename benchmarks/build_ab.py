@@ -17,7 +17,9 @@ PSF, SNR 10-40) once and then
    App. A Moffats, the alias tables) start empty, so no round finds the galaxies' work already done;
 2. loads the other build's compiled module of the same instruction-set level into this process and times
    its ``make_bins`` against this one's on the bins of a few of the galaxies, interleaved (ns per mode and
-   ellipticity), with the largest difference between their bins.
+   ellipticity), with the largest difference between their bins;
+3. with ``--per-galaxy N``, times the two builds' compiled modules galaxy by galaxy in this process on N more
+   galaxies, this checkout's Python around both (where only the compiled loops differ, the finer comparison).
 """
 
 from __future__ import annotations
@@ -128,12 +130,71 @@ def kernel_ab(objs, other, rounds):
           f"{'' if same_range else ' (some ellipticities with other bin ranges, left out)'}")
 
 
+class _Adapted:
+    """Another build's compiled module, called with this checkout's arguments: the arguments a later build added
+    at the end of a call (before its output buffer) are left out for a build that does not take them
+    (binned_sums' pair_tol: such a build keeps every pair term, as pair_chi2_tolerance: 0 does)."""
+
+    def __init__(self, mod):
+        self._mod = mod
+
+    def __getattr__(self, name):
+        return getattr(self._mod, name)
+
+    def binned_sums(self, *args):
+        try:
+            return self._mod.binned_sums(*args)
+        except TypeError:
+            return self._mod.binned_sums(*args[:-2], args[-1])
+
+
+def per_galaxy_ab(objs, other):
+    """This checkout's compiled loops against the other build's (the same level), galaxy by galaxy in this
+    process with this checkout's Python around both, alternating which goes first, the App. A Moffat caches
+    emptied before each fit: both see the same machine within a tenth of a second."""
+    from shearfit.engine import likelihood, model, moffat, sampling
+
+    mine, theirs = _other_kernel(other)
+    theirs = _Adapted(theirs)
+
+    def use(mod):
+        likelihood.KERNEL = sampling.KERNEL = model.KERNEL = moffat.KERNEL = mod
+        likelihood._load_special()
+        moffat._load_bessel()
+
+    t = {"this": 0.0, "other": 0.0}
+    de = 0.0
+    try:
+        for n, (o, tr) in enumerate(objs):
+            e = {}
+            for name in (("this", "other") if n % 2 == 0 else ("other", "this")):
+                use(mine if name == "this" else theirs)
+                model._OWN_MOFFAT.clear()
+                model._moffat_aliases.cache_clear()
+                t0 = time.process_time()
+                r = shearfit.measure_object(o, mag=tr["mag"])
+                t[name] += time.process_time() - t0
+                e[name] = (r.e1, r.e2)
+            if np.all(np.isfinite(e["this"] + e["other"])):
+                de = max(de, float(np.max(np.abs(np.subtract(e["this"], e["other"])))))
+    finally:
+        use(mine)
+    n = len(objs)
+    print(f"\nthe compiled loops of the two builds, galaxy by galaxy in this process ({n} galaxies, this checkout's "
+          f"Python): other {1e3 * t['other'] / n:.2f}, this {1e3 * t['this'] / n:.2f} CPU-ms per galaxy, "
+          f"x{t['other'] / t['this']:.3f}; estimates differ by at most {de:.1e}")
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--other", required=True, help="directory holding the other build's shearfit package")
     ap.add_argument("--n-galaxies", type=int, default=60)
     ap.add_argument("--rounds", type=int, default=4, help="alternations of the two builds")
     ap.add_argument("--seed", type=int, default=11)
+    ap.add_argument("--per-galaxy", type=int, default=0, metavar="N",
+                    help="also time the two builds' compiled loops galaxy by galaxy in this process on N more "
+                         "galaxies (this checkout's Python around both; finer than the child processes where only "
+                         "the compiled loops differ)")
     args = ap.parse_args(argv)
     if not os.path.isdir(os.path.join(args.other, "shearfit")):
         raise SystemExit(f"build_ab.py: error: no shearfit package in {args.other}")
@@ -161,6 +222,8 @@ def main(argv=None):
         print(f"  median x{np.median(ratios):.2f}; estimates differ by at most {de.max() if de.size else np.nan:.1e} "
               f"in e ({de.shape[0]} galaxies measured by both)")
     kernel_ab(objs[:12], args.other, args.rounds)
+    if args.per_galaxy:
+        per_galaxy_ab(simulate(args.per_galaxy, 7, 48, args.seed + 1, rotate=True, jitter=0.01), args.other)
 
 
 if __name__ == "__main__":

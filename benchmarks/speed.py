@@ -22,6 +22,7 @@ one), a profile grouped by stage and the process's peak memory.
     python benchmarks/speed.py --workers 2         # 2 worker processes against one
     python benchmarks/speed.py --isa-ab baseline   # the loops in use against the portable ones, interleaved
     python benchmarks/speed.py --moffat-ab         # the compiled App. A Moffat fits against the numpy ones
+    python benchmarks/speed.py --setting-ab pair_chi2_tolerance=0   # a setting's cost, interleaved
     python benchmarks/speed.py --check             # how far the speed settings (and the mode cut) move the estimates
     python benchmarks/speed.py --check --check-each   # and each setting's own effect
 """
@@ -168,6 +169,36 @@ def moffat_ab_report(sets, cfg):
     print(f"\nApp. A Moffat fits and tables compiled against numpy, {n} galaxies timed alternately in one process: "
           f"{1e3 * t[True] / n:.1f} against {1e3 * t[False] / n:.1f} ms per galaxy, x{t[False] / t[True]:.3f}; "
           f"largest |delta e| {de:.1e}")
+
+
+def setting_ab_report(sets, cfg, change):
+    """The settings in use against the same with ``change`` (a dict of settings), galaxy by galaxy in one process,
+    alternating which goes first (as isa_ab_report), each fit with the App. A Moffat caches emptied so that
+    neither finds the other's work; the largest difference in e."""
+    from dataclasses import replace
+
+    from shearfit.engine import model
+
+    other = replace(cfg, **change)
+    t = {0: 0.0, 1: 0.0}
+    de = 0.0
+    n = 0
+    for s in sets[1:] or sets:
+        for o, tr in s:
+            e = {}
+            for k in ((0, 1) if n % 2 == 0 else (1, 0)):
+                model._OWN_MOFFAT.clear()
+                model._moffat_aliases.cache_clear()
+                t0 = time.perf_counter()
+                r = shearfit.measure_object(o, mag=tr["mag"], config=(cfg, other)[k])
+                t[k] += time.perf_counter() - t0
+                e[k] = (r.e1, r.e2)
+            de = max(de, float(np.nanmax(np.abs(np.subtract(e[0], e[1])))))
+            n += 1
+    what = ", ".join(f"{k}={v}" for k, v in change.items())
+    print(f"\nthe settings in use against {what}, {n} galaxies timed alternately in one process: "
+          f"{1e3 * t[0] / n:.2f} against {1e3 * t[1] / n:.2f} ms per galaxy, x{t[1] / t[0]:.3f}; largest |delta e| "
+          f"{de:.1e}")
 
 
 def workers_report(objs, cfg, n_workers):
@@ -351,8 +382,8 @@ def metacal_image_profile(objs):
 
 
 #: the settings that trade exactness for speed, at their exact values
-EXACT = {"mode_bins_per_octave": 0, "n_flux": 11, "fold_chi2_tolerance": 0.0, "e_grid_prepass": 0.0, "tail_skip": 0.0,
-         "size_reuse_distance": 0.0}
+EXACT = {"mode_bins_per_octave": 0, "n_flux": 11, "fold_chi2_tolerance": 0.0, "pair_chi2_tolerance": 0.0,
+         "e_grid_prepass": 0.0, "tail_skip": 0.0, "size_reuse_distance": 0.0}
 
 #: the noise-aware mode cut off: every Fourier mode the PSF passes (psf_mode_tolerance) enters the likelihood.
 #: The cut drops data, the modes whose models' own power is weakest; what those modes' noise did to e goes
@@ -420,6 +451,9 @@ def main(argv=None):
     ap.add_argument("--moffat-ab", action="store_true",
                     help="also time the App. A Moffat fits and tables made by the compiled kernel against the numpy "
                          "lines, galaxy by galaxy in this process")
+    ap.add_argument("--setting-ab", action="append", default=[], metavar="KEY=VALUE",
+                    help="also time the settings in use against the same with KEY=VALUE (repeatable: all together), "
+                         "galaxy by galaxy in this process")
     ap.add_argument("--constant-psf", action="store_true",
                     help="one PSF image for every exposure of every galaxy (as the GREAT challenges' constant-PSF "
                          "branches): the App. A Moffat is fitted once and remembered")
@@ -502,6 +536,9 @@ def main(argv=None):
         isa_ab_report(sets, cfg, args.isa_ab)
     if args.moffat_ab:
         moffat_ab_report(sets, cfg)
+    if args.setting_ab:
+        setting_ab_report(sets, cfg, {k.strip(): yaml.safe_load(v) for k, v in (kv.split("=", 1)
+                                                                                 for kv in args.setting_ab)})
     if args.workers > 1:
         workers_report([g for s in sets[:2] for g in s], cfg, args.workers)
     if args.scaling:

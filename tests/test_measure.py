@@ -251,6 +251,35 @@ def test_decoupled_fold_groups_stay_within_their_tolerance():
         join_exposures(exps, keep=full.keep, decoupled=dec.decoupled[:-1])
 
 
+def test_skipped_pair_terms_stay_within_their_tolerance():
+    """pair_tolerance leaves a model's fold-group cross terms out of its binned sums only where they change
+    its quadratic sums by at most the tolerance at the flux bound S of the noise-aware cut: some models keep
+    them, some do not, and the linear sums do not move."""
+    from shearfit.engine.likelihood import _mode_bounds, join_exposures, model_sums, shift_joint
+    from shearfit.engine.profiles import fast_pair
+    from shearfit.engine.model import prepare_exposure
+
+    cfg = shearfit.FitConfig()
+    rng = np.random.default_rng(5)
+    e1, e2 = rng.uniform(-0.7, 0.7, (2, 80))
+    r = np.concatenate([[0.0], rng.uniform(0.02, 1.5, 79)])
+    e1[0] = e2[0] = 0.0
+    for snr, tol in ((40, 1e-4), (300, 0.1)):
+        exps = [prepare_exposure(o, cfg) for o in _observations(0.2, (0.2, 0.1), n_exp=4, noise=True, snr=snr,
+                                                                seed=3)]
+        full = shift_joint(join_exposures(exps, cfg.mode_chi2_tolerance), 0.02, -0.01)   # every fold group's pairs
+        skip = shift_joint(join_exposures(exps, cfg.mode_chi2_tolerance, pair_tolerance=tol), 0.02, -0.01)
+        s2 = _mode_bounds(exps)[1]
+        assert full.pair_skip == 0.0 and skip.pair_skip == tol / s2 and full.multi.size > 0
+        a = model_sums(full, e1, e2, r, fast_pair(), 0.8, bins_per_octave=16)
+        b = model_sums(skip, e1, e2, r, fast_pair(), 0.8, bins_per_octave=16)
+        for f in ("hf", "hg", "grad_f", "grad_g", "hess_f", "hess_g"):
+            assert np.array_equal(getattr(a, f), getattr(b, f)), f
+        d = np.max([np.abs(getattr(a, f) - getattr(b, f)) for f in ("ff", "gg", "fg")], axis=0)
+        assert 0.2 * d.size < np.count_nonzero(d) < 0.9 * d.size   # some models leave them out, some keep them
+        assert np.max(d) * s2 <= tol
+
+
 def test_noise_variance_and_the_offset_phase_are_the_direct_ones():
     """The stamp's noise variance is 1 / np.median of the positive weights (odd and even counts), and the
     offset phase the Moffat path makes from one phase in kx and one in ky is exp(-i (kx dx + ky dy))."""

@@ -109,6 +109,11 @@ class FitConfig:
         "while the chi^2 they could change for that brightest model stays below this in total (their own terms "
         "stay: the modes are then summed as modes alone; 0.01 moves e by at most 1.2e-5, 4e-5 of its error, "
         "benchmarks/speed.py --check)", "DESIGN: speed")
+    pair_chi2_tolerance: float = setting(
+        0.01, "per model, the fold groups' remaining cross terms are left out of its sums where, for that model at the "
+        "brightest flux the data allow (as for mode_chi2_tolerance), they could change chi^2 by at most this (a bound "
+        "from the model's own transform at their modes, far below it for most extended models; the binned sums only, "
+        "benchmarks/speed.py --check); 0 keeps them in every model", "DESIGN: speed")
     mode_bins_per_octave: int = setting(
         16, "the Fourier modes of a fit are summed, per ellipticity, in bins uniform in log K^T C K, this many per "
         "factor of 2 (the model transform depends on a mode only through r^2 K^T C K; each mode is shared among four "

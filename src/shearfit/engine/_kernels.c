@@ -719,7 +719,7 @@ static void sums_from_bins(const double *restrict W, Py_ssize_t npad, const doub
 
 /*
  * binned_sums(shape, r2, e_index, lo, offsets, columns, dc, bins_per_octave, log_f, log_g, M, J, start, per_octave,
- *             low_f, low_g, zero_f, zero_g, ratio2, pair_basis, pair_a, pair_b, pair_h, out):
+ *             low_f, low_g, zero_f, zero_g, ratio2, pair_basis, pair_a, pair_b, pair_h, pair_tol, out):
  * the sums of models (r2 and the ellipticity e_index each, into shape and make_bins' outputs), from the bins of
  * their ellipticity on the log tables of the disk and bulge (log_f, log_g: M + 1 rows of J; point i of a table
  * at log2(rho^2) = start + i / per_octave). The bulge's rho^2 is ratio2 times the disk's.
@@ -727,17 +727,19 @@ static void sums_from_bins(const double *restrict W, Py_ssize_t npad, const doub
  * make_bins', are pair_basis; pair_h: float64, the pair's 2 Re H_ab) add h R_a R_b to ff and gg and
  * h (R_a^f R_b^g + R_a^g R_b^f) / 2 to fg, with each mode's transforms interpolated from the bins' as the
  * binning shares it (bin_index, once per run of models with one ellipticity, in O(pair modes) memory). Their
- * modes' own terms (the linear vectors and the diagonal of Re H) are in the bins.
+ * modes' own terms (the linear vectors and the diagonal of Re H) are in the bins. pair_tol > 0: a model's pair
+ * terms are left out where a bound on each of them (from its transforms at the pair modes' bins) is within
+ * pair_tol (FitConfig.pair_chi2_tolerance over S^2: likelihood.join_exposures); 0 keeps them in every model.
  */
 static PyObject *binned_sums(PyObject *self, PyObject *args)
 {
     Py_buffer shape, r2b, eidx, lob, offb, colb, dcb, gfb, ggb, pbsb, pab, pbb, phb, out;
-    double start, per_oct, low_f, low_g, zero_f, zero_g, ratio2;
+    double start, per_oct, low_f, low_g, zero_f, zero_g, ratio2, pair_tol;
     Py_ssize_t M, J;
     int nb;
-    if (!PyArg_ParseTuple(args, "y*y*y*y*y*y*y*iy*y*nndddddddy*y*y*y*w*", &shape, &r2b, &eidx, &lob, &offb,
+    if (!PyArg_ParseTuple(args, "y*y*y*y*y*y*y*iy*y*nndddddddy*y*y*y*dw*", &shape, &r2b, &eidx, &lob, &offb,
                           &colb, &dcb, &nb, &gfb, &ggb, &M, &J, &start, &per_oct, &low_f, &low_g, &zero_f, &zero_g,
-                          &ratio2, &pbsb, &pab, &pbb, &phb, &out))
+                          &ratio2, &pbsb, &pab, &pbb, &phb, &pair_tol, &out))
         return NULL;
 #define BS_RELEASE RELEASE(&shape, &r2b, &eidx, &lob, &offb, &colb, &dcb, &gfb, &ggb, &pbsb, &pab, &pbb, &phb, &out)
     Py_ssize_t n_models = r2b.len / (Py_ssize_t)sizeof(double);
@@ -791,6 +793,21 @@ static PyObject *binned_sums(PyObject *self, PyObject *args)
     const double shift_g = same ? 0.0 : log2(ratio2) * per_oct;
 
     long long cur_e = -1;
+    Py_ssize_t lo_b = 0, hi_b = -1;
+    double c_zero = 0.0;
+    /* per pair mode, half the |h| of its pairs (CG), and per bin their sum (CB: see pair_tol below) */
+    double *CG = NULL, *CB = NULL;
+    if (pair_tol > 0 && n_pairs > 0) {
+        CG = (double *)calloc(ng1 + maxpad + BPAD, sizeof(double));
+        if (CG == NULL) pair_tol = 0.0;   /* no memory for the bound: every model keeps its pairs */
+        else {
+            CB = CG + ng1;
+            for (Py_ssize_t k = 0; k < n_pairs; k++) {
+                CG[PA[k]] += 0.5 * fabs(PH[k]);
+                CG[PB[k]] += 0.5 * fabs(PH[k]);
+            }
+        }
+    }
     Py_BEGIN_ALLOW_THREADS
     for (Py_ssize_t m = 0; m < n_models; m++) {
         const long long e = E[m];
@@ -807,14 +824,70 @@ static PyObject *binned_sums(PyObject *self, PyObject *args)
                 long long plo, phi;
                 bin_index(PB3, n_g, S[3 * e], S[3 * e + 1], S[3 * e + 2], nb, PX, PI, PW, &plo, &phi);
                 cur_e = e;
+                /* each pair mode's first bin (within the bins), in PX, or -1 for the transform at 0 (the DC
+                   mode, or too few bins); with pair_tol, the bins they reach, lo_b .. hi_b, and per bin the
+                   sum of CG over the modes whose first bin it is (CB), CG of those at 0 in c_zero */
+                lo_b = PY_SSIZE_T_MAX;
+                hi_b = -1;
+                c_zero = 0.0;
+                for (Py_ssize_t g = 0; g < n_g; g++) {
+                    if (PI[g] == INT_MIN || npad < 4) {
+                        PI[g] = -1;
+                        if (CG != NULL) c_zero += CG[g];
+                        continue;
+                    }
+                    long long i0 = (long long)PI[g] - LO[e];
+                    i0 = i0 < 0 ? 0 : (i0 > npad - 4 ? npad - 4 : i0);   /* within the bins (rounding only) */
+                    PI[g] = (int)i0;
+                    lo_b = (Py_ssize_t)i0 < lo_b ? (Py_ssize_t)i0 : lo_b;
+                    hi_b = (Py_ssize_t)i0 > hi_b ? (Py_ssize_t)i0 : hi_b;
+                }
+                if (pair_tol > 0 && hi_b >= lo_b) {
+                    for (Py_ssize_t b = lo_b; b <= hi_b; b++) CB[b] = 0.0;
+                    for (Py_ssize_t g = 0; g < n_g; g++)
+                        if (PI[g] >= 0) CB[PI[g]] += CG[g];
+                }
+                /* the DC mode's weights are those of position 0, (0, 1, 0, 0): it reads its transform at 0 from
+                   four entries after the bins (npad + 1), so that the interpolation below has no branch */
+                if (npad >= 4)
+                    for (Py_ssize_t g = 0; g < n_g; g++) PI[g] = PI[g] < 0 ? (int)npad : PI[g];
             }
-            for (Py_ssize_t g = 0; g < n_g; g++) {
-                if (PI[g] == INT_MIN || npad < 4) { PF[g] = zero_f; PG[g] = zero_g; continue; }
-                long long i0 = (long long)PI[g] - LO[e];
-                i0 = i0 < 0 ? 0 : (i0 > npad - 4 ? npad - 4 : i0);   /* within the bins (rounding only) */
-                const double w0 = PW[g], w1 = PW[n_g + g], w2 = PW[2 * n_g + g], w3 = PW[3 * n_g + g];
-                PF[g] = w0 * RF[i0] + w1 * RF[i0 + 1] + w2 * RF[i0 + 2] + w3 * RF[i0 + 3];
-                PG[g] = w0 * RG[i0] + w1 * RG[i0 + 1] + w2 * RG[i0 + 2] + w3 * RG[i0 + 3];
+            if (pair_tol > 0) {
+                /* |h R_a R_b| <= |h| (A_a^2 + A_b^2) / 2 for A a mode's largest |R^f|, |R^g|, and A <= 1.25 times
+                   the largest over its four bins (the cubic weights' absolute sum is at most 1.25): so the
+                   pairs' ff, gg and fg are each within sum_g CG_g 1.5625 max^2 (CG_g: half the |h| of the
+                   pairs of mode g), summed per first bin. Skipped where that is within pair_tol */
+                const double z = fabs(zero_f) > fabs(zero_g) ? fabs(zero_f) : fabs(zero_g);
+                double bound = c_zero * z * z;
+                for (Py_ssize_t b = lo_b; b <= hi_b; b++) {
+                    if (CB[b] == 0.0) continue;
+                    double a = 0.0;
+                    for (int t = 0; t < 4; t++) {
+                        const double v = fabs(RF[b + t]) > fabs(RG[b + t]) ? fabs(RF[b + t]) : fabs(RG[b + t]);
+                        a = v > a ? v : a;
+                    }
+                    bound += CB[b] * a * a;
+                }
+                if (1.5625 * bound <= pair_tol) continue;
+            }
+            if (npad < 4) {
+                for (Py_ssize_t g = 0; g < n_g; g++) {
+                    PF[g] = zero_f;
+                    PG[g] = zero_g;
+                }
+            } else {
+                for (int t = 0; t < 4; t++) {
+                    RF[npad + t] = t == 1 ? zero_f : 0.0;
+                    RG[npad + t] = t == 1 ? zero_g : 0.0;
+                }
+                const int *restrict I = PI;
+                const double *restrict W0 = PW, *restrict W1 = PW + n_g, *restrict W2 = PW + 2 * n_g;
+                const double *restrict W3 = PW + 3 * n_g;
+                for (Py_ssize_t g = 0; g < n_g; g++) {
+                    const Py_ssize_t i0 = I[g];
+                    PF[g] = W0[g] * RF[i0] + W1[g] * RF[i0 + 1] + W2[g] * RF[i0 + 2] + W3[g] * RF[i0 + 3];
+                    PG[g] = W0[g] * RG[i0] + W1[g] * RG[i0 + 1] + W2[g] * RG[i0 + 2] + W3[g] * RG[i0 + 3];
+                }
             }
             double ff = 0.0, gg = 0.0, fg = 0.0;
             for (Py_ssize_t k = 0; k < n_pairs; k++) {
@@ -831,6 +904,7 @@ static PyObject *binned_sums(PyObject *self, PyObject *args)
     Py_END_ALLOW_THREADS
 
     free(rbuf);
+    free(CG);
     BS_RELEASE;
 #undef BS_RELEASE
     Py_RETURN_NONE;
@@ -928,6 +1002,9 @@ static inline __attribute__((always_inline)) void position_geometry(
     *ok_out = ok;
 }
 
+static const double EI_FACT[13] = {1.0, 1.0, 2.0, 6.0, 24.0, 120.0, 720.0, 5040.0, 40320.0, 362880.0,
+                                   3628800.0, 39916800.0, 479001600.0};   /* k!, the series' coefficients */
+
 /* log Ei(x) for x > tcrit, in two parts: returns 1 and the series sum k! / x^k (likelihood._log_ei's 13
    terms) where log Ei = x - log x + log(series), else 0 and log Ei itself in *la */
 static int log_ei_part(double x, double *la, double *series)
@@ -945,10 +1022,8 @@ static int log_ei_part(double x, double *la, double *series)
         }
         return 0;
     }
-    static const double fact[13] = {1.0, 1.0, 2.0, 6.0, 24.0, 120.0, 720.0, 5040.0, 40320.0, 362880.0,
-                                    3628800.0, 39916800.0, 479001600.0};
     double inv = 1.0 / x, s = 0.0;
-    for (int k = 12; k >= 0; k--) s = s * inv + fact[k];
+    for (int k = 12; k >= 0; k--) s = s * inv + EI_FACT[k];
     *series = s;
     return 1;
 }
@@ -969,25 +1044,65 @@ static void position_vec(Py_ssize_t n, const double *restrict lpr, const double 
     double *dl = w, *A = w + MB_L, *okf = w + 2 * MB_L, *ld = w + 3 * MB_L, *lA = w + 4 * MB_L;
     double *la = w + 5 * MB_L, *ser = w + 6 * MB_L;
     const double tcrit = P->tcrit, lt = P->log_ei_tcrit;
-    for (Py_ssize_t e = 0; e < n; e++) {
-        double corr, d;
-        int ok;
-        position_geometry(g1[e], g2[e], H0[e], H1[e], H2[e], P, &d, &corr, &ok);
-        dl[e] = d;
-        A[e] = lpr[e] + corr - lp0[e];
-        okf[e] = ok;
+    if (P->bounded) {
+        /* position_geometry's bounded branch written out with selects only, so that the loop vectorises (its
+           divisions and square roots, one element at a time, were a quarter of the marginalisation): the same
+           operations, the same numbers */
+        const double mu_min = P->mu_min, max_step = P->max_step;
+        for (Py_ssize_t e = 0; e < n; e++) {
+            const double h11 = -H0[e], h12 = -H1[e], h22 = -H2[e], a1 = g1[e], a2 = g2[e];
+            const double half_tr = 0.5 * (h11 + h22);
+            const double rad = sqrt(0.25 * (h11 - h22) * (h11 - h22) + h12 * h12);
+            const double v1 = half_tr + rad, v2 = half_tr - rad;
+            const double lam1 = v1 != v1 ? v1 : (v1 > mu_min ? v1 : mu_min);
+            const double lam2 = v2 != v2 ? v2 : (v2 > mu_min ? v2 : mu_min);
+            const double gg = a1 * a1 + a2 * a2;
+            const double gmg = h11 * a1 * a1 + 2 * h12 * a1 * a2 + h22 * a2 * a2;
+            const double p1 = (gmg - (half_tr - rad) * gg) / (2 * rad);
+            double p1sq = rad > 1e-9 * fabs(half_tr) ? p1 : gg;
+            p1sq = p1sq < 0 ? 0 : (p1sq > gg ? gg : p1sq);
+            const double p2sq = gg - p1sq;
+            const int ok = fabs(lam1) < INFINITY && fabs(lam2) < INFINITY;   /* isfinite */
+            const double gqg = p1sq / lam1 + p2sq / lam2;
+            const double step = sqrt(p1sq / (lam1 * lam1) + p2sq / (lam2 * lam2));
+            const double t = step > max_step ? max_step / (step > 0 ? step : 1.0) : 1.0;
+            double corr = (t - 0.5 * t * t) * gqg;
+            corr = ok ? (corr > 0 ? corr : (corr != corr ? corr : 0.0)) : 0.0;
+            dl[e] = lam1 * lam2;
+            A[e] = lpr[e] + corr - lp0[e];
+            okf[e] = ok ? 1.0 : 0.0;
+        }
+    } else {
+        for (Py_ssize_t e = 0; e < n; e++) {
+            double corr, d;
+            int ok;
+            position_geometry(g1[e], g2[e], H0[e], H1[e], H2[e], P, &d, &corr, &ok);
+            dl[e] = d;
+            A[e] = lpr[e] + corr - lp0[e];
+            okf[e] = ok;
+        }
     }
     for (Py_ssize_t e = 0; e < n; e++) {
         ld[e] = log(dl[e]);
         lA[e] = log(A[e] > 0 ? A[e] : 1.0);
     }
-    /* log Ei: the table (or scipy's expi) one at a time; the series' logarithms vectorised below */
+    /* log Ei as log_ei_part: the series (most elements) in a loop that vectorises, then the table (or scipy's
+       expi) one at a time below its start; the series' logarithms vectorised below */
     for (Py_ssize_t e = 0; e < n; e++) {
-        double s = 1.0, l = lt + 1.0;
-        if (A[e] > tcrit && !log_ei_part(A[e], &l, &s)) s = -1.0;   /* -1: la is l */
-        la[e] = l;
-        ser[e] = s;
+        const int series = A[e] > tcrit && A[e] >= EI_SERIES_FROM;
+        const double inv = 1.0 / (series ? A[e] : EI_SERIES_FROM);
+        double s = 0.0;
+        for (int k = 12; k >= 0; k--) s = s * inv + EI_FACT[k];
+        la[e] = lt + 1.0;
+        ser[e] = series ? s : 1.0;
     }
+    for (Py_ssize_t e = 0; e < n; e++)
+        if (A[e] > tcrit && A[e] < EI_SERIES_FROM) {
+            double s = 1.0, l = lt + 1.0;
+            log_ei_part(A[e], &l, &s);
+            la[e] = l;
+            ser[e] = -1.0;   /* -1: la is l */
+        }
     for (Py_ssize_t e = 0; e < n; e++) {
         double ls = log(ser[e] > 0 ? ser[e] : 1.0);
         double l = ser[e] > 0 ? A[e] - lA[e] + ls : la[e];
@@ -1096,13 +1211,23 @@ static void bulge_vec(Py_ssize_t n, const double *restrict S, const double *cons
 
 #define MAXF 64
 
-/* out[q] = sum_k v[k] M[k, q] (M: nk x nq), summed over k in order as the scalar loop did */
+/* out[q] = sum_k v[k] M[k, q] (M: nk x nq), summed over k in order as the scalar loop did; four q at a time in
+   registers (a pass over out per k, as written before, cost a sixth of the marginalisation) */
+typedef double v4du __attribute__((vector_size(4 * sizeof(double)), aligned(sizeof(double))));
 static void spline_rows(const double *restrict v, const double *restrict M, Py_ssize_t nk, Py_ssize_t nq,
                         double *restrict out)
 {
-    for (Py_ssize_t q = 0; q < nq; q++) out[q] = 0.0;
-    for (Py_ssize_t k = 0; k < nk; k++)
-        for (Py_ssize_t q = 0; q < nq; q++) out[q] += v[k] * M[k * nq + q];
+    Py_ssize_t q = 0;
+    for (; q + 4 <= nq; q += 4) {
+        v4du acc = {0.0, 0.0, 0.0, 0.0};
+        for (Py_ssize_t k = 0; k < nk; k++) acc += v[k] * *(const v4du *)(M + k * nq + q);
+        *(v4du *)(out + q) = acc;
+    }
+    for (; q < nq; q++) {
+        double acc = 0.0;
+        for (Py_ssize_t k = 0; k < nk; k++) acc += v[k] * M[k * nq + q];
+        out[q] = acc;
+    }
 }
 
 static PyObject *marginal(PyObject *self, PyObject *args)
@@ -1489,16 +1614,25 @@ static PyObject *alias_sums(PyObject *self, PyObject *args)
     double *A = (double *)ab.buf, *G = (double *)gb.buf;
     Py_BEGIN_ALLOW_THREADS
     for (Py_ssize_t j = 0; j < n; j++) A[j] = 0.0;
+    /* the aliases in order; a kept one's transform (its G) is made once and added to the sum from there, the
+       same numbers as adding it directly */
     for (Py_ssize_t a = 0; a < na; a++) {
         const int64_t *Ia = I + a * n;
         const double *Wa = W0 + a * n, *Wb = W1 + a * n;
-        for (Py_ssize_t j = 0; j < n; j++) A[j] += T[Ia[j]] * Wa[j] + T[Ia[j] + 1] * Wb[j];
-    }
-    for (Py_ssize_t c = 0; c < nk; c++) {
-        const int64_t *Ia = I + K[c] * n;
-        const double *Wa = W0 + K[c] * n, *Wb = W1 + K[c] * n;
-        double *Gc = G + c * n;
-        for (Py_ssize_t j = 0; j < n; j++) Gc[j] = T[Ia[j]] * Wa[j] + T[Ia[j] + 1] * Wb[j];
+        Py_ssize_t c = 0;
+        while (c < nk && K[c] != a) c++;
+        if (c < nk) {
+            double *Gc = G + c * n;
+            for (Py_ssize_t j = 0; j < n; j++) {
+                Gc[j] = T[Ia[j]] * Wa[j] + T[Ia[j] + 1] * Wb[j];
+                A[j] += Gc[j];
+            }
+            /* a kept alias listed twice gets its copy too */
+            for (Py_ssize_t d = c + 1; d < nk; d++)
+                if (K[d] == a) memcpy(G + d * n, Gc, n * sizeof(double));
+        } else {
+            for (Py_ssize_t j = 0; j < n; j++) A[j] += T[Ia[j]] * Wa[j] + T[Ia[j] + 1] * Wb[j];
+        }
     }
     Py_END_ALLOW_THREADS
     RELEASE(&tb, &ib, &w0b, &w1b, &kb, &ab, &gb);

@@ -76,6 +76,9 @@ class JointModes:
     pixel_scale: float
     keep: list = None      # per exposure, the modes the noise-aware cut kept (None: all)
     decoupled: np.ndarray = None   # per fold group found, whether its cross terms were dropped (None: none)
+    # a model's fold-group cross terms are left out of its sums where their bound (1.5625 max|R|^2 sum|h|, R the
+    # model's transform at their bins) is within this: pair_tolerance / S^2 (join_exposures), 0: never
+    pair_skip: float = 0.0
     data_map: object = field(default=None, repr=False)   # how z was made from the exposures' data (_DataMap)
 
     @property
@@ -453,7 +456,7 @@ def _csr_entries(H):
 
 
 def join_exposures(exposures: list[ExposureModes], chi2_tolerance: float = 0.0, keep=None,
-                   fold_tolerance: float = 0.0, decoupled=None) -> JointModes:
+                   fold_tolerance: float = 0.0, decoupled=None, pair_tolerance: float = 0.0) -> JointModes:
     """Concatenate the exposures' modes (after the noise-aware cut, if a tolerance is given).
 
     ``keep`` (per exposure, a boolean mask of its modes) imposes the modes
@@ -461,9 +464,14 @@ def join_exposures(exposures: list[ExposureModes], chi2_tolerance: float = 0.0, 
     ``result.keep`` (None: no cut). With ``fold_tolerance`` > 0 (and no
     ``keep``), the fold groups whose cross terms matter least are decoupled
     (:func:`_weak_couplings`); ``decoupled`` (per fold group, as
-    ``result.decoupled``) imposes another fit's choice.
+    ``result.decoupled``) imposes another fit's choice. With ``pair_tolerance`` > 0, each model's sums
+    leave out the fold groups' remaining cross terms where, for that model at the brightest flux the data
+    allow, they could change chi^2 by at most this (``result.pair_skip``; the binned sums only).
     """
     mb = _mode_bounds(exposures) if keep is None and (chi2_tolerance > 0 or fold_tolerance > 0) else None
+    s2 = None
+    if pair_tolerance > 0:
+        s2 = (mb if mb is not None else _mode_bounds(exposures))[1]
     if keep is None and chi2_tolerance > 0:
         keep = _noise_aware_cut(exposures, chi2_tolerance, mb)
     if keep is not None:
@@ -514,7 +522,8 @@ def join_exposures(exposures: list[ExposureModes], chi2_tolerance: float = 0.0, 
     return JointModes(kx=kxu, ky=kyu, z=zu, q=q, multi=multi, msizes=msizes, H=Hm,
                       basis=np.stack([kxu * kxu, 2 * kxu * kyu, kyu * kyu]), yy=yy, npix=npix,
                       n_exposures=len(exposures), pixel_scale=float(np.mean([e.pixel_scale for e in exposures])),
-                      keep=keep, decoupled=decoupled, data_map=dmap)
+                      keep=keep, decoupled=decoupled, data_map=dmap,
+                      pair_skip=pair_tolerance / s2 if s2 else 0.0)
 
 
 def shift_joint(jm: JointModes, du, dv) -> JointModes:
@@ -533,7 +542,8 @@ def shift_joint(jm: JointModes, du, dv) -> JointModes:
         dm = replace(dm, phase=dm.phase * phase)
     return JointModes(kx=jm.kx, ky=jm.ky, z=jm.z * phase, q=jm.q, multi=jm.multi, msizes=jm.msizes, H=H,
                       basis=jm.basis, yy=jm.yy, npix=jm.npix, n_exposures=jm.n_exposures,
-                      pixel_scale=jm.pixel_scale, keep=jm.keep, decoupled=jm.decoupled, data_map=dm)
+                      pixel_scale=jm.pixel_scale, keep=jm.keep, decoupled=jm.decoupled, data_map=dm,
+                      pair_skip=jm.pair_skip)
 
 
 @dataclass
@@ -646,7 +656,7 @@ def _model_sums_binned(jm, bins, e_index, r2, fast, ratio):
     KERNEL.binned_sums(bins.shape, np.ascontiguousarray(r2), np.ascontiguousarray(e_index, dtype=np.int64),
                          bins.lo, bins.offsets, bins.columns, bins.dc, bins.bins_per_octave, lt.rows[0], lt.rows[1],
                          lt.m, lt.n_col, lt.start, lt.per_octave, lt.low[0], lt.low[1], lt.zero[0], lt.zero[1],
-                         float(ratio) ** 2, pair_basis, pa, pb, ph, out)
+                         float(ratio) ** 2, pair_basis, pa, pb, ph, float(jm.pair_skip), out)
     return ModelSums.from_kernel(out)
 
 

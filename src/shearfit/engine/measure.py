@@ -162,7 +162,8 @@ def _measure(obs, mag, cfg, return_samples, plan=None, margin=np.inf, first_marg
     exposures = prepare_exposures(obs, cfg) if plan is None else _replay_exposures(obs, cfg, plan)
     if plan is None:
         disk = exponential_disk(cfg.truncation)
-        jm = join_exposures(exposures, cfg.mode_chi2_tolerance, fold_tolerance=cfg.fold_chi2_tolerance)
+        jm = join_exposures(exposures, cfg.mode_chi2_tolerance, fold_tolerance=cfg.fold_chi2_tolerance,
+                            pair_tolerance=cfg.pair_chi2_tolerance)
         pix = jm.pixel_scale
         a = float(priors.size_prior_scale(mag, cfg))
         max_shift = cfg.max_centroid_shift * pix
@@ -216,7 +217,8 @@ def _replay_likelihood(exposures, mag, cfg, plan):
         and all(e.kx is r.kx for e, r in zip(exposures, plan.exposures))
     jm = plan.joint.with_data(exposures) if same else None
     if jm is None:
-        jm = shift_joint(join_exposures(exposures, keep=plan.keep, decoupled=plan.decoupled), *plan.shift)
+        jm = shift_joint(join_exposures(exposures, keep=plan.keep, decoupled=plan.decoupled,
+                                        pair_tolerance=cfg.pair_chi2_tolerance), *plan.shift)
     like = EllipticityLikelihood(jm, cfg, mag, fast_pair(cfg.truncation), plan.size_nodes, plan.r_center)
     like.fixed_centres = plan.centres
     return jm, like
