@@ -502,6 +502,38 @@ def test_mode_bins_do_not_depend_on_the_modes_order():
         assert np.max(np.abs(x - y)) <= 1e-5 * np.max(np.abs(y)), f
 
 
+def test_mode_bins_are_each_ellipticitys_own_whatever_the_batch():
+    """make_bins sizes its output from a bound on each ellipticity's bins (the shape matrix's eigenvalues): a
+    batch's bins are those of each ellipticity binned alone, whether the bound holds (every shape matrix
+    positive definite, up to |e| = 0.95), cannot be made (a singular or indefinite matrix in the batch) or
+    there are no ellipticities."""
+    from shearfit.engine import likelihood
+    from shearfit.engine.kernel import KERNEL
+    from shearfit.engine.likelihood import _packed_bins, join_exposures
+    from shearfit.engine.model import prepare_exposure, shape_matrix
+
+    if not likelihood.USE_KERNEL:
+        pytest.skip("compiled kernel not built")
+    cfg = shearfit.FitConfig()
+    rng, obs = _distorted_observations(3, 6, 40)
+    jm = join_exposures([prepare_exposure(o, cfg) for o in obs], cfg.mode_chi2_tolerance)
+    b3, c8 = _packed_bins(jm)[:2]
+    e = rng.uniform(0.0, 0.95, 12) * np.exp(2j * np.pi * rng.uniform(size=12))
+    good = np.stack(shape_matrix(e.real, e.imag), axis=1)
+    for shape in (good, np.concatenate([good[:5], [[1.0, 1.0, 1.0], [1.0, 2.0, 1.0]], good[5:]])):
+        shape = np.ascontiguousarray(shape)
+        lo, off, cols, dc = (np.frombuffer(x, t) for x, t in zip(KERNEL.make_bins(shape, b3, c8, 16),
+                                                                  (np.int64, np.int64, float, float)))
+        for i in range(shape.shape[0]):
+            lo1, off1, cols1, dc1 = (np.frombuffer(x, t) for x, t in zip(
+                KERNEL.make_bins(np.ascontiguousarray(shape[i:i + 1]), b3, c8, 16), (np.int64, np.int64, float, float)))
+            assert lo[i] == lo1[0] and off[i + 1] - off[i] == off1[1]
+            assert np.array_equal(cols[7 * off[i]:7 * off[i + 1]], cols1) and np.array_equal(dc[8 * i:8 * i + 8], dc1)
+        assert cols.size == 7 * off[-1]
+    empty = KERNEL.make_bins(np.zeros((0, 3)), b3, c8, 16)
+    assert empty[2] == b"" and np.frombuffer(empty[1], np.int64).tolist() == [0]
+
+
 def test_mode_bins_of_versions_are_each_versions_own():
     """mode_bins_versions bins versions of one object on the same modes (JointModes.with_data: metacal's) at
     once: entry i * V + v is version v's bins at ellipticity i, byte for byte mode_bins' of that version, and

@@ -546,6 +546,40 @@ static PyObject *make_bins(PyObject *self, PyObject *args)
     double *cols = NULL;
     Py_ssize_t capA = 0, capC = 0, ncol = 0;
     int nomem = (idx == NULL || frac == NULL || w4 == NULL || off == NULL || los == NULL || dc == NULL);
+    int own_cols = 0;   /* cols is memory of their own (malloc), not colobj's */
+
+    /* the columns are written straight into the bytes returned, sized from above and shrunk at the end (a
+       copy of them cost 3 % of the binning): per ellipticity, its bins span at most nb log2 of the shape
+       matrix's eigenvalues' ratio times the modes' |K|^2 range, plus the cubic sharing's 3 and rounding's
+       margin. Where that bound cannot be made (no modes, a shape matrix not positive definite), or proves too
+       small, the columns grow in memory of their own and are copied */
+    PyObject *colobj = NULL;
+    {
+        double k2min = INFINITY, k2max = 0.0;
+        for (Py_ssize_t j = 0; j < n_single; j++) {
+            const float *q = (const float *)b3.buf + 4 * j;
+            const double k2 = (double)q[0] + (double)q[2];
+            k2min = k2 > 0.0 && k2 < k2min ? k2 : k2min;
+            k2max = k2 > k2max ? k2 : k2max;
+        }
+        double total = 0.0;
+        int bounded = !nomem && k2max > 0.0 && isfinite(k2max);
+        for (Py_ssize_t e = 0; bounded && e < n_e; e++) {
+            const double a0 = S[3 * e], a1 = S[3 * e + 1], a2 = S[3 * e + 2];
+            const double hm = 0.5 * (a0 + a2), hd = sqrt(0.25 * (a0 - a2) * (a0 - a2) + a1 * a1);
+            const double span = nb * (log2((hm + hd) * k2max) - log2((hm - hd) * k2min));
+            bounded = hm - hd > 0.0 && isfinite(span) && span < 1e6;
+            total += (double)((((Py_ssize_t)ceil(span) + 8 + BPAD - 1) / BPAD) * BPAD) * nv;
+        }
+        if (bounded && NCH * total * sizeof(double) < 1e9) {
+            colobj = PyBytes_FromStringAndSize(NULL, (Py_ssize_t)(NCH * total) * (Py_ssize_t)sizeof(double));
+            if (colobj == NULL) PyErr_Clear();   /* then the columns' own memory */
+            else {
+                cols = (double *)PyBytes_AS_STRING(colobj);
+                capC = NCH * (Py_ssize_t)total;
+            }
+        }
+    }
 
     /* the modes' basis as three arrays of doubles, for loops that vectorise */
     double *P = (double *)malloc(3 * ns * sizeof(double));
@@ -573,9 +607,15 @@ static PyObject *make_bins(PyObject *self, PyObject *args)
             bin_scatter((const float *)c8.buf + (Py_ssize_t)v * 8 * n_single, n_single, idx, w4, lo, nbin, A);
             if (NCH * (ncol + npad) > capC) {
                 capC = 2 * NCH * (ncol + npad);
-                double *r = (double *)realloc(cols, capC * sizeof(double));
+                double *r;
+                if (!own_cols && colobj != NULL) {   /* the bound fell short: memory of their own from here on */
+                    r = (double *)malloc(capC * sizeof(double));
+                    if (r != NULL) memcpy(r, cols, NCH * ncol * sizeof(double));
+                } else
+                    r = (double *)realloc(cols, capC * sizeof(double));
                 if (r == NULL) { nomem = 1; break; }
                 cols = r;
+                own_cols = 1;
             }
             off[ev] = ncol;
             los[ev] = nbin > 0 ? lo : 0;
@@ -596,7 +636,13 @@ static PyObject *make_bins(PyObject *self, PyObject *args)
     if (!nomem) {
         PyObject *l = PyBytes_FromStringAndSize((const char *)los, n_out * sizeof(long long));
         PyObject *o = PyBytes_FromStringAndSize((const char *)off, (n_out + 1) * sizeof(long long));
-        PyObject *c = PyBytes_FromStringAndSize((const char *)cols, NCH * ncol * sizeof(double));
+        PyObject *c;
+        if (!own_cols && colobj != NULL) {
+            c = colobj;   /* the reference passes to the result */
+            colobj = NULL;
+            if (_PyBytes_Resize(&c, NCH * ncol * (Py_ssize_t)sizeof(double)) != 0) c = NULL;
+        } else
+            c = PyBytes_FromStringAndSize((const char *)cols, NCH * ncol * sizeof(double));
         PyObject *d = PyBytes_FromStringAndSize((const char *)dc, 8 * n_out * sizeof(double));
         if (l && o && c && d) res = PyTuple_Pack(4, l, o, c, d);
         Py_XDECREF(l);
@@ -604,7 +650,9 @@ static PyObject *make_bins(PyObject *self, PyObject *args)
         Py_XDECREF(c);
         Py_XDECREF(d);
     }
-    free(P); free(idx); free(frac); free(w4); free(off); free(los); free(dc); free(A); free(cols);
+    free(P); free(idx); free(frac); free(w4); free(off); free(los); free(dc); free(A);
+    if (own_cols) free(cols);
+    Py_XDECREF(colobj);
     RELEASE(&shape, &b3, &c8);
     if (nomem) return PyErr_NoMemory();
     return res;

@@ -932,6 +932,21 @@ def interp_matrix(x, xf):
     return w
 
 
+def node_matrices(x, xf):
+    """``interp_matrix(x, xf)`` and ``spline_matrix(x, xf)`` (C-contiguous, read-only, shared); where both grids
+    are uniform over one span (the size nodes of a fit, which move with every object) the pair is made once per
+    number of points, without a look-up of each."""
+    if _uniform_pair(x, xf):
+        return _uniform_node_matrices(len(x), len(xf))
+    return interp_matrix(x, xf), np.ascontiguousarray(spline_matrix(x, xf))
+
+
+@functools.lru_cache(maxsize=16)
+def _uniform_node_matrices(n, n_fine):
+    x, xf = np.linspace(0.0, 1.0, n), np.linspace(0.0, 1.0, n_fine)
+    return interp_matrix(x, xf), np.ascontiguousarray(spline_matrix(x, xf))
+
+
 def spline_matrix(x, xf):
     """Matrix W with (values at x) @ W = the not-a-knot cubic spline through them, at xf.
 
@@ -1020,13 +1035,25 @@ def _marginal_setup(cfg, pixel_scale):
 @functools.lru_cache(maxsize=32)
 def _marginal_setup_cached(n_flux, sb, b0, delta_chi2_crit, max_centroid_shift, flux_prior_slope, flux_halfwidth,
                            pixel_scale):
-    u = np.linspace(0.0, 1.0, n_flux)
-    uf = np.linspace(0.0, 1.0, SPLINE_FINE)
+    u, uf, spl, itp = _flux_grids(n_flux)
     radius = None if pixel_scale is None else max_centroid_shift * float(pixel_scale)   # _position_bounds'
     par = np.array([sb ** 2, b0, _log_zb_of(sb, b0), 0.5 * delta_chi2_crit,
                     0.0 if radius is None else 1.0 / radius ** 2, np.inf if radius is None else radius,
                     flux_prior_slope, flux_halfwidth, 0.0 if radius is None else 1.0, 0.0])
-    return u, uf, np.ascontiguousarray(spline_matrix(u, uf)), np.ascontiguousarray(interp_matrix(u, uf)), par
+    return u, uf, spl, itp, par
+
+
+@functools.lru_cache(maxsize=8)
+def _flux_grids(n_flux):
+    """The flux nodes, the fine grid and the spline and interpolation matrices between them (read-only): the
+    part of _marginal_setup_cached that does not change with the pixel scale, which every object of distinct
+    Jacobians has its own of."""
+    u = np.linspace(0.0, 1.0, n_flux)
+    uf = np.linspace(0.0, 1.0, SPLINE_FINE)
+    out = (u, uf, np.ascontiguousarray(spline_matrix(u, uf)), np.ascontiguousarray(interp_matrix(u, uf)))
+    for a in out:
+        a.setflags(write=False)
+    return out
 
 
 def _marginal_kernel(sums, cfg, pixel_scale):

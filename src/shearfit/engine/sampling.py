@@ -27,8 +27,8 @@ import numpy as np
 from . import priors
 from ..config import FitConfig
 from .kernel import KERNEL, USE_KERNEL
-from .likelihood import (Marginal, interp_matrix, linear_vectors, flux_position_marginal, mode_bins,
-                         mode_bins_versions, model_sums, shares_bins_geometry, spline_matrix, versions_channels)
+from .likelihood import (Marginal, linear_vectors, flux_position_marginal, mode_bins,
+                         mode_bins_versions, model_sums, node_matrices, shares_bins_geometry, versions_channels)
 
 __all__ = ["EllipticityLikelihood", "VersionLikelihoods", "Samples", "adaptive_samples", "two_pass_samples",
            "replay_samples", "replay_versions",
@@ -295,7 +295,7 @@ class EllipticityLikelihood:
         matrix (made once per object: the nodes x are fixed)."""
         if getattr(self, "_fine", None) is None:
             xf = np.linspace(self.x[0], self.x[-1], self.N_FINE)
-            self._fine = (xf, interp_matrix(self.x, xf), np.ascontiguousarray(spline_matrix(self.x, xf)))
+            self._fine = (xf,) + node_matrices(self.x, xf)
         return self._fine   # xf, (n_nodes, n_fine), (n_nodes, n_fine)
 
     def _size_marginal(self, rnodes, ld, lb, fd, fb, bd, use_kernel=True, prior_shift=None):
