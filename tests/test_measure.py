@@ -460,22 +460,31 @@ def _distorted_observations(n_exp, seed, snr):
     return rng, _observations(0.3, (0.2, 0.1), n_exp=n_exp, jacobians=jac, noise=True, snr=snr)
 
 
-def test_mode_bins_do_not_depend_on_the_modes_order():
-    """Exposures whose Jacobians differ by a camera's distortion (1e-3) see one sky mode at near-equal K, so
-    that many modes share their bins. The bins are those of any other order of the modes (to float32 rounding), and the
-    binned sums (the fold groups' cross terms included) are those of every mode to the binning's accuracy."""
+def _distorted_bins(n_exp, seed, snr):
+    """(generator, joint modes, their packed basis b3 and weights c8) of _distorted_observations' galaxy, for
+    the binning kernel (skipped without it)."""
     from shearfit.engine import likelihood
-    from shearfit.engine.kernel import KERNEL
-    from shearfit.engine.likelihood import _packed_bins, join_exposures, mode_bins, model_sums
-    from shearfit.engine.model import prepare_exposure, shape_matrix
-    from shearfit.engine.profiles import fast_pair
+    from shearfit.engine.likelihood import _packed_bins, join_exposures
+    from shearfit.engine.model import prepare_exposure
 
     if not likelihood.USE_KERNEL:
         pytest.skip("compiled kernel not built")
     cfg = shearfit.FitConfig()
-    rng, obs = _distorted_observations(4, 5, 60)
+    rng, obs = _distorted_observations(n_exp, seed, snr)
     jm = join_exposures([prepare_exposure(o, cfg) for o in obs], cfg.mode_chi2_tolerance)
-    b3, c8 = _packed_bins(jm)[:2]
+    return (rng, jm) + tuple(_packed_bins(jm)[:2])
+
+
+def test_mode_bins_do_not_depend_on_the_modes_order():
+    """Exposures whose Jacobians differ by a camera's distortion (1e-3) see one sky mode at near-equal K, so
+    that many modes share their bins. The bins are those of any other order of the modes (to float32 rounding), and the
+    binned sums (the fold groups' cross terms included) are those of every mode to the binning's accuracy."""
+    from shearfit.engine.kernel import KERNEL
+    from shearfit.engine.likelihood import mode_bins, model_sums
+    from shearfit.engine.model import shape_matrix
+    from shearfit.engine.profiles import fast_pair
+
+    rng, jm, b3, c8 = _distorted_bins(4, 5, 60)
     assert jm.multi.size > 0                            # the fold groups' modes are binned too
     e1, e2 = rng.uniform(-0.7, 0.7, (2, 30))
     shape = np.ascontiguousarray(np.stack(shape_matrix(e1, e2), axis=1))
@@ -507,17 +516,10 @@ def test_mode_bins_are_each_ellipticitys_own_whatever_the_batch():
     batch's bins are those of each ellipticity binned alone, whether the bound holds (every shape matrix
     positive definite, up to |e| = 0.95), cannot be made (a singular or indefinite matrix in the batch) or
     there are no ellipticities."""
-    from shearfit.engine import likelihood
     from shearfit.engine.kernel import KERNEL
-    from shearfit.engine.likelihood import _packed_bins, join_exposures
-    from shearfit.engine.model import prepare_exposure, shape_matrix
+    from shearfit.engine.model import shape_matrix
 
-    if not likelihood.USE_KERNEL:
-        pytest.skip("compiled kernel not built")
-    cfg = shearfit.FitConfig()
-    rng, obs = _distorted_observations(3, 6, 40)
-    jm = join_exposures([prepare_exposure(o, cfg) for o in obs], cfg.mode_chi2_tolerance)
-    b3, c8 = _packed_bins(jm)[:2]
+    rng, _, b3, c8 = _distorted_bins(3, 6, 40)
     e = rng.uniform(0.0, 0.95, 12) * np.exp(2j * np.pi * rng.uniform(size=12))
     good = np.stack(shape_matrix(e.real, e.imag), axis=1)
     for shape in (good, np.concatenate([good[:5], [[1.0, 1.0, 1.0], [1.0, 2.0, 1.0]], good[5:]])):
