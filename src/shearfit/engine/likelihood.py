@@ -76,8 +76,8 @@ class JointModes:
     pixel_scale: float
     keep: list = None      # per exposure, the modes the noise-aware cut kept (None: all)
     decoupled: np.ndarray = None   # per fold group found, whether its cross terms were dropped (None: none)
-    # a model's fold-group cross terms are left out of its sums where their bound (1.5625 max|R|^2 sum|h|, R the
-    # model's transform at their bins) is within this: pair_tolerance / S^2 (join_exposures), 0: never
+    # a model's fold-group cross terms are left out of its binned sums where their bound from the model's own
+    # transform at their bins (binned_sums) is within this: pair_tolerance / S^2 (join_exposures); 0: never
     pair_skip: float = 0.0
     data_map: object = field(default=None, repr=False)   # how z was made from the exposures' data (_DataMap)
 
@@ -944,7 +944,10 @@ def node_matrices(x, xf):
 @functools.lru_cache(maxsize=16)
 def _uniform_node_matrices(n, n_fine):
     x, xf = np.linspace(0.0, 1.0, n), np.linspace(0.0, 1.0, n_fine)
-    return interp_matrix(x, xf), np.ascontiguousarray(spline_matrix(x, xf))
+    out = (interp_matrix(x, xf), np.ascontiguousarray(spline_matrix(x, xf)))
+    for a in out:
+        a.setflags(write=False)
+    return out
 
 
 def spline_matrix(x, xf):
