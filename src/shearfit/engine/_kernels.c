@@ -549,7 +549,7 @@ static PyObject *make_bins(PyObject *self, PyObject *args)
     int own_cols = 0;   /* cols is memory of their own (malloc), not colobj's */
 
     /* the columns are written straight into the bytes returned, sized from above and shrunk at the end (a
-       copy of them cost 3 % of the binning): per ellipticity, its bins span at most nb log2 of the shape
+       copy of them was a few per cent of the binning): per ellipticity, its bins span at most nb log2 of the shape
        matrix's eigenvalues' ratio times the modes' |K|^2 range, plus the cubic sharing's 3 and rounding's
        margin. Where that bound cannot be made (no modes, a shape matrix not positive definite), or proves too
        small, the columns grow in memory of their own and are copied */
@@ -872,9 +872,10 @@ static PyObject *binned_sums(PyObject *self, PyObject *args)
                 long long plo, phi;
                 bin_index(PB3, n_g, S[3 * e], S[3 * e + 1], S[3 * e + 2], nb, PX, PI, PW, &plo, &phi);
                 cur_e = e;
-                /* each pair mode's first bin (within the bins), in PX, or -1 for the transform at 0 (the DC
-                   mode, or too few bins); with pair_tol, the bins they reach, lo_b .. hi_b, and per bin the
-                   sum of CG over the modes whose first bin it is (CB), CG of those at 0 in c_zero */
+                /* each pair mode's first bin (within the bins), in place of its bin in PI, or -1 for the
+                   transform at 0 (the DC mode, or too few bins); the bins they reach, lo_b .. hi_b, and with
+                   pair_tol per bin the sum of CG over the modes whose first bin it is (CB), that of the modes at
+                   0 in c_zero */
                 lo_b = PY_SSIZE_T_MAX;
                 hi_b = -1;
                 c_zero = 0.0;
@@ -1094,8 +1095,8 @@ static void position_vec(Py_ssize_t n, const double *restrict lpr, const double 
     const double tcrit = P->tcrit, lt = P->log_ei_tcrit;
     if (P->bounded) {
         /* position_geometry's bounded branch written out with selects only, so that the loop vectorises (its
-           divisions and square roots, one element at a time, were a quarter of the marginalisation): the same
-           operations, the same numbers */
+           divisions and square roots, one element at a time, were a large part of the marginalisation): the
+           same operations, the same numbers */
         const double mu_min = P->mu_min, max_step = P->max_step;
         for (Py_ssize_t e = 0; e < n; e++) {
             const double h11 = -H0[e], h12 = -H1[e], h22 = -H2[e], a1 = g1[e], a2 = g2[e];
@@ -1260,7 +1261,7 @@ static void bulge_vec(Py_ssize_t n, const double *restrict S, const double *cons
 #define MAXF 64
 
 /* out[q] = sum_k v[k] M[k, q] (M: nk x nq), summed over k in order as the scalar loop did; four q at a time in
-   registers (a pass over out per k, as written before, cost a sixth of the marginalisation) */
+   registers (a pass over out per k, as written before, was a large part of the marginalisation) */
 typedef double v4du __attribute__((vector_size(4 * sizeof(double)), aligned(sizeof(double))));
 static void spline_rows(const double *restrict v, const double *restrict M, Py_ssize_t nk, Py_ssize_t nq,
                         double *restrict out)
