@@ -150,36 +150,23 @@ class _Adapted:
 
 def per_galaxy_ab(objs, other):
     """This checkout's compiled loops against the other build's (the same level), galaxy by galaxy in this
-    process with this checkout's Python around both, alternating which goes first, the App. A Moffat caches
-    emptied before each fit: both see the same machine within a tenth of a second."""
-    from shearfit.engine import likelihood, model, moffat, sampling
+    process with this checkout's Python around both (speed.py's ``alternate``: the order alternating, the App. A
+    Moffat caches emptied before each fit), in CPU time: both see the same machine within a tenth of a second."""
+    from speed import alternate, use_kernel
 
     mine, theirs = _other_kernel(other)
     theirs = _Adapted(theirs)
 
-    def use(mod):
-        likelihood.KERNEL = sampling.KERNEL = model.KERNEL = moffat.KERNEL = mod
-        likelihood._load_special()
-        moffat._load_bessel()
+    def build(mod):
+        def setup():
+            use_kernel(mod)
+            return None   # measure_object's default settings
+        return setup
 
-    t = {"this": 0.0, "other": 0.0}
-    de = 0.0
     try:
-        for n, (o, tr) in enumerate(objs):
-            e = {}
-            for name in (("this", "other") if n % 2 == 0 else ("other", "this")):
-                use(mine if name == "this" else theirs)
-                model._OWN_MOFFAT.clear()
-                model._moffat_aliases.cache_clear()
-                t0 = time.process_time()
-                r = shearfit.measure_object(o, mag=tr["mag"])
-                t[name] += time.process_time() - t0
-                e[name] = (r.e1, r.e2)
-            if np.all(np.isfinite(e["this"] + e["other"])):
-                de = max(de, float(np.max(np.abs(np.subtract(e["this"], e["other"])))))
+        t, de, n = alternate(objs, {"this": build(mine), "other": build(theirs)}, clock=time.process_time)
     finally:
-        use(mine)
-    n = len(objs)
+        use_kernel(mine)
     print(f"\nthe compiled loops of the two builds, galaxy by galaxy in this process ({n} galaxies, this checkout's "
           f"Python): other {1e3 * t['other'] / n:.2f}, this {1e3 * t['this'] / n:.2f} CPU-ms per galaxy, "
           f"x{t['other'] / t['this']:.3f}; estimates differ by at most {de:.1e}")

@@ -101,13 +101,50 @@ def hsm_time(objs):
     return (time.perf_counter() - t0) / len(objs), fails
 
 
+def use_kernel(mod):
+    """Point the engine's modules at the compiled module ``mod`` (their KERNEL) and give it scipy's special
+    functions, as shearfit.engine.kernel does at import for the level it loads."""
+    from shearfit.engine import likelihood, model, moffat, sampling
+
+    likelihood.KERNEL = sampling.KERNEL = model.KERNEL = moffat.KERNEL = mod
+    likelihood._load_special()
+    moffat._load_bessel()
+
+
+def alternate(galaxies, variants, clock=time.perf_counter):
+    """Each galaxy fitted under every variant in turn, the order alternating galaxy by galaxy (so that all see
+    the same machine: a shared machine's speed drifts by 10-30 % from minute to minute), the App. A Moffat
+    caches emptied before each fit so that no variant finds another's work. ``variants``: name -> a function
+    that sets the variant up and returns the config to fit with. Returns ({name: seconds}, the largest
+    |delta e| between the first two variants, the number of galaxies)."""
+    from shearfit.engine import model
+
+    names = list(variants)
+    t = dict.fromkeys(names, 0.0)
+    de = 0.0
+    n = 0
+    for o, tr in galaxies:
+        e = {}
+        for name in (names if n % 2 == 0 else names[::-1]):
+            cfg = variants[name]()
+            model._OWN_MOFFAT.clear()          # no fit or table remembered from the other variant
+            model._moffat_aliases.cache_clear()
+            t0 = clock()
+            r = shearfit.measure_object(o, mag=tr["mag"], config=cfg)
+            t[name] += clock() - t0
+            e[name] = (r.e1, r.e2)
+        de = max(de, float(np.nanmax(np.abs(np.subtract(e[names[0]], e[names[1]])))))
+        n += 1
+    return t, de, n
+
+
 def isa_ab_report(sets, cfg, level):
     """The loops in use against those of another instruction-set level, galaxy by galaxy in one process
     (alternating, so that both see the same machine: a shared machine's speed drifts by 10-30 % from minute
     to minute, more than the levels differ)."""
     import importlib
 
-    from shearfit.engine import kernel, likelihood, model, moffat, sampling
+    from shearfit.engine import kernel
 
     module = next(m for name, m, keys in kernel.LEVELS if level in keys or level == name)
     other = importlib.import_module(f"shearfit.engine.{module}")
@@ -115,25 +152,19 @@ def isa_ab_report(sets, cfg, level):
     if mine is None or other is mine:
         print(f"\n--isa-ab {level}: nothing to compare (the loops in use are {kernel.kernel_info()['isa']})")
         return
-
-    def use(mod):
-        likelihood.KERNEL = sampling.KERNEL = model.KERNEL = moffat.KERNEL = mod
-        likelihood._load_special()
-        moffat._load_bessel()
-
     t = {mine: 0.0, other: 0.0}
     n = 0
     try:
         for s in sets[1:] or sets:
             for o, tr in s:
                 for mod in ((mine, other) if n % 2 == 0 else (other, mine)):
-                    use(mod)
+                    use_kernel(mod)
                     t0 = time.perf_counter()
                     shearfit.measure_object(o, mag=tr["mag"], config=cfg)
                     t[mod] += time.perf_counter() - t0
                 n += 1
     finally:
-        use(mine)
+        use_kernel(mine)
     print(f"\n{mine.kernel_isa()} against {other.kernel_isa()}, {n} galaxies timed alternately in one process: "
           f"{1e3 * t[mine] / n:.1f} against {1e3 * t[other] / n:.1f} ms per galaxy, x{t[other] / t[mine]:.2f}")
 
@@ -142,28 +173,20 @@ def moffat_ab_report(sets, cfg):
     """The App. A Moffat's fits and tables (one per exposure of every object here) made by the compiled kernel
     against the numpy lines they replaced (moffat_lm, moffat_table), galaxy by galaxy in one process, and
     the largest difference in e between the two."""
-    from shearfit.engine import model, moffat
+    from shearfit.engine import moffat
 
     if not moffat.USE_KERNEL_BESSEL:
         print("\n--moffat-ab: the compiled Moffat fit is not in use (no kernel, or scipy's kv not found)")
         return
-    t = {True: 0.0, False: 0.0}
-    de = 0.0
-    n = 0
+
+    def flag(value):
+        def setup():
+            moffat.USE_KERNEL_BESSEL = value
+            return cfg
+        return setup
+
     try:
-        for s in sets[1:] or sets:
-            for o, tr in s:
-                e = {}
-                for flag in ((True, False) if n % 2 == 0 else (False, True)):
-                    moffat.USE_KERNEL_BESSEL = flag
-                    model._OWN_MOFFAT.clear()          # no fit or table remembered from the other version
-                    model._moffat_aliases.cache_clear()
-                    t0 = time.perf_counter()
-                    r = shearfit.measure_object(o, mag=tr["mag"], config=cfg)
-                    t[flag] += time.perf_counter() - t0
-                    e[flag] = (r.e1, r.e2)
-                de = max(de, float(np.nanmax(np.abs(np.subtract(e[True], e[False])))))
-                n += 1
+        t, de, n = alternate([g for s in sets[1:] or sets for g in s], {True: flag(True), False: flag(False)})
     finally:
         moffat.USE_KERNEL_BESSEL = True
     print(f"\nApp. A Moffat fits and tables compiled against numpy, {n} galaxies timed alternately in one process: "
@@ -172,29 +195,12 @@ def moffat_ab_report(sets, cfg):
 
 
 def setting_ab_report(sets, cfg, change):
-    """The settings in use against the same with ``change`` (a dict of settings), galaxy by galaxy in one process,
-    alternating which goes first (as isa_ab_report), each fit with the App. A Moffat caches emptied so that
-    neither finds the other's work; the largest difference in e."""
+    """The settings in use against the same with ``change`` (a dict of settings), galaxy by galaxy in one process
+    (:func:`alternate`); the largest difference in e."""
     from dataclasses import replace
 
-    from shearfit.engine import model
-
     other = replace(cfg, **change)
-    t = {0: 0.0, 1: 0.0}
-    de = 0.0
-    n = 0
-    for s in sets[1:] or sets:
-        for o, tr in s:
-            e = {}
-            for k in ((0, 1) if n % 2 == 0 else (1, 0)):
-                model._OWN_MOFFAT.clear()
-                model._moffat_aliases.cache_clear()
-                t0 = time.perf_counter()
-                r = shearfit.measure_object(o, mag=tr["mag"], config=(cfg, other)[k])
-                t[k] += time.perf_counter() - t0
-                e[k] = (r.e1, r.e2)
-            de = max(de, float(np.nanmax(np.abs(np.subtract(e[0], e[1])))))
-            n += 1
+    t, de, n = alternate([g for s in sets[1:] or sets for g in s], {0: lambda: cfg, 1: lambda: other})
     what = ", ".join(f"{k}={v}" for k, v in change.items())
     print(f"\nthe settings in use against {what}, {n} galaxies timed alternately in one process: "
           f"{1e3 * t[0] / n:.2f} against {1e3 * t[1] / n:.2f} ms per galaxy, x{t[1] / t[0]:.3f}; largest |delta e| "
