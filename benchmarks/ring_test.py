@@ -614,7 +614,9 @@ def _to_array(records):
 
 
 def read_tables(paths):
-    """Several runs' per-object tables as one (galaxies renumbered 0..n-1): (array, n_galaxies)."""
+    """Several runs' per-object tables as one (galaxies renumbered 0..n-1): (array, n_galaxies). Only the
+    columns every table has are kept (the others are named on stderr): a column that some runs did not write
+    (``plain_*`` of --with-plain, metacal's) would otherwise be filled with placeholders for their objects."""
     from astropy.table import Table, vstack
 
     parts, offset = [], 0
@@ -623,7 +625,11 @@ def read_tables(paths):
         t["galaxy"] = np.asarray(t["galaxy"]) + offset
         offset = int(np.max(t["galaxy"])) + 1
         parts.append(t)
-    tab = np.asarray(vstack(parts).as_array())
+    common = set.intersection(*(set(t.colnames) for t in parts))
+    partial = sorted(set().union(*(t.colnames for t in parts)) - common)
+    if partial:
+        print(f"ring_test.py: columns not in every table, left out: {', '.join(partial)}", file=sys.stderr)
+    tab = np.asarray(vstack(parts, join_type="inner").as_array())
     # the reports index rings by galaxy number
     _, tab["galaxy"] = np.unique(tab["galaxy"], return_inverse=True)
     return tab, int(tab["galaxy"].max()) + 1
