@@ -312,7 +312,6 @@ def test_psf_ellipticity_is_the_sheared_gaussians_on_the_sky():
         assert psf_fwhm_arcsec(J, moments=mom) == pytest.approx(2.3548 * sigma, rel=2e-3)
 
 
-
 def test_psf_moments_do_not_depend_on_which_guess_came_first():
     """HSM's starting size moves its moments in the last bits (1e-9 here): an image's remembered moments are
     those of the guess asked for, whichever guess reached it first, so a catalogue's PSF columns are the same
@@ -335,6 +334,7 @@ def test_psf_moments_do_not_depend_on_which_guess_came_first():
     assert psf_moments(img.copy()) == direct(5.0)
     assert psf_moments(img.copy(), s) == direct(s)       # not the first guess's moments
     assert psf_moments(img.copy()) == direct(5.0)
+
 
 def test_measure_field_holds_blas_to_one_thread(field, monkeypatch):
     """shearfit measure -j 1 (in this process) runs with one BLAS thread, as its workers do, and restores it."""

@@ -74,11 +74,13 @@ _HSM_ONES = {}
 def psf_moments(psf, guess_sig=None):
     """Adaptive moments of a PSF image: (sigma in array pixels, reduced shear (g1, g2)), or None if HSM fails.
     Remembered by the image and the guess (:class:`shearfit.engine.model.ContentMemo`). ``guess_sig``: HSM's
-    starting size (pixels), e.g. that of a PSF nearby; the iteration then converges in fewer steps to the same
-    moments within HSM's precision (1e-6), not to the last bit: the guess is part of the key, so that an image's
-    moments do not depend on which guess reached it first (a catalogue is then the same for any chunking and
-    any number of workers)."""
+    starting size (pixels; 5 if None), e.g. that of a PSF nearby; the iteration then converges in fewer steps
+    to the same moments within HSM's precision (1e-6), not to the last bit: the guess is part of the key, so
+    that an image's moments do not depend on which guess reached it first (a catalogue is then the same for
+    any chunking and any number of workers)."""
     import galsim
+
+    guess = 5.0 if guess_sig is None else float(guess_sig)
 
     def make():
         shape = np.shape(psf)
@@ -87,11 +89,11 @@ def psf_moments(psf, guess_sig=None):
             ones = _HSM_ONES[shape] = galsim.ImageI(np.ones(shape, np.int32), scale=1.0)
         try:
             mom = galsim.hsm.FindAdaptiveMom(galsim.Image(np.ascontiguousarray(psf, dtype=np.float64), scale=1.0),
-                                             weight=ones, guess_sig=5.0 if guess_sig is None else float(guess_sig))
+                                             weight=ones, guess_sig=guess)
         except Exception:   # noqa: BLE001 - HSM fails on pathological images
             return None
         return mom.moments_sigma, (mom.observed_shape.g1, mom.observed_shape.g2)
-    return _PSF_MOMENTS.get(psf, None if guess_sig is None else float(guess_sig), make)
+    return _PSF_MOMENTS.get(psf, guess, make)
 
 
 def psf_fwhm_arcsec(jacobian, oversampling=1, moments=None):
