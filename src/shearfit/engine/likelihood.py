@@ -1053,10 +1053,10 @@ def _flux_grids(n_flux):
     Jacobians has its own of."""
     u = np.linspace(0.0, 1.0, n_flux)
     uf = np.linspace(0.0, 1.0, SPLINE_FINE)
-    out = (u, uf, np.ascontiguousarray(spline_matrix(u, uf)), np.ascontiguousarray(interp_matrix(u, uf)))
-    for a in out:
+    for a in (u, uf):
         a.setflags(write=False)
-    return out
+    itp, spl = _uniform_node_matrices(n_flux, SPLINE_FINE)   # the same uniform grids over [0, 1]
+    return u, uf, spl, itp
 
 
 def _marginal_kernel(sums, cfg, pixel_scale):
