@@ -157,6 +157,24 @@ def test_band_fold_is_galsims_wrap_and_the_full_planes_fold(n):
                 assert np.abs(mine[b][np.arange(-half, half) % n] - ref).max() < 1e-12
 
 
+@pytest.mark.parametrize("n", [64, 48, 45])
+def test_band_images_are_the_folded_planes_images(n):
+    """band_images draws each band as the inverse transform of its full plane folded onto the grid
+    (``_fold_brute``), at the stamp's pixels (origin at (ny // 2, nx // 2)), whatever the band's width: narrower
+    than the grid, reaching its Nyquist row and column exactly (folded in place, the usual wide band), wider."""
+    rng = np.random.default_rng(100 + n)
+    half = n // 2
+    shape = (min(n, 48), min(n, 40))
+    rs = [max(half - 2, 0), half, half, half + 1, n + 3]
+    items = [(r, rng.normal(size=(2 * r + 1, r + 1)) + 1j * rng.normal(size=(2 * r + 1, r + 1))) for r in rs]
+    got = metacal.band_images(shape, n, items)
+    iy = (np.arange(shape[0]) - shape[0] // 2) % n
+    ix = (np.arange(shape[1]) - shape[1] // 2) % n
+    for (r, arr), im in zip(items, got):
+        ref = np.fft.irfft2(_fold_brute(arr, n), s=(n, n))[np.ix_(iy, ix)]
+        assert np.abs(im - ref).max() < 1e-12 * np.abs(arr).sum() / n ** 2 + 1e-14
+
+
 @pytest.mark.parametrize("J", JACOBIANS + [PIX * np.array([[0.62, 0.79], [0.8, -0.6]])])
 def test_round_envelope_is_below_the_dilated_psf_in_every_direction_and_close_to_it(J):
     """metacal's round new PSF (``psf='round'``): at every point of the padded grid inside the band its

@@ -304,11 +304,22 @@ def band_images(shape, n, items):
     cols = min(max(r for r, _ in items), half) + 1
     spec = np.zeros((len(items), n, cols), np.complex128)
     wide = {}
+    edge = []
     for b, (r, arr) in enumerate(items):
         if r < half:
             spec[b, np.arange(-r, r + 1) % n, :r + 1] = arr
+        elif r == half and n % 2 == 0:
+            # the band reaching the Nyquist row and column exactly (the usual wide case, its radius capped at
+            # the new PSF's band): fold_band's folding done in place, rows j = -r + 1 .. r where they are, row
+            # -r added onto row r, and the Nyquist column's mirrors conj F(r, -j) added onto it
+            spec[b, np.arange(-r + 1, r + 1) % n, :] = arr[1:]
+            spec[b, half, :] += arr[0]
+            edge.append(b)
         else:
             wide.setdefault(r, []).append(b)
+    if edge:
+        col = spec[edge, :, half]
+        spec[edge, :, half] = col + np.conj(col[:, (-np.arange(n)) % n])
     for bands in wide.values():
         spec[bands] = fold_band(np.stack([items[b][1] for b in bands]), n)
     # f(x) = (1 / 4 pi^2) sum_k F(k) exp(i k.x) dk^2 with dk = 2 pi / n, irfft2's own normalisation,
@@ -484,7 +495,8 @@ def metacal_observations(obs: Observation, delta=0.01, rng=None, versions=tuple(
         # and its correlation doubles the processed noise's instead of symmetrising it
         log.warning("metacal: a %d x %d stamp is not square; its noise is not symmetrised", *w.shape)
     nrot = np.rot90(noise, 1) if square else noise
-    mask = ndimage.binary_dilation(~good, iterations=_MASK_GROW)
+    # (a stamp without a masked pixel, the usual one, has nothing to grow)
+    mask = ndimage.binary_dilation(~good, iterations=_MASK_GROW) if not good.all() else np.zeros(good.shape, bool)
     mask[:_EDGE, :] = mask[-_EDGE:, :] = True
     mask[:, :_EDGE] = mask[:, -_EDGE:] = True
     var_in = float(np.mean(sigma[~mask] ** 2)) if np.any(~mask) else 1.0
