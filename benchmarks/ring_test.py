@@ -319,8 +319,9 @@ def print_leakage(c, err, args):
 
 
 def _metacal_bias(tab, args, n_gal):
-    """``bias(galaxies)`` of a metacal ring table: (m1, m2, c1, c2, raw m1, m2, diagonal m1, m2), <R_gamma>,
-    R_S of the galaxies given (a galaxy's rings at both signs; the bootstrap resamples them)."""
+    """``bias(galaxies)`` of a metacal ring table: (m1, m2, c1, c2, raw m1, m2, diagonal m1, m2, scalar m1, m2),
+    <R_gamma>, R_S of the galaxies given (a galaxy's rings at both signs; the bootstrap resamples them). With
+    ``--unweighted``, every version's galaxies (fitclass 0) weigh the same, in <e> and in <R> alike."""
     from astropy.table import Table
 
     from shearfit.calib.metacal import ensemble_response
@@ -335,13 +336,16 @@ def _metacal_bias(tab, args, n_gal):
         for c in t.colnames:
             if c.startswith("fitclass"):
                 t[c] = np.nan_to_num(np.asarray(t[c], float), nan=-2).astype(int)
+            elif c.startswith("weight") and args.unweighted:
+                t[c] = np.ones(len(t))
         R, Rg, Rs = ensemble_response(t, delta=0.01)
         w = np.where(np.asarray(t["fitclass"]) == 0, np.nan_to_num(np.asarray(t["weight"], float)), 0.0)
         e = np.nan_to_num(np.stack([np.asarray(t["e1"], float), np.asarray(t["e2"], float)]))
         ebar = e @ w / w.sum()
         # the diagonal of <R> alone: an isotropic population's <R> is diagonal, and the noise of the off-diagonal
-        # terms enters a ring's m through its shear's other component (m2 moves by -R21 g1 / g2)
-        return np.linalg.solve(R, ebar), ebar, Rg, Rs, ebar / np.diag(R)
+        # terms enters a ring's m through its shear's other component (m2 moves by -R21 g1 / g2); and the mean of
+        # its diagonal for both components (an isotropic population's R11 and R22 are equal)
+        return np.linalg.solve(R, ebar), ebar, Rg, Rs, ebar / np.diag(R), ebar / np.trace(R) * 2
 
     # each galaxy's rows of either sign, found once (the bootstrap resamples galaxies)
     order = np.lexsort((sign, gal))
@@ -351,11 +355,12 @@ def _metacal_bias(tab, args, n_gal):
     def bias(sel_gal):
         rows_p = np.concatenate([rows_of[1][k] for k in sel_gal])
         rows_m = np.concatenate([rows_of[-1][k] for k in sel_gal])
-        gp, ep, Rgp, Rsp, dp = shear_of(rows_p)
-        gm, em, Rgm, Rsm, dm = shear_of(rows_m)
+        gp, ep, Rgp, Rsp, dp, sp = shear_of(rows_p)
+        gm, em, Rgm, Rsm, dm, sm = shear_of(rows_m)
         raw_m = (ep - em) / (2 * g) - 1
         diag_m = (dp - dm) / (2 * g) - 1
-        return (np.concatenate([(gp - gm) / (2 * g) - 1, (gp + gm) / 2, raw_m, diag_m]), (Rgp + Rgm) / 2,
+        scalar_m = (sp - sm) / (2 * g) - 1
+        return (np.concatenate([(gp - gm) / (2 * g) - 1, (gp + gm) / 2, raw_m, diag_m, scalar_m]), (Rgp + Rgm) / 2,
                 (Rsp + Rsm) / 2)
 
     return bias
@@ -378,7 +383,8 @@ def report_metacal_difference(tab, other, args, n_gal):
     print(f"  delta m1 = {format_with_error(est[0], err[0])}    delta c1 = {format_with_error(est[2], err[2])}")
     print(f"  delta m2 = {format_with_error(est[1], err[1])}    delta c2 = {format_with_error(est[3], err[3])}")
     print(f"  with the diagonal of <R> only: delta m1 = {format_with_error(est[6], err[6])}, delta m2 = "
-          f"{format_with_error(est[7], err[7])}")
+          f"{format_with_error(est[7], err[7])}; with its mean: delta m1 = {format_with_error(est[8], err[8])}, "
+          f"delta m2 = {format_with_error(est[9], err[9])}")
 
 
 def report_plain_difference(tab, other, args, n_gal):
@@ -425,8 +431,8 @@ def report_metacal(tab, args, n_gal):
     rng = np.random.default_rng([args.seed, 54321])
     boots = np.array([bias(rng.choice(ids, ids.size))[0] for _ in range(args.n_bootstrap)])
     err = boots.std(axis=0)
-    print(f"\nmetacal shear bias (<R>^-1 <e> per sign, lensfit weights, {args.n_bootstrap} bootstrap resamplings "
-          f"of {n_gal} galaxies):")
+    print(f"\nmetacal shear bias (<R>^-1 <e> per sign, {'unit' if args.unweighted else 'lensfit'} weights, "
+          f"{args.n_bootstrap} bootstrap resamplings of {n_gal} galaxies):")
     print(f"  m1 = {format_with_error(est[0], err[0])}    c1 = {format_with_error(est[2], err[2])}")
     print(f"  m2 = {format_with_error(est[1], err[1])}    c2 = {format_with_error(est[3], err[3])}")
     print_leakage(est[2:4], err[2:4], args)
@@ -434,9 +440,14 @@ def report_metacal(tab, args, n_gal):
           f"{format_with_error(est[4], err[4])}, m2 = {format_with_error(est[5], err[5])}")
     print(f"  with the diagonal of <R> only (isotropic galaxies have no off-diagonal response): m1 = "
           f"{format_with_error(est[6], err[6])}, m2 = {format_with_error(est[7], err[7])}")
-    print(f"  per galaxy (its whole ring): error x sqrt(galaxies) = {err[0] * np.sqrt(n_gal):.3f} / "
-          f"{err[1] * np.sqrt(n_gal):.3f} on m1 / m2, so +/-7e-4 on m takes about "
-          f"{int(np.ceil((max(err[:2]) * np.sqrt(n_gal) / 7e-4) ** 2))} such galaxies")
+    print(f"  with the mean of its diagonal, (R11 + R22) / 2, for both (isotropic galaxies respond alike to either "
+          f"component): m1 = {format_with_error(est[8], err[8])}, m2 = {format_with_error(est[9], err[9])}")
+    root = np.sqrt(n_gal)
+    print(f"  per galaxy (its whole ring): error x sqrt(galaxies) = {err[0] * root:.3f} / {err[1] * root:.3f} on m1 / "
+          f"m2 (the diagonal of <R>: {err[6] * root:.3f} / {err[7] * root:.3f}; its mean: {err[8] * root:.3f} / "
+          f"{err[9] * root:.3f}), so +/-7e-4 on m takes about {int(np.ceil((max(err[:2]) * root / 7e-4) ** 2))} such "
+          f"galaxies, +/-2e-3 about {int(np.ceil((max(err[:2]) * root / 2e-3) ** 2))} (with the diagonal "
+          f"{int(np.ceil((max(err[6:8]) * root / 2e-3) ** 2))}, its mean {int(np.ceil((max(err[8:10]) * root / 2e-3) ** 2))})")
     print(f"  <R_gamma> = [[{Rg[0, 0]:.4f}, {Rg[0, 1]:+.4f}], [{Rg[1, 0]:+.4f}, {Rg[1, 1]:.4f}]]; "
           f"R_S = [[{Rs[0, 0]:+.4f}, {Rs[0, 1]:+.4f}], [{Rs[1, 0]:+.4f}, {Rs[1, 1]:+.4f}]]")
     print(f"  fitclass != 0: {np.mean(np.asarray(tab['fitclass']) != 0):.3%} of {len(tab)} objects")
