@@ -110,16 +110,19 @@ def _work(task):
     t_sim = t_meas = 0.0
     metacal = opts.get("metacal", False)
     n_rot = opts["ring_kwargs"]["n_rotations"]
-    twins = (+1, -1) if opts.get("antithetic") else (+1,)
-    for sign, noise_sign in [(s, n) for s in (+1, -1) for n in twins]:
+    for sign in (+1, -1):
         # The same seed for both signs: nothing ring_set draws depends on the shear, so the
         # galaxy, PSFs, dithers and noise are identical and cancel in the +g / -g difference.
-        # The antithetic twin (noise_sign -1) has the same galaxies and minus the noise.
+        # The antithetic twin (noise_sign -1) has the same galaxies and stamps and minus the noise (drawn
+        # with them, in one call); the twins are measured after the first members, as when each had its own call
         rng = np.random.default_rng(seed)
         t0 = time.perf_counter()
-        rings = ring_set(1, tuple(sign * g), rng, cfg=cfg, noise_sign=noise_sign, **opts["ring_kwargs"])
+        rings = ring_set(1, tuple(sign * g), rng, cfg=cfg, antithetic=bool(opts.get("antithetic")),
+                         **opts["ring_kwargs"])
         t_sim += time.perf_counter() - t0
+        rings = [r for r in rings if r[1]["noise_sign"] > 0] + [r for r in rings if r[1]["noise_sign"] < 0]
         for obs, truth in rings:
+            noise_sign = truth["noise_sign"]
             rec = {
                 "galaxy": index, "sign": sign,
                 # the twin's objects are more members of the same ring (rotation numbers after the first's)

@@ -284,6 +284,26 @@ def test_ring_set_antithetic_twin_negates_only_the_noise():
             assert np.max(np.abs(x.image + y.image - 2 * z.image)) < 1e-10 * np.max(z.image)   # ... by its sign
 
 
+def test_ring_set_antithetic_in_one_call_is_the_two_calls():
+    """antithetic=True returns each orientation followed by its twin: the members of a call with noise_sign +1
+    and the twins of one with -1 (a generator in the same state), every pixel and truth value the same, for
+    noise from the main generator and from noise_seed; the truth says which sign each has."""
+    for kw in ({}, {"noise_seed": 5}):
+        both = ring_set(3, (0.02, 0.0), np.random.default_rng(3), n_rotations=2, n_exposures=2, antithetic=True, **kw)
+        a = ring_set(3, (0.02, 0.0), np.random.default_rng(3), n_rotations=2, n_exposures=2, **kw)
+        b = ring_set(3, (0.02, 0.0), np.random.default_rng(3), n_rotations=2, n_exposures=2, noise_sign=-1, **kw)
+        assert len(both) == 2 * len(a)
+        for (o1, t1), (o2, t2), (oa, ta), (ob, tb) in zip(both[0::2], both[1::2], a, b):
+            assert (t1["noise_sign"], t2["noise_sign"], ta["noise_sign"], tb["noise_sign"]) == (1, -1, 1, -1)
+            for t, ref in ((t1, ta), (t2, tb)):
+                assert t.keys() == ref.keys()
+                assert all(np.array_equal(t[k], ref[k]) for k in t if k != "fields") and t["fields"] == ref["fields"]
+            for x, y, u, v in zip(o1, o2, oa, ob):
+                assert np.array_equal(x.image, u.image) and np.array_equal(y.image, v.image)
+                assert np.array_equal(x.psf, u.psf) and np.array_equal(y.weight, v.weight)
+                assert not np.array_equal(x.image, y.image)
+
+
 def test_ring_set_jacobian_jitter():
     """jacobian_jitter: each exposure's Jacobian is J (1 + A), A of the given rms; the +g and -g runs see the
     same ones, and the truth records them."""

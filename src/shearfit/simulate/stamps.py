@@ -352,11 +352,38 @@ class NegatedNormal:
         return getattr(self.rng, name)
 
 
+class _RecordedNormal:
+    """A numpy Generator whose ``normal`` draws are kept (``drawn``), every other draw passed through."""
+
+    def __init__(self, rng):
+        self.rng = rng
+        self.drawn = []
+
+    def normal(self, *args, **kwargs):
+        z = self.rng.normal(*args, **kwargs)
+        self.drawn.append(z)
+        return z
+
+    def __getattr__(self, name):
+        return getattr(self.rng, name)
+
+
+class _ReplayedNormal:
+    """``normal`` returns another generator's recorded draws negated, in their order: the twin's noise without
+    drawing it again (the numbers :class:`NegatedNormal` of a generator in the same state gives)."""
+
+    def __init__(self, drawn):
+        self.drawn = iter(drawn)
+
+    def normal(self, *args, **kwargs):
+        return -next(self.drawn)
+
+
 def ring_set(n_galaxies, shear, rng, n_rotations=4, n_exposures=7, snr_range=(100, 200), mag_range=(21, 24.5),
              psf_fwhm_range=(0.5, 0.8), psf_beta_range=(2.5, 4.5), psf_e_max=0.1, pixel_scale=0.187,
              stamp_size=48, psf_oversampling=1, max_dither=0.5, cfg=None, noise_seed=None,
              rotate_exposures=False, gsparams=None, population=None, add_noise=True, noise_sign=1,
-             jacobian_jitter=0.0, profile=None, noise_sigma=None, psf_e_fixed=None):
+             jacobian_jitter=0.0, profile=None, noise_sigma=None, psf_e_fixed=None, antithetic=False):
     """Ring sets of GalSim-simulated galaxies, all with one applied shear.
 
     Every galaxy is drawn from the paper's population at a magnitude uniform in
@@ -422,6 +449,10 @@ def ring_set(n_galaxies, shear, rng, n_rotations=4, n_exposures=7, snr_range=(10
     noise_sign : +1 or -1
         -1 negates every noise draw (the antithetic twin of the same
         galaxies, PSFs and dithers: its noise is exactly minus the +1 run's).
+    antithetic : bool
+        Also return each orientation's antithetic twin, right after it: the same noise-free stamps and PSF
+        images with minus its noise, the numbers a second call with the opposite ``noise_sign`` and a
+        generator in the same state gives, without drawing the stamps again.
     noise_sigma : float, optional
         One pixel sigma (counts) for every galaxy instead of the target SNR's:
         the SNR then follows from the magnitude's flux and the galaxy's size, as
@@ -440,7 +471,8 @@ def ring_set(n_galaxies, shear, rng, n_rotations=4, n_exposures=7, snr_range=(10
         ``mag``, ``flux``, ``snr`` (target; with ``noise_sigma``, that of the unsheared
         galaxy), ``snr_true`` (of this orientation's
         noise-free stamps), ``sigma``, ``psf_fwhm``, ``psf_beta``, ``psf_e1``,
-        ``psf_e2``, ``offsets``, ``jacobian_angles``, ``jacobians`` and ``n_redraws``.
+        ``psf_e2``, ``offsets``, ``jacobian_angles``, ``jacobians``, ``n_redraws`` and ``noise_sign``. With
+        ``antithetic``, twice as many: each orientation followed by its twin.
     """
     g1, g2 = (float(s) for s in shear)
     if math.hypot(g1, g2) >= 1:
@@ -492,9 +524,17 @@ def ring_set(n_galaxies, shear, rng, n_rotations=4, n_exposures=7, snr_range=(10
             noise_rng = rng if seed_prefix is None else np.random.default_rng(seed_prefix + [i, j])
             if noise_sign < 0:
                 noise_rng = NegatedNormal(noise_rng)
+            if antithetic:
+                noise_rng = _RecordedNormal(noise_rng)
             obs = make_observations(None, psfs, Js, gal["offsets"], sigma, noise_rng, stamp_size=stamp_size,
                                     psf_oversampling=psf_oversampling, gsparams=gsparams, noise_free=m,
                                     psf_images=psf_images, add_noise=add_noise)
+            members = [(obs, 1 if noise_sign >= 0 else -1)]
+            if antithetic:
+                twin = make_observations(None, psfs, Js, gal["offsets"], sigma, _ReplayedNormal(noise_rng.drawn),
+                                         stamp_size=stamp_size, psf_oversampling=psf_oversampling, gsparams=gsparams,
+                                         noise_free=m, psf_images=psf_images, add_noise=add_noise)
+                members.append((twin, -members[0][1]))
             truth = {
                 "galaxy": i, "rotation": j, "e1_int": float(ej.real), "e2_int": float(ej.imag), "g1": g1, "g2": g2,
                 "scalelength": gal["scalelength"], "bulge_fraction": gal["bulge_fraction"],
@@ -505,7 +545,10 @@ def ring_set(n_galaxies, shear, rng, n_rotations=4, n_exposures=7, snr_range=(10
                 "jacobian_angles": gal["jacobian_angles"].copy(), "n_redraws": gal["n_redraws"],
                 "jacobians": np.array(Js), "fields": dict(gal["fields"]),
             }
-            out.append((obs, truth))
+            for k, (o, sign) in enumerate(members):
+                out.append((o, dict(truth, noise_sign=sign) if k == 0 else
+                            {**{key: (v.copy() if isinstance(v, np.ndarray) else v) for key, v in truth.items()},
+                             "fields": dict(truth["fields"]), "noise_sign": sign}))
     return out
 
 
