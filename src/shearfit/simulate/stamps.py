@@ -19,6 +19,7 @@ Conventions (docs/interface.rst, "Python API for one object")
 
 from __future__ import annotations
 
+import copy
 import math
 from typing import Mapping
 
@@ -546,9 +547,7 @@ def ring_set(n_galaxies, shear, rng, n_rotations=4, n_exposures=7, snr_range=(10
                 "jacobians": np.array(Js), "fields": dict(gal["fields"]),
             }
             for k, (o, sign) in enumerate(members):
-                out.append((o, dict(truth, noise_sign=sign) if k == 0 else
-                            {**{key: (v.copy() if isinstance(v, np.ndarray) else v) for key, v in truth.items()},
-                             "fields": dict(truth["fields"]), "noise_sign": sign}))
+                out.append((o, dict(truth if k == 0 else copy.deepcopy(truth), noise_sign=sign)))
     return out
 
 
