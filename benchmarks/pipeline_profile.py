@@ -56,18 +56,23 @@ STAGES = [
 
 class _ModeCounter:
     """Per fit, the Fourier modes the engine sums, those of them in fold groups (aliases of one sampled mode,
-    App. A) and the groups' cross terms, counted where the engine packs them for binning."""
+    App. A) and the groups' cross terms, counted where the engine packs them for binning; and the modes by
+    their wavenumber in radians per pixel (|K| times the pixel scale), where fitted PSF models keep more of them
+    than true PSF images do."""
+
+    K_EDGES = (0.0, 2.0, 2.5, 3.0, 3.5, np.inf)
 
     def __enter__(self):
         import shearfit.engine.likelihood as lik
 
-        self.lik, self.orig, self.rows = lik, lik._packed_bins, []
+        self.lik, self.orig, self.rows, self.bands = lik, lik._packed_bins, [], []
 
         def counted(jm):
             fresh = getattr(jm, "_bins32", None) is None
             out = self.orig(jm)
             if fresh:
                 self.rows.append((out[0].shape[0], jm.multi.size, out[3].size))
+                self.bands.append(np.histogram(np.hypot(jm.kx, jm.ky) * jm.pixel_scale, self.K_EDGES)[0])
             return out
 
         lik._packed_bins = counted
@@ -80,8 +85,12 @@ class _ModeCounter:
         if not self.rows:
             return "no fits"
         med = np.median(np.array(self.rows), axis=0)
+        mean = np.mean(np.array(self.bands), axis=0)
+        edges = self.K_EDGES
+        bands = ", ".join(f"{lo:g}-{hi:g}: {m:.0f}" if np.isfinite(hi) else f">= {lo:g}: {m:.0f}"
+                          for lo, hi, m in zip(edges[:-1], edges[1:], mean))
         return (f"Fourier modes per fit, median {med[0]:.0f}, of which {med[1]:.0f} in fold groups with {med[2]:.0f} "
-                f"cross terms ({len(self.rows)} fits)")
+                f"cross terms ({len(self.rows)} fits); mean per fit by wavenumber (radians per pixel) {bands}")
 
 
 class _EngineClock:
