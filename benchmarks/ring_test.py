@@ -51,6 +51,13 @@ noise cancel within a ring, which shrinks the errors on c several times; on m th
 ``--with-plain`` (with --metacal) also fits every object with plain lensfit, and ``--from-tables ...
 --plain`` reports those fits, so one run gives both sides of a comparison of metacal with the
 simulation calibration.
+
+With ``--out T``, the galaxies measured so far are written to ``T``'s checkpoint (``T.partial.fits`` for
+``T.fits``) about once a minute, and removed when ``T`` is written. A run that was stopped continues with the
+same command and ``--resume``: the galaxies in the checkpoint are kept and only the others are measured (every
+galaxy's draws come from its own seed, so the final table is the uninterrupted run's)::
+
+    python benchmarks/ring_test.py --n-galaxies 800 --metacal --antithetic --seed 87 --out T.fits --resume
 """
 
 from __future__ import annotations
@@ -64,6 +71,7 @@ for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
 
 import argparse  # noqa: E402
 import functools  # noqa: E402
+import signal  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
 from multiprocessing import Pool  # noqa: E402
@@ -537,7 +545,13 @@ def parse_args(argv=None):
     p.add_argument("--unweighted", action="store_true", help="unit weights for fitclass 0 instead of lensfit's")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="engine setting (FitConfig field), repeatable; also used for the population")
-    p.add_argument("--out", help="per-object results, .fits or .csv")
+    p.add_argument("--out", help="per-object results, .fits or .csv (and, while the run lasts, its checkpoint: "
+                                 "see --resume)")
+    p.add_argument("--resume", action="store_true",
+                   help="with --out: continue a stopped run from its checkpoint (the same options), measuring only "
+                        "the galaxies it does not hold")
+    p.add_argument("--checkpoint-seconds", type=float, default=60.0,
+                   help="with --out: write the checkpoint at most this often (seconds)")
     p.add_argument("--noise-free", action="store_true",
                    help="noise-free images with the weights of the target SNR: the likelihood has that SNR's "
                         "width but is centred on the truth (implementation accuracy without noise bias)")
@@ -586,7 +600,48 @@ def parse_args(argv=None):
         p.error("need 0 < --snr-min <= --snr-max")
     if args.size_range is not None and (args.population != "paper" or not 0 < args.size_range[0] < args.size_range[1]):
         p.error("--size-range needs 0 < RMIN < RMAX and the paper's population")
+    if args.resume and not args.out:
+        p.error("--resume needs --out (the run whose checkpoint it continues)")
     return args
+
+
+#: options that do not change what a run's galaxies are or how they are measured (a checkpoint continues under
+#: other values of these)
+_RUN_ONLY_OPTIONS = {"out", "resume", "checkpoint_seconds", "processes", "quiet", "n_bootstrap", "snr_bins",
+                     "unweighted", "calibration"}
+
+
+def run_signature(args):
+    """A short digest of the options that decide a run's galaxies and measurements (a checkpoint records it and
+    --resume checks it)."""
+    import hashlib
+
+    items = sorted((k, v) for k, v in vars(args).items() if k not in _RUN_ONLY_OPTIONS)
+    return hashlib.sha1(repr(items).encode()).hexdigest()[:16]
+
+
+def checkpoint_path(out):
+    """The checkpoint of the table ``out``: T.partial.fits for T.fits (T.partial.csv for T.csv)."""
+    stem, ext = os.path.splitext(out)
+    return f"{stem}.partial{ext or '.fits'}"
+
+
+def read_checkpoint(path, signature):
+    """The records of a checkpoint (a list of dicts, galaxy by galaxy), after checking it belongs to this run."""
+    from astropy.table import Table
+
+    try:
+        t = Table.read(path)
+    except (OSError, ValueError) as exc:
+        raise ValueError(f"{path}: cannot read the checkpoint ({exc})") from None
+    got = t.meta.get("RUNSIG")
+    if got != signature:
+        raise ValueError(f"{path}: checkpoint of another run (header RUNSIG {got!r}, this run's {signature!r}): "
+                         "give the options of the run that wrote it, or remove it")
+    names = t.colnames
+    cols = [np.asarray(t[n]) for n in names]
+    return [{n: (str(c[i]) if c.dtype.kind == "U" else c[i].item()) for n, c in zip(names, cols)}
+            for i in range(len(t))]
 
 
 def _config(settings):
@@ -601,10 +656,10 @@ def _config(settings):
     return shearfit.fit_config_from_mapping(mapping)
 
 
-def _write_table(tab, path):
+def _write_table(tab, path, meta=None):
     from astropy.table import Table
 
-    t = Table({k: tab[k] for k in tab.dtype.names})
+    t = Table({k: tab[k] for k in tab.dtype.names}, meta=meta or {})
     tmp = f"{path}.tmp{os.getpid()}"
     fmt = "csv" if path.lower().endswith(".csv") else "fits"
     try:
@@ -741,52 +796,91 @@ def main(argv=None):
                             profile=outside_profile if args.population == "outside" else None),
     }
     seeds = np.random.SeedSequence(args.seed).spawn(args.n_galaxies)
-    tasks = [(i, seeds[i], opts) for i in range(args.n_galaxies)]
-    n_proc = min(args.processes, args.n_galaxies)
+    signature = run_signature(args)
+    ckpt = checkpoint_path(args.out) if args.out else None
+    records = []
+    if ckpt and os.path.exists(ckpt):
+        if not args.resume:
+            print(f"ring_test.py: error: {ckpt} exists (a stopped run's checkpoint): add --resume to continue "
+                  "it, or remove it", file=sys.stderr)
+            return 2
+        try:
+            records = read_checkpoint(ckpt, signature)
+        except ValueError as exc:
+            print(f"ring_test.py: error: {exc}", file=sys.stderr)
+            return 2
+    done = {int(r["galaxy"]) for r in records}
+    tasks = [(i, seeds[i], opts) for i in range(args.n_galaxies) if i not in done]
+    n_proc = max(min(args.processes, len(tasks)), 1)
     print(f"ring test: {args.n_galaxies} galaxies x {args.n_rotations} orientations x 2 shears "
           f"(g = {args.shear[0]:+.4f}, {args.shear[1]:+.4f}), {args.n_exposures} exposures, "
-          f"SNR {args.snr_min:g}-{args.snr_max:g}, {n_proc} process(es){', dry run' if args.dry_run else ''}")
+          f"SNR {args.snr_min:g}-{args.snr_max:g}, {n_proc} process(es){', dry run' if args.dry_run else ''}"
+          + (f"; {len(done)} galaxies from the checkpoint {ckpt}" if done else ""))
 
-    records, t_sim, t_meas = [], 0.0, 0.0
+    t_sim, t_meas, n_new = 0.0, 0.0, 0
     t_wall = time.perf_counter()
+    t_saved = t_wall
     show = not args.quiet and sys.stderr.isatty()
 
+    def save_checkpoint():
+        if ckpt and records:
+            _write_table(_to_array(sorted(records, key=lambda r: (r["galaxy"], -r["sign"], r["rotation"]))), ckpt,
+                         meta={"RUNSIG": signature})
+
     def collect(results):
-        nonlocal t_sim, t_meas
+        nonlocal t_sim, t_meas, n_new, t_saved
         for k, (recs, ts, tm) in enumerate(results, 1):
             records.extend(recs)
+            n_new += len(recs)
             t_sim += ts
             t_meas += tm
             if show:
                 print(f"\r  {k}/{len(tasks)} galaxies", end="", file=sys.stderr, flush=True)
+            if ckpt and time.perf_counter() - t_saved >= args.checkpoint_seconds:
+                save_checkpoint()
+                t_saved = time.perf_counter()
         if show:
             print(file=sys.stderr)
 
-    if n_proc == 1:
-        collect(map(_work, tasks))
-    else:
-        with Pool(n_proc) as pool:
-            collect(pool.imap_unordered(_work, tasks, chunksize=1))
+    def stop(signum, frame):   # SIGTERM as ^C: the checkpoint is written before the process ends
+        raise KeyboardInterrupt
+
+    if ckpt:
+        signal.signal(signal.SIGTERM, stop)
+    try:
+        if n_proc == 1:
+            collect(map(_work, tasks))
+        else:
+            with Pool(n_proc, initializer=signal.signal, initargs=(signal.SIGTERM, signal.SIG_DFL)) as pool:
+                collect(pool.imap_unordered(_work, tasks, chunksize=1))
+    except KeyboardInterrupt:
+        save_checkpoint()
+        if ckpt:
+            print(f"\nring_test.py: interrupted; {len({r['galaxy'] for r in records})} galaxies kept in {ckpt} "
+                  "(the same command with --resume continues)", file=sys.stderr)
+        return 130
     t_wall = time.perf_counter() - t_wall
 
     records.sort(key=lambda r: (r["galaxy"], -r["sign"], r["rotation"]))
     tab = _to_array(records)
-    n_obj = len(tab)
-    n_orient = n_obj  # one orientation of one galaxy at one shear = one simulated object
+    # the timing is this process's: the objects it simulated and measured (not a checkpoint's)
+    n_orient = max(n_new, 1)  # one orientation of one galaxy at one shear = one simulated object
     print(f"\ntiming: wall {t_wall:.1f} s; simulation {t_sim / n_orient * 1e3:.1f} ms per "
           f"{args.n_exposures}-exposure object (one process)", end="")
     if args.dry_run:
         print()
         report_dry(tab)
     else:
-        rate = n_obj / t_meas if t_meas > 0 else np.nan
-        print(f"; measurement {t_meas / n_obj * 1e3:.1f} ms per object = {rate:.2f} galaxies / s / process")
+        rate = n_new / t_meas if t_meas > 0 else np.nan
+        print(f"; measurement {t_meas / n_orient * 1e3:.1f} ms per object = {rate:.2f} galaxies / s / process")
         report_lensfit(tab, args, args.n_galaxies)
         if args.metacal:
             report_metacal(tab, args, args.n_galaxies)
         report_families(tab, args)
     if args.out:
         _write_table(tab, args.out)
+        if os.path.exists(ckpt):
+            os.remove(ckpt)
         print(f"\nper-object results written to {args.out}")
     return 0
 

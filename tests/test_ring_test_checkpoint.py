@@ -1,0 +1,57 @@
+"""benchmarks/ring_test.py's checkpoint: a stopped run continued with --resume gives the uninterrupted run's table."""
+
+import importlib.util
+import os
+
+import numpy as np
+import pytest
+from astropy.table import Table
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+
+
+@pytest.fixture(scope="module")
+def ring_test():
+    spec = importlib.util.spec_from_file_location("ring_test_bench", os.path.join(HERE, "..", "benchmarks",
+                                                                                  "ring_test.py"))
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def _args(out, seed=2):
+    return ["--n-galaxies", "3", "--n-exposures", "1", "--n-rotations", "2", "--stamp-size", "32", "--processes", "1",
+            "--seed", str(seed), "--n-bootstrap", "10", "--quiet", "--out", str(out)]
+
+
+def test_resume_from_checkpoint_gives_the_whole_run(ring_test, tmp_path, capsys):
+    whole = tmp_path / "whole.fits"
+    assert ring_test.main(_args(whole)) == 0
+    assert not os.path.exists(ring_test.checkpoint_path(str(whole)))
+    ref = Table.read(whole)
+
+    # a run stopped after galaxy 1: its checkpoint holds that galaxy's rows, with the run's signature
+    out = tmp_path / "resumed.fits"
+    ckpt = ring_test.checkpoint_path(str(out))
+    assert ckpt == str(tmp_path / "resumed.partial.fits")
+    part = ref[ref["galaxy"] == 1]
+    sig = ring_test.run_signature(ring_test.parse_args(_args(out)))
+    part.meta["RUNSIG"] = sig
+    part.write(ckpt)
+
+    # without --resume the checkpoint is not overwritten; under other options it is refused
+    assert ring_test.main(_args(out)) == 2
+    assert ckpt in capsys.readouterr().err
+    assert ring_test.main(_args(out, seed=3) + ["--resume"]) == 2
+    assert "checkpoint of another run" in capsys.readouterr().err
+    assert os.path.exists(ckpt) and not os.path.exists(out)
+
+    assert ring_test.main(_args(out) + ["--resume"]) == 0
+    assert "1 galaxies from the checkpoint" in capsys.readouterr().out
+    assert not os.path.exists(ckpt)
+    got = Table.read(out)
+    assert got.colnames == ref.colnames and len(got) == len(ref)
+    for name in ref.colnames:
+        if name != "time":   # the measuring time of each object is the one column a rerun changes
+            a, b = np.asarray(ref[name]), np.asarray(got[name])
+            assert np.array_equal(a, b, equal_nan=a.dtype.kind == "f"), name
