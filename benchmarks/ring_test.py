@@ -620,6 +620,11 @@ def run_signature(args):
     return hashlib.sha1(repr(items).encode()).hexdigest()[:16]
 
 
+def _record_order(rec):
+    """The per-object table's row order: galaxy, +g before -g, orientation (twins after the first members)."""
+    return rec["galaxy"], -rec["sign"], rec["rotation"]
+
+
 def checkpoint_path(out):
     """The checkpoint of the table ``out``: T.partial.fits for T.fits (T.partial.csv for T.csv)."""
     stem, ext = os.path.splitext(out)
@@ -824,8 +829,7 @@ def main(argv=None):
 
     def save_checkpoint():
         if ckpt and records:
-            _write_table(_to_array(sorted(records, key=lambda r: (r["galaxy"], -r["sign"], r["rotation"]))), ckpt,
-                         meta={"RUNSIG": signature})
+            _write_table(_to_array(sorted(records, key=_record_order)), ckpt, meta={"RUNSIG": signature})
 
     def collect(results):
         nonlocal t_sim, t_meas, n_new, t_saved
@@ -845,8 +849,7 @@ def main(argv=None):
     def stop(signum, frame):   # SIGTERM as ^C: the checkpoint is written before the process ends
         raise KeyboardInterrupt
 
-    if ckpt:
-        signal.signal(signal.SIGTERM, stop)
+    previous = signal.signal(signal.SIGTERM, stop) if ckpt else None
     try:
         if n_proc == 1:
             collect(map(_work, tasks))
@@ -859,9 +862,12 @@ def main(argv=None):
             print(f"\nring_test.py: interrupted; {len({r['galaxy'] for r in records})} galaxies kept in {ckpt} "
                   "(the same command with --resume continues)", file=sys.stderr)
         return 130
+    finally:
+        if previous is not None:   # main() may run inside another program (the tests)
+            signal.signal(signal.SIGTERM, previous)
     t_wall = time.perf_counter() - t_wall
 
-    records.sort(key=lambda r: (r["galaxy"], -r["sign"], r["rotation"]))
+    records.sort(key=_record_order)
     tab = _to_array(records)
     # the timing is this process's: the objects it simulated and measured (not a checkpoint's)
     n_orient = max(n_new, 1)  # one orientation of one galaxy at one shear = one simulated object
