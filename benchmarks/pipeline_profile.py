@@ -117,6 +117,46 @@ class _EngineClock:
         self.drv.measure_object = self.orig
 
 
+class _PsfClock:
+    """CPU seconds the pipeline spends on the PSF itself during an unprofiled run, timed directly: reading given
+    PSF files, selecting stars and fitting the models (``fit_exposure_psf``), the model's image, registration
+    shift and above-Nyquist Moffat at each object (``_ExposurePSF`` and ``_chunk_geometry``'s batches), and the
+    PSF's adaptive moments for each object's PSF columns (nested calls counted once). What a model that varies
+    across the field makes the engine do per object (its own modes and alias tables, counted in the engine's
+    time) is not in it: that is the difference between the fitted and the given runs' engine time."""
+
+    def __enter__(self):
+        import shearfit.pipeline.driver as drv
+
+        self.drv, self.cpu, self.depth, self.saved = drv, 0.0, 0, []
+
+        def timed(orig):
+            def call(*a, **k):
+                if self.depth:
+                    return orig(*a, **k)
+                self.depth += 1
+                c0 = time.process_time()
+                try:
+                    return orig(*a, **k)
+                finally:
+                    self.cpu += time.process_time() - c0
+                    self.depth -= 1
+            return call
+
+        for owner, name in ((drv, "_load_psf"), (drv, "fit_exposure_psf"), (drv, "psf_moments"),
+                            (drv._ExposurePSF, "at"), (drv._ExposurePSF, "fitted_at_many"),
+                            (drv._ExposurePSF, "moffat"), (drv._ExposurePSF, "shift"),
+                            (drv._ExposurePSF, "model_uv"), (drv._ExposurePSF, "sigma_guess")):
+            orig = getattr(owner, name)
+            self.saved.append((owner, name, orig))
+            setattr(owner, name, timed(orig))
+        return self
+
+    def __exit__(self, *exc):
+        for owner, name, orig in reversed(self.saved):
+            setattr(owner, name, orig)
+
+
 def _with_settings(cfg, items):
     """The field config with KEY=VALUE settings of the engine (cfg.fit) or the pipeline (cfg.pipeline)."""
     from dataclasses import replace
@@ -135,6 +175,20 @@ def _with_settings(cfg, items):
     return cfg
 
 
+def _forget_psfs():
+    """Empty what the pipeline and the engine remember by PSF image or Moffat (each image's adaptive moments,
+    fine modes and Moffat, each Moffat's alias tables), so that every run pays for its PSFs as a fresh
+    ``shearfit measure`` process does, instead of reusing the first run's: the same field's PSF images are
+    the same arrays' contents run after run."""
+    import shearfit.engine.model as model
+    import shearfit.pipeline.driver as drv
+
+    drv._PSF_MOMENTS.clear()
+    model._FINE_PSF.clear()
+    model._OWN_MOFFAT.clear()
+    model._moffat_aliases.cache_clear()
+
+
 def _cpu_seconds():
     r = resource.getrusage(resource.RUSAGE_SELF)
     return r.ru_utime + r.ru_stime
@@ -146,6 +200,7 @@ def _runs(d, settings, modes, tag, queue):
     for mode in modes:
         cfg = _with_settings(load_field_config(os.path.join(d, "field_truepsf.yaml" if mode == "true"
                                                             else "field.yaml")), settings)
+        _forget_psfs()
         c0 = _cpu_seconds()
         table = measure_field(cfg, out_path=os.path.join(d, f"shear_{mode}_{tag}.fits"), processes=1)
         queue.put((tag, mode, _cpu_seconds() - c0, len(table)))
@@ -268,16 +323,19 @@ def main(argv=None):
         print(f"one-off per process (profile tables, imports): {_cpu_seconds() - c0:.1f} CPU-s, not counted below")
         rates = {m: [] for m in modes}
         engine_cpu = {m: [] for m in modes}
+        psf_cpu = {m: [] for m in modes}
         for rep in range(max(args.pairs, 1)):
             for mode in modes:
                 cfg = _with_settings(load_field_config(os.path.join(d, "field_truepsf.yaml" if mode == "true"
                                                                     else "field.yaml")), args.set)
+                _forget_psfs()
                 c0, t0 = _cpu_seconds(), time.perf_counter()
-                with _ModeCounter() as counter, _EngineClock() as clock:
+                with _ModeCounter() as counter, _EngineClock() as clock, _PsfClock() as psf_clock:
                     table = measure_field(cfg, out_path=os.path.join(d, f"shear_{mode}.fits"), processes=1)
                 cpu, wall = _cpu_seconds() - c0, time.perf_counter() - t0
                 rates[mode].append(cpu)
                 engine_cpu[mode].append(clock.cpu)
+                psf_cpu[mode].append(psf_clock.cpu)
                 fc = np.asarray(table["fitclass"])
                 if rep == 0:
                     print(f"\nPSF {'given (true images)' if mode == 'true' else 'fitted from the stars'}: {len(table)} "
@@ -286,7 +344,8 @@ def main(argv=None):
                           f"{counter.summary()}")
                 print(f"  run {rep + 1}, PSF {'given' if mode == 'true' else 'fitted'}: {len(table) / cpu:.2f} objects "
                       f"per CPU-second ({cpu:.1f} CPU-s, {wall:.1f} s wall); the engine {clock.cpu:.1f} CPU-s of it, "
-                      f"the rest of the pipeline adds {100 * (cpu - clock.cpu) / clock.cpu:.0f} % to the engine's cost",
+                      f"the rest of the pipeline adds {100 * (cpu - clock.cpu) / clock.cpu:.0f} % to the engine's cost; "
+                      f"the PSF itself (timed directly) {psf_clock.cpu:.2f} CPU-s, {100 * psf_clock.cpu / cpu:.1f} %",
                       flush=True)
         n_obj = len(table)
         for mode in modes:
@@ -301,6 +360,13 @@ def main(argv=None):
             mt, mf = float(np.median(rates["true"])), float(np.median(rates["fitted"]))
             print(f"PSF stage (fitted minus given): {mf - mt:.1f} CPU-s, {100 * (mf - mt) / mf:.0f} % of the run with "
                   f"fitted PSFs (medians); pair by pair {', '.join(f'{p:.0f}' for p in pair)} %")
+            share = [100 * p / c for p, c in zip(psf_cpu["fitted"], rates["fitted"])]
+            de = [f - t for t, f in zip(engine_cpu["true"], engine_cpu["fitted"])]
+            print(f"PSF stage of the fitted runs, timed directly (star selection and fits, the model at each object, "
+                  f"its moments): {', '.join(f'{x:.1f}' for x in share)} % (median {np.median(share):.1f} %); the "
+                  f"engine's own time with the fitted models minus with the given images: "
+                  f"{', '.join(f'{x:+.2f}' for x in de)} CPU-s "
+                  f"({', '.join(f'{100 * x / c:+.1f}' for x, c in zip(de, rates['fitted']))} % of the fitted runs)")
         if args.simultaneous > 0 and len(modes) == 2:
             _simultaneous_pairs(d, args.set, args.simultaneous)
         if args.compare_with:
@@ -314,6 +380,7 @@ def main(argv=None):
         mode = modes[-1]
         cfg = _with_settings(load_field_config(os.path.join(d, "field_truepsf.yaml" if mode == "true" else "field.yaml")),
                              args.set)
+        _forget_psfs()
         prof = cProfile.Profile()
         prof.enable()
         table = measure_field(cfg, out_path=os.path.join(d, "shear_profiled.fits"), processes=1)

@@ -184,7 +184,7 @@ def _cmd_psf(args):
 
     from ..io.fieldconfig import load_field_config
     from ..io.fits import read_catalog, read_exposure
-    from ..pipeline.driver import fit_exposure_psf
+    from ..pipeline.driver import fit_exposure_psf, star_catalogue_positions
     from ..psf.build import write_psf_model
     from ..psf.diagnostics import psf_diagnostics, write_diagnostics
     from ..workers import single_threaded
@@ -193,13 +193,14 @@ def _cmd_psf(args):
     out = args.out or os.path.join(os.path.dirname(os.path.abspath(args.config)), "psf")
     os.makedirs(out, exist_ok=True)
     cat = read_catalog(cfg.catalog)
+    stars = star_catalogue_positions(cfg)   # read once for all the exposures
     summary = []
     # one BLAS thread, as in shearfit measure: the star fits' small products gain no wall time from more
     with single_threaded():
         for k, spec in enumerate(cfg.exposures):
             ccds = read_exposure(spec.image, spec.weight)
             stem = os.path.splitext(os.path.basename(spec.image))[0]
-            res = fit_exposure_psf(cfg, cat, ccds, f"exposure {k} ({spec.image})")
+            res = fit_exposure_psf(cfg, cat, ccds, f"exposure {k} ({spec.image})", stars)
             prefix = os.path.join(out, stem)
             write_psf_model(res.model, f"{prefix}.psfmodel.fits")
             diag = psf_diagnostics(res, ccds, n_bootstrap=0 if args.no_bootstrap else cfg.pipeline.psf_bootstrap,

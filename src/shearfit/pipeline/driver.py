@@ -254,18 +254,27 @@ def _immutable(got):
     return img, k
 
 
-def psf_star_positions(cfg: FieldConfig, cat, ccds):
-    """(ra, dec) of the PSF stars of one exposure: the star catalogue, else the stellar locus of ``cat``."""
+def star_catalogue_positions(cfg: FieldConfig):
+    """(ra, dec) of the field's star catalogue (``stars:``), or None without one."""
+    if cfg.stars is None:
+        return None
+    stars = read_catalog(cfg.stars)
+    return np.asarray(stars["ra"], float), np.asarray(stars["dec"], float)
+
+
+def psf_star_positions(cfg: FieldConfig, cat, ccds, stars=None):
+    """(ra, dec) of the PSF stars of one exposure: the star catalogue (``stars``: its
+    :func:`star_catalogue_positions`, where already read), else the stellar locus of ``cat``."""
     if cfg.stars is not None:
-        stars = read_catalog(cfg.stars)
-        return np.asarray(stars["ra"], float), np.asarray(stars["dec"], float)
+        return star_catalogue_positions(cfg) if stars is None else stars
     rows = stellar_locus(ccds, cat, cfg.pipeline, FieldFrame.of_exposure(ccds))
     return np.asarray(cat["ra"], float)[rows], np.asarray(cat["dec"], float)[rows]
 
 
-def fit_exposure_psf(cfg: FieldConfig, cat, ccds, label):
-    """Fit one exposure's pixel PSF model from its stars (sec. 5)."""
-    sra, sdec = psf_star_positions(cfg, cat, ccds)
+def fit_exposure_psf(cfg: FieldConfig, cat, ccds, label, stars=None):
+    """Fit one exposure's pixel PSF model from its stars (sec. 5) (``stars``: the star catalogue's
+    :func:`star_catalogue_positions`, where already read: it is read once for all the exposures)."""
+    sra, sdec = psf_star_positions(cfg, cat, ccds, stars)
     ora = np.concatenate([np.asarray(cat["ra"], float), sra])
     odec = np.concatenate([np.asarray(cat["dec"], float), sdec])
     res = build_exposure_psf(ccds, sra, sdec, ora, odec, cfg.pipeline, label=label)
@@ -489,6 +498,7 @@ def _read_exposures(cfg: FieldConfig, cat):
         given = _load_psf(spec, ccds[0].n_file_ccds, k, ccds=ccds) if spec.psf is not None else None
         read.append((k, spec, ccds, given))
     exposures = []
+    stars = functools.lru_cache(maxsize=1)(lambda: star_catalogue_positions(cfg))   # read once, if needed
     for k, spec, ccds, psf in read:
         if psf is None:
             hdus = ", ".join(str(c.hdu) for c in ccds)
@@ -497,7 +507,7 @@ def _read_exposures(cfg: FieldConfig, cat):
                             k, spec.image, hdus)
                 psf = _ExposurePSF(ccds=ccds)
             else:
-                fit = functools.partial(_fitted_psf, cfg, cat, ccds, f"exposure {k} ({spec.image})")
+                fit = functools.partial(_fitted_psf, cfg, cat, ccds, f"exposure {k} ({spec.image})", stars)
                 try:
                     psf = _load_psf(spec, ccds[0].n_file_ccds, k, ccds=ccds, fit=fit)
                 except TooFewStarsError as exc:
@@ -507,9 +517,10 @@ def _read_exposures(cfg: FieldConfig, cat):
     return exposures
 
 
-def _fitted_psf(cfg, cat, ccds, name):
-    """The PSF model fitted from the stars of one exposure (called only where no PSF is given)."""
-    return fit_exposure_psf(cfg, cat, ccds, name).model
+def _fitted_psf(cfg, cat, ccds, name, stars):
+    """The PSF model fitted from the stars of one exposure (called only where no PSF is given); ``stars``: a
+    callable that gives the star catalogue's positions (read on the first call)."""
+    return fit_exposure_psf(cfg, cat, ccds, name, stars()).model
 
 
 def sky_chunks(cat, size):
