@@ -93,42 +93,17 @@ class _ModeCounter:
                 f"cross terms ({len(self.rows)} fits); mean per fit by wavenumber (radians per pixel) {bands}")
 
 
-class _EngineClock:
-    """CPU seconds spent inside the engine (``measure_object``, as the pipeline's driver calls it) during an
-    unprofiled run: the pipeline's own share of the run without the profiler's cost per Python call, which
-    inflates the pipeline's many small calls more than the engine's compiled loops."""
+class _CpuClock:
+    """CPU seconds spent inside some functions during an unprofiled run (nested calls among them counted once),
+    without the profiler's cost per Python call, which inflates the pipeline's many small calls more than the
+    engine's compiled loops. ``targets()`` names them as (owner, attribute name) pairs, patched while the clock
+    runs."""
+
+    def targets(self):
+        raise NotImplementedError
 
     def __enter__(self):
-        import shearfit.pipeline.driver as drv
-
-        self.drv, self.orig, self.cpu = drv, drv.measure_object, 0.0
-
-        def timed(*a, **k):
-            c0 = time.process_time()
-            try:
-                return self.orig(*a, **k)
-            finally:
-                self.cpu += time.process_time() - c0
-
-        drv.measure_object = timed
-        return self
-
-    def __exit__(self, *exc):
-        self.drv.measure_object = self.orig
-
-
-class _PsfClock:
-    """CPU seconds the pipeline spends on the PSF itself during an unprofiled run, timed directly: reading given
-    PSF files, selecting stars and fitting the models (``fit_exposure_psf``), the model's image, registration
-    shift and above-Nyquist Moffat at each object (``_ExposurePSF`` and ``_chunk_geometry``'s batches), and the
-    PSF's adaptive moments for each object's PSF columns (nested calls counted once). What a model that varies
-    across the field makes the engine do per object (its own modes and alias tables, counted in the engine's
-    time) is not in it: that is the difference between the fitted and the given runs' engine time."""
-
-    def __enter__(self):
-        import shearfit.pipeline.driver as drv
-
-        self.drv, self.cpu, self.depth, self.saved = drv, 0.0, 0, []
+        self.cpu, self.depth, self.saved = 0.0, 0, []
 
         def timed(orig):
             def call(*a, **k):
@@ -143,10 +118,7 @@ class _PsfClock:
                     self.depth -= 1
             return call
 
-        for owner, name in ((drv, "_load_psf"), (drv, "fit_exposure_psf"), (drv, "psf_moments"),
-                            (drv._ExposurePSF, "at"), (drv._ExposurePSF, "fitted_at_many"),
-                            (drv._ExposurePSF, "moffat"), (drv._ExposurePSF, "shift"),
-                            (drv._ExposurePSF, "model_uv"), (drv._ExposurePSF, "sigma_guess")):
+        for owner, name in self.targets():
             orig = getattr(owner, name)
             self.saved.append((owner, name, orig))
             setattr(owner, name, timed(orig))
@@ -155,6 +127,31 @@ class _PsfClock:
     def __exit__(self, *exc):
         for owner, name, orig in reversed(self.saved):
             setattr(owner, name, orig)
+
+
+class _EngineClock(_CpuClock):
+    """The engine (``measure_object``, as the pipeline's driver calls it): the pipeline's own share of a run."""
+
+    def targets(self):
+        import shearfit.pipeline.driver as drv
+
+        return [(drv, "measure_object")]
+
+
+class _PsfClock(_CpuClock):
+    """The PSF itself, timed directly: reading given PSF files, selecting stars and fitting the models
+    (``fit_exposure_psf``), the model's image, registration shift and above-Nyquist Moffat at each object
+    (``_ExposurePSF`` and ``_chunk_geometry``'s batches), and the PSF's adaptive moments for each object's PSF
+    columns. What a model that varies across the field makes the engine do per object (its own modes and alias
+    tables, counted in the engine's time) is not in it: that is the difference between the fitted and the given
+    runs' engine time."""
+
+    def targets(self):
+        import shearfit.pipeline.driver as drv
+
+        return [(drv, "_load_psf"), (drv, "fit_exposure_psf"), (drv, "psf_moments"),
+                (drv._ExposurePSF, "at"), (drv._ExposurePSF, "fitted_at_many"), (drv._ExposurePSF, "moffat"),
+                (drv._ExposurePSF, "shift"), (drv._ExposurePSF, "model_uv"), (drv._ExposurePSF, "sigma_guess")]
 
 
 def _with_settings(cfg, items):
