@@ -162,6 +162,58 @@ def test_ensemble_response_and_selection_response():
     assert np.allclose(est, g, rtol=3e-3), (est, naive, g)
 
 
+def _ring_table(n_gal, rng):
+    """A noisy metacal ring table: 4 objects per galaxy and sign, failed fits and non-finite R here and there."""
+    n = n_gal * 8
+    t = Table({"galaxy": np.repeat(np.arange(n_gal), 8), "sign": np.tile(np.repeat([1, -1], 4), n_gal)})
+    for sfx in ("", "_1p", "_1m", "_2p", "_2m"):
+        t[f"e1{sfx}"] = rng.normal(0, 0.3, n)
+        t[f"e2{sfx}"] = rng.normal(0, 0.3, n)
+        t[f"weight{sfx}"] = rng.uniform(1, 20, n)
+        t[f"fitclass{sfx}"] = np.where(rng.random(n) < 0.1, rng.choice([-1, 1, 2], n), 0)
+    t["e1"][rng.random(n) < 0.03] = np.nan
+    t["weight"][rng.random(n) < 0.03] = np.nan
+    for name in ("R11", "R12", "R21", "R22"):
+        t[name] = rng.normal(0.9 if name[1] == name[2] else 0.0, 0.5, n)
+    t["R12"][rng.random(n) < 0.05] = np.nan
+    return t
+
+
+def test_metacal_ring_sums_give_the_catalogue_shear():
+    """m and c from per-galaxy sums equal those of metacal_shear on each sign's objects, and a bootstrap's
+    multiplicities equal the galaxies repeated."""
+    from shearfit.calib.bias import metacal_bias_from_sums, metacal_ring_sums
+
+    rng = np.random.default_rng(7)
+    n_gal, g = 40, np.array([0.03, -0.02])
+    t = _ring_table(n_gal, rng)
+
+    def direct(tab):
+        plus, minus = tab[tab["sign"] > 0], tab[tab["sign"] < 0]
+        sp, sm = metacal_shear(plus, delta=0.01), metacal_shear(minus, delta=0.01)
+        w = [np.where(np.asarray(x["fitclass"]) == 0, np.nan_to_num(np.asarray(x["weight"])), 0) for x in (plus, minus)]
+        e = [np.nan_to_num(np.stack([np.asarray(x["e1"]), np.asarray(x["e2"])])) @ wi / wi.sum()
+             for x, wi in zip((plus, minus), w)]
+        return (sp - sm) / (2 * g) - 1, (sp + sm) / 2, (e[0] - e[1]) / (2 * g) - 1, ensemble_response(plus, delta=0.01)
+
+    m, c, raw, (_, Rg_plus, Rs_plus) = direct(t)
+    sums = metacal_ring_sums(t, n_gal)
+    bias, Rg, Rs = metacal_bias_from_sums(sums, g)
+    assert np.allclose(bias[:2], m, rtol=0, atol=1e-12) and np.allclose(bias[2:4], c, rtol=0, atol=1e-12)
+    assert np.allclose(bias[4:6], raw, rtol=0, atol=1e-12)
+    _, Rg_minus, Rs_minus = ensemble_response(t[t["sign"] < 0], delta=0.01)
+    assert np.allclose(Rg, (Rg_plus + Rg_minus) / 2) and np.allclose(Rs, (Rs_plus + Rs_minus) / 2)
+    # the diagonal and scalar forms divide <e> by R's diagonal and by its mean
+    assert not np.allclose(bias[6:8], bias[:2]) and not np.allclose(bias[8:10], bias[6:8])
+
+    counts = rng.integers(0, 3, (2, n_gal)).astype(float)
+    boot = metacal_bias_from_sums(sums, g, counts)[0]
+    for k in range(2):
+        rows = np.concatenate([np.flatnonzero(t["galaxy"] == i) for i in range(n_gal) for _ in range(int(counts[k, i]))])
+        m_k, c_k, _, _ = direct(t[rows])
+        assert np.allclose(boot[k, :4], np.concatenate([m_k, c_k]), rtol=0, atol=1e-12)
+
+
 def test_pipeline_metacal_columns(tmp_path):
     from shearfit.app.cli import main
     from shearfit.errors import ShearfitValueError

@@ -55,3 +55,31 @@ def test_resume_from_checkpoint_gives_the_whole_run(ring_test, tmp_path, capsys)
         if name != "time":   # the measuring time of each object is the one column a rerun changes
             a, b = np.asarray(ref[name]), np.asarray(got[name])
             assert np.array_equal(a, b, equal_nan=a.dtype.kind == "f"), name
+
+
+def test_galaxy_sums_report_as_the_tables(ring_test, tmp_path, capsys):
+    """A metacal run kept as galaxy sums (--save-sums) reports the metacal m and c of its tables, alone and
+    added to a table; sums of another shear are refused."""
+    table = tmp_path / "mc.fits"
+    assert ring_test.main(_args(table) + ["--metacal", "--population", "outside"]) == 0
+    capsys.readouterr()
+    sums = tmp_path / "mc_sums.fits"
+    base = ["--metacal", "--n-bootstrap", "10", "--seed", "2", "--from-tables"]
+
+    def metacal_lines(out):
+        lines = out.splitlines()
+        k = next(i for i, s in enumerate(lines) if s.startswith("metacal shear bias"))
+        return lines[k:k + 7]
+
+    assert ring_test.main(base + [str(table), "--save-sums", str(sums)]) == 0
+    from_table = capsys.readouterr().out
+    assert f"galaxy sums of 3 galaxies written to {sums}" in from_table
+    assert ring_test.main(base + [str(sums)]) == 0
+    from_sums = capsys.readouterr().out
+    assert "1 file(s) of galaxy sums: 3 galaxies, 12 objects" in from_sums
+    # the per-galaxy line's count of galaxies needed is rounded up from float32 sums: compare the m and c lines
+    assert metacal_lines(from_sums)[:6] == metacal_lines(from_table)[:6]
+    assert ring_test.main(base + [str(table), str(sums)]) == 0
+    assert "6 galaxies, 24 objects" in capsys.readouterr().out
+    assert ring_test.main(base + [str(sums), "--shear", "0.02", "0.02"]) == 2
+    assert f"{sums}: galaxy sums of g = (0.03, -0.02)" in capsys.readouterr().err

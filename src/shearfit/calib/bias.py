@@ -48,6 +48,10 @@ __all__ = [
     "mean_shear",
     "shear_bias_by_snr",
     "galaxy_column",
+    "metacal_ring_sums",
+    "metacal_bias_from_sums",
+    "METACAL_SUM_NAMES",
+    "METACAL_BIAS_NAMES",
     "format_with_error",
     "BIAS_NAMES",
 ]
@@ -314,6 +318,113 @@ def mean_shear(sums, n_boot: int = 200, rng=None):
         return est, np.full((2, 2), np.nan)
     boot = mean_shear_from_sums(sums, bootstrap_counts(n_gal, int(n_boot), rng))
     return est, _boot_std(boot)
+
+
+#: The sums of :func:`metacal_ring_sums`, in order: the noshear fit's weight and weighted e, its weight where R is
+#: finite and the weighted R, then each sheared version's weight and the noshear e under that weight.
+METACAL_SUM_NAMES = (("w", "w e1", "w e2", "w_R", "w R11", "w R12", "w R21", "w R22")
+                     + tuple(f"{q}_{v}" for v in ("1p", "1m", "2p", "2m") for q in ("w", "w e1", "w e2")))
+
+#: Order of the entries of :func:`metacal_bias_from_sums`'s bias vector: m and c with the whole <R>, m of lensfit's
+#: e without the response, m with the diagonal of <R> only, and m with the mean of its diagonal for both components.
+METACAL_BIAS_NAMES = ("m1", "m2", "c1", "c2", "raw_m1", "raw_m2", "diag_m1", "diag_m2", "scalar_m1", "scalar_m2")
+
+
+def metacal_ring_sums(table, n_galaxies: int, weighted: bool = True) -> np.ndarray:
+    """Per-galaxy sums of a metacal ring table, for each sign of the shear: what its m and c are made of.
+
+    The ensemble shear of a metacal catalogue, ``<R>^-1 <e>`` with ``<R> = <R_gamma> + R_S``
+    (:func:`shearfit.calib.metacal.ensemble_response`), is a function of weighted sums over its objects; summed
+    per galaxy and sign, a bootstrap over galaxies is a matrix product, and a long run's result can be kept in a
+    few hundred bytes per galaxy.
+
+    Parameters
+    ----------
+    table : structured array, astropy Table or mapping of arrays
+        One row per object with ``galaxy``, ``sign``, ``e1``, ``e2``, ``weight``, ``fitclass``, ``R11`` ..
+        ``R22`` and, for each sheared version ``v`` of ``1p, 1m, 2p, 2m``, ``weight_v`` and ``fitclass_v``.
+    n_galaxies : int
+    weighted : bool
+        Lensfit's weights; otherwise each version's galaxies (``fitclass == 0``) weigh one.
+
+    Returns
+    -------
+    ndarray of shape (20, n_galaxies, 2)
+        ``sums[k, i, s]``, ``k`` as :data:`METACAL_SUM_NAMES`; ``s`` = 0 for ``+g``, 1 for ``-g``.
+    """
+    n_galaxies = int(n_galaxies)
+    galaxy = np.asarray(table["galaxy"])
+    if galaxy.size and (not np.issubdtype(galaxy.dtype, np.integer) or galaxy.min() < 0
+                        or galaxy.max() >= n_galaxies):
+        raise ShearfitValueError(f"column 'galaxy' must hold integers in [0, {n_galaxies})")
+
+    def weight(sfx):
+        ok = np.asarray(table[f"fitclass{sfx}"]) == _GALAXY
+        w = np.asarray(table[f"weight{sfx}"], dtype=np.float64) if weighted else np.ones(galaxy.size)
+        return np.where(ok & np.isfinite(w), w, 0.0)
+
+    e = [np.nan_to_num(np.asarray(table[c], dtype=np.float64), nan=0.0, posinf=0.0, neginf=0.0) for c in ("e1", "e2")]
+    R = [np.asarray(table[f"R{i}{j}"], dtype=np.float64) for i in (1, 2) for j in (1, 2)]
+    w0 = weight("")
+    wR = np.where(np.all(np.isfinite(R), axis=0), w0, 0.0)
+    cols = [w0, w0 * e[0], w0 * e[1], wR] + [wR * np.where(wR > 0, r, 0.0) for r in R]
+    for v in ("1p", "1m", "2p", "2m"):
+        wv = weight(f"_{v}")
+        cols += [wv, wv * e[0], wv * e[1]]
+    sign = (np.asarray(table["sign"]) < 0).astype(np.intp)
+    sums = np.zeros((len(cols), n_galaxies, 2))
+    for k, v in enumerate(cols):
+        np.add.at(sums[k], (galaxy, sign), v)
+    return sums
+
+
+def metacal_bias_from_sums(sums, g, counts=None, delta: float = 0.01):
+    """Metacal m and c of per-galaxy sums (:func:`metacal_ring_sums`), optionally for resampled galaxies.
+
+    Parameters
+    ----------
+    sums : ndarray of shape (20, n_galaxies, 2)
+    g : (g1, g2)
+        The applied shear of the ``+g`` objects.
+    counts : ndarray of shape (..., n_galaxies), optional
+        Multiplicity of each galaxy (:func:`bootstrap_counts`); default one each.
+    delta : float
+        Metacal's shear step (the selection response differences the versions over ``+-delta``).
+
+    Returns
+    -------
+    bias : ndarray of shape (..., 10)
+        As :data:`METACAL_BIAS_NAMES`.
+    R_gamma, R_S : ndarray of shape (..., 2, 2)
+        The shear and selection responses, averaged over the two signs.
+    """
+    sums = np.asarray(sums, dtype=np.float64)
+    if sums.ndim != 3 or sums.shape[0] != len(METACAL_SUM_NAMES) or sums.shape[2] != 2:
+        raise ShearfitValueError(f"sums must have shape ({len(METACAL_SUM_NAMES)}, n_galaxies, 2), got {sums.shape}")
+    g = np.asarray(g, dtype=np.float64).reshape(2)
+    if counts is None:
+        counts = np.ones(sums.shape[1])
+    S = np.einsum("...g,kgs->...sk", np.asarray(counts, dtype=np.float64), sums)   # (..., 2 signs, 20)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        ebar = S[..., 1:3] / S[..., 0:1]
+        R_gamma = (S[..., 4:8] / S[..., 3:4]).reshape(S.shape[:-1] + (2, 2))
+        R_S = np.zeros_like(R_gamma)
+        for j in range(2):
+            p, m = 8 + 6 * j, 11 + 6 * j
+            R_S[..., :, j] = (S[..., p + 1:p + 3] / S[..., p:p + 1] - S[..., m + 1:m + 3] / S[..., m:m + 1]) / (2 * delta)
+        R = R_gamma + R_S
+        det = R[..., 0, 0] * R[..., 1, 1] - R[..., 0, 1] * R[..., 1, 0]
+        shear = np.stack([R[..., 1, 1] * ebar[..., 0] - R[..., 0, 1] * ebar[..., 1],
+                          R[..., 0, 0] * ebar[..., 1] - R[..., 1, 0] * ebar[..., 0]], axis=-1) / det[..., None]
+        diag = ebar / np.stack([R[..., 0, 0], R[..., 1, 1]], axis=-1)
+        scalar = ebar / ((R[..., 0, 0] + R[..., 1, 1]) / 2)[..., None]
+
+        def m_of(x):
+            return (x[..., 0, :] - x[..., 1, :]) / (2 * np.where(g != 0, g, np.nan)) - 1
+
+        bias = np.concatenate([m_of(shear), (shear[..., 0, :] + shear[..., 1, :]) / 2, m_of(ebar), m_of(diag),
+                               m_of(scalar)], axis=-1)
+    return bias, R_gamma.mean(axis=-3), R_S.mean(axis=-3)
 
 
 def galaxy_column(table, column: str, n_galaxies: int) -> np.ndarray:
