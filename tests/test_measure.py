@@ -760,8 +760,8 @@ def test_compiled_size_marginal_matches_numpy():
 def test_size_peak_reuse_saves_models_without_moving_the_estimate():
     # bright and compact: the size posterior is narrow, so every sample's size peak is located
     obs = _observations(0.25, (0.45, -0.3), snr=400)
-    fresh = shearfit.measure_object(obs, mag=22.0, config={"size_reuse_distance": 0.0, "tail_skip": 0.0})
-    reuse = shearfit.measure_object(obs, mag=22.0, config={"tail_skip": 0.0})
+    fresh = shearfit.measure_object(obs, mag=22.0, config={"tail_skip": 0.0})   # the default locates every sample
+    reuse = shearfit.measure_object(obs, mag=22.0, config={"size_reuse_distance": 0.12, "tail_skip": 0.0})
     assert reuse.n_models < 0.95 * fresh.n_models
     sig = np.sqrt(fresh.e_var)
     assert abs(reuse.e1 - fresh.e1) < 0.1 * sig
@@ -845,8 +845,10 @@ def test_faint_galaxies_have_sane_likelihood_surfaces():
 def test_tail_samples_skip_their_size_nodes_without_changing_the_estimate():
     """Samples whose first size-locating pass peaks tail_skip nats below the best are left with that
     pass's crude size integral: far below the posterior cut, they change no estimate and no other
-    sample, and a bright galaxy's fit evaluates far fewer models. The crude values stay far below the
-    cut."""
+    sample, and a bright galaxy's fit evaluates far fewer models. The crude values, and the full values of
+    those samples, stay far below the cut (4.6 nats below the top): here at least 16 nats below it, where a
+    first pass centred on the predicted size peak misses the peak by up to 10 nats (with every sample located,
+    the default; size_reuse_distance 0.12 had left them 20 below)."""
     obs = _observations(0.25, (0.45, -0.3), snr=400)
     full = shearfit.measure_object(obs, mag=22.0, config={"tail_skip": 0.0}, return_samples=True)
     skip = shearfit.measure_object(obs, mag=22.0, return_samples=True)
@@ -860,7 +862,7 @@ def test_tail_samples_skip_their_size_nodes_without_changing_the_estimate():
     top = a.max()
     crude = b != a
     assert crude.sum() > 10
-    assert np.all(a[crude] < top - 20) and np.all(b[crude] < top - 20)
+    assert np.all(a[crude] < top - 12) and np.all(b[crude] < top - 12)
 
 
 def test_measure_objects_under_spawn(monkeypatch):

@@ -322,16 +322,19 @@ def _alias_geometry(ny, nx, s):
     return ktab, i0, w0, w1, sel, KYf, KXf, cs, (kyv, iy, kxv, ix)
 
 
-def _moffat_table(k, rs, beta, x_exact=1.0, h0=0.04, grow=0.02, floor=1e-30, use_kernel=True):
+def _moffat_table(k, rs, beta, x_exact=1.0, h0=0.06, grow=0.03, floor=1e-30, use_kernel=True):
     """moffat_ft on a uniform grid k, set to zero where it falls below ``floor``.
 
     Exact up to x = k rs = ``x_exact`` (where the transform of beta < 2 has its cusp); beyond, the cubic
     Hermite interpolant of its logarithm through exact nodes, with the exact slopes d log f / dx =
     -K_(nu-1)(x) / K_nu(x) there. The logarithm's higher derivatives fall as x grows (it tends to
-    -x + (nu - 1/2) log x), so the nodes are ``h0 + grow x`` apart: about 130 for rs = 1.7 pixels on a
-    48-pixel stamp's table, where exact values at every point below x = 4 and nodes every 0.2 beyond cost
-    most of the table's time. Within 3.6e-8 of the exact values (tests/test_model.py, beta 1.2-21 and rs
-    0.05-50 pixels: bound 1e-7), far below the error of the linear interpolation in the table. The
+    -x + (nu - 1/2) log x), so the nodes are ``h0 + grow x`` apart: 90 for rs = 1.7 pixels on a 48-pixel
+    stamp's table, where exact values at every point below x = 4 and nodes every 0.2 beyond cost most of
+    the table's time. Within 1.5e-7 of the exact values (tests/test_model.py, beta 1.2-21 and rs 0.05-40
+    pixels: bound 2e-7; the worst case beta 2.5 at rs 15.8), far below the error of the linear
+    interpolation in the table (at its midpoints 6e-6 for rs = 1.7, beta 3; 1e-3 for rs = 15.8, beta
+    2.5). Nodes 0.04 + 0.02 x apart (134 at rs = 1.7) were within 3.6e-8 and took a third longer (77
+    against 57 us a table at rs = 2.3, beta 3). The
     transform decreases monotonically (its derivative is -c x^nu K_(nu-1)(x)), so it is zero beyond the last
     node above the floor. The compiled kernel (``moffat_table``, with scipy's kv and gamma) makes the same
     numbers to rounding (tests/test_model.py) without the array operations' overhead, which was most of a
