@@ -71,17 +71,27 @@ def simulate(n, n_exp, stamp, seed, rotate=False, jitter=0.0, constant_psf=False
 
 
 def cpu_name():
-    """The CPU's model name (Linux: /proc/cpuinfo), else what platform says."""
+    """The CPU's model name with its family and model numbers (Linux: /proc/cpuinfo; a virtual machine may name
+    only the vendor's line, "AMD EPYC", and the numbers tell its generation: AMD family 25 is Zen 3 and 4, 26 Zen
+    5), else what platform says."""
     import platform
 
+    fields = {}
     try:
         with open("/proc/cpuinfo") as f:
             for line in f:
-                if line.lower().startswith("model name"):
-                    return line.split(":", 1)[1].strip()
+                if not line.strip():
+                    break   # the first processor's entry
+                key, _, value = line.partition(":")
+                fields[key.strip().lower()] = value.strip()
     except OSError:
         pass
-    return platform.processor() or platform.machine()
+    name = fields.get("model name")
+    if not name:
+        return platform.processor() or platform.machine()
+    if "cpu family" in fields and "model" in fields:
+        name += f" (family {fields['cpu family']}, model {fields['model']})"
+    return name
 
 
 def hsm_time(objs):

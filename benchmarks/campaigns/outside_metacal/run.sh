@@ -1,0 +1,32 @@
+#!/bin/bash
+# Run seeds of the outside-model metacal campaign one after another and keep each as galaxy sums here.
+#
+#   benchmarks/campaigns/outside_metacal/run.sh WORKDIR SEED...
+#
+# Each seed's per-object table (several MB) and its checkpoint go to WORKDIR; a stopped seed continues from its
+# checkpoint when run again (--resume). A finished seed is written here as seedNNN.fits and skipped afterwards.
+# Run one such loop per core, with different seeds. To keep a stopped seed's galaxies instead of continuing it:
+#
+#   python benchmarks/ring_test.py --from-tables WORKDIR/outNNN.partial.fits --metacal --snr-min 10 \
+#       --snr-max 40 --save-sums benchmarks/campaigns/outside_metacal/seedNNN_part.fits
+#
+# PYTHON (default python) runs the benchmark: point it, or PYTHONPATH, at a frozen copy of the package if the
+# checkout changes while the loop runs.
+set -u
+here=$(cd "$(dirname "$0")" && pwd)
+bench=$(cd "$here/../.." && pwd)
+py=${PYTHON:-python}
+work=$1
+shift
+mkdir -p "$work"
+for seed in "$@"; do
+    id=$(printf "%03d" "$seed")
+    if [ -f "$here/seed$id.fits" ] || [ -f "$here/seed${id}_part.fits" ]; then
+        continue
+    fi
+    OMP_NUM_THREADS=1 "$py" "$bench/ring_test.py" --population outside --n-galaxies 800 --stamp-size 64 \
+        --rotate-exposures --metacal --antithetic --snr-min 10 --snr-max 40 --seed "$seed" --processes 1 \
+        --out "$work/out$seed.fits" --resume --quiet > "$work/log$seed.txt" 2>&1 || exit $?
+    "$py" "$bench/ring_test.py" --from-tables "$work/out$seed.fits" --metacal --snr-min 10 --snr-max 40 \
+        --n-bootstrap 2 --save-sums "$here/seed$id.fits" > /dev/null || exit $?
+done
