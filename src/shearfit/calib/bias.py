@@ -63,6 +63,20 @@ BIAS_NAMES = ("m1", "m2", "c1", "c2")
 _GALAXY = 0
 
 
+def _galaxy_sign_sums(table, n_galaxies, columns) -> np.ndarray:
+    """Each column of per-object values summed per galaxy and sign: (len(columns), n_galaxies, 2), sign 0 for
+    ``+g`` and 1 for ``-g``, after checking the table's ``galaxy`` column."""
+    galaxy = np.asarray(table["galaxy"])
+    if galaxy.size and (not np.issubdtype(galaxy.dtype, np.integer) or galaxy.min() < 0
+                        or galaxy.max() >= n_galaxies):
+        raise ShearfitValueError(f"column 'galaxy' must hold integers in [0, {n_galaxies})")
+    sign = (np.asarray(table["sign"]) < 0).astype(np.intp)
+    sums = np.zeros((len(columns), n_galaxies, 2))
+    for k, v in enumerate(columns):
+        np.add.at(sums[k], (galaxy, sign), v)
+    return sums
+
+
 def ring_sums(table, n_galaxies: int, weighted: bool = True) -> np.ndarray:
     """Per-galaxy sums of ``w``, ``w e1`` and ``w e2`` for each sign of the shear.
 
@@ -90,11 +104,6 @@ def ring_sums(table, n_galaxies: int, weighted: bool = True) -> np.ndarray:
         ``sums[k, i, s]``: ``k`` = 0, 1, 2 for ``w``, ``w e1``, ``w e2``; ``i``
         the galaxy; ``s`` = 0 for the ``+g`` objects, 1 for ``-g``.
     """
-    n_galaxies = int(n_galaxies)
-    galaxy = np.asarray(table["galaxy"])
-    if galaxy.size and (not np.issubdtype(galaxy.dtype, np.integer) or galaxy.min() < 0
-                        or galaxy.max() >= n_galaxies):
-        raise ShearfitValueError(f"column 'galaxy' must hold integers in [0, {n_galaxies})")
     e1 = np.asarray(table["e1"], dtype=np.float64)
     e2 = np.asarray(table["e2"], dtype=np.float64)
     good = (np.asarray(table["fitclass"]) == _GALAXY) & np.isfinite(e1) & np.isfinite(e2)
@@ -105,11 +114,7 @@ def ring_sums(table, n_galaxies: int, weighted: bool = True) -> np.ndarray:
         w = good.astype(np.float64)
     e1 = np.where(good, e1, 0.0)
     e2 = np.where(good, e2, 0.0)
-    col = (np.asarray(table["sign"]) < 0).astype(np.intp)
-    sums = np.zeros((3, n_galaxies, 2))
-    for k, v in enumerate((w, w * e1, w * e2)):
-        np.add.at(sums[k], (galaxy, col), v)
-    return sums
+    return _galaxy_sign_sums(table, int(n_galaxies), (w, w * e1, w * e2))
 
 
 def paired_weights(table) -> np.ndarray:
@@ -352,15 +357,11 @@ def metacal_ring_sums(table, n_galaxies: int, weighted: bool = True) -> np.ndarr
     ndarray of shape (20, n_galaxies, 2)
         ``sums[k, i, s]``, ``k`` as :data:`METACAL_SUM_NAMES`; ``s`` = 0 for ``+g``, 1 for ``-g``.
     """
-    n_galaxies = int(n_galaxies)
-    galaxy = np.asarray(table["galaxy"])
-    if galaxy.size and (not np.issubdtype(galaxy.dtype, np.integer) or galaxy.min() < 0
-                        or galaxy.max() >= n_galaxies):
-        raise ShearfitValueError(f"column 'galaxy' must hold integers in [0, {n_galaxies})")
+    n = len(np.asarray(table["galaxy"]))
 
     def weight(sfx):
         ok = np.asarray(table[f"fitclass{sfx}"]) == _GALAXY
-        w = np.asarray(table[f"weight{sfx}"], dtype=np.float64) if weighted else np.ones(galaxy.size)
+        w = np.asarray(table[f"weight{sfx}"], dtype=np.float64) if weighted else np.ones(n)
         return np.where(ok & np.isfinite(w), w, 0.0)
 
     e = [np.nan_to_num(np.asarray(table[c], dtype=np.float64), nan=0.0, posinf=0.0, neginf=0.0) for c in ("e1", "e2")]
@@ -371,11 +372,7 @@ def metacal_ring_sums(table, n_galaxies: int, weighted: bool = True) -> np.ndarr
     for v in ("1p", "1m", "2p", "2m"):
         wv = weight(f"_{v}")
         cols += [wv, wv * e[0], wv * e[1]]
-    sign = (np.asarray(table["sign"]) < 0).astype(np.intp)
-    sums = np.zeros((len(cols), n_galaxies, 2))
-    for k, v in enumerate(cols):
-        np.add.at(sums[k], (galaxy, sign), v)
-    return sums
+    return _galaxy_sign_sums(table, int(n_galaxies), cols)
 
 
 def metacal_bias_from_sums(sums, g, counts=None, delta: float = 0.01):
