@@ -107,6 +107,13 @@ METACAL_FIELDS = tuple(f"{q}_{v}" for v in ("1p", "1m", "2p", "2m") for q in ("e
 
 # ----------------------------------------------------------------------------- workers
 
+def _galaxies_for(errors, root, target):
+    """How many galaxies bring the larger of ``errors`` (over ``root**2`` galaxies) to ``target``; "?" where
+    an error is not finite (a subset too small to resample)."""
+    worst = float(np.max(errors)) * root
+    return int(np.ceil((worst / target) ** 2)) if np.isfinite(worst) else "?"
+
+
 def psf_fwhm_of(obs):
     """Mean PSF FWHM (arcsec) over an object's exposures, as ``shearfit measure`` writes its ``psf_fwhm``."""
     from shearfit.pipeline.driver import psf_fwhm_arcsec, psf_moments
@@ -129,6 +136,7 @@ def _work(task):
     t_sim = t_meas = 0.0
     metacal = opts.get("metacal", False)
     n_rot = opts["ring_kwargs"]["n_rotations"]
+    draw_cache = {}   # what the two signs share: PSF images and transforms, the unsheared stamps
     for sign in (+1, -1):
         # The same seed for both signs: nothing ring_set draws depends on the shear, so the
         # galaxy, PSFs, dithers and noise are identical and cancel in the +g / -g difference.
@@ -137,7 +145,7 @@ def _work(task):
         rng = np.random.default_rng(seed)
         t0 = time.perf_counter()
         rings = ring_set(1, tuple(sign * g), rng, cfg=cfg, antithetic=bool(opts.get("antithetic")),
-                         **opts["ring_kwargs"])
+                         draw_cache=draw_cache, **opts["ring_kwargs"])
         t_sim += time.perf_counter() - t0
         rings = [r for r in rings if r[1]["noise_sign"] > 0] + [r for r in rings if r[1]["noise_sign"] < 0]
         for obs, truth in rings:
@@ -515,9 +523,9 @@ def report_metacal(rings, args):
     root = np.sqrt(n_gal)
     print(f"  per galaxy (its whole ring): error x sqrt(galaxies) = {err[0] * root:.3f} / {err[1] * root:.3f} on m1 / "
           f"m2 (the diagonal of <R>: {err[6] * root:.3f} / {err[7] * root:.3f}; its mean: {err[8] * root:.3f} / "
-          f"{err[9] * root:.3f}), so +/-7e-4 on m takes about {int(np.ceil((max(err[:2]) * root / 7e-4) ** 2))} such "
-          f"galaxies, +/-2e-3 about {int(np.ceil((max(err[:2]) * root / 2e-3) ** 2))} (with the diagonal "
-          f"{int(np.ceil((max(err[6:8]) * root / 2e-3) ** 2))}, its mean {int(np.ceil((max(err[8:10]) * root / 2e-3) ** 2))})")
+          f"{err[9] * root:.3f}), so +/-7e-4 on m takes about {_galaxies_for(err[:2], root, 7e-4)} such "
+          f"galaxies, +/-2e-3 about {_galaxies_for(err[:2], root, 2e-3)} (with the diagonal "
+          f"{_galaxies_for(err[6:8], root, 2e-3)}, its mean {_galaxies_for(err[8:10], root, 2e-3)})")
     print(f"  <R_gamma> = [[{Rg[0, 0]:.4f}, {Rg[0, 1]:+.4f}], [{Rg[1, 0]:+.4f}, {Rg[1, 1]:.4f}]]; "
           f"R_S = [[{Rs[0, 0]:+.4f}, {Rs[0, 1]:+.4f}], [{Rs[1, 0]:+.4f}, {Rs[1, 1]:+.4f}]]")
     print(f"  fitclass != 0: {rings.n_other.sum() / max(rings.n_objects.sum(), 1):.3%} of {rings.n_objects.sum()} "

@@ -26,9 +26,10 @@ G = np.array([0.03, -0.02])
 def _run(n_gal, n_exp, seed):
     rows = {k: [] for k in ("galaxy", "sign", "e1", "e2", "weight", "fitclass")}
     for i in range(n_gal):
+        cache = {}
         for sign in (1, -1):
             rings = ring_set(1, tuple(sign * G), np.random.default_rng([seed, i]), n_rotations=4,
-                             n_exposures=n_exp, snr_range=(100, 200), add_noise=False)
+                             n_exposures=n_exp, snr_range=(100, 200), add_noise=False, draw_cache=cache)
             for obs, truth in rings:
                 res = shearfit.measure_object(obs, mag=truth["mag"])
                 for k, v in (("galaxy", i), ("sign", sign), ("e1", res.e1), ("e2", res.e2),

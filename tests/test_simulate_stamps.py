@@ -385,3 +385,52 @@ def test_ring_set_population_may_set_the_magnitude():
                    mag_range=(23.0, 24.0), add_noise=False)
     for _, t in out:
         assert t["mag"] == 22.25 and t["flux"] == pytest.approx(10 ** (-0.4 * (22.25 - 30.0)))
+
+
+# --------------------------------------------------------------------------- drawing with the PSF's transform kept
+
+@pytest.mark.parametrize("shape", [48, (40, 51)])
+def test_draw_stamp_psf_cache_is_galsims_drawing(shape):
+    """draw_stamp with psf_cache (GalSim's FFT drawing in parts, the PSF's transform kept per grid) gives
+    drawImage's stamp to rounding, for galaxies in and outside the model family, elliptical PSFs, rotated
+    and skewed pixels and sub-pixel offsets; the PSF is transformed once per PSF, Jacobian and grid."""
+    from shearfit.simulate.outside import outside_population, outside_profile
+
+    pop = outside_population(np.full(6, 23.0), np.random.default_rng(5))
+    profiles = [outside_profile({k: v[i] for k, v in pop.items()}, 0.3 * i, 0.02, -0.01, 500.0) for i in range(6)]
+    profiles.append(galaxy_profile(0.3, 0.4, 0.2, -0.1, flux=500.0))
+    cache = {}
+    for J in (J_ROT, J_SKEW):
+        for psf in (moffat_psf(0.7, 2.5, 0.05, -0.03), moffat_psf(0.55, 4.0)):
+            for i, prof in enumerate(profiles):
+                off = (0.1 * i - 0.3, 0.45 - 0.07 * i)
+                ref = draw_stamp(prof, psf, J, off, shape)
+                got = draw_stamp(prof, psf, J, off, shape, psf_cache=cache)
+                np.testing.assert_allclose(got, ref, rtol=0, atol=1e-13 * ref.max())
+    # far fewer PSF transforms than stamps: the galaxies of one PSF and Jacobian share GalSim's grid
+    assert 4 <= len(cache) < 2 * 2 * len(profiles) / 2
+    # a changed PSF is not taken for the kept one
+    other = draw_stamp(profiles[0], moffat_psf(0.7, 2.5, 0.05, 0.03), J_ROT, (0.0, 0.0), shape, psf_cache=cache)
+    np.testing.assert_allclose(other, draw_stamp(profiles[0], moffat_psf(0.7, 2.5, 0.05, 0.03), J_ROT, (0.0, 0.0),
+                                                 shape), rtol=0, atol=1e-13 * other.max())
+
+
+def test_ring_set_draw_cache_shared_by_the_signs():
+    """A draw_cache shared by a +g and a -g call draws the same stamps and PSF images as calls without it,
+    and leaves the unsheared stamps (which set the noise) drawn once for both."""
+    from shearfit.simulate.outside import outside_population, outside_profile
+
+    kw = dict(n_rotations=2, n_exposures=2, rotate_exposures=True, population=outside_population,
+              profile=outside_profile, antithetic=True)
+    cache = {}
+    for g in ((0.03, -0.02), (-0.03, 0.02)):
+        ref = ring_set(2, g, np.random.default_rng(9), **kw)
+        got = ring_set(2, g, np.random.default_rng(9), draw_cache=cache, **kw)
+        assert len(got) == len(ref)
+        for (o1, t1), (o2, t2) in zip(got, ref):
+            assert t1["sigma"] == pytest.approx(t2["sigma"], rel=1e-13)
+            for x, y in zip(o1, o2):
+                np.testing.assert_allclose(x.image, y.image, rtol=0, atol=1e-12 * np.abs(y.image).max())
+                assert np.array_equal(x.psf, y.psf)
+    kinds = [k[0] for k in cache]
+    assert kinds.count("stamps") == 2 and kinds.count("psf_image") == 4

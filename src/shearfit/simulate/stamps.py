@@ -172,7 +172,7 @@ def jacobian_wcs(jacobian) -> galsim.JacobianWCS:
 # drawing
 # ----------------------------------------------------------------------------
 
-def draw_stamp(profile, psf, jacobian, offset=(0.0, 0.0), stamp_size=48, gsparams=None) -> np.ndarray:
+def draw_stamp(profile, psf, jacobian, offset=(0.0, 0.0), stamp_size=48, gsparams=None, psf_cache=None) -> np.ndarray:
     """Noise-free stamp of ``profile`` convolved with ``psf`` and the pixel, in counts.
 
     Parameters
@@ -187,6 +187,12 @@ def draw_stamp(profile, psf, jacobian, offset=(0.0, 0.0), stamp_size=48, gsparam
         Stamp shape.
     gsparams : galsim.GSParams, optional
         Accuracy settings for the convolution.
+    psf_cache : dict, optional
+        Keeps the PSF's (and pixel's) transform on the k-space grid of GalSim's FFT drawing, keyed by the
+        PSF, the Jacobian and the grid, so that other galaxies drawn with the same PSF and Jacobian onto the
+        same grid (the members of a ring, the +g and -g runs) multiply it instead of evaluating the PSF
+        again. The stamp is GalSim's ``drawImage`` (``method="auto"``) to rounding: the same grid, the same
+        transforms, only the product's order differs.
 
     Returns
     -------
@@ -194,11 +200,43 @@ def draw_stamp(profile, psf, jacobian, offset=(0.0, 0.0), stamp_size=48, gsparam
     """
     ny, nx = _shape2(stamp_size)
     conv = galsim.Convolve([profile, psf], gsparams=gsparams)
+    if psf_cache is not None:
+        return _draw_stamp_psf_cached(conv, jacobian, offset, nx, ny, psf_cache)
     # use_true_center=False centres on GalSim's image.center, which is 0-based index
     # (nx // 2, ny // 2) for odd and even sizes alike: the convention of docs/interface.rst.
     img = conv.drawImage(nx=nx, ny=ny, wcs=jacobian_wcs(jacobian), method="auto", use_true_center=False,
                          offset=(float(offset[0]), float(offset[1])), dtype=np.float64)
     return np.array(img.array, dtype=np.float64)
+
+
+def _draw_stamp_psf_cached(conv, jacobian, offset, nx, ny, cache):
+    """:func:`draw_stamp` by GalSim's FFT drawing in parts (``drawFFT_makeKImage`` / ``drawFFT_finish``):
+    what ``conv.drawImage(nx=nx, ny=ny, wcs=..., method="auto", use_true_center=False, offset=offset)``
+    draws, with the transform of the PSF and pixel taken from ``cache``."""
+    wcs = jacobian_wcs(jacobian)
+    gsp = conv.gsparams
+    profile, psf = conv.obj_list       # with the convolution's gsparams, as drawImage evaluates them
+    off = galsim.PositionD(float(offset[0]), float(offset[1]))
+    pixel = galsim.Pixel(scale=1.0, gsparams=gsp)
+    # the profile drawImage draws: in image coordinates, shifted by the offset, convolved with the pixel
+    full = galsim.Convolve(wcs.profileToImage(conv, offset=off), pixel, gsparams=gsp)
+    if full.is_analytic_x:    # pragma: no cover - a convolution with the pixel is not
+        raise ShearfitValueError("draw_stamp: psf_cache needs FFT drawing")
+    image = galsim.ImageD(nx, ny, scale=1.0)
+    image.setCenter(0, 0)
+    kimage, wrap = full.drawFFT_makeKImage(image)
+    b = kimage.bounds
+    key = (psf, np.asarray(jacobian, np.float64).tobytes(), b.xmin, b.xmax, b.ymin, b.ymax, kimage.scale)
+    psf_k = cache.get(key)
+    if psf_k is None:
+        kp = galsim.ImageCD(bounds=b, scale=kimage.scale)
+        galsim.Convolve(wcs.profileToImage(psf), pixel, gsparams=gsp)._drawKImage(kp)
+        psf_k = cache[key] = kp.array.copy()
+        psf_k.setflags(write=False)
+    wcs.profileToImage(profile, offset=off)._drawKImage(kimage)
+    kimage.array[...] *= psf_k
+    full.drawFFT_finish(image, kimage, wrap, False)
+    return np.array(image.array, dtype=np.float64)
 
 
 def draw_psf_image(psf, jacobian, size=None, oversampling=1, gsparams=None) -> np.ndarray:
@@ -384,7 +422,8 @@ def ring_set(n_galaxies, shear, rng, n_rotations=4, n_exposures=7, snr_range=(10
              psf_fwhm_range=(0.5, 0.8), psf_beta_range=(2.5, 4.5), psf_e_max=0.1, pixel_scale=0.187,
              stamp_size=48, psf_oversampling=1, max_dither=0.5, cfg=None, noise_seed=None,
              rotate_exposures=False, gsparams=None, population=None, add_noise=True, noise_sign=1,
-             jacobian_jitter=0.0, profile=None, noise_sigma=None, psf_e_fixed=None, antithetic=False):
+             jacobian_jitter=0.0, profile=None, noise_sigma=None, psf_e_fixed=None, antithetic=False,
+             draw_cache=None):
     """Ring sets of GalSim-simulated galaxies, all with one applied shear.
 
     Every galaxy is drawn from the paper's population at a magnitude uniform in
@@ -454,6 +493,12 @@ def ring_set(n_galaxies, shear, rng, n_rotations=4, n_exposures=7, snr_range=(10
         Also return each orientation's antithetic twin, right after it: the same noise-free stamps and PSF
         images with minus its noise, the numbers a second call with the opposite ``noise_sign`` and a
         generator in the same state gives, without drawing the stamps again.
+    draw_cache : dict, optional
+        Shared by calls that draw the same galaxies (generators in the same state, other shears: a ring
+        test's +g and -g runs): what does not depend on the shear, the PSF images, the PSFs' transforms
+        on GalSim's FFT grids (:func:`draw_stamp`'s ``psf_cache``) and the unsheared stamps that set the
+        noise, is drawn once. The stamps are the same to rounding. Without it, each galaxy keeps them for
+        its own orientations.
     noise_sigma : float, optional
         One pixel sigma (counts) for every galaxy instead of the target SNR's:
         the SNR then follows from the magnitude's flux and the galaxy's size, as
@@ -498,7 +543,9 @@ def ring_set(n_galaxies, shear, rng, n_rotations=4, n_exposures=7, snr_range=(10
         Js = [pixel_scale * _rotation(a) for a in gal["jacobian_angles"]]
         if jacobian_jitter > 0:
             Js = [J @ (np.eye(2) + rng.normal(0.0, jacobian_jitter, (2, 2))) for J in Js]
-        psf_images = [draw_psf_image(p, J, oversampling=psf_oversampling, gsparams=gsparams)
+        cache = {} if draw_cache is None else draw_cache
+        psf_images = [_cached(cache, ("psf_image", p, J.tobytes(), psf_oversampling, gsparams),
+                              lambda p=p, J=J: draw_psf_image(p, J, oversampling=psf_oversampling, gsparams=gsparams))
                       for p, J in zip(psfs, Js)]
 
         def stamps(e1, e2, sg1, sg2, turn=0.0):
@@ -509,7 +556,10 @@ def ring_set(n_galaxies, shear, rng, n_rotations=4, n_exposures=7, snr_range=(10
                 prof = galaxy_profile(gal["scalelength"], gal["bulge_fraction"], e1, e2, flux=gal["flux"], g1=sg1,
                                       g2=sg2, is_bulge=gal["is_bulge"], truncation=truncation, gsparams=gsparams,
                                       bulge_size_ratio=bulge_ratio, sersic_n=gal["sersic_n"])
-            return [draw_stamp(prof, p, J, o, stamp_size, gsparams) for p, J, o in zip(psfs, Js, gal["offsets"])]
+            key = ("stamps", prof, tuple(psfs), np.array(Js).tobytes(), gal["offsets"].tobytes(), str(stamp_size),
+                   gsparams) if sg1 == 0.0 and sg2 == 0.0 else None
+            return _cached(cache, key, lambda: [draw_stamp(prof, p, J, o, stamp_size, gsparams, psf_cache=cache)
+                                                for p, J, o in zip(psfs, Js, gal["offsets"])])
 
         # The sigma must not depend on the sign of the shear, else the noise would not cancel
         # between +g and -g runs: take it from the unsheared galaxy.
@@ -554,6 +604,20 @@ def ring_set(n_galaxies, shear, rng, n_rotations=4, n_exposures=7, snr_range=(10
 # ----------------------------------------------------------------------------
 # helpers
 # ----------------------------------------------------------------------------
+
+def _cached(cache, key, make):
+    """``make()``, kept in ``cache`` under ``key`` (None: not kept); a copy of what is kept is returned, so
+    that a caller changing it does not change the cache."""
+    if key is None:
+        return make()
+    try:
+        value = cache[key]
+    except KeyError:
+        value = cache[key] = make()
+    except TypeError:   # an unhashable profile: drawn each time
+        return make()
+    return copy.deepcopy(value)
+
 
 def _draw_galaxy(rng, sampler, cfg, n_exposures, snr_range, mag_range, psf_fwhm_range, psf_beta_range, psf_e_max,
                  pixel_scale, stamp_size, max_dither, truncation, rotate_exposures, max_tries=1000):
