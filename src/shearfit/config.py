@@ -83,8 +83,10 @@ class FitConfig:
     max_centroid_shift: float = setting(4.0, "largest accepted position offset of the fitted centre, pixels", "sec. 3.6")
 
     # --- flux and size marginalisation (sec. 3.2) -------------------------------
-    n_flux: int = setting(7, "flux values per (e, r) for the spline integral (over +-flux_halfwidth sigma; 11 "
-                       "moves e by at most 1.5e-5 from 7 at SNR 7-15, benchmarks/speed.py --check)", "sec. 3.2")
+    n_flux: int = setting(7, "flux values per (e, r) for the spline integral (over +-flux_halfwidth sigma; of 80 "
+                       "galaxies at SNR 7-15, 11 moves e from 7 by 7e-4 on one measured at SNR 5, 1.3 % of its "
+                       "error, and by at most 7e-5 on the others: benchmarks/speed.py --check --check-each)",
+                       "sec. 3.2")
     flux_halfwidth: float = setting(5.0, "half-width of the flux samples in units of the flux error", "sec. 3.2")
     n_size: int = setting(7, "scalelengths r > 0 sampled for the size spline (r = 0 is added)", "sec. 3.2")
     tail_skip: float = setting(
