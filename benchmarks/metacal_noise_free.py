@@ -17,6 +17,7 @@ the ring tests of ``ring_test.py --metacal`` need a million objects).
 
     python benchmarks/metacal_noise_free.py --n-galaxies 60
     python benchmarks/metacal_noise_free.py --n-galaxies 60 --population odd
+    python benchmarks/metacal_noise_free.py --n-galaxies 120 --population outside --stamp-size 64 --rotate-exposures
     python benchmarks/metacal_noise_free.py --n-galaxies 60 --metacal-psf round
     python benchmarks/metacal_noise_free.py --n-galaxies 60 --variants 2:quintic:cubic,0:quintic:cubic
     python benchmarks/metacal_noise_free.py --n-galaxies 60 --variants 1.333:quintic:quintic:own,1.333:quintic:quintic:galsim
@@ -57,7 +58,12 @@ def main(argv=None):
     ap.add_argument("--mag-max", type=float, default=24.7)
     ap.add_argument("--h", type=float, default=0.01, help="the true shear of the +-h renders")
     ap.add_argument("--delta", type=float, default=0.01, help="metacal's shear")
-    ap.add_argument("--population", choices=["paper", "odd"], default="paper")
+    ap.add_argument("--population", choices=["paper", "odd", "outside"], default="paper",
+                    help="outside: galaxies outside the model family (shearfit.simulate.outside: Sersic, bulge + disk "
+                         "of their own shapes, disk + knots), with m per family")
+    ap.add_argument("--stamp-size", type=int, default=48)
+    ap.add_argument("--rotate-exposures", action="store_true",
+                    help="give each exposure's pixel grid its own rotation (as ring_test.py --rotate-exposures)")
     ap.add_argument("--noisy", action="store_true",
                     help="keep the stamps' noise (the same at 0 and +-h) and metacal's symmetrising noise: the "
                          "per-galaxy scatter of A - R and of A_free - A then shows what limits the noisy ring tests")
@@ -68,15 +74,19 @@ def main(argv=None):
                     help="comma-separated WRAP:STAMP_INTERPOLANT:PSF_INTERPOLANT image settings to compare")
     args = ap.parse_args(argv)
 
-    population = None
+    population = profile = None
     if args.population == "odd":
         sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
         from ring_test import odd_population
         population = odd_population
+    elif args.population == "outside":
+        from shearfit.simulate.outside import outside_population, outside_profile
+        population, profile = outside_population, outside_profile
     cfg = as_config(None)
     cfg = replace(cfg, e_grid_min=min(cfg.e_grid_min, metacal.E_GRID_MIN))
     kw = dict(n_exposures=7, snr_range=(args.snr_min, args.snr_max),
-              mag_range=(args.mag_min, args.mag_max), stamp_size=48, add_noise=args.noisy, population=population)
+              mag_range=(args.mag_min, args.mag_max), stamp_size=args.stamp_size, add_noise=args.noisy,
+              population=population, profile=profile, rotate_exposures=args.rotate_exposures)
     h = args.h
     t0 = time.perf_counter()
     twins = (False, True) if (args.noisy and args.antithetic) else (False,)
@@ -84,7 +94,8 @@ def main(argv=None):
     print(f"{args.n_galaxies} {'noisy' if args.noisy else 'noise-free'} galaxies"
           f"{' and their antithetic twins' if len(twins) > 1 else ''} ({args.population} population, SNR "
           f"{args.snr_min:g}-{args.snr_max:g}{'' if args.noisy else ' weights'}, mag {args.mag_min:g}-{args.mag_max:g}), "
-          f"7 exposures; true shears +-{h:g}, metacal delta {args.delta:g}, new PSF {args.metacal_psf}; rendered in "
+          f"7 exposures, {args.stamp_size}-pixel stamps{', rotated pixel grids' if args.rotate_exposures else ''}; "
+          f"true shears +-{h:g}, metacal delta {args.delta:g}, new PSF {args.metacal_psf}; rendered in "
           f"{time.perf_counter() - t0:.0f} s")
     shipped = (f"{metacal.WRAP_STAMPS:g}:{metacal.K_INTERPOLANT}:{metacal.PSF_K_INTERPOLANT}:"
                f"{'own' if metacal.OWN_KSPACE else 'galsim'}")
@@ -105,25 +116,39 @@ def main(argv=None):
             metacal.WRAP_STAMPS, metacal.K_INTERPOLANT, metacal.PSF_K_INTERPOLANT, metacal.OWN_KSPACE = saved
         # a galaxy (with its twin) counts where every fit of it measured a galaxy; twins averaged
         # (A_free is measured only with --noisy: A stands in for it, unprinted)
+        measured = [all(c == 0 for r in rs for c in r[3]) for rs in rows]
         ok = [np.mean([(R, A, A if F is None else F) for R, A, F, _ in rs], axis=0)
-              for rs in rows if all(c == 0 for r in rs for c in r[3])]
+              for rs, good in zip(rows, measured) if good]
         R, A, F = (np.array([o[k] for o in ok]) for k in range(3))
         label = variant + (" (shipped)" if variant == shipped else "")
         print(f"\n{label}: {len(ok)} of {len(rows)} galaxies measured ({time.perf_counter() - t0:.0f} s)")
         print(f"  <R> = ({R[:, 0].mean():.4f}, {R[:, 1].mean():.4f}), <A> = ({A[:, 0].mean():.4f}, {A[:, 1].mean():.4f})"
               + (f", <A_free> = ({F[:, 0].mean():.4f}, {F[:, 1].mean():.4f})" if args.noisy else ""))
         for name, X in (("A", A),) + ((("A_free", F),) if args.noisy else ()):
-            m = X.mean(axis=0) / R.mean(axis=0) - 1
-            err = (X - (1 + m) * R).std(axis=0, ddof=1) / np.sqrt(len(ok)) / R.mean(axis=0)
-            q = np.percentile(np.abs(X - R), [50, 90, 99], axis=0)
-            print(f"  {name}: m1 = {m[0]:+.1e} +/- {err[0]:.1e}    m2 = {m[1]:+.1e} +/- {err[1]:.1e}; per galaxy "
-                  f"rms of {name} - R ({np.sqrt(np.mean((X - R) ** 2, axis=0))[0]:.1e}, "
-                  f"{np.sqrt(np.mean((X - R) ** 2, axis=0))[1]:.1e}); |{name} - R| 50/90/99 %: component 1 "
-                  f"{q[0, 0]:.1e} / {q[1, 0]:.1e} / {q[2, 0]:.1e}, component 2 {q[0, 1]:.1e} / {q[1, 1]:.1e} / {q[2, 1]:.1e}")
+            _report(name, X, R)
+        if args.population == "outside":
+            from shearfit.simulate.outside import FAMILIES
+            family = np.array([int(sets[False][(0.0, 0.0)][i][1]["fields"]["family"])
+                               for i, good in enumerate(measured) if good])
+            for f, fam in enumerate(FAMILIES):
+                sel = family == f
+                if sel.sum() > 1:
+                    _report(f"A, {fam} ({sel.sum()})", A[sel], R[sel])
         if args.noisy:
             d = F - A
             print(f"  A_free - A (the samples' own choices): rms ({np.sqrt(np.mean(d[:, 0] ** 2)):.1e}, "
                   f"{np.sqrt(np.mean(d[:, 1] ** 2)):.1e}), mean ({d[:, 0].mean():+.1e}, {d[:, 1].mean():+.1e})")
+
+
+def _report(name, X, R):
+    """m = <X> / <R> - 1 per component with its error over the galaxies, and the spread of X - R."""
+    m = X.mean(axis=0) / R.mean(axis=0) - 1
+    err = (X - (1 + m) * R).std(axis=0, ddof=1) / np.sqrt(len(X)) / R.mean(axis=0)
+    q = np.percentile(np.abs(X - R), [50, 90, 99], axis=0)
+    rms = np.sqrt(np.mean((X - R) ** 2, axis=0))
+    print(f"  {name}: m1 = {m[0]:+.1e} +/- {err[0]:.1e}    m2 = {m[1]:+.1e} +/- {err[1]:.1e}; per galaxy "
+          f"rms of X - R ({rms[0]:.1e}, {rms[1]:.1e}); |X - R| 50/90/99 %: component 1 "
+          f"{q[0, 0]:.1e} / {q[1, 0]:.1e} / {q[2, 0]:.1e}, component 2 {q[0, 1]:.1e} / {q[1, 1]:.1e} / {q[2, 1]:.1e}")
 
 
 if __name__ == "__main__":
