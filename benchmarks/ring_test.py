@@ -501,9 +501,9 @@ def report_lensfit(tab, args, n_gal):
         report_bias(_plain_columns(tab), args, n_gal)
 
 
-def report_metacal(rings, args):
+def report_metacal(rings, args, by_snr=True):
     """m and c of the metacal shear <R>^-1 <e> per sign (shear and selection response), bootstrap errors over
-    galaxies (``rings``: a :class:`MetacalRings`)."""
+    galaxies (``rings``: a :class:`MetacalRings`); ``by_snr``: and in bins of target SNR, over a wide range."""
     g = np.array(args.shear, dtype=float)
     n_gal = rings.n_galaxies
     est, Rg, Rs = metacal_bias_from_sums(rings.sums, g)
@@ -530,6 +530,31 @@ def report_metacal(rings, args):
           f"R_S = [[{Rs[0, 0]:+.4f}, {Rs[0, 1]:+.4f}], [{Rs[1, 0]:+.4f}, {Rs[1, 1]:+.4f}]]")
     print(f"  fitclass != 0: {rings.n_other.sum() / max(rings.n_objects.sum(), 1):.3%} of {rings.n_objects.sum()} "
           "objects")
+    if by_snr and args.snr_max / args.snr_min > WIDE_SNR_RATIO and args.snr_bins > 1:
+        report_metacal_snr(rings, args)
+
+
+def report_metacal_snr(rings, args):
+    """Metacal's m (the mean of <R>'s diagonal for both components) and lensfit's on the noshear images, in bins
+    of the galaxies' target SNR: whether what metacal leaves grows towards the faint end, as a noise bias would."""
+    g = np.array(args.shear, dtype=float)
+    edges = np.geomspace(args.snr_min, args.snr_max, args.snr_bins + 1)
+    snr = np.asarray(rings.snr_target, float)
+    print("\n  metacal (mean of <R>'s diagonal) and lensfit on the noshear images against target SNR (bootstrap errors):")
+    print("      SNR range     n_gal          metacal m1               metacal m2               lensfit m1"
+          "               lensfit m2")
+    for k, (lo, hi) in enumerate(zip(edges[:-1], edges[1:])):
+        sel = (snr >= lo) & ((snr < hi) if k < len(edges) - 2 else (snr <= hi))
+        n = int(sel.sum())
+        if n < 2:
+            continue
+        sub = rings.subset(sel)
+        est = metacal_bias_from_sums(sub.sums, g)[0]
+        counts = bootstrap_counts(n, args.n_bootstrap, np.random.default_rng([args.seed, 54321, k]))
+        err = np.std(metacal_bias_from_sums(sub.sums, g, counts)[0], axis=0)
+        print(f"    {lo:6.1f} - {hi:6.1f}  {n:6d}   {format_with_error(est[8], err[8])}   "
+              f"{format_with_error(est[9], err[9])}   {format_with_error(est[4], err[4])}   "
+              f"{format_with_error(est[5], err[5])}")
 
 
 def report_families(tab, args, rings=None):
@@ -574,7 +599,7 @@ def report_families(tab, args, rings=None):
             sub = rings.subset(sel_gal)
             if tab is None:
                 report_lensfit_sums(sub, args)
-            report_metacal(sub, args)
+            report_metacal(sub, args, by_snr=False)
 
 
 def report_lensfit_sums(rings, args):
