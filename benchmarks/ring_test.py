@@ -501,14 +501,20 @@ def report_lensfit(tab, args, n_gal):
         report_bias(_plain_columns(tab), args, n_gal)
 
 
+def _metacal_estimate(rings, args, rng):
+    """:func:`metacal_bias_from_sums` of ``rings`` and its bootstrap errors over the galaxies: (estimate, errors,
+    R_gamma, R_S)."""
+    g = np.array(args.shear, dtype=float)
+    est, Rg, Rs = metacal_bias_from_sums(rings.sums, g)
+    counts = bootstrap_counts(rings.n_galaxies, args.n_bootstrap, rng)
+    return est, np.std(metacal_bias_from_sums(rings.sums, g, counts)[0], axis=0), Rg, Rs
+
+
 def report_metacal(rings, args, by_snr=True):
     """m and c of the metacal shear <R>^-1 <e> per sign (shear and selection response), bootstrap errors over
     galaxies (``rings``: a :class:`MetacalRings`); ``by_snr``: and in bins of target SNR, over a wide range."""
-    g = np.array(args.shear, dtype=float)
     n_gal = rings.n_galaxies
-    est, Rg, Rs = metacal_bias_from_sums(rings.sums, g)
-    counts = bootstrap_counts(n_gal, args.n_bootstrap, np.random.default_rng([args.seed, 54321]))
-    err = np.std(metacal_bias_from_sums(rings.sums, g, counts)[0], axis=0)
+    est, err, Rg, Rs = _metacal_estimate(rings, args, np.random.default_rng([args.seed, 54321]))
     print(f"\nmetacal shear bias (<R>^-1 <e> per sign, {'unit' if args.unweighted else 'lensfit'} weights, "
           f"{args.n_bootstrap} bootstrap resamplings of {n_gal} galaxies):")
     print(f"  m1 = {format_with_error(est[0], err[0])}    c1 = {format_with_error(est[2], err[2])}")
@@ -537,7 +543,6 @@ def report_metacal(rings, args, by_snr=True):
 def report_metacal_snr(rings, args):
     """Metacal's m (the mean of <R>'s diagonal for both components) and lensfit's on the noshear images, in bins
     of the galaxies' target SNR: whether what metacal leaves grows towards the faint end, as a noise bias would."""
-    g = np.array(args.shear, dtype=float)
     edges = np.geomspace(args.snr_min, args.snr_max, args.snr_bins + 1)
     snr = np.asarray(rings.snr_target, float)
     print("\n  metacal (mean of <R>'s diagonal) and lensfit on the noshear images against target SNR (bootstrap errors):")
@@ -548,10 +553,7 @@ def report_metacal_snr(rings, args):
         n = int(sel.sum())
         if n < 2:
             continue
-        sub = rings.subset(sel)
-        est = metacal_bias_from_sums(sub.sums, g)[0]
-        counts = bootstrap_counts(n, args.n_bootstrap, np.random.default_rng([args.seed, 54321, k]))
-        err = np.std(metacal_bias_from_sums(sub.sums, g, counts)[0], axis=0)
+        est, err = _metacal_estimate(rings.subset(sel), args, np.random.default_rng([args.seed, 54321, k]))[:2]
         print(f"    {lo:6.1f} - {hi:6.1f}  {n:6d}   {format_with_error(est[8], err[8])}   "
               f"{format_with_error(est[9], err[9])}   {format_with_error(est[4], err[4])}   "
               f"{format_with_error(est[5], err[5])}")
