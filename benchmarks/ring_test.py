@@ -95,7 +95,7 @@ from shearfit.simulate.outside import outside_population, outside_profile  # noq
 from shearfit.simulate.stamps import NegatedNormal  # noqa: E402
 from shearfit.calib.bias import (METACAL_SUM_NAMES, bias_from_sums, bootstrap_counts, format_with_error,  # noqa: E402
                                   galaxy_column, metacal_bias_from_sums, metacal_ring_sums, paired_weights, ring_sums,
-                                  shear_bias, shear_bias_by_snr)
+                                  shear_bias, shear_bias_by_snr, snr_bin_masks)
 from shearfit.calib.weights import isotropic_weights  # noqa: E402
 
 # m(SNR) is printed when snr_max / snr_min exceeds this: a narrower range has no noise-bias trend to see.
@@ -548,8 +548,7 @@ def report_metacal_snr(rings, args):
     print("\n  metacal (mean of <R>'s diagonal) and lensfit on the noshear images against target SNR (bootstrap errors):")
     print("      SNR range     n_gal          metacal m1               metacal m2               lensfit m1"
           "               lensfit m2")
-    for k, (lo, hi) in enumerate(zip(edges[:-1], edges[1:])):
-        sel = (snr >= lo) & ((snr < hi) if k < len(edges) - 2 else (snr <= hi))
+    for k, (lo, hi, sel) in enumerate(snr_bin_masks(snr, edges)):
         n = int(sel.sum())
         if n < 2:
             continue

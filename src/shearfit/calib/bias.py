@@ -47,6 +47,7 @@ __all__ = [
     "shear_bias",
     "mean_shear",
     "shear_bias_by_snr",
+    "snr_bin_masks",
     "galaxy_column",
     "metacal_ring_sums",
     "metacal_bias_from_sums",
@@ -445,6 +446,15 @@ def galaxy_column(table, column: str, n_galaxies: int) -> np.ndarray:
     return out
 
 
+def snr_bin_masks(snr, edges):
+    """(lo, hi, mask) of each bin of ``edges`` over the values ``snr``: lo <= snr < hi, the last bin including
+    its upper edge."""
+    snr = np.asarray(snr, dtype=np.float64)
+    n_bins = len(edges) - 1
+    return [(float(lo), float(hi), (snr >= lo) & ((snr <= hi) if k == n_bins - 1 else (snr < hi)))
+            for k, (lo, hi) in enumerate(zip(edges[:-1], edges[1:]))]
+
+
 def shear_bias_by_snr(sums, galaxy_snr, edges, g, n_boot: int = 200, rng=None) -> list:
     """m and c in bins of a per-galaxy SNR: the noise-bias signature.
 
@@ -478,9 +488,7 @@ def shear_bias_by_snr(sums, galaxy_snr, edges, g, n_boot: int = 200, rng=None) -
         raise ShearfitValueError("edges must be an increasing sequence of at least two values")
     rng = np.random.default_rng(rng)
     out = []
-    for k, (lo, hi) in enumerate(zip(edges[:-1], edges[1:])):
-        last = k == edges.size - 2
-        sel = (snr >= lo) & ((snr <= hi) if last else (snr < hi))
+    for lo, hi, sel in snr_bin_masks(snr, edges):
         n = int(sel.sum())
         if n >= 2:
             est, err = shear_bias(sums[:, sel], g, n_boot, rng)
