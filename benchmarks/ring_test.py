@@ -100,6 +100,8 @@ from shearfit.calib.weights import isotropic_weights  # noqa: E402
 
 # m(SNR) is printed when snr_max / snr_min exceeds this: a narrower range has no noise-bias trend to see.
 WIDE_SNR_RATIO = 2.5
+#: runs needed for the jackknife over runs of --from-tables (report_runs_jackknife)
+JACKKNIFE_MIN_RUNS = 5
 RESULT_FIELDS = ("e1", "e2", "e_var", "weight", "snr", "scalelength", "bulge_fraction", "model_flux")
 METACAL_FIELDS = tuple(f"{q}_{v}" for v in ("1p", "1m", "2p", "2m") for q in ("e1", "e2", "weight", "fitclass")) + \
     ("R11", "R12", "R21", "R22")
@@ -540,6 +542,37 @@ def report_metacal(rings, args, by_snr=True):
         report_metacal_snr(rings, args)
 
 
+def runs_jackknife(parts, g):
+    """Metacal's bias (:func:`metacal_bias_from_sums`' estimates) of the runs ``parts`` (MetacalRings) together,
+    and its delete-one-run jackknife error: each run left out in turn, ``sqrt((n - 1) / n sum (b_i - <b_i>)^2)``.
+    Each run being its own seed, its galaxies, noise and PSFs independent of the others', this error does not rest
+    on the galaxies' independence as the bootstrap over galaxies does. Returns (estimate, error, the n left-out
+    estimates)."""
+    n = len(parts)
+    g = np.asarray(g, dtype=float)
+    rings = MetacalRings.concatenate(parts)
+    owner = np.repeat(np.arange(n), [p.n_galaxies for p in parts])
+    counts = (owner[None, :] != np.arange(n)[:, None]).astype(float)   # run i's galaxies left out of row i
+    left_out = metacal_bias_from_sums(rings.sums, g, counts)[0]
+    err = np.sqrt((n - 1) / n * np.sum((left_out - left_out.mean(axis=0)) ** 2, axis=0))
+    return metacal_bias_from_sums(rings.sums, g)[0], err, left_out
+
+
+def report_runs_jackknife(parts, args):
+    """m and c with the jackknife error over runs (:func:`runs_jackknife`), beside the bootstrap's."""
+    if len(parts) < JACKKNIFE_MIN_RUNS:
+        return
+    est, err, _ = runs_jackknife(parts, args.shear)
+    sizes = [p.n_galaxies for p in parts]
+    print(f"\n  the same, errors from the scatter of the {len(parts)} runs (delete-one-run jackknife; runs of "
+          f"{min(sizes)}-{max(sizes)} galaxies):")
+    print(f"    full <R>: m1 = {format_with_error(est[0], err[0])}, m2 = {format_with_error(est[1], err[1])}; "
+          f"c1 = {format_with_error(est[2], err[2])}, c2 = {format_with_error(est[3], err[3])}")
+    print(f"    the mean of <R>'s diagonal: m1 = {format_with_error(est[8], err[8])}, m2 = "
+          f"{format_with_error(est[9], err[9])}; lensfit on the noshear images: m1 = "
+          f"{format_with_error(est[4], err[4])}, m2 = {format_with_error(est[5], err[5])}")
+
+
 def report_metacal_snr(rings, args):
     """Metacal's m (the mean of <R>'s diagonal for both components) and lensfit's on the noshear images, in bins
     of the galaxies' target SNR: whether what metacal leaves grows towards the faint end, as a noise bias would."""
@@ -882,6 +915,7 @@ def report_tables(args):
               f"{rings.n_galaxies} galaxies, {rings.n_objects.sum()} objects")
         report_lensfit_sums(rings, args)
         report_metacal(rings, args)
+        report_runs_jackknife(parts, args)
         report_families(None, args, rings)
         return 0
     print(f"ring test from {len(args.from_tables)} table(s): {n_gal} galaxies, {len(tab)} objects")

@@ -83,3 +83,37 @@ def test_galaxy_sums_report_as_the_tables(ring_test, tmp_path, capsys):
     assert "6 galaxies, 24 objects" in capsys.readouterr().out
     assert ring_test.main(base + [str(sums), "--shear", "0.02", "0.02"]) == 2
     assert f"{sums}: galaxy sums of g = (0.03, -0.02)" in capsys.readouterr().err
+
+
+def test_runs_jackknife_leaves_each_run_out(ring_test):
+    """The jackknife over runs of --from-tables: each left-out estimate is that of the other runs put together
+    (made here by concatenating them, not by the zero counts the function uses), and the error is the
+    delete-one formula of those estimates."""
+    from shearfit.calib.bias import metacal_bias_from_sums
+
+    rng = np.random.default_rng(5)
+    g = (0.03, -0.02)
+
+    def run(n):
+        sums = np.empty((20, n, 2))
+        w = rng.uniform(0.5, 2.0, (n, 2))
+        sums[0] = sums[3] = w
+        sums[1:3] = w * rng.normal(0.0, 0.3, (2, n, 2)) + w * np.array([1, -1])[None, None, :] * np.reshape(g, (2, 1, 1))
+        sums[4] = sums[7] = w * rng.normal(0.9, 0.1, (n, 2))
+        sums[5] = sums[6] = w * rng.normal(0.0, 0.05, (n, 2))
+        for k in range(8, 20, 3):
+            sums[k] = w * rng.uniform(0.9, 1.1, (n, 2))
+            sums[k + 1:k + 3] = sums[k] * rng.normal(0.0, 0.3, (2, n, 2))
+        return ring_test.MetacalRings(sums, np.zeros(n), np.ones(n), np.full(n, 20.0), np.full(n, 16),
+                                      np.zeros(n), g, True)
+
+    parts = [run(n) for n in (7, 9, 8, 11, 6, 10)]
+    est, err, left_out = ring_test.runs_jackknife(parts, g)
+    whole = ring_test.MetacalRings.concatenate(parts)
+    assert np.allclose(est, metacal_bias_from_sums(whole.sums, g)[0], rtol=0, atol=1e-14)
+    for i in range(len(parts)):
+        others = ring_test.MetacalRings.concatenate(parts[:i] + parts[i + 1:])
+        assert np.allclose(left_out[i], metacal_bias_from_sums(others.sums, g)[0], rtol=0, atol=1e-12)
+    n = len(parts)
+    want = np.sqrt((n - 1) / n * np.sum((left_out - left_out.mean(axis=0)) ** 2, axis=0))
+    assert np.allclose(err, want, rtol=1e-12) and np.all(err[:2] > 0)
