@@ -18,6 +18,7 @@ the ring tests of ``ring_test.py --metacal`` need a million objects).
     python benchmarks/metacal_noise_free.py --n-galaxies 60
     python benchmarks/metacal_noise_free.py --n-galaxies 60 --population odd
     python benchmarks/metacal_noise_free.py --n-galaxies 120 --population outside --stamp-size 64 --rotate-exposures
+    python benchmarks/metacal_noise_free.py --n-galaxies 40 --population outside --hlr-range 0.9 2 --stamp-size 128
     python benchmarks/metacal_noise_free.py --n-galaxies 60 --metacal-psf round
     python benchmarks/metacal_noise_free.py --n-galaxies 60 --variants 2:quintic:cubic,0:quintic:cubic
     python benchmarks/metacal_noise_free.py --n-galaxies 60 --variants 1.333:quintic:quintic:own,1.333:quintic:quintic:galsim
@@ -37,6 +38,7 @@ for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_var, "1")
 
 import argparse  # noqa: E402
+import functools  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
 from dataclasses import replace  # noqa: E402
@@ -61,6 +63,10 @@ def main(argv=None):
     ap.add_argument("--population", choices=["paper", "odd", "outside"], default="paper",
                     help="outside: galaxies outside the model family (shearfit.simulate.outside: Sersic, bulge + disk "
                          "of their own shapes, disk + knots), with m per family")
+    ap.add_argument("--hlr-range", type=float, nargs=2, metavar=("MIN", "MAX"), default=None,
+                    help="with --population outside: half-light radii log-uniform from MIN to MAX arcsec instead of "
+                         "0.1-2\" (a galaxy that would not fit its stamp is redrawn: 64-pixel stamps hold up to "
+                         "about 0.9\")")
     ap.add_argument("--stamp-size", type=int, default=48)
     ap.add_argument("--rotate-exposures", action="store_true",
                     help="give each exposure's pixel grid its own rotation (as ring_test.py --rotate-exposures)")
@@ -73,6 +79,8 @@ def main(argv=None):
     ap.add_argument("--variants", default=None,
                     help="comma-separated WRAP:STAMP_INTERPOLANT:PSF_INTERPOLANT image settings to compare")
     args = ap.parse_args(argv)
+    if args.hlr_range is not None and (args.population != "outside" or not 0 < args.hlr_range[0] < args.hlr_range[1]):
+        ap.error("--hlr-range needs --population outside and 0 < MIN < MAX")
 
     population = profile = None
     if args.population == "odd":
@@ -82,6 +90,8 @@ def main(argv=None):
     elif args.population == "outside":
         from shearfit.simulate.outside import outside_population, outside_profile
         population, profile = outside_population, outside_profile
+        if args.hlr_range is not None:
+            population = functools.partial(outside_population, hlr_range=tuple(args.hlr_range))
     cfg = as_config(None)
     cfg = replace(cfg, e_grid_min=min(cfg.e_grid_min, metacal.E_GRID_MIN))
     kw = dict(n_exposures=7, snr_range=(args.snr_min, args.snr_max),

@@ -102,6 +102,8 @@ from shearfit.calib.weights import isotropic_weights  # noqa: E402
 WIDE_SNR_RATIO = 2.5
 #: runs needed for the jackknife over runs of --from-tables (report_runs_jackknife)
 JACKKNIFE_MIN_RUNS = 5
+#: bins in ln(half-light radius) of --hlr-log-uniform's weights
+HLR_WEIGHT_BINS = 20
 RESULT_FIELDS = ("e1", "e2", "e_var", "weight", "snr", "scalelength", "bulge_fraction", "model_flux")
 METACAL_FIELDS = tuple(f"{q}_{v}" for v in ("1p", "1m", "2p", "2m") for q in ("e1", "e2", "weight", "fitclass")) + \
     ("R11", "R12", "R21", "R22")
@@ -386,6 +388,12 @@ class MetacalRings:
         return cls(metacal_ring_sums(tab, n_gal, weighted=not args.unweighted), family, per_galaxy("true_hlr", np.nan),
                    per_galaxy("snr_target", np.nan), count, other, args.shear, not args.unweighted)
 
+    def weighted_by(self, w):
+        """The same galaxies, each one's sums times its sampling weight ``w`` (all the sums are linear in the
+        objects' weights, so this is the estimator on a population in which galaxy i counts ``w[i]`` times)."""
+        return MetacalRings(self.sums * np.asarray(w, dtype=float)[None, :, None], self.family, self.true_hlr,
+                            self.snr_target, self.n_objects, self.n_other, self.g, self.weighted)
+
     def subset(self, sel):
         sel = np.asarray(sel)
         return MetacalRings(self.sums[:, sel], self.family[sel], self.true_hlr[sel], self.snr_target[sel],
@@ -441,6 +449,27 @@ class MetacalRings:
                 return len(hdul) > 1 and cls.KEYWORD in hdul[1].header
         except OSError:
             return False
+
+
+def hlr_log_uniform_weights(hlr, lo, hi, n_bins=HLR_WEIGHT_BINS):
+    """Weights that make galaxies drawn from runs of different size ranges one population with half-light
+    radii log-uniform from ``lo`` to ``hi``: each galaxy's weight is the inverse of the number of galaxies in its
+    bin of ln(hlr) (``n_bins`` equal bins), scaled to a mean of one; galaxies outside [lo, hi] weigh 0.
+
+    Runs of the outside population in 64-pixel stamps hold half-light radii up to about 0.9" (larger galaxies
+    are redrawn), so the population of 0.1-2" is a run in 64-pixel stamps joined with one of the large galaxies
+    in 128-pixel ones (``--size-range``), each galaxy weighted by how thinly its size was sampled."""
+    x = np.log(np.asarray(hlr, dtype=float))
+    edges = np.linspace(np.log(lo), np.log(hi), n_bins + 1)
+    inside = np.isfinite(x) & (x >= edges[0]) & (x <= edges[-1])
+    k = np.clip(np.searchsorted(edges, x, side="right") - 1, 0, n_bins - 1)
+    count = np.bincount(k[inside], minlength=n_bins)
+    if np.any(count == 0):
+        raise ValueError(f"--hlr-log-uniform {lo:g} {hi:g}: no galaxy of half-light radius "
+                         f"{np.exp(edges[np.argmin(count)]):.3g}-{np.exp(edges[np.argmin(count) + 1]):.3g}\" in "
+                         "the runs given, so their sizes cannot be made log-uniform over that range")
+    w = np.where(inside, 1.0 / np.maximum(count[k], 1), 0.0)
+    return w * (inside.sum() / w.sum())
 
 
 def _metacal_check(rings, args):
@@ -710,13 +739,15 @@ def parse_args(argv=None):
                    help="the paper's population (priors), one unlike it (sizes x2, a third Sersic n=2.5, "
                         "e rms 0.3), or galaxies outside the model family (shearfit.simulate.outside: Sersic n "
                         "0.3-6, bulge + disk with their own shapes, disks with knots; half-light radius 0.1-2\"; "
-                        "m and c per family too; give --stamp-size 64 for the largest)")
+                        "m and c per family too; a galaxy that would not fit its stamp is redrawn, so 64-pixel "
+                        "stamps hold half-light radii up to about 0.9\" and 128-pixel ones the whole 2\")")
     p.add_argument("--population-from", nargs="+", metavar="TRUTH",
                    help="the galaxies of simulated fields (truth.fits of shearfit simulate) within the magnitude "
                         "range, drawn at random with their magnitudes, instead of new population draws")
     p.add_argument("--size-range", type=float, nargs=2, metavar=("RMIN", "RMAX"),
                    help="with the paper's population: scalelengths log-uniform from RMIN to RMAX arcsec instead "
-                        "of the size prior's (benchmarks/ring_split.py --r-bins splits the result)")
+                        "of the size prior's (benchmarks/ring_split.py --r-bins splits the result); with the "
+                        "outside population: half-light radii log-uniform from RMIN to RMAX instead of 0.1-2\"")
     p.add_argument("--calibration", default=None,
                    help="calibration YAML for the calibrated m line (default: the paper's alpha, beta)")
     p.add_argument("--antithetic", action="store_true",
@@ -743,6 +774,10 @@ def parse_args(argv=None):
                    help="report on per-object tables written by earlier runs (--out) instead of simulating: "
                         "runs of different --seed add up (their galaxies are renumbered); give the shear, SNR "
                         "range and --metacal those runs had")
+    p.add_argument("--hlr-log-uniform", type=float, nargs=2, metavar=("LO", "HI"),
+                   help="with --from-tables and --metacal: weight the galaxies so that their half-light radii are "
+                        "log-uniform from LO to HI (the inverse of their number per bin of ln hlr; those outside "
+                        "weigh 0): runs of different --size-range and --stamp-size as one population")
     p.add_argument("--save-sums", metavar="FILE",
                    help="with --from-tables and --metacal: also write the galaxy sums of what was read to FILE "
                         "(about 180 bytes per galaxy; --from-tables reads it as it reads tables, so a long "
@@ -750,12 +785,20 @@ def parse_args(argv=None):
     args = p.parse_args(argv)
     if args.save_sums and not args.from_tables:
         p.error("--save-sums needs --from-tables")
+    if args.hlr_log_uniform and (not args.from_tables or not args.metacal or args.save_sums
+                                 or not 0 < args.hlr_log_uniform[0] < args.hlr_log_uniform[1]):
+        p.error("--hlr-log-uniform needs --from-tables, --metacal, no --save-sums, and 0 < LO < HI")
     if args.n_galaxies < 1 or args.n_rotations < 1 or args.n_exposures < 1 or args.processes < 1:
         p.error("--n-galaxies, --n-rotations, --n-exposures and --processes must be positive")
     if not 0 < args.snr_min <= args.snr_max:
         p.error("need 0 < --snr-min <= --snr-max")
-    if args.size_range is not None and (args.population != "paper" or not 0 < args.size_range[0] < args.size_range[1]):
-        p.error("--size-range needs 0 < RMIN < RMAX and the paper's population")
+    if args.size_range is not None and (args.population not in ("paper", "outside")
+                                        or not 0 < args.size_range[0] < args.size_range[1]):
+        p.error("--size-range needs 0 < RMIN < RMAX and the paper's or the outside population")
+    if args.noise_free and args.metacal:
+        p.error("--noise-free with --metacal: metacal's symmetrising noise would be the images' only noise, and "
+                "nothing cancels its processed correlation (a biased response); benchmarks/metacal_noise_free.py "
+                "measures metacal without noise")
     if args.resume and not args.out:
         p.error("--resume needs --out (the run whose checkpoint it continues)")
     return args
@@ -764,7 +807,7 @@ def parse_args(argv=None):
 #: options that do not change what a run's galaxies are or how they are measured (a checkpoint continues under
 #: other values of these)
 _RUN_ONLY_OPTIONS = {"out", "resume", "checkpoint_seconds", "processes", "quiet", "n_bootstrap", "snr_bins", "save_sums",
-                     "unweighted", "calibration"}
+                     "unweighted", "calibration", "hlr_log_uniform"}
 
 
 def run_signature(args):
@@ -883,6 +926,10 @@ def report_tables(args):
         print("ring_test.py: error: galaxy sums (--save-sums, or a file of them in --from-tables) are metacal's: "
               "give --metacal, and neither --plain nor --reference-tables", file=sys.stderr)
         return 2
+    if args.hlr_log_uniform and not sums_files:
+        print("ring_test.py: error: --hlr-log-uniform weights galaxy sums: give at least one file of them "
+              "(--save-sums) in --from-tables", file=sys.stderr)
+        return 2
     try:
         tab, n_gal = read_tables(tables) if tables else (None, 0)
         ref = read_tables(args.reference_tables) if args.reference_tables else None
@@ -901,6 +948,14 @@ def report_tables(args):
                     raise ValueError(f"{path}: {exc}") from None
                 parts.append(part)
             rings = MetacalRings.concatenate(parts, source=" ".join(sums_files))
+            if args.hlr_log_uniform:
+                w = hlr_log_uniform_weights(rings.true_hlr, *args.hlr_log_uniform)
+                rings = rings.weighted_by(w)
+                ends = np.cumsum([0] + [p.n_galaxies for p in parts])
+                parts = [p.weighted_by(w[a:b]) for p, a, b in zip(parts, ends[:-1], ends[1:])]
+                print(f"galaxies weighted to half-light radii log-uniform over {args.hlr_log_uniform[0]:g}-"
+                      f"{args.hlr_log_uniform[1]:g}\": {int(np.sum(w > 0))} of {w.size} within it, weights "
+                      f"{w[w > 0].min():.3f}-{w.max():.3f}")
     except (OSError, ValueError, KeyError) as exc:
         print(f"ring_test.py: error: {exc}", file=sys.stderr)
         return 2
@@ -979,7 +1034,9 @@ def main(argv=None):
                             noise_sigma=args.noise_sigma,
                             stamp_size=args.stamp_size, psf_oversampling=args.psf_oversampling,
                             rotate_exposures=args.rotate_exposures, add_noise=not args.noise_free,
-                            population=(functools.partial(sized_population, size_range=tuple(args.size_range))
+                            population=(functools.partial(outside_population, hlr_range=tuple(args.size_range))
+                                        if args.size_range and args.population == "outside" else
+                                        functools.partial(sized_population, size_range=tuple(args.size_range))
                                         if args.size_range else
                                         functools.partial(replayed_population, galaxies=truth_galaxies(
                                             args.population_from, (args.mag_min, args.mag_max)))

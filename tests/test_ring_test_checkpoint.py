@@ -117,3 +117,48 @@ def test_runs_jackknife_leaves_each_run_out(ring_test):
     n = len(parts)
     want = np.sqrt((n - 1) / n * np.sum((left_out - left_out.mean(axis=0)) ** 2, axis=0))
     assert np.allclose(err, want, rtol=1e-12) and np.all(err[:2] > 0)
+
+
+def test_hlr_log_uniform_weights_join_runs_of_different_sizes(ring_test):
+    """Two runs, one of small galaxies sampled densely and one of large galaxies sampled thinly, overlapping at
+    0.85-0.9": weighted, every bin of ln(hlr) over 0.1-2" holds the same weight, so the weighted sizes are
+    log-uniform (mean ln hlr at the range's middle); galaxies outside weigh 0 and the rest average 1."""
+    rng = np.random.default_rng(3)
+    small = np.exp(rng.uniform(np.log(0.1), np.log(0.9), 6000))
+    large = np.exp(rng.uniform(np.log(0.85), np.log(2.0), 800))
+    hlr = np.concatenate([small, large, [0.05, 2.5]])
+    w = ring_test.hlr_log_uniform_weights(hlr, 0.1, 2.0)
+    assert w[-2] == w[-1] == 0 and np.all(w[:-2] > 0)
+    assert np.isclose(w[:-2].mean(), 1.0, rtol=1e-12)
+    edges = np.linspace(np.log(0.1), np.log(2.0), ring_test.HLR_WEIGHT_BINS + 1)
+    per_bin = np.histogram(np.log(hlr[:-2]), edges, weights=w[:-2])[0]
+    assert np.allclose(per_bin, per_bin.mean(), rtol=1e-12)
+    # the galaxies above 1.2" (only large ones, 1/10 of the galaxies) stand for ln(2 / 1.2) / ln(20) = 17 % of
+    # the population (to the scatter of the one bin that 1.2" splits)
+    assert abs(w[hlr >= 1.2].sum() / w.sum() - np.log(2 / 1.2) / np.log(20)) < 0.01
+    assert abs(np.average(np.log(hlr[:-2]), weights=w[:-2]) - 0.5 * np.log(0.2)) < 0.02
+    with pytest.raises(ValueError, match="no galaxy of half-light radius"):
+        ring_test.hlr_log_uniform_weights(small, 0.1, 2.0)
+
+
+def test_a_galaxys_weight_counts_it_as_often(ring_test):
+    """MetacalRings.weighted_by: every sum is linear in the objects' weights, so weight 2 is the galaxy twice."""
+    from shearfit.calib.bias import metacal_bias_from_sums
+
+    rng = np.random.default_rng(8)
+    n, g = 6, (0.03, -0.02)
+    sums = rng.uniform(0.5, 1.5, (20, n, 2))
+    rings = ring_test.MetacalRings(sums, np.zeros(n), np.ones(n), np.full(n, 20.0), np.full(n, 16), np.zeros(n), g,
+                                   True)
+    w = np.array([1.0, 2.0, 1.0, 0.0, 3.0, 1.0])
+    twice = np.repeat(sums, w.astype(int), axis=1)
+    assert np.allclose(metacal_bias_from_sums(rings.weighted_by(w).sums, g)[0], metacal_bias_from_sums(twice, g)[0],
+                       rtol=1e-12, atol=0)
+
+
+def test_noise_free_metacal_is_refused(ring_test):
+    """Without the images' own noise, metacal's symmetrising noise alone would be left unsymmetrised."""
+    with pytest.raises(SystemExit):
+        ring_test.parse_args(["--metacal", "--noise-free"])
+    with pytest.raises(SystemExit):
+        ring_test.parse_args(["--hlr-log-uniform", "0.1", "2"])   # needs --from-tables and --metacal

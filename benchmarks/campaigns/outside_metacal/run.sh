@@ -11,22 +11,27 @@
 #       --snr-max 40 --save-sums benchmarks/campaigns/outside_metacal/seedNNN_part.fits
 #
 # PYTHON (default python) runs the benchmark: point it, or PYTHONPATH, at a frozen copy of the package if the
-# checkout changes while the loop runs.
+# checkout changes while the loop runs. DEST (default this folder) and SIZE_OPTS (default 800 galaxies a seed in
+# 64-pixel stamps, which hold half-light radii up to about 0.9") let another campaign share this loop:
+# ../outside_metacal_large/run.sh runs the large galaxies in 128-pixel stamps so.
 set -u
 here=$(cd "$(dirname "$0")" && pwd)
 bench=$(cd "$here/../.." && pwd)
+dest=${DEST:-$here}
 py=${PYTHON:-python}
+# shellcheck disable=SC2206
+size_opts=(${SIZE_OPTS:---n-galaxies 800 --stamp-size 64})
 work=$1
 shift
 mkdir -p "$work"
 for seed in "$@"; do
     id=$(printf "%03d" "$seed")
-    if [ -f "$here/seed$id.fits" ] || [ -f "$here/seed${id}_part.fits" ]; then
+    if [ -f "$dest/seed$id.fits" ] || [ -f "$dest/seed${id}_part.fits" ]; then
         continue
     fi
-    OMP_NUM_THREADS=1 "$py" "$bench/ring_test.py" --population outside --n-galaxies 800 --stamp-size 64 \
+    OMP_NUM_THREADS=1 "$py" "$bench/ring_test.py" --population outside "${size_opts[@]}" \
         --rotate-exposures --metacal --antithetic --snr-min 10 --snr-max 40 --seed "$seed" --processes 1 \
         --out "$work/out$seed.fits" --resume --quiet > "$work/log$seed.txt" 2>&1 || exit $?
     "$py" "$bench/ring_test.py" --from-tables "$work/out$seed.fits" --metacal --snr-min 10 --snr-max 40 \
-        --n-bootstrap 2 --save-sums "$here/seed$id.fits" > /dev/null || exit $?
+        --n-bootstrap 2 --save-sums "$dest/seed$id.fits" > /dev/null || exit $?
 done
