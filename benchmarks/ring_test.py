@@ -627,9 +627,13 @@ def report_families(tab, args, rings=None):
     kept as galaxy sums), the metacal shear and lensfit's on the noshear images."""
     from shearfit.simulate.outside import FAMILIES
 
+    edges = [0.0] + sorted(args.hlr_edges) + [np.inf]
+
     def subsets(fam, hlr):
-        return ([(name, fam == k) for k, name in enumerate(FAMILIES)]
-                + [('half-light radius < 0.3"', hlr < 0.3), ('half-light radius >= 0.3"', hlr >= 0.3)])
+        sizes = [(f'half-light radius < {hi:g}"' if lo == 0 else f'half-light radius >= {lo:g}"' if hi == np.inf
+                  else f'half-light radius {lo:g}-{hi:g}"', (hlr >= lo) & (hlr < hi))
+                 for lo, hi in zip(edges[:-1], edges[1:])]
+        return [(name, fam == k) for k, name in enumerate(FAMILIES)] + sizes
 
     if tab is not None:
         if "family" not in tab.dtype.names or not np.any(np.asarray(tab["family"]) >= 0):
@@ -662,7 +666,9 @@ def report_families(tab, args, rings=None):
             sub = rings.subset(sel_gal)
             if tab is None:
                 report_lensfit_sums(sub, args)
-            report_metacal(sub, args, by_snr=False)
+            # the sizes' subsets with metacal's m against SNR too: whether what metacal leaves at the faint end
+            # belongs to some sizes
+            report_metacal(sub, args, by_snr=k >= len(FAMILIES))
 
 
 def report_lensfit_sums(rings, args):
@@ -778,6 +784,9 @@ def parse_args(argv=None):
                    help="with --from-tables and --metacal: weight the galaxies so that their half-light radii are "
                         "log-uniform from LO to HI (the inverse of their number per bin of ln hlr; those outside "
                         "weigh 0): runs of different --size-range and --stamp-size as one population")
+    p.add_argument("--hlr-edges", type=float, nargs="+", default=[0.3], metavar="HLR",
+                   help="with --population outside (or its tables): the half-light radii (arcsec) that split the "
+                        "galaxies into the size subsets of the report, each with metacal's m against SNR")
     p.add_argument("--save-sums", metavar="FILE",
                    help="with --from-tables and --metacal: also write the galaxy sums of what was read to FILE "
                         "(about 180 bytes per galaxy; --from-tables reads it as it reads tables, so a long "
@@ -785,6 +794,8 @@ def parse_args(argv=None):
     args = p.parse_args(argv)
     if args.save_sums and not args.from_tables:
         p.error("--save-sums needs --from-tables")
+    if any(not h > 0 for h in args.hlr_edges):
+        p.error("--hlr-edges must be positive")
     if args.hlr_log_uniform and (not args.from_tables or not args.metacal or args.save_sums
                                  or not 0 < args.hlr_log_uniform[0] < args.hlr_log_uniform[1]):
         p.error("--hlr-log-uniform needs --from-tables, --metacal, no --save-sums, and 0 < LO < HI")
@@ -807,7 +818,7 @@ def parse_args(argv=None):
 #: options that do not change what a run's galaxies are or how they are measured (a checkpoint continues under
 #: other values of these)
 _RUN_ONLY_OPTIONS = {"out", "resume", "checkpoint_seconds", "processes", "quiet", "n_bootstrap", "snr_bins", "save_sums",
-                     "unweighted", "calibration", "hlr_log_uniform"}
+                     "unweighted", "calibration", "hlr_log_uniform", "hlr_edges"}
 
 
 def run_signature(args):
