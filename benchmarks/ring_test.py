@@ -468,7 +468,7 @@ def hlr_log_uniform_weights(hlr, lo, hi, n_bins=HLR_WEIGHT_BINS):
         raise ValueError(f"--hlr-log-uniform {lo:g} {hi:g}: no galaxy of half-light radius "
                          f"{np.exp(edges[np.argmin(count)]):.3g}-{np.exp(edges[np.argmin(count) + 1]):.3g}\" in "
                          "the runs given, so their sizes cannot be made log-uniform over that range")
-    w = np.where(inside, 1.0 / np.maximum(count[k], 1), 0.0)
+    w = np.where(inside, 1.0 / count[k], 0.0)
     return w * (inside.sum() / w.sum())
 
 
@@ -960,10 +960,12 @@ def report_tables(args):
                 parts.append(part)
             rings = MetacalRings.concatenate(parts, source=" ".join(sums_files))
             if args.hlr_log_uniform:
+                # each run weighted by its galaxies' share of the weights found on all of them (the jackknife
+                # over runs needs the runs weighted too), then put together again
                 w = hlr_log_uniform_weights(rings.true_hlr, *args.hlr_log_uniform)
-                rings = rings.weighted_by(w)
                 ends = np.cumsum([0] + [p.n_galaxies for p in parts])
                 parts = [p.weighted_by(w[a:b]) for p, a, b in zip(parts, ends[:-1], ends[1:])]
+                rings = MetacalRings.concatenate(parts)
                 print(f"galaxies weighted to half-light radii log-uniform over {args.hlr_log_uniform[0]:g}-"
                       f"{args.hlr_log_uniform[1]:g}\": {int(np.sum(w > 0))} of {w.size} within it, weights "
                       f"{w[w > 0].min():.3f}-{w.max():.3f}")
