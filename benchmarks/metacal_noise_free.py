@@ -76,6 +76,10 @@ def main(argv=None):
     ap.add_argument("--antithetic", action="store_true", help="with --noisy: also each galaxy's antithetic twin")
     ap.add_argument("--metacal-psf", choices=["dilated", "round"], default="dilated",
                     help="metacal's new PSF (shearfit.calib.metacal.metacal_observations' psf)")
+    ap.add_argument("--own-fits", action="store_true",
+                    help="fit every image on its own (its own modes, position, sizes and samples) instead of replaying "
+                         "the unsheared noshear fit's choices: metacal as measure_metacal(replay=False) and the "
+                         "pipeline's metacal_replay: false measure it")
     ap.add_argument("--variants", default=None,
                     help="comma-separated WRAP:STAMP_INTERPOLANT:PSF_INTERPOLANT image settings to compare")
     args = ap.parse_args(argv)
@@ -100,6 +104,7 @@ def main(argv=None):
     h = args.h
     t0 = time.perf_counter()
     twins = (False, True) if (args.noisy and args.antithetic) else (False,)
+    shows_free = args.noisy and not args.own_fits
     sets = {tw: shear_sets(args.n_galaxies, h, args.seed, noise_sign=-1 if tw else 1, **kw) for tw in twins}
     print(f"{args.n_galaxies} {'noisy' if args.noisy else 'noise-free'} galaxies"
           f"{' and their antithetic twins' if len(twins) > 1 else ''} ({args.population} population, SNR "
@@ -120,7 +125,8 @@ def main(argv=None):
         try:
             t0 = time.perf_counter()
             rows = [[fixed_sample_responses(sets[twin], i, h, args.delta, cfg, args.seed, args.noisy, twin,
-                                            free=args.noisy, psf=args.metacal_psf) for twin in twins]
+                                            free=args.noisy and not args.own_fits, psf=args.metacal_psf,
+                                            own=args.own_fits) for twin in twins]
                     for i in range(args.n_galaxies)]
         finally:
             metacal.WRAP_STAMPS, metacal.K_INTERPOLANT, metacal.PSF_K_INTERPOLANT, metacal.OWN_KSPACE = saved
@@ -130,11 +136,12 @@ def main(argv=None):
         ok = [np.mean([(R, A, A if F is None else F) for R, A, F, _ in rs], axis=0)
               for rs, good in zip(rows, measured) if good]
         R, A, F = (np.array([o[k] for o in ok]) for k in range(3))
-        label = variant + (" (shipped)" if variant == shipped else "")
+        label = variant + (" (shipped)" if variant == shipped else "") + (", every image fitted on its own"
+                                                                           if args.own_fits else "")
         print(f"\n{label}: {len(ok)} of {len(rows)} galaxies measured ({time.perf_counter() - t0:.0f} s)")
         print(f"  <R> = ({R[:, 0].mean():.4f}, {R[:, 1].mean():.4f}), <A> = ({A[:, 0].mean():.4f}, {A[:, 1].mean():.4f})"
-              + (f", <A_free> = ({F[:, 0].mean():.4f}, {F[:, 1].mean():.4f})" if args.noisy else ""))
-        for name, X in (("A", A),) + ((("A_free", F),) if args.noisy else ()):
+              + (f", <A_free> = ({F[:, 0].mean():.4f}, {F[:, 1].mean():.4f})" if shows_free else ""))
+        for name, X in (("A", A),) + ((("A_free", F),) if shows_free else ()):
             _report(name, X, R)
         if args.population == "outside":
             from shearfit.simulate.outside import FAMILIES
@@ -144,7 +151,7 @@ def main(argv=None):
                 sel = family == f
                 if sel.sum() > 1:
                     _report(f"A, {fam} ({sel.sum()})", A[sel], R[sel])
-        if args.noisy:
+        if shows_free:
             d = F - A
             print(f"  A_free - A (the samples' own choices): rms ({np.sqrt(np.mean(d[:, 0] ** 2)):.1e}, "
                   f"{np.sqrt(np.mean(d[:, 1] ** 2)):.1e}), mean ({d[:, 0].mean():+.1e}, {d[:, 1].mean():+.1e})")

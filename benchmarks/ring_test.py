@@ -182,7 +182,8 @@ def _work(task):
                 mrng = np.random.default_rng([int(seed.generate_state(1)[0]), truth["rotation"]])
                 if noise_sign < 0:   # the twin's symmetrising noise is minus the first's too
                     mrng = NegatedNormal(mrng)
-                mc = measure_metacal(obs, truth["mag"], cfg, rng=mrng, psf=opts.get("metacal_psf", "dilated"))
+                mc = measure_metacal(obs, truth["mag"], cfg, rng=mrng, psf=opts.get("metacal_psf", "dilated"),
+                                     replay=not opts.get("metacal_fresh", False))
                 res = mc.noshear
                 rec["fitclass"] = int(res.fitclass)
                 for name in RESULT_FIELDS:
@@ -385,8 +386,10 @@ class MetacalRings:
         count = np.bincount(gal, minlength=n_gal)
         other = np.bincount(gal, weights=np.asarray(tab["fitclass"]) != 0, minlength=n_gal)
         family = np.nan_to_num(per_galaxy("family", -1), nan=-1)
-        return cls(metacal_ring_sums(tab, n_gal, weighted=not args.unweighted), family, per_galaxy("true_hlr", np.nan),
-                   per_galaxy("snr_target", np.nan), count, other, args.shear, not args.unweighted)
+        all_objects = getattr(args, "all_objects", False)
+        return cls(metacal_ring_sums(tab, n_gal, weighted=not (args.unweighted or all_objects), select=not all_objects),
+                   family, per_galaxy("true_hlr", np.nan),
+                   per_galaxy("snr_target", np.nan), count, other, args.shear, not (args.unweighted or all_objects))
 
     def weighted_by(self, w):
         """The same galaxies, each one's sums times its sampling weight ``w`` (all the sums are linear in the
@@ -478,17 +481,31 @@ def _metacal_check(rings, args):
                          "the --shear and --unweighted of the runs")
 
 
+def table_shear(tab, default):
+    """The shear (g1, g2) of a ring table's +g objects (its ``g1``, ``g2`` and ``sign`` columns), else ``default``."""
+    names = tab.dtype.names if hasattr(tab, "dtype") else tab.colnames
+    if not {"g1", "g2", "sign"} <= set(names):
+        return tuple(default)
+    plus = np.asarray(tab["sign"]) > 0
+    if not np.any(plus):
+        return tuple(default)
+    return float(np.asarray(tab["g1"])[plus][0]), float(np.asarray(tab["g2"])[plus][0])
+
+
 def report_metacal_difference(rings, other, args):
     """Metacal m and c of ``rings`` less those of ``other``, a run on the same galaxies and noise (another new PSF,
-    say): the same galaxies resampled for both, so that what they share cancels from the errors."""
-    g = np.array(args.shear, dtype=float)
+    say, or another shear: each run's m is taken at its own ``g``): the same galaxies resampled for both, so that
+    what they share cancels from the errors."""
+    g, g_other = np.array(rings.g, dtype=float), np.array(other.g, dtype=float)
     n_gal = rings.n_galaxies
-    est = metacal_bias_from_sums(rings.sums, g)[0] - metacal_bias_from_sums(other.sums, g)[0]
+    est = metacal_bias_from_sums(rings.sums, g)[0] - metacal_bias_from_sums(other.sums, g_other)[0]
     counts = bootstrap_counts(n_gal, args.n_bootstrap, np.random.default_rng([args.seed, 54322]))
-    err = np.std(metacal_bias_from_sums(rings.sums, g, counts)[0] - metacal_bias_from_sums(other.sums, g, counts)[0],
-                 axis=0)
+    err = np.std(metacal_bias_from_sums(rings.sums, g, counts)[0]
+                 - metacal_bias_from_sums(other.sums, g_other, counts)[0], axis=0)
+    shears = ("" if np.allclose(g, g_other) else
+              f"; m at g = ({g[0]:+g}, {g[1]:+g}) less m at g = ({g_other[0]:+g}, {g_other[1]:+g})")
     print(f"\nmetacal, these tables less --paired-with's ({n_gal} galaxies resampled together, {args.n_bootstrap} "
-          f"bootstrap resamplings):")
+          f"bootstrap resamplings{shears}):")
     print(f"  delta m1 = {format_with_error(est[0], err[0])}    delta c1 = {format_with_error(est[2], err[2])}")
     print(f"  delta m2 = {format_with_error(est[1], err[1])}    delta c2 = {format_with_error(est[3], err[3])}")
     print(f"  with the diagonal of <R> only: delta m1 = {format_with_error(est[6], err[6])}, delta m2 = "
@@ -546,7 +563,9 @@ def report_metacal(rings, args, by_snr=True):
     galaxies (``rings``: a :class:`MetacalRings`); ``by_snr``: and in bins of target SNR, over a wide range."""
     n_gal = rings.n_galaxies
     est, err, Rg, Rs = _metacal_estimate(rings, args, np.random.default_rng([args.seed, 54321]))
-    print(f"\nmetacal shear bias (<R>^-1 <e> per sign, {'unit' if args.unweighted else 'lensfit'} weights, "
+    weights = ("every measured object, unit weights, no selection" if getattr(args, "all_objects", False)
+               else "unit weights" if args.unweighted else "lensfit weights")
+    print(f"\nmetacal shear bias (<R>^-1 <e> per sign, {weights}, "
           f"{args.n_bootstrap} bootstrap resamplings of {n_gal} galaxies):")
     print(f"  m1 = {format_with_error(est[0], err[0])}    c1 = {format_with_error(est[2], err[2])}")
     print(f"  m2 = {format_with_error(est[1], err[1])}    c2 = {format_with_error(est[3], err[3])}")
@@ -763,6 +782,10 @@ def parse_args(argv=None):
                    help="measure the five metacal versions of every object and report the metacal shear bias")
     p.add_argument("--metacal-psf", choices=["dilated", "round"], default="dilated",
                    help="with --metacal: the versions' new PSF (shearfit.calib.metacal.metacal_observations' psf)")
+    p.add_argument("--metacal-fresh", action="store_true",
+                   help="with --metacal: fit every sheared version on its own instead of replaying the noshear fit's "
+                        "choices (shearfit.calib.metacal.measure_metacal's replay=False): R then holds the response "
+                        "through the choices too")
     p.add_argument("--with-plain", action="store_true",
                    help="with --metacal: also measure every object with plain lensfit (columns plain_*)")
     p.add_argument("--plain", action="store_true",
@@ -780,6 +803,11 @@ def parse_args(argv=None):
                    help="report on per-object tables written by earlier runs (--out) instead of simulating: "
                         "runs of different --seed add up (their galaxies are renumbered); give the shear, SNR "
                         "range and --metacal those runs had")
+    p.add_argument("--all-objects", action="store_true",
+                   help="with --from-tables and --metacal (per-object tables): no selection, for simulations without "
+                        "stars: every object whose e and R were measured counts with unit weight in every version, "
+                        "whatever its fitclass, so that the selection response is zero and m is the shear response's "
+                        "alone (about half the error of the star cut's m at SNR 10-40)")
     p.add_argument("--hlr-log-uniform", type=float, nargs=2, metavar=("LO", "HI"),
                    help="with --from-tables and --metacal: weight the galaxies so that their half-light radii are "
                         "log-uniform from LO to HI (the inverse of their number per bin of ln hlr; those outside "
@@ -806,6 +834,8 @@ def parse_args(argv=None):
     if args.size_range is not None and (args.population not in ("paper", "outside")
                                         or not 0 < args.size_range[0] < args.size_range[1]):
         p.error("--size-range needs 0 < RMIN < RMAX and the paper's or the outside population")
+    if args.metacal_fresh and not args.metacal:
+        p.error("--metacal-fresh needs --metacal")
     if args.noise_free and args.metacal:
         p.error("--noise-free with --metacal: metacal's symmetrising noise would be the images' only noise, and "
                 "nothing cancels its processed correlation (a biased response); benchmarks/metacal_noise_free.py "
@@ -818,7 +848,7 @@ def parse_args(argv=None):
 #: options that do not change what a run's galaxies are or how they are measured (a checkpoint continues under
 #: other values of these)
 _RUN_ONLY_OPTIONS = {"out", "resume", "checkpoint_seconds", "processes", "quiet", "n_bootstrap", "snr_bins", "save_sums",
-                     "unweighted", "calibration", "hlr_log_uniform", "hlr_edges"}
+                     "unweighted", "all_objects", "calibration", "hlr_log_uniform", "hlr_edges"}
 
 
 def run_signature(args):
@@ -937,6 +967,10 @@ def report_tables(args):
         print("ring_test.py: error: galaxy sums (--save-sums, or a file of them in --from-tables) are metacal's: "
               "give --metacal, and neither --plain nor --reference-tables", file=sys.stderr)
         return 2
+    if args.all_objects and (not args.metacal or sums_files or args.save_sums):
+        print("ring_test.py: error: --all-objects re-selects the objects of per-object metacal tables: give --metacal "
+              "and tables only (no galaxy sums, no --save-sums)", file=sys.stderr)
+        return 2
     if args.hlr_log_uniform and not sums_files:
         print("ring_test.py: error: --hlr-log-uniform weights galaxy sums: give at least one file of them "
               "(--save-sums) in --from-tables", file=sys.stderr)
@@ -1014,7 +1048,9 @@ def report_tables(args):
                   f"{n_gal} and {len(tab)}", file=sys.stderr)
             return 2
         if args.metacal:
-            report_metacal_difference(rings, MetacalRings.from_table(other, n_other, args), args)
+            # the other run's own shear (a run at another g on the same galaxies and noise: m's shear dependence)
+            other_args = argparse.Namespace(**{**vars(args), "shear": table_shear(other, args.shear)})
+            report_metacal_difference(rings, MetacalRings.from_table(other, n_other, other_args), args)
         else:
             report_plain_difference(tab, other, args, n_gal)
     report_families(tab, args, rings)
@@ -1038,7 +1074,7 @@ def main(argv=None):
         return report_tables(args)
     opts = {
         "shear": tuple(args.shear), "dry_run": args.dry_run, "config": cfg, "metacal": args.metacal,
-        "metacal_psf": args.metacal_psf,
+        "metacal_psf": args.metacal_psf, "metacal_fresh": args.metacal_fresh,
         "antithetic": args.antithetic, "with_plain": args.with_plain and args.metacal,
         "ring_kwargs": dict(n_rotations=args.n_rotations, n_exposures=args.n_exposures,
                             snr_range=(args.snr_min, args.snr_max), mag_range=(args.mag_min, args.mag_max),

@@ -1,12 +1,15 @@
 """Metacalibration on the lensfit engine: versions, response, noise symmetry, selection response, pipeline."""
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 from astropy.table import Table
 
 import shearfit
 from shearfit.errors import FITCLASS_GALAXY
-from shearfit.calib.metacal import ensemble_response, measure_metacal, metacal_observations, metacal_shear
+from shearfit.calib.metacal import (E_GRID_MIN, ensemble_response, measure_metacal, metacal_observations,
+                                    metacal_shear)
 from shearfit.simulate.metacal_check import QuietNormal
 from shearfit.simulate.stamps import draw_psf_image, draw_stamp, galaxy_profile, moffat_psf, noise_for_snr
 
@@ -214,6 +217,52 @@ def test_metacal_ring_sums_give_the_catalogue_shear():
         assert np.allclose(boot[k, :4], np.concatenate([m_k, c_k]), rtol=0, atol=1e-12)
 
 
+def test_metacal_ring_sums_without_selection_count_every_measured_object_in_every_version():
+    """select=False: every object with finite e and R weighs one in the noshear sums and in every version's,
+    whatever its fitclass and weight, so the selection response is zero and m is that of <e> / <R_gamma>."""
+    from shearfit.calib.bias import metacal_bias_from_sums, metacal_ring_sums
+
+    rng = np.random.default_rng(8)
+    n_gal, g = 30, np.array([0.03, -0.02])
+    t = _ring_table(n_gal, rng)
+    sums = metacal_ring_sums(t, n_gal, select=False)
+    measured = (np.isfinite(np.asarray(t["e1"])) & np.isfinite(np.asarray(t["e2"]))
+                & np.all([np.isfinite(np.asarray(t[c])) for c in ("R11", "R12", "R21", "R22")], axis=0))
+    # stars (fitclass 1) and failed versions count where their e and R are finite
+    assert np.any(measured & (np.asarray(t["fitclass"]) != 0))
+    for k in (0, 3, 8, 11, 14, 17):   # w, w_R and each version's w
+        assert sums[k].sum() == measured.sum()
+    bias, Rg, Rs = metacal_bias_from_sums(sums, g)
+    assert np.all(Rs == 0)
+    shear = {}
+    for sign in (1, -1):
+        sel = measured & (np.asarray(t["sign"]) == sign)
+        e = np.array([np.asarray(t["e1"])[sel].mean(), np.asarray(t["e2"])[sel].mean()])
+        R = np.array([[np.asarray(t[f"R{i}{j}"])[sel].mean() for j in (1, 2)] for i in (1, 2)])
+        shear[sign] = np.linalg.solve(R, e)
+    assert np.allclose(bias[:2], (shear[1] - shear[-1]) / (2 * g) - 1, rtol=0, atol=1e-12)
+    # the default selects: other sums
+    assert not np.allclose(metacal_ring_sums(t, n_gal), sums)
+
+
+def test_versions_fitted_on_their_own_are_the_plain_fits_of_the_versions():
+    """replay=False: each version is fitted as measure_object fits it (its own choices), the noshear fit is the
+    replaying run's, and R is the difference of those fits."""
+    obs = _obs(0.4, (0.2, -0.1), snr=40, n_exp=2, seed=3)
+    fresh = measure_metacal(obs, 22.0, rng=np.random.default_rng(4), replay=False)
+    replayed = measure_metacal(obs, 22.0, rng=np.random.default_rng(4))
+    assert fresh.noshear.e1 == replayed.noshear.e1 and fresh.noshear.e2 == replayed.noshear.e2
+    cfg = replace(shearfit.config.as_config(None), e_grid_min=E_GRID_MIN)
+    rng = np.random.default_rng(4)
+    versions = [metacal_observations(o, 0.01, rng) for o in obs]
+    own = shearfit.measure_object([v["1p"] for v in versions], 22.0, cfg)
+    assert abs(fresh.results["1p"].e1 - own.e1) < 1e-12 and abs(fresh.results["1p"].e2 - own.e2) < 1e-12
+    assert fresh.R[0, 0] == (fresh.results["1p"].e1 - fresh.results["1m"].e1) / 0.02
+    # the replays' estimates are other numbers (the samples are the noshear fit's), the response alike
+    assert fresh.results["1p"].e1 != replayed.results["1p"].e1
+    assert abs(fresh.R[0, 0] - replayed.R[0, 0]) < 0.3
+
+
 def test_pipeline_metacal_columns(tmp_path):
     from shearfit.app.cli import main
     from shearfit.errors import ShearfitValueError
@@ -238,6 +287,16 @@ def test_pipeline_metacal_columns(tmp_path):
     assert main(["measure", str(d / "field_truepsf.yaml"), "calibration=metacal", "--out", str(out2),
                  "--quiet"]) == 0
     assert np.array_equal(np.asarray(Table.read(out2)["R11"]), np.asarray(t["R11"]), equal_nan=True)
+    assert t.meta["MCREPLAY"] is True
+    # metacal_replay: false fits each version on its own: the same noshear fits, other sheared ones
+    out3 = tmp_path / "mc_own.fits"
+    assert main(["measure", str(d / "field_truepsf.yaml"), "calibration=metacal", "metacal_replay=false", "--out",
+                 str(out3), "--quiet"]) == 0
+    t3 = Table.read(out3)
+    assert t3.meta["MCREPLAY"] is False
+    assert np.array_equal(np.asarray(t3["e1"]), np.asarray(t["e1"]), equal_nan=True)
+    assert not np.array_equal(np.asarray(t3["e1_1p"])[gal], np.asarray(t["e1_1p"])[gal])
+    assert 0.3 < np.nanmedian(np.asarray(t3["R11"])[gal]) < 1.5
     # metacal_noise_sign=-1 (an antithetic twin's run) negates the symmetrising noise: every galaxy's response
     # moves (a single object's R is noisy: 0.4-1.2 here), their median stays a response's
     out3 = tmp_path / "mc3.fits"

@@ -83,6 +83,25 @@ def test_galaxy_sums_report_as_the_tables(ring_test, tmp_path, capsys):
     assert "6 galaxies, 24 objects" in capsys.readouterr().out
     assert ring_test.main(base + [str(sums), "--shear", "0.02", "0.02"]) == 2
     assert f"{sums}: galaxy sums of g = (0.03, -0.02)" in capsys.readouterr().err
+    # --all-objects re-selects a table's objects (no selection: R_S is zero); galaxy sums cannot be re-selected
+    assert ring_test.main(base + [str(table), "--all-objects"]) == 0
+    out = capsys.readouterr().out
+    assert "every measured object, unit weights, no selection" in out
+    assert "R_S = [[+0.0000, +0.0000], [+0.0000, +0.0000]]" in out
+    assert ring_test.main(base + [str(sums), "--all-objects"]) == 2
+    assert "--all-objects re-selects" in capsys.readouterr().err
+    # --paired-with a run of the same galaxies at half the shear: each run's m at its own g
+    half = tmp_path / "mc_half.fits"
+    assert ring_test.main(_args(half) + ["--metacal", "--population", "outside", "--shear", "0.015", "-0.01"]) == 0
+    capsys.readouterr()
+    assert ring_test.main(base + [str(table), "--paired-with", str(half)]) == 0
+    out = capsys.readouterr().out
+    assert "m at g = (+0.03, -0.02) less m at g = (+0.015, -0.01)" in out
+    from shearfit.calib.bias import metacal_bias_from_sums, metacal_ring_sums
+    m = [metacal_bias_from_sums(metacal_ring_sums(Table.read(f), 3), g)[0][0]
+         for f, g in ((table, (0.03, -0.02)), (half, (0.015, -0.01)))]
+    line = next(s for s in out.splitlines() if s.strip().startswith("delta m1"))
+    assert abs(float(line.split()[3]) - (m[0] - m[1])) < 1e-5, (line, m)
 
 
 def test_runs_jackknife_leaves_each_run_out(ring_test):
@@ -162,3 +181,5 @@ def test_noise_free_metacal_is_refused(ring_test):
         ring_test.parse_args(["--metacal", "--noise-free"])
     with pytest.raises(SystemExit):
         ring_test.parse_args(["--hlr-log-uniform", "0.1", "2"])   # needs --from-tables and --metacal
+    with pytest.raises(SystemExit):
+        ring_test.parse_args(["--metacal-fresh"])   # needs --metacal

@@ -336,7 +336,7 @@ METACAL_SUM_NAMES = (("w", "w e1", "w e2", "w_R", "w R11", "w R12", "w R21", "w 
 METACAL_BIAS_NAMES = ("m1", "m2", "c1", "c2", "raw_m1", "raw_m2", "diag_m1", "diag_m2", "scalar_m1", "scalar_m2")
 
 
-def metacal_ring_sums(table, n_galaxies: int, weighted: bool = True) -> np.ndarray:
+def metacal_ring_sums(table, n_galaxies: int, weighted: bool = True, select: bool = True) -> np.ndarray:
     """Per-galaxy sums of a metacal ring table, for each sign of the shear: what its m and c are made of.
 
     The ensemble shear of a metacal catalogue, ``<R>^-1 <e>`` with ``<R> = <R_gamma> + R_S``
@@ -352,6 +352,10 @@ def metacal_ring_sums(table, n_galaxies: int, weighted: bool = True) -> np.ndarr
     n_galaxies : int
     weighted : bool
         Lensfit's weights; otherwise each version's galaxies (``fitclass == 0``) weigh one.
+    select : bool
+        False: no selection at all, for simulations without stars: every object whose noshear e and R are finite
+        weighs one in every version, whatever its ``fitclass`` (``weighted`` is then ignored). The selection
+        response is then zero by construction, and the m that remains is that of the shear response alone.
 
     Returns
     -------
@@ -360,13 +364,18 @@ def metacal_ring_sums(table, n_galaxies: int, weighted: bool = True) -> np.ndarr
     """
     n = len(np.asarray(table["galaxy"]))
 
+    R = [np.asarray(table[f"R{i}{j}"], dtype=np.float64) for i in (1, 2) for j in (1, 2)]
+    measured = (np.all(np.isfinite(R), axis=0) & np.isfinite(np.asarray(table["e1"], dtype=np.float64))
+                & np.isfinite(np.asarray(table["e2"], dtype=np.float64)))
+
     def weight(sfx):
+        if not select:
+            return measured.astype(np.float64)
         ok = np.asarray(table[f"fitclass{sfx}"]) == _GALAXY
         w = np.asarray(table[f"weight{sfx}"], dtype=np.float64) if weighted else np.ones(n)
         return np.where(ok & np.isfinite(w), w, 0.0)
 
     e = [np.nan_to_num(np.asarray(table[c], dtype=np.float64), nan=0.0, posinf=0.0, neginf=0.0) for c in ("e1", "e2")]
-    R = [np.asarray(table[f"R{i}{j}"], dtype=np.float64) for i in (1, 2) for j in (1, 2)]
     w0 = weight("")
     wR = np.where(np.all(np.isfinite(R), axis=0), w0, 0.0)
     cols = [w0, w0 * e[0], w0 * e[1], wR] + [wR * np.where(wR > 0, r, 0.0) for r in R]

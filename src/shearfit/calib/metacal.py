@@ -50,7 +50,12 @@ the samples within ``replay_margin`` nats of the posterior cut (those within
 moved enough for them to matter: the same estimates). The four replays are
 evaluated together, each ellipticity's mode bins placed once for all of them
 (:class:`shearfit.engine.sampling.VersionLikelihoods`): each version's own
-numbers, to rounding.
+numbers, to rounding. The replays' R is the response at fixed choices; the noshear fit's choices move with
+a true shear too, and at low SNR the response through them need not vanish: versions each fitted on their own
+(``measure_metacal(..., replay=False)``, the pipeline's ``metacal_replay: false``) include it, at the price of
+their choices' jumps (noise-free responses a true shear's to a few 1e-3 instead of 1e-4). On the outside-model
+galaxies they raise m by +0.025 +- 0.010 at SNR 10-14 and +0.0025 +- 0.0017 at 14-20 (``benchmarks/README.md``,
+session 44).
 ``R_ij = (e_i[j+] - e_i[j-]) / (2 delta)`` per galaxy, and an ensemble
 shear is ``<R>^-1 <e>`` with the lensfit weights of the ``noshear`` fit.
 Cuts and weights computed from measured quantities respond to the shear too
@@ -563,9 +568,12 @@ def _fit_new_moffats(per_exp):
 
 
 def measure_metacal(observations, mag, config=None, delta=0.01, rng=None, replay_margin=10.0,
-                    replay_first_margin=REPLAY_FIRST_MARGIN, psf="dilated") -> MetacalResult:
+                    replay_first_margin=REPLAY_FIRST_MARGIN, psf="dilated", replay=True) -> MetacalResult:
     """Measure the five metacal versions of one object jointly over its exposures (see the module doc); ``psf``:
-    the versions' new PSF, 'dilated' or 'round' (:func:`metacal_observations`)."""
+    the versions' new PSF, 'dilated' or 'round' (:func:`metacal_observations`). ``replay=False``: every version
+    is fitted on its own, with its own choices (modes, position, sizes, samples), as the ``noshear`` fit is: R
+    then also holds the estimator's response through its choices, at the price of their jumps' noise and twice
+    the cost of the replays."""
     from dataclasses import replace
 
     from ..config import as_config
@@ -581,8 +589,11 @@ def measure_metacal(observations, mag, config=None, delta=0.01, rng=None, replay
         _fit_new_moffats(per_exp)
         # the sheared versions replay the noshear fit's choices (modes, position, size nodes, ellipticity
         # samples): their estimates then differ only through their pixels (measure_versions)
-        results = measure_versions([[v[name] for v in per_exp] for name in VERSIONS], mag, config,
-                                   margin=replay_margin, first_margin=replay_first_margin)
+        if replay:
+            results = measure_versions([[v[name] for v in per_exp] for name in VERSIONS], mag, config,
+                                       margin=replay_margin, first_margin=replay_first_margin)
+        else:
+            results = [measure_versions([[v[name] for v in per_exp]], mag, config)[0] for name in VERSIONS]
     out = MetacalResult(delta=float(delta))
     out.results = dict(zip(VERSIONS, results))
     R = np.full((2, 2), np.nan)

@@ -103,6 +103,13 @@ class PipelineConfig:
         "1 + 2 metacal_delta) or 'round' (the round envelope below it, a function of |k| alone: no PSF anisotropy "
         "reaches the ellipticities, at the price of noisier responses for the smallest galaxies)", "Sheldon & Huff 2017",
         ("dilated", "round"))
+    metacal_replay: bool = setting(
+        True, "with calibration: metacal, the sheared versions replay the noshear fit's choices (Fourier modes, "
+        "position, size nodes, ellipticity samples): their estimates follow the pixels smoothly and cost about half "
+        "a fit each. false: each version is fitted on its own, so that R also holds the estimator's response through "
+        "its choices, which the replays leave out (on galaxies outside the model family m higher by +0.025 +- 0.010 "
+        "at SNR 10-14, about the replays' whole bias there, and by +0.0025 +- 0.0017 at 14-20: benchmarks/README.md), "
+        "for 1.6-1.8 times the time of the fits and a noisier response without noise", "implementation")
 
     psf_size: int = setting(25, "side of the fitted PSF model and of the star stamps, native pixels (odd)", "sec. 5")
     psf_oversampling: int = setting(

@@ -449,7 +449,8 @@ def _measure_field(cfg, out_path, progress, processes, restart, scheduler, execu
         table["m"] = np.where(measured, 0.0, np.nan)
         cards += [("CALMODE", "metacal", "shear response: metacal (R columns)"),
                   ("MCDELTA", cfg.pipeline.metacal_delta, "metacal shear step"),
-                  ("MCPSF", cfg.pipeline.metacal_psf, "metacal new PSF: dilated or round")]
+                  ("MCPSF", cfg.pipeline.metacal_psf, "metacal new PSF: dilated or round"),
+                  ("MCREPLAY", bool(cfg.pipeline.metacal_replay), "metacal versions replay the noshear fit")]
     else:
         if calibration is not None:
             src = os.path.basename(cfg.calibration)
@@ -856,7 +857,7 @@ def _measure_on_stamps(hits, exposures, mag, cfg, pc, obj_id, size, geometry=Non
             from ..simulate.stamps import NegatedNormal
 
             rng = NegatedNormal(rng)
-        mc = measure_metacal(obs, mag, cfg.fit, pc.metacal_delta, rng, psf=pc.metacal_psf)
+        mc = measure_metacal(obs, mag, cfg.fit, pc.metacal_delta, rng, psf=pc.metacal_psf, replay=pc.metacal_replay)
         res = mc.noshear
         extra = {f"{q}_{v}": getattr(mc.results[v], q) for v in SHEARED for q, _, _ in METACAL_QUANTITIES}
         extra.update({f"R{i + 1}{j + 1}": float(mc.R[i, j]) for i in range(2) for j in range(2)})

@@ -47,7 +47,8 @@ def shear_sets(n_galaxies, h, seed, **ring_kwargs):
     return {s: ring_set(n_galaxies, s, np.random.default_rng(seed), n_rotations=1, **ring_kwargs) for s in shears}
 
 
-def fixed_sample_responses(sets, i, h, delta, config, seed, noisy=False, twin=False, free=True, psf="dilated"):
+def fixed_sample_responses(sets, i, h, delta, config, seed, noisy=False, twin=False, free=True, psf="dilated",
+                           own=False):
     """Galaxy ``i`` of :func:`shear_sets`: its diagonal responses ``(R, A, A_free, fitclasses)``.
 
     R: metacal's; A: the noshear fit's to the true shear, both replaying the choices of the unsheared
@@ -55,7 +56,8 @@ def fixed_sample_responses(sets, i, h, delta, config, seed, noisy=False, twin=Fa
     fitted on its own (its own modes, position, sizes and samples: the estimator as it runs on data).
     ``noisy``: the stamps carry their noise and metacal its symmetrising noise (minus both for the
     antithetic ``twin``); otherwise the symmetrising noise is :class:`QuietNormal`. ``psf``: metacal's new PSF
-    (:func:`shearfit.calib.metacal.metacal_observations`).
+    (:func:`shearfit.calib.metacal.metacal_observations`). ``own``: every image fitted on its own instead (R as
+    ``measure_metacal(..., replay=False)`` measures it, A the same as A_free; A_free is then None).
     """
     def rng(j):
         # exposure j's symmetrising noise: its own field, the same for the galaxy at 0 and +-h
@@ -73,6 +75,11 @@ def fixed_sample_responses(sets, i, h, delta, config, seed, noisy=False, twin=Fa
     for s in [(h, 0.0), (-h, 0.0), (0.0, h), (0.0, -h)]:
         versions.append([prepared(ob, j, ("noshear",))["noshear"] for j, ob in enumerate(sets[s][i][0])])
     mag = sets[(0.0, 0.0)][i][1]["mag"]
+    if own:
+        r = [measure_versions([v], mag, config)[0] for v in versions]
+        R = np.array([(r[1].e1 - r[2].e1), (r[3].e2 - r[4].e2)]) / (2 * delta)
+        A = np.array([(r[5].e1 - r[6].e1), (r[7].e2 - r[8].e2)]) / (2 * h)
+        return R, A, None, [x.fitclass for x in r]
     r = measure_versions(versions, mag, config, margin=10.0)
     R = np.array([(r[1].e1 - r[2].e1), (r[3].e2 - r[4].e2)]) / (2 * delta)
     A = np.array([(r[5].e1 - r[6].e1), (r[7].e2 - r[8].e2)]) / (2 * h)
