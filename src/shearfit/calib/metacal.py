@@ -54,7 +54,7 @@ numbers, to rounding. The replays' R is the response at fixed choices; the noshe
 a true shear too, and at low SNR the response through them need not vanish: versions each fitted on their own
 (``measure_metacal(..., replay=False)``, the pipeline's ``metacal_replay: false``) include it, at the price of
 their choices' jumps (noise-free responses a true shear's to a few 1e-3 instead of 1e-4). On the outside-model
-galaxies they raise m by +0.025 +- 0.010 at SNR 10-14 and +0.0025 +- 0.0017 at 14-20 (``benchmarks/README.md``,
+galaxies they raise m by +0.025 +- 0.010 at SNR 10-14 and +0.0024 +- 0.0016 at 14-20 (``benchmarks/README.md``,
 session 44).
 ``R_ij = (e_i[j+] - e_i[j-]) / (2 delta)`` per galaxy, and an ensemble
 shear is ``<R>^-1 <e>`` with the lensfit weights of the ``noshear`` fit.
@@ -572,8 +572,8 @@ def measure_metacal(observations, mag, config=None, delta=0.01, rng=None, replay
     """Measure the five metacal versions of one object jointly over its exposures (see the module doc); ``psf``:
     the versions' new PSF, 'dilated' or 'round' (:func:`metacal_observations`). ``replay=False``: every version
     is fitted on its own, with its own choices (modes, position, sizes, samples), as the ``noshear`` fit is: R
-    then also holds the estimator's response through its choices, at the price of their jumps' noise and twice
-    the cost of the replays."""
+    then also holds the estimator's response through its choices, at the price of their jumps' noise and of 1.6-1.8
+    times the metacal fits' time (``benchmarks/README.md``, session 44)."""
     from dataclasses import replace
 
     from ..config import as_config

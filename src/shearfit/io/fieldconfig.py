@@ -105,11 +105,12 @@ class PipelineConfig:
         ("dilated", "round"))
     metacal_replay: bool = setting(
         True, "with calibration: metacal, the sheared versions replay the noshear fit's choices (Fourier modes, "
-        "position, size nodes, ellipticity samples): their estimates follow the pixels smoothly and cost about half "
-        "a fit each. false: each version is fitted on its own, so that R also holds the estimator's response through "
-        "its choices, which the replays leave out (on galaxies outside the model family m higher by +0.025 +- 0.010 "
-        "at SNR 10-14, about the replays' whole bias there, and by +0.0025 +- 0.0017 at 14-20: benchmarks/README.md), "
-        "for 1.6-1.8 times the time of the fits and a noisier response without noise", "implementation")
+        "position, size nodes, ellipticity samples): their estimates follow the pixels smoothly and the four cost "
+        "about 1.2 plain fits together. false: each version is fitted on its own, so that R also holds the "
+        "estimator's response through its choices, which the replays leave out (on galaxies outside the model "
+        "family m higher by +0.025 +- 0.010 at SNR 10-14, about the replays' whole bias there, and by +0.0024 +- "
+        "0.0016 at 14-20: benchmarks/README.md), for 1.6-1.8 times the time of the fits and a noisier response "
+        "without noise", "implementation")
 
     psf_size: int = setting(25, "side of the fitted PSF model and of the star stamps, native pixels (odd)", "sec. 5")
     psf_oversampling: int = setting(
