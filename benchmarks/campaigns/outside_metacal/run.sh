@@ -13,7 +13,9 @@
 # PYTHON (default python) runs the benchmark: point it, or PYTHONPATH, at a frozen copy of the package if the
 # checkout changes while the loop runs. DEST (default this folder) and SIZE_OPTS (default 800 galaxies a seed in
 # 64-pixel stamps, which hold half-light radii up to about 0.9") let another campaign share this loop:
-# ../outside_metacal_large/run.sh runs the large galaxies in 128-pixel stamps so.
+# ../outside_metacal_large/run.sh runs the large galaxies in 128-pixel stamps so. RUN_OPTS (default none) adds
+# options to each seed's run, e.g. RUN_OPTS=--metacal-fresh with a DEST of its own (the versions fitted on their
+# own: a campaign of another setting, whose sums must not join these).
 set -u
 here=$(cd "$(dirname "$0")" && pwd)
 bench=$(cd "$here/../.." && pwd)
@@ -21,6 +23,8 @@ dest=${DEST:-$here}
 py=${PYTHON:-python}
 # shellcheck disable=SC2206
 size_opts=(${SIZE_OPTS:---n-galaxies 800 --stamp-size 64})
+# shellcheck disable=SC2206
+run_opts=(${RUN_OPTS:-})
 work=$1
 shift
 mkdir -p "$work"
@@ -29,7 +33,7 @@ for seed in "$@"; do
     if [ -f "$dest/seed$id.fits" ] || [ -f "$dest/seed${id}_part.fits" ]; then
         continue
     fi
-    OMP_NUM_THREADS=1 "$py" "$bench/ring_test.py" --population outside "${size_opts[@]}" \
+    OMP_NUM_THREADS=1 "$py" "$bench/ring_test.py" --population outside "${size_opts[@]}" ${run_opts[@]+"${run_opts[@]}"} \
         --rotate-exposures --metacal --antithetic --snr-min 10 --snr-max 40 --seed "$seed" --processes 1 \
         --out "$work/out$seed.fits" --resume --quiet > "$work/log$seed.txt" 2>&1 || exit $?
     "$py" "$bench/ring_test.py" --from-tables "$work/out$seed.fits" --metacal --snr-min 10 --snr-max 40 \
