@@ -386,7 +386,7 @@ class MetacalRings:
         count = np.bincount(gal, minlength=n_gal)
         other = np.bincount(gal, weights=np.asarray(tab["fitclass"]) != 0, minlength=n_gal)
         family = np.nan_to_num(per_galaxy("family", -1), nan=-1)
-        all_objects = getattr(args, "all_objects", False)
+        all_objects = args.all_objects
         return cls(metacal_ring_sums(tab, n_gal, weighted=not (args.unweighted or all_objects), select=not all_objects),
                    family, per_galaxy("true_hlr", np.nan),
                    per_galaxy("snr_target", np.nan), count, other, args.shear, not (args.unweighted or all_objects))
@@ -563,7 +563,7 @@ def report_metacal(rings, args, by_snr=True):
     galaxies (``rings``: a :class:`MetacalRings`); ``by_snr``: and in bins of target SNR, over a wide range."""
     n_gal = rings.n_galaxies
     est, err, Rg, Rs = _metacal_estimate(rings, args, np.random.default_rng([args.seed, 54321]))
-    weights = ("every measured object, unit weights, no selection" if getattr(args, "all_objects", False)
+    weights = ("every measured object, unit weights, no selection" if args.all_objects
                else "unit weights" if args.unweighted else "lensfit weights")
     print(f"\nmetacal shear bias (<R>^-1 <e> per sign, {weights}, "
           f"{args.n_bootstrap} bootstrap resamplings of {n_gal} galaxies):")

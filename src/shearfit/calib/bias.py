@@ -363,9 +363,9 @@ def metacal_ring_sums(table, n_galaxies: int, weighted: bool = True, select: boo
         ``sums[k, i, s]``, ``k`` as :data:`METACAL_SUM_NAMES`; ``s`` = 0 for ``+g``, 1 for ``-g``.
     """
     n = len(np.asarray(table["galaxy"]))
-
     R = [np.asarray(table[f"R{i}{j}"], dtype=np.float64) for i in (1, 2) for j in (1, 2)]
-    measured = (np.all(np.isfinite(R), axis=0) & np.isfinite(np.asarray(table["e1"], dtype=np.float64))
+    finite_R = np.all(np.isfinite(R), axis=0)
+    measured = (finite_R & np.isfinite(np.asarray(table["e1"], dtype=np.float64))
                 & np.isfinite(np.asarray(table["e2"], dtype=np.float64)))
 
     def weight(sfx):
@@ -377,7 +377,7 @@ def metacal_ring_sums(table, n_galaxies: int, weighted: bool = True, select: boo
 
     e = [np.nan_to_num(np.asarray(table[c], dtype=np.float64), nan=0.0, posinf=0.0, neginf=0.0) for c in ("e1", "e2")]
     w0 = weight("")
-    wR = np.where(np.all(np.isfinite(R), axis=0), w0, 0.0)
+    wR = np.where(finite_R, w0, 0.0)
     cols = [w0, w0 * e[0], w0 * e[1], wR] + [wR * np.where(wR > 0, r, 0.0) for r in R]
     for v in ("1p", "1m", "2p", "2m"):
         wv = weight(f"_{v}")

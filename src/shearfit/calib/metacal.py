@@ -577,7 +577,7 @@ def measure_metacal(observations, mag, config=None, delta=0.01, rng=None, replay
     from dataclasses import replace
 
     from ..config import as_config
-    from ..engine.measure import measure_versions, paused_gc
+    from ..engine.measure import measure_object, measure_versions, paused_gc
 
     rng = np.random.default_rng() if rng is None else rng
     config = as_config(config)
@@ -593,7 +593,7 @@ def measure_metacal(observations, mag, config=None, delta=0.01, rng=None, replay
             results = measure_versions([[v[name] for v in per_exp] for name in VERSIONS], mag, config,
                                        margin=replay_margin, first_margin=replay_first_margin)
         else:
-            results = [measure_versions([[v[name] for v in per_exp]], mag, config)[0] for name in VERSIONS]
+            results = [measure_object([v[name] for v in per_exp], mag, config) for name in VERSIONS]
     out = MetacalResult(delta=float(delta))
     out.results = dict(zip(VERSIONS, results))
     R = np.full((2, 2), np.nan)

@@ -14,7 +14,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..calib import metacal
-from ..engine.measure import measure_versions
+from ..engine.measure import measure_object, measure_versions
 from ..observation import Observation
 from .stamps import NegatedNormal, ring_set
 
@@ -76,7 +76,7 @@ def fixed_sample_responses(sets, i, h, delta, config, seed, noisy=False, twin=Fa
         versions.append([prepared(ob, j, ("noshear",))["noshear"] for j, ob in enumerate(sets[s][i][0])])
     mag = sets[(0.0, 0.0)][i][1]["mag"]
     if own:
-        r = [measure_versions([v], mag, config)[0] for v in versions]
+        r = [measure_object(v, mag, config) for v in versions]
         R = np.array([(r[1].e1 - r[2].e1), (r[3].e2 - r[4].e2)]) / (2 * delta)
         A = np.array([(r[5].e1 - r[6].e1), (r[7].e2 - r[8].e2)]) / (2 * h)
         return R, A, None, [x.fitclass for x in r]
@@ -85,6 +85,6 @@ def fixed_sample_responses(sets, i, h, delta, config, seed, noisy=False, twin=Fa
     A = np.array([(r[5].e1 - r[6].e1), (r[7].e2 - r[8].e2)]) / (2 * h)
     if not free:
         return R, A, None, [x.fitclass for x in r]
-    own = [measure_versions([v], mag, config)[0] for v in versions[5:]]
+    own = [measure_object(v, mag, config) for v in versions[5:]]
     A_free = np.array([(own[0].e1 - own[1].e1), (own[2].e2 - own[3].e2)]) / (2 * h)
     return R, A, A_free, [x.fitclass for x in r + own]
