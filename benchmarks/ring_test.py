@@ -183,7 +183,8 @@ def _work(task):
                 if noise_sign < 0:   # the twin's symmetrising noise is minus the first's too
                     mrng = NegatedNormal(mrng)
                 mc = measure_metacal(obs, truth["mag"], cfg, rng=mrng, psf=opts.get("metacal_psf", "dilated"),
-                                     replay=not opts.get("metacal_fresh", False))
+                                     replay=not opts.get("metacal_fresh", False),
+                                     own_position=opts.get("metacal_own_position", False))
                 res = mc.noshear
                 rec["fitclass"] = int(res.fitclass)
                 for name in RESULT_FIELDS:
@@ -786,6 +787,9 @@ def parse_args(argv=None):
                    help="with --metacal: fit every sheared version on its own instead of replaying the noshear fit's "
                         "choices (shearfit.calib.metacal.measure_metacal's replay=False): R then holds the response "
                         "through the choices too")
+    p.add_argument("--metacal-own-position", action="store_true",
+                   help="with --metacal: the sheared versions replay every choice of the noshear fit but its position, "
+                        "which each finds for itself (measure_metacal's own_position=True)")
     p.add_argument("--with-plain", action="store_true",
                    help="with --metacal: also measure every object with plain lensfit (columns plain_*)")
     p.add_argument("--plain", action="store_true",
@@ -836,6 +840,8 @@ def parse_args(argv=None):
         p.error("--size-range needs 0 < RMIN < RMAX and the paper's or the outside population")
     if args.metacal_fresh and not args.metacal:
         p.error("--metacal-fresh needs --metacal")
+    if args.metacal_own_position and not (args.metacal and not args.metacal_fresh):
+        p.error("--metacal-own-position needs --metacal, without --metacal-fresh")
     if args.noise_free and args.metacal:
         p.error("--noise-free with --metacal: metacal's symmetrising noise would be the images' only noise, and "
                 "nothing cancels its processed correlation (a biased response); benchmarks/metacal_noise_free.py "
@@ -1075,6 +1081,7 @@ def main(argv=None):
     opts = {
         "shear": tuple(args.shear), "dry_run": args.dry_run, "config": cfg, "metacal": args.metacal,
         "metacal_psf": args.metacal_psf, "metacal_fresh": args.metacal_fresh,
+        "metacal_own_position": args.metacal_own_position,
         "antithetic": args.antithetic, "with_plain": args.with_plain and args.metacal,
         "ring_kwargs": dict(n_rotations=args.n_rotations, n_exposures=args.n_exposures,
                             snr_range=(args.snr_min, args.snr_max), mag_range=(args.mag_min, args.mag_max),

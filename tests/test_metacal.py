@@ -451,7 +451,8 @@ def test_versions_replayed_together_are_replayed_one_by_one(monkeypatch):
     """measure_versions evaluates the sheared versions' replays together (VersionLikelihoods: one binning per
     ellipticity for all four, one marginalisation call): the estimates of replaying each version on its own,
     to rounding (the compiled marginalisation's vector exponentials may differ in the last place with an
-    element's position in a batch), with and without a first margin."""
+    element's position in a batch), with and without a first margin, and with versions at their own positions
+    (which without fold groups among the modes still bin together)."""
     from shearfit.calib.metacal import VERSIONS
     from shearfit.engine import likelihood, sampling
     from shearfit.engine.measure import _measure, measure_versions
@@ -462,16 +463,16 @@ def test_versions_replayed_together_are_replayed_one_by_one(monkeypatch):
     real = sampling.VersionLikelihoods._chunk
     monkeypatch.setattr(sampling.VersionLikelihoods, "_chunk", lambda self, *a: joint.append(len(self.likes))
                         or real(self, *a))
-    for seed, first_margin in ((1, None), (2, 1.0)):
+    for seed, first_margin, own in ((1, None, False), (2, 1.0, False), (3, 1.0, True)):
         obs = _obs(0.25, (0.3, -0.1), snr=25, seed=seed)
         per = [metacal_observations(o, 0.01, np.random.default_rng(seed)) for o in obs]
         versions = [[v[name] for v in per] for name in VERSIONS]
-        together = measure_versions(versions, 23.0, margin=10.0, first_margin=first_margin)
+        together = measure_versions(versions, 23.0, margin=10.0, first_margin=first_margin, own_position=own)
         ref, plan = _measure(versions[0], 23.0, shearfit.FitConfig(), False, margin=10.0)
         assert _fields(together[0]) == _fields(ref)
         for v, res in zip(versions[1:], together[1:]):
             alone = _measure(v, 23.0, shearfit.FitConfig(), False, plan=plan, margin=10.0,
-                             first_margin=first_margin)[0]
+                             first_margin=first_margin, own_position=own)[0]
             assert np.allclose(_fields(res), _fields(alone), rtol=1e-12, atol=1e-15)
             assert (res.fitclass, res.n_samples, res.n_models) == (alone.fitclass, alone.n_samples, alone.n_models)
     assert joint and max(joint) == 4
@@ -731,3 +732,31 @@ def test_new_psf_is_drawn_in_its_pixel_frame_as_through_the_jacobian(k):
     ref = metacal._draw(metacal._interpolated(img, pwcs).dilate(1.02), img.shape, pwcs)
     ref = ref / ref.sum()
     assert np.abs(got - ref).max() < 1e-6 * ref.max()
+
+
+def test_replayed_versions_can_find_their_own_position():
+    """With ``own_position``, measure_versions' versions find their own cross-correlation peak (from the
+    first's) and replay every other choice: a noise-free galaxy moved by (0.4, 0.3) pixels in every exposure
+    gives the first version's estimate to 1e-5, at its own offset; replaying the first's position as well (the
+    default) leaves the moved galaxy off the model's centre, and its estimate off by a few 1e-4."""
+    from shearfit.engine.measure import measure_versions
+
+    def stamps(d):
+        rng = np.random.default_rng(0)
+        J = PIX * np.array([[-1.0, 0.0], [0.0, 1.0]])
+        offs = rng.uniform(-0.5, 0.5, (3, 2))
+        psfs = [moffat_psf(0.6 + 0.05 * i, 3.0, 0.04 * (-1) ** i, 0.03) for i in range(3)]
+        gal = galaxy_profile(0.3, 0.1, 0.2, 0.1, flux=1000.0)
+        ims = [draw_stamp(gal, p, J, o + np.asarray(d)) for p, o in zip(psfs, offs)]
+        sig = noise_for_snr([draw_stamp(gal, p, J, o) for p, o in zip(psfs, offs)], 300.0)
+        return [shearfit.Observation(image=im, weight=np.full(im.shape, 1 / sig ** 2), psf=draw_psf_image(p, J, size=25),
+                                     jacobian=J, offset=tuple(o)) for im, p, o in zip(ims, psfs, offs)]
+
+    ref, moved = stamps((0.0, 0.0)), stamps((0.4, 0.3))
+    a, b = measure_versions([ref, moved], 23.0, own_position=True)
+    assert a.fitclass == b.fitclass == FITCLASS_GALAXY
+    assert abs(b.e1 - a.e1) < 1e-5 and abs(b.e2 - a.e2) < 1e-5
+    assert abs(b.centroid_shift - np.hypot(0.4, 0.3)) < 0.01 and a.centroid_shift < 0.01
+    a, b = measure_versions([ref, moved], 23.0)
+    assert b.centroid_shift == a.centroid_shift
+    assert np.hypot(b.e1 - a.e1, b.e2 - a.e2) > 2e-4

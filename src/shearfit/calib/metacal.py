@@ -568,12 +568,16 @@ def _fit_new_moffats(per_exp):
 
 
 def measure_metacal(observations, mag, config=None, delta=0.01, rng=None, replay_margin=10.0,
-                    replay_first_margin=REPLAY_FIRST_MARGIN, psf="dilated", replay=True) -> MetacalResult:
+                    replay_first_margin=REPLAY_FIRST_MARGIN, psf="dilated", replay=True,
+                    own_position=False) -> MetacalResult:
     """Measure the five metacal versions of one object jointly over its exposures (see the module doc); ``psf``:
     the versions' new PSF, 'dilated' or 'round' (:func:`metacal_observations`). ``replay=False``: every version
     is fitted on its own, with its own choices (modes, position, sizes, samples), as the ``noshear`` fit is: R
     then also holds the estimator's response through its choices, at the price of their jumps' noise and of 1.6-1.8
-    times the metacal fits' time (``benchmarks/README.md``, session 44)."""
+    times the metacal fits' time (``benchmarks/README.md``, session 44). ``own_position``: the sheared
+    versions replay every choice but the position, which each finds for itself from the noshear fit's
+    (:func:`shearfit.engine.measure.measure_versions`), so that R holds the estimate's response through its
+    position (measured on paired runs in ``benchmarks/README.md``, session 45)."""
     from dataclasses import replace
 
     from ..config import as_config
@@ -591,7 +595,8 @@ def measure_metacal(observations, mag, config=None, delta=0.01, rng=None, replay
         # samples): their estimates then differ only through their pixels (measure_versions)
         if replay:
             results = measure_versions([[v[name] for v in per_exp] for name in VERSIONS], mag, config,
-                                       margin=replay_margin, first_margin=replay_first_margin)
+                                       margin=replay_margin, first_margin=replay_first_margin,
+                                       own_position=own_position)
         else:
             results = [measure_object([v[name] for v in per_exp], mag, config) for name in VERSIONS]
     out = MetacalResult(delta=float(delta))

@@ -540,10 +540,18 @@ def shift_joint(jm: JointModes, du, dv) -> JointModes:
     dm = jm.data_map
     if dm is not None:
         dm = replace(dm, phase=dm.phase * phase)
-    return JointModes(kx=jm.kx, ky=jm.ky, z=jm.z * phase, q=jm.q, multi=jm.multi, msizes=jm.msizes, H=H,
-                      basis=jm.basis, yy=jm.yy, npix=jm.npix, n_exposures=jm.n_exposures,
-                      pixel_scale=jm.pixel_scale, keep=jm.keep, decoupled=jm.decoupled, data_map=dm,
-                      pair_skip=jm.pair_skip)
+    out = JointModes(kx=jm.kx, ky=jm.ky, z=jm.z * phase, q=jm.q, multi=jm.multi, msizes=jm.msizes, H=H,
+                     basis=jm.basis, yy=jm.yy, npix=jm.npix, n_exposures=jm.n_exposures,
+                     pixel_scale=jm.pixel_scale, keep=jm.keep, decoupled=jm.decoupled, data_map=dm,
+                     pair_skip=jm.pair_skip)
+    if not jm.multi.size:
+        # without fold groups nothing but the data moves: what the modes alone give is shared (so that versions
+        # of an object at their own positions still bin together: mode_bins_versions)
+        for name in ("_factors", "_bins32_geometry"):
+            cached = getattr(jm, name, None)
+            if cached is not None:
+                setattr(out, name, cached)
+    return out
 
 
 @dataclass

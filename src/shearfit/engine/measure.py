@@ -152,11 +152,17 @@ def _same_modes(o: Observation, ref: Observation) -> bool:
             and np.array_equal(o.jacobian, ref.jacobian) and (o.psf is ref.psf or np.array_equal(o.psf, ref.psf)))
 
 
-def _measure(obs, mag, cfg, return_samples, plan=None, margin=np.inf, first_margin=None):
+def _position_search(mag, cfg, pix):
+    """The round reference model's size and the largest offset of the cross-correlation peak (arcsec)."""
+    return min(float(priors.size_prior_scale(mag, cfg)), 2 * pix), cfg.max_centroid_shift * pix
+
+
+def _measure(obs, mag, cfg, return_samples, plan=None, margin=np.inf, first_margin=None, own_position=False):
     """One object's fit: (FitResult, the FitPlan it made, or None where it stopped early).
 
     With ``plan``, the fit replays another version's choices (modes, position, size nodes and centres,
-    ellipticity samples within ``margin`` nats of its posterior cut) instead of making its own.
+    ellipticity samples within ``margin`` nats of its posterior cut) instead of making its own; with
+    ``own_position`` as well, it finds its own position from the plan's (:func:`_replay_likelihood`).
     """
     fast = fast_pair(cfg.truncation)
     exposures = prepare_exposures(obs, cfg) if plan is None else _replay_exposures(obs, cfg, plan)
@@ -165,15 +171,12 @@ def _measure(obs, mag, cfg, return_samples, plan=None, margin=np.inf, first_marg
         jm = join_exposures(exposures, cfg.mode_chi2_tolerance, fold_tolerance=cfg.fold_chi2_tolerance,
                             pair_tolerance=cfg.pair_chi2_tolerance)
         pix = jm.pixel_scale
-        a = float(priors.size_prior_scale(mag, cfg))
-        max_shift = cfg.max_centroid_shift * pix
-        r_ref = min(a, 2 * pix)
+        r_ref, max_shift = _position_search(mag, cfg, pix)
         start = coarse_peak(exposures, [o.jacobian for o in obs], disk, r_ref, 2 * max_shift, pix, keep=jm.keep)
         du, dv, ok = find_position(jm, disk, r_ref, max_shift, start=start)
         shift = float(np.hypot(du, dv))
         if not ok or shift > max_shift:
-            return FitResult(fitclass=FITCLASS_CENTROID, n_exposures_used=len(obs), centroid_shift=shift / pix,
-                             message="cross-correlation peak too far from the input position"), None
+            return _off_centre(obs, shift, pix), None
         jm = shift_joint(jm, du, dv)
         rng = _size_range(jm, cfg, mag, fast)
         if rng is None:
@@ -193,9 +196,11 @@ def _measure(obs, mag, cfg, return_samples, plan=None, margin=np.inf, first_marg
         plan = FitPlan(keep=jm.keep, shift=(du, dv), size_nodes=x, r_center=like.r_center, centres=like.centres,
                        samples=samples, observations=list(obs), exposures=exposures, joint=jm, decoupled=jm.decoupled)
     else:
-        jm, like = _replay_likelihood(exposures, mag, cfg, plan)
+        jm, like, shift = _replay_likelihood(exposures, mag, cfg, plan, own_position)
+        if like is None:
+            return _off_centre(obs, shift, jm.pixel_scale), plan
         samples = replay_samples(like, plan.samples, cfg, margin, first_margin)
-        return _replayed_result(obs, cfg, mag, jm, like, samples, plan, return_samples), plan
+        return _replayed_result(obs, cfg, mag, jm, like, samples, shift, return_samples), plan
     return _result(obs, cfg, mag, jm, like, samples, n_samples, shift / pix, return_samples), plan
 
 
@@ -208,8 +213,26 @@ def _replay_exposures(obs, cfg, plan):
     return prepare_exposures(obs, cfg)
 
 
-def _replay_likelihood(exposures, mag, cfg, plan):
-    """The joint modes and the likelihood of a version that replays ``plan`` (its size nodes and centres)."""
+def _off_centre(obs, shift, pix):
+    return FitResult(fitclass=FITCLASS_CENTROID, n_exposures_used=len(obs), centroid_shift=shift / pix,
+                     message="cross-correlation peak too far from the input position")
+
+
+#: A version's own cross-correlation peak within this many pixels of the plan's is the plan's (the Newton
+#: search stops on steps below it, so the peak is known to no better; identical stamps then give the fit itself).
+SAME_POSITION = 1e-6
+
+
+def _replay_likelihood(exposures, mag, cfg, plan, own_position=False):
+    """(joint modes, likelihood, centroid shift in arcsec) of a version that replays ``plan`` (its modes, size
+    nodes and centres); the likelihood is None where the version's own peak lies too far away.
+
+    With ``own_position``, the version's position is its own cross-correlation peak (:func:`find_position`
+    from the plan's, which is the version's position where the two agree to ``SAME_POSITION`` pixels) rather
+    than the plan's: the estimate then also follows the position's response to the version's pixels, as a
+    fit of its own would (metacal's responses, ``benchmarks/README.md``, session 45). Every other choice
+    is replayed.
+    """
     if plan.keep is not None and [k.size for k in plan.keep] != [e.kx.size for e in exposures]:
         raise ShearfitValueError("a replayed fit needs the same PSFs (Fourier modes) as the fit it replays")
     # the same modes (PSFs, Jacobians, offsets and noise): only the data's weights z change
@@ -219,13 +242,23 @@ def _replay_likelihood(exposures, mag, cfg, plan):
     if jm is None:
         jm = shift_joint(join_exposures(exposures, keep=plan.keep, decoupled=plan.decoupled,
                                         pair_tolerance=cfg.pair_chi2_tolerance), *plan.shift)
+    du, dv = plan.shift
+    if own_position:
+        # the peak relative to the plan's (these modes are already moved there), found as the fit finds its own
+        r_ref, max_shift = _position_search(mag, cfg, jm.pixel_scale)
+        ddu, ddv, ok = find_position(jm, exponential_disk(cfg.truncation), r_ref, np.inf)
+        shift = float(np.hypot(du + ddu, dv + ddv))
+        if not ok or shift > max_shift:
+            return jm, None, shift
+        if np.hypot(ddu, ddv) > SAME_POSITION * jm.pixel_scale:
+            jm = shift_joint(jm, ddu, ddv)
+            du, dv = du + ddu, dv + ddv
     like = EllipticityLikelihood(jm, cfg, mag, fast_pair(cfg.truncation), plan.size_nodes, plan.r_center)
     like.fixed_centres = plan.centres
-    return jm, like
+    return jm, like, float(np.hypot(du, dv))
 
 
-def _replayed_result(obs, cfg, mag, jm, like, samples, plan, return_samples=False):
-    shift = float(np.hypot(*plan.shift))
+def _replayed_result(obs, cfg, mag, jm, like, samples, shift, return_samples=False):
     return _result(obs, cfg, mag, jm, like, samples, int(np.count_nonzero(samples.evaluated)),
                    shift / jm.pixel_scale, return_samples)
 
@@ -351,15 +384,19 @@ def _self_calibrate(obs, mag, cfg, res, plan, margin=10.0):
 
 
 def measure_versions(versions: Sequence[Sequence[Observation]], mag: float, config=None,
-                     margin: float = 10.0, first_margin: float = None) -> list:
+                     margin: float = 10.0, first_margin: float = None, own_position: bool = False) -> list:
     """Measure versions of one object (its stamps slightly transformed, as metacalibration's) alike.
 
     The first version is fitted as :func:`measure_object` fits it; every
     other one replays the choices that fit made from its data (the Fourier
-    modes kept, the position, the size nodes and centres, and the
-    ellipticity samples and cells, see :func:`shearfit.engine.sampling.replay_samples`),
-    so that differences between the versions' estimates follow the
-    differences between their pixels smoothly. The versions must carry the
+    modes kept, the size nodes and centres, and the ellipticity samples and
+    cells, see :func:`shearfit.engine.sampling.replay_samples`; and, unless
+    ``own_position``, the position), so that differences between the
+    versions' estimates follow the differences between their pixels
+    smoothly. With ``own_position`` each version finds its own position,
+    from the first's, as a fit of its own would (the peak moves smoothly
+    with the pixels), so that the estimate's response through its position
+    is part of the differences too. The versions must carry the
     same PSFs, Jacobians and weights. ``margin`` and ``first_margin``: which samples a replay evaluates
     (:func:`shearfit.engine.sampling.replay_samples`). The replays are evaluated together where the versions
     share the first's Fourier modes (:class:`shearfit.engine.sampling.VersionLikelihoods`), each version's
@@ -385,7 +422,7 @@ def measure_versions(versions: Sequence[Sequence[Observation]], mag: float, conf
     if plan is None:   # nothing to replay: the reference stopped before sampling
         return [res] + [measure_object(v, mag, cfg) for v in versions[1:]]
     with paused_gc():
-        return [res] + _replay_all(versions[1:], float(mag), cfg, plan, margin, first_margin)
+        return [res] + _replay_all(versions[1:], float(mag), cfg, plan, margin, first_margin, own_position)
 
 
 _FIT_ERRORS = (np.linalg.LinAlgError, FloatingPointError, ZeroDivisionError, ValueError)
@@ -395,14 +432,18 @@ def _failed(obs, exc):
     return FitResult(fitclass=FITCLASS_FIT_FAILED, n_exposures_used=len(obs), message=f"fit failed: {exc}")
 
 
-def _replay_all(versions, mag, cfg, plan, margin, first_margin):
+def _replay_all(versions, mag, cfg, plan, margin, first_margin, own_position):
     """The versions' replays of ``plan``, their likelihoods evaluated together
     (:class:`shearfit.engine.sampling.VersionLikelihoods`: the same numbers as one replay after another, which
     is what a version whose setup fails, and every version where the joint evaluation fails, gets)."""
     ready, out = [], [None] * len(versions)
     for k, obs in enumerate(versions):
         try:
-            ready.append((k, obs) + _replay_likelihood(_replay_exposures(obs, cfg, plan), mag, cfg, plan))
+            jm, like, shift = _replay_likelihood(_replay_exposures(obs, cfg, plan), mag, cfg, plan, own_position)
+            if like is None:
+                out[k] = _off_centre(obs, shift, jm.pixel_scale)
+            else:
+                ready.append((k, obs, jm, like, shift))
         except _FIT_ERRORS as exc:
             if isinstance(exc, ShearfitValueError):
                 raise
@@ -411,14 +452,15 @@ def _replay_all(versions, mag, cfg, plan, margin, first_margin):
         return out
     try:
         samples = replay_versions(VersionLikelihoods([r[3] for r in ready]), plan.samples, cfg, margin, first_margin)
-        for (k, obs, jm, like), s in zip(ready, samples):
-            out[k] = _replayed_result(obs, cfg, mag, jm, like, s, plan)
+        for (k, obs, jm, like, shift), s in zip(ready, samples):
+            out[k] = _replayed_result(obs, cfg, mag, jm, like, s, shift)
     except _FIT_ERRORS as exc:
         if isinstance(exc, ShearfitValueError):
             raise
-        for k, obs, _, _ in ready:   # one at a time, so that one version's failure is its own
+        for k, obs, *_ in ready:   # one at a time, so that one version's failure is its own
             try:
-                out[k] = _measure(obs, mag, cfg, False, plan=plan, margin=margin, first_margin=first_margin)[0]
+                out[k] = _measure(obs, mag, cfg, False, plan=plan, margin=margin, first_margin=first_margin,
+                                  own_position=own_position)[0]
             except _FIT_ERRORS as exc2:
                 if isinstance(exc2, ShearfitValueError):
                     raise
