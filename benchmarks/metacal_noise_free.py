@@ -82,6 +82,9 @@ def main(argv=None):
                          "pipeline's metacal_replay: false measure it")
     ap.add_argument("--own-position", action="store_true",
                     help="the replays find their own position (measure_metacal's own_position=True)")
+    ap.add_argument("--own-samples", action="store_true",
+                    help="the replays run the adaptive ellipticity grid on their own likelihoods (measure_metacal's "
+                         "own_samples=True)")
     ap.add_argument("--variants", default=None,
                     help="comma-separated WRAP:STAMP_INTERPOLANT:PSF_INTERPOLANT image settings to compare")
     args = ap.parse_args(argv)
@@ -128,7 +131,8 @@ def main(argv=None):
             t0 = time.perf_counter()
             rows = [[fixed_sample_responses(sets[twin], i, h, args.delta, cfg, args.seed, args.noisy, twin,
                                             free=args.noisy and not args.own_fits, psf=args.metacal_psf,
-                                            own=args.own_fits, own_position=args.own_position) for twin in twins]
+                                            own=args.own_fits, own_position=args.own_position,
+                                            own_samples=args.own_samples) for twin in twins]
                     for i in range(args.n_galaxies)]
         finally:
             metacal.WRAP_STAMPS, metacal.K_INTERPOLANT, metacal.PSF_K_INTERPOLANT, metacal.OWN_KSPACE = saved
@@ -140,7 +144,8 @@ def main(argv=None):
         R, A, F = (np.array([o[k] for o in ok]) for k in range(3))
         label = variant + (" (shipped)" if variant == shipped else "") + (", every image fitted on its own"
                                                                            if args.own_fits else "") + (
-            ", the replays at their own positions" if args.own_position and not args.own_fits else "")
+            ", the replays at their own positions" if args.own_position and not args.own_fits else "") + (
+            ", the replays on their own ellipticity grids" if args.own_samples and not args.own_fits else "")
         print(f"\n{label}: {len(ok)} of {len(rows)} galaxies measured ({time.perf_counter() - t0:.0f} s)")
         print(f"  <R> = ({R[:, 0].mean():.4f}, {R[:, 1].mean():.4f}), <A> = ({A[:, 0].mean():.4f}, {A[:, 1].mean():.4f})"
               + (f", <A_free> = ({F[:, 0].mean():.4f}, {F[:, 1].mean():.4f})" if shows_free else ""))

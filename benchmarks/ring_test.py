@@ -184,7 +184,8 @@ def _work(task):
                     mrng = NegatedNormal(mrng)
                 mc = measure_metacal(obs, truth["mag"], cfg, rng=mrng, psf=opts.get("metacal_psf", "dilated"),
                                      replay=not opts.get("metacal_fresh", False),
-                                     own_position=opts.get("metacal_own_position", False))
+                                     own_position=opts.get("metacal_own_position", False),
+                                     own_samples=opts.get("metacal_own_samples", False))
                 res = mc.noshear
                 rec["fitclass"] = int(res.fitclass)
                 for name in RESULT_FIELDS:
@@ -790,6 +791,10 @@ def parse_args(argv=None):
     p.add_argument("--metacal-own-position", action="store_true",
                    help="with --metacal: the sheared versions replay every choice of the noshear fit but its position, "
                         "which each finds for itself (measure_metacal's own_position=True)")
+    p.add_argument("--metacal-own-samples", action="store_true",
+                   help="with --metacal: the sheared versions run the adaptive ellipticity grid on their own likelihoods "
+                        "(the noshear fit's samples evaluated for all four together; measure_metacal's "
+                        "own_samples=True)")
     p.add_argument("--with-plain", action="store_true",
                    help="with --metacal: also measure every object with plain lensfit (columns plain_*)")
     p.add_argument("--plain", action="store_true",
@@ -842,6 +847,8 @@ def parse_args(argv=None):
         p.error("--metacal-fresh needs --metacal")
     if args.metacal_own_position and not (args.metacal and not args.metacal_fresh):
         p.error("--metacal-own-position needs --metacal, without --metacal-fresh")
+    if args.metacal_own_samples and not (args.metacal and not args.metacal_fresh):
+        p.error("--metacal-own-samples needs --metacal, without --metacal-fresh")
     if args.noise_free and args.metacal:
         p.error("--noise-free with --metacal: metacal's symmetrising noise would be the images' only noise, and "
                 "nothing cancels its processed correlation (a biased response); benchmarks/metacal_noise_free.py "
@@ -1081,7 +1088,7 @@ def main(argv=None):
     opts = {
         "shear": tuple(args.shear), "dry_run": args.dry_run, "config": cfg, "metacal": args.metacal,
         "metacal_psf": args.metacal_psf, "metacal_fresh": args.metacal_fresh,
-        "metacal_own_position": args.metacal_own_position,
+        "metacal_own_position": args.metacal_own_position, "metacal_own_samples": args.metacal_own_samples,
         "antithetic": args.antithetic, "with_plain": args.with_plain and args.metacal,
         "ring_kwargs": dict(n_rotations=args.n_rotations, n_exposures=args.n_exposures,
                             snr_range=(args.snr_min, args.snr_max), mag_range=(args.mag_min, args.mag_max),

@@ -254,7 +254,7 @@ def stage_report(stats):
             print(f"    {name:42s} {cum:7.3f} s  {100 * cum / total:5.1f} %")
 
 
-def metacal_report(objs, cfg, passes, psf="dilated", own_position=False):
+def metacal_report(objs, cfg, passes, psf="dilated", own_position=False, own_samples=False):
     """Metacal (the images of five versions, five joint fits) against the plain engine, same objects.
 
     The plain fit, the metacal images alone (shearfit's own k-space operations, and GalSim's objects as
@@ -300,7 +300,7 @@ def metacal_report(objs, cfg, passes, psf="dilated", own_position=False):
     if plain_bins is not None:
         KERNEL.make_bins = binned
     try:
-        rows = _metacal_passes(objs, cfg, passes, metacal, rng, split, psf, own_position)
+        rows = _metacal_passes(objs, cfg, passes, metacal, rng, split, psf, own_position, own_samples)
     finally:
         engine_measure._measure = plain_measure
         engine_measure._replay_all = plain_replays
@@ -311,7 +311,9 @@ def metacal_report(objs, cfg, passes, psf="dilated", own_position=False):
     k = int(np.argsort(ratio)[len(ratio) // 2])
     tp, ti, tg, tm = rows[k, :4]
     where = "their own" if own_position else "the noshear fit's"
-    print(f"\nmetacal ({psf} new PSF; the sheared versions at {where} position), {len(objs)} galaxies, plain and "
+    grid = "their own" if own_samples else "the noshear fit's"
+    print(f"\nmetacal ({psf} new PSF; the sheared versions at {where} position, on {grid} ellipticity grid), "
+          f"{len(objs)} galaxies, plain and "
           f"metacal fits timed galaxy by galaxy, {len(rows)} passes:")
     print(f"  {1 / tm:.2f} galaxies / s / core ({1e3 * tm:.1f} ms per galaxy) against {1 / tp:.2f} plain "
           f"({1e3 * tp:.1f} ms): {tm / tp:.2f} x the plain engine (median pass; passes "
@@ -326,7 +328,7 @@ def metacal_report(objs, cfg, passes, psf="dilated", own_position=False):
           f"({tg / tp:.2f} x a plain fit, {tg / ti:.2f} x shearfit's own)")
 
 
-def _metacal_passes(objs, cfg, passes, metacal, rng, split, psf="dilated", own_position=False):
+def _metacal_passes(objs, cfg, passes, metacal, rng, split, psf="dilated", own_position=False, own_samples=False):
     """metacal_report's timed passes: per pass (plain, images, GalSim's images, metacal, noshear fit, replays,
     replays' binning) summed over the galaxies."""
     rows = []
@@ -351,7 +353,8 @@ def _metacal_passes(objs, cfg, passes, metacal, rng, split, psf="dilated", own_p
             t3 = time.perf_counter()
             split["on"] = True
             try:
-                metacal.measure_metacal(o, t["mag"], cfg, rng=rng, psf=psf, own_position=own_position)
+                metacal.measure_metacal(o, t["mag"], cfg, rng=rng, psf=psf, own_position=own_position,
+                                        own_samples=own_samples)
             finally:
                 split["on"] = False
             t4 = time.perf_counter()
@@ -482,6 +485,9 @@ def main(argv=None):
     ap.add_argument("--metacal-own-position", action="store_true",
                     help="with --metacal: the sheared versions find their own position instead of replaying the "
                          "noshear fit's (measure_metacal's own_position=True)")
+    ap.add_argument("--metacal-own-samples", action="store_true",
+                    help="with --metacal: the sheared versions run the adaptive ellipticity grid on their own "
+                         "likelihoods (measure_metacal's own_samples=True)")
     ap.add_argument("--check-each", action="store_true",
                     help="with --check, also each speed setting alone at its exact value (its own effect)")
     ap.add_argument("--check", action="store_true",
@@ -548,7 +554,8 @@ def main(argv=None):
     print("\n  top functions by internal time:")
     pstats.Stats(prof).sort_stats("tottime").print_stats(8)
     if args.metacal:
-        metacal_report(objs, cfg, args.passes, args.metacal_psf, args.metacal_own_position)
+        metacal_report(objs, cfg, args.passes, args.metacal_psf, args.metacal_own_position,
+                       args.metacal_own_samples)
         metacal_image_profile(objs)
     if args.check:
         check_report(objs, cfg, res, args.seed, each=args.check_each)

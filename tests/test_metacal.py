@@ -8,8 +8,8 @@ from astropy.table import Table
 
 import shearfit
 from shearfit.errors import FITCLASS_GALAXY
-from shearfit.calib.metacal import (E_GRID_MIN, ensemble_response, measure_metacal, metacal_observations,
-                                    metacal_shear)
+from shearfit.calib.metacal import (E_GRID_MIN, REPLAY_FIRST_MARGIN, ensemble_response, measure_metacal,
+                                    metacal_observations, metacal_shear)
 from shearfit.simulate.metacal_check import QuietNormal
 from shearfit.simulate.stamps import draw_psf_image, draw_stamp, galaxy_profile, moffat_psf, noise_for_snr
 
@@ -297,6 +297,18 @@ def test_pipeline_metacal_columns(tmp_path):
     assert np.array_equal(np.asarray(t3["e1"]), np.asarray(t["e1"]), equal_nan=True)
     assert not np.array_equal(np.asarray(t3["e1_1p"])[gal], np.asarray(t["e1_1p"])[gal])
     assert 0.3 < np.nanmedian(np.asarray(t3["R11"])[gal]) < 1.5
+    # metacal_own_grid: the replays run their own ellipticity grids: the same noshear fits, other sheared ones
+    out4 = tmp_path / "mc_grid.fits"
+    assert main(["measure", str(d / "field_truepsf.yaml"), "calibration=metacal", "metacal_own_grid=true", "--out",
+                 str(out4), "--quiet"]) == 0
+    t4 = Table.read(out4)
+    assert t4.meta["MCOWNGRD"] is True and t.meta["MCOWNGRD"] is False and t3.meta["MCOWNGRD"] is False
+    assert np.array_equal(np.asarray(t4["e1"]), np.asarray(t["e1"]), equal_nan=True)
+    assert not np.array_equal(np.asarray(t4["e1_1p"])[gal], np.asarray(t["e1_1p"])[gal])
+    assert 0.3 < np.nanmedian(np.asarray(t4["R11"])[gal]) < 1.5
+    assert main(["measure", str(d / "field_truepsf.yaml"), "calibration=metacal", "metacal_own_grid=true",
+                 "sampling=two-pass", "--out", str(tmp_path / "bad.fits"), "--quiet"]) != 0
+    assert not (tmp_path / "bad.fits").exists()
     # metacal_noise_sign=-1 (an antithetic twin's run) negates the symmetrising noise: every galaxy's response
     # moves (a single object's R is noisy: 0.4-1.2 here), their median stays a response's
     out3 = tmp_path / "mc3.fits"
@@ -760,3 +772,57 @@ def test_replayed_versions_can_find_their_own_position():
     a, b = measure_versions([ref, moved], 23.0)
     assert b.centroid_shift == a.centroid_shift
     assert np.hypot(b.e1 - a.e1, b.e2 - a.e2) > 2e-4
+
+
+def test_versions_can_run_their_own_ellipticity_grid():
+    """``adaptive_versions`` runs the adaptive grid on each version's own likelihood, the reference's samples
+    evaluated once for all: with every reference sample evaluated (an infinite margin) it is
+    ``adaptive_samples`` on the version's likelihood, sample for sample; with the default margin the same
+    estimate to 1e-9; the reference's own version gives the reference's estimate. The noisy version's grid
+    differs from the reference's, with samples the reference never had (so the replay's cells would not be its
+    own, and the centres of new samples are exercised)."""
+    from shearfit.config import as_config
+    from shearfit.engine.measure import _measure, _replay_exposures, _replay_likelihood, measure_versions
+    from shearfit.engine.sampling import VersionLikelihoods, adaptive_samples, adaptive_versions, estimate
+
+    rng = np.random.default_rng(3)
+    J = PIX * np.array([[-1.0, 0.0], [0.0, 1.0]])
+    offs = rng.uniform(-0.5, 0.5, (3, 2))
+    psfs = [moffat_psf(0.6 + 0.05 * i, 3.0, 0.04 * (-1) ** i, 0.03) for i in range(3)]
+    gal = galaxy_profile(0.25, 0.2, -0.1, 0.1, flux=1000.0)
+    clean = [draw_stamp(gal, p, J, o) for p, o in zip(psfs, offs)]
+    sig = noise_for_snr(clean, 12.0)
+
+    def obs(ims):
+        return [shearfit.Observation(image=im, weight=np.full(im.shape, 1 / sig ** 2),
+                                     psf=draw_psf_image(p, J, size=25), jacobian=J, offset=tuple(o))
+                for im, p, o in zip(ims, psfs, offs)]
+
+    ref = obs([im + rng.normal(0, sig, im.shape) for im in clean])
+    ver = obs([o.image + rng.normal(0, 0.5 * sig, o.image.shape) for o in ref])
+    cfg = as_config(None)
+    res, plan = _measure(ref, 23.0, cfg, False)
+    assert res.fitclass == FITCLASS_GALAXY
+
+    def version_like(o):
+        return _replay_likelihood(_replay_exposures(o, cfg, plan), 23.0, cfg, plan)[1]
+
+    full = adaptive_samples(version_like(ver), cfg)
+    own = adaptive_versions(VersionLikelihoods([version_like(ver)]), plan.samples, cfg, np.inf)[0]
+    keys = {(round(a, 9), round(b, 9)) for a, b in zip(plan.samples.e1, plan.samples.e2)}
+    assert np.array_equal(own.e1, full.e1) and np.array_equal(own.e2, full.e2)
+    assert np.array_equal(own.area, full.area)
+    assert np.allclose(own.logpost, full.logpost, rtol=0, atol=1e-9, equal_nan=True)
+    assert not all((round(a, 9), round(b, 9)) in keys for a, b in zip(own.e1, own.e2))   # new samples
+    ea, eb = estimate(own, cfg), estimate(full, cfg)
+    assert abs(ea.e1 - eb.e1) < 1e-9 and abs(ea.e2 - eb.e2) < 1e-9
+    for first in (None, REPLAY_FIRST_MARGIN):   # the margins metacal's replays use
+        d = adaptive_versions(VersionLikelihoods([version_like(ver)]), plan.samples, cfg, 10.0, first)[0]
+        ed = estimate(d, cfg)
+        assert abs(ed.e1 - eb.e1) < 1e-9 and abs(ed.e2 - eb.e2) < 1e-9
+        assert np.count_nonzero(d.evaluated) < d.e1.size
+    a, b, c = measure_versions([ref, ref, ver], 23.0, first_margin=REPLAY_FIRST_MARGIN, own_samples=True)
+    assert abs(b.e1 - a.e1) < 1e-12 and abs(b.e2 - a.e2) < 1e-12
+    assert abs(c.e1 - ed.e1) < 1e-12 and abs(c.e2 - ed.e2) < 1e-12
+    replayed = measure_versions([ref, ver], 23.0)[1]
+    assert np.hypot(replayed.e1 - c.e1, replayed.e2 - c.e2) > 1e-4

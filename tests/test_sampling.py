@@ -150,3 +150,23 @@ def test_the_samplers_lattice_priors_are_the_priors_at_its_points(settings):
     assert np.isneginf(pd[half + 45, half]) and np.isfinite(pd[half + 30, half])   # zero beyond e_max
     if settings:
         assert not np.array_equal(pd, _lattice_log_priors(FitConfig(), unit, half)[0])
+
+
+def test_store_points_are_the_steps_lattice_points_in_the_mask():
+    """_Store._points looks only at the step's rows and columns of a region's box: the same points, in the
+    same order, as a search of every lattice point of the box (boxes at any corner, steps 1-64)."""
+    from shearfit.engine.sampling import _Store
+
+    cfg = FitConfig()
+    st = _Store(None, cfg)
+    rng = np.random.default_rng(4)
+    limit = cfg.model_e_limit / st.unit
+    for _ in range(60):
+        step = int(rng.choice([1, 2, 4, 8, 16, 32, 64]))
+        i0, j0 = (int(v) for v in rng.integers(-60, 40, 2))
+        mask = rng.random(tuple(int(v) for v in rng.integers(1, 90, 2))) < 0.6
+        want = [(i0 + a, j0 + b) for a in range(mask.shape[0]) for b in range(mask.shape[1])
+                if mask[a, b] and (i0 + a) % step == 0 and (j0 + b) % step == 0
+                and (i0 + a) ** 2 + (j0 + b) ** 2 < limit * limit]
+        assert st._points(step, i0, j0, mask) == want
+        assert st.regions[-1][0] == step and st.regions[-1][3] is mask

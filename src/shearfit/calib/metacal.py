@@ -569,7 +569,7 @@ def _fit_new_moffats(per_exp):
 
 def measure_metacal(observations, mag, config=None, delta=0.01, rng=None, replay_margin=10.0,
                     replay_first_margin=REPLAY_FIRST_MARGIN, psf="dilated", replay=True,
-                    own_position=False) -> MetacalResult:
+                    own_position=False, own_samples=False) -> MetacalResult:
     """Measure the five metacal versions of one object jointly over its exposures (see the module doc); ``psf``:
     the versions' new PSF, 'dilated' or 'round' (:func:`metacal_observations`). ``replay=False``: every version
     is fitted on its own, with its own choices (modes, position, sizes, samples), as the ``noshear`` fit is: R
@@ -577,7 +577,10 @@ def measure_metacal(observations, mag, config=None, delta=0.01, rng=None, replay
     times the metacal fits' time (``benchmarks/README.md``, session 44). ``own_position``: the sheared
     versions replay every choice but the position, which each finds for itself from the noshear fit's
     (:func:`shearfit.engine.measure.measure_versions`), so that R holds the estimate's response through its
-    position (measured on paired runs in ``benchmarks/README.md``, session 45)."""
+    position (measured on paired runs in ``benchmarks/README.md``, session 45). ``own_samples``: each sheared
+    version runs the adaptive ellipticity grid on its own likelihood, the noshear fit's samples evaluated for
+    all four together (:func:`shearfit.engine.sampling.adaptive_versions`), so that R holds the estimate's
+    response through its grid (session 46)."""
     from dataclasses import replace
 
     from ..config import as_config
@@ -596,7 +599,7 @@ def measure_metacal(observations, mag, config=None, delta=0.01, rng=None, replay
         if replay:
             results = measure_versions([[v[name] for v in per_exp] for name in VERSIONS], mag, config,
                                        margin=replay_margin, first_margin=replay_first_margin,
-                                       own_position=own_position)
+                                       own_position=own_position, own_samples=own_samples)
         else:
             results = [measure_object([v[name] for v in per_exp], mag, config) for name in VERSIONS]
     out = MetacalResult(delta=float(delta))

@@ -18,8 +18,8 @@ from .likelihood import coarse_peak, find_position, flux_position_marginal, join
 from .model import model_ft, prepare_exposures
 from ..observation import FitResult, Observation
 from .profiles import de_vaucouleurs, exponential_disk, fast_pair
-from .sampling import (EllipticityLikelihood, Samples, VersionLikelihoods, adaptive_samples, estimate,
-                       log_population_weights, replay_samples, replay_versions, two_pass_samples)
+from .sampling import (EllipticityLikelihood, Samples, VersionLikelihoods, adaptive_samples, adaptive_versions,
+                       estimate, log_population_weights, replay_samples, replay_versions, two_pass_samples)
 
 __all__ = ["measure_object", "measure_objects", "measure_versions", "FitPlan", "paused_gc"]
 
@@ -157,12 +157,14 @@ def _position_search(mag, cfg, pix):
     return min(float(priors.size_prior_scale(mag, cfg)), 2 * pix), cfg.max_centroid_shift * pix
 
 
-def _measure(obs, mag, cfg, return_samples, plan=None, margin=np.inf, first_margin=None, own_position=False):
+def _measure(obs, mag, cfg, return_samples, plan=None, margin=np.inf, first_margin=None, own_position=False,
+             own_samples=False):
     """One object's fit: (FitResult, the FitPlan it made, or None where it stopped early).
 
     With ``plan``, the fit replays another version's choices (modes, position, size nodes and centres,
     ellipticity samples within ``margin`` nats of its posterior cut) instead of making its own; with
-    ``own_position`` as well, it finds its own position from the plan's (:func:`_replay_likelihood`).
+    ``own_position`` as well, it finds its own position from the plan's (:func:`_replay_likelihood`); with
+    ``own_samples``, its own ellipticity grid (:func:`shearfit.engine.sampling.adaptive_versions`).
     """
     fast = fast_pair(cfg.truncation)
     exposures = prepare_exposures(obs, cfg) if plan is None else _replay_exposures(obs, cfg, plan)
@@ -199,7 +201,10 @@ def _measure(obs, mag, cfg, return_samples, plan=None, margin=np.inf, first_marg
         jm, like, shift = _replay_likelihood(exposures, mag, cfg, plan, own_position)
         if like is None:
             return _off_centre(obs, shift, jm.pixel_scale), plan
-        samples = replay_samples(like, plan.samples, cfg, margin, first_margin)
+        if own_samples:
+            samples = adaptive_versions(VersionLikelihoods([like]), plan.samples, cfg, margin, first_margin)[0]
+        else:
+            samples = replay_samples(like, plan.samples, cfg, margin, first_margin)
         return _replayed_result(obs, cfg, mag, jm, like, samples, shift, return_samples), plan
     return _result(obs, cfg, mag, jm, like, samples, n_samples, shift / pix, return_samples), plan
 
@@ -384,7 +389,8 @@ def _self_calibrate(obs, mag, cfg, res, plan, margin=10.0):
 
 
 def measure_versions(versions: Sequence[Sequence[Observation]], mag: float, config=None,
-                     margin: float = 10.0, first_margin: float = None, own_position: bool = False) -> list:
+                     margin: float = 10.0, first_margin: float = None, own_position: bool = False,
+                     own_samples: bool = False) -> list:
     """Measure versions of one object (its stamps slightly transformed, as metacalibration's) alike.
 
     The first version is fitted as :func:`measure_object` fits it; every
@@ -396,13 +402,21 @@ def measure_versions(versions: Sequence[Sequence[Observation]], mag: float, conf
     smoothly. With ``own_position`` each version finds its own position,
     from the first's, as a fit of its own would (the peak moves smoothly
     with the pixels), so that the estimate's response through its position
-    is part of the differences too. The versions must carry the
+    is part of the differences too. With ``own_samples`` each version runs
+    the adaptive ellipticity grid on its own likelihood (the reference's
+    samples evaluated for all versions together,
+    :func:`shearfit.engine.sampling.adaptive_versions`), so that the
+    estimate's response through its grid is part of them as well (metacal
+    at low SNR, ``benchmarks/README.md``, session 46). The versions must carry the
     same PSFs, Jacobians and weights. ``margin`` and ``first_margin``: which samples a replay evaluates
     (:func:`shearfit.engine.sampling.replay_samples`). The replays are evaluated together where the versions
     share the first's Fourier modes (:class:`shearfit.engine.sampling.VersionLikelihoods`), each version's
     estimate that of its own replay to rounding. Returns one FitResult per version.
     """
     cfg = as_config(config)
+    if own_samples and cfg.sampling != "adaptive":
+        raise ShearfitValueError("measure_versions: own_samples needs sampling: adaptive "
+                                 f"(the config has sampling: {cfg.sampling})")
     versions = [list(v) for v in versions]
     if not versions or any(any(not isinstance(o, Observation) for o in v) for v in versions):
         raise ShearfitValueError("measure_versions takes a sequence of sequences of shearfit.Observation")
@@ -422,7 +436,8 @@ def measure_versions(versions: Sequence[Sequence[Observation]], mag: float, conf
     if plan is None:   # nothing to replay: the reference stopped before sampling
         return [res] + [measure_object(v, mag, cfg) for v in versions[1:]]
     with paused_gc():
-        return [res] + _replay_all(versions[1:], float(mag), cfg, plan, margin, first_margin, own_position)
+        return [res] + _replay_all(versions[1:], float(mag), cfg, plan, margin, first_margin, own_position,
+                                   own_samples)
 
 
 _FIT_ERRORS = (np.linalg.LinAlgError, FloatingPointError, ZeroDivisionError, ValueError)
@@ -432,7 +447,7 @@ def _failed(obs, exc):
     return FitResult(fitclass=FITCLASS_FIT_FAILED, n_exposures_used=len(obs), message=f"fit failed: {exc}")
 
 
-def _replay_all(versions, mag, cfg, plan, margin, first_margin, own_position):
+def _replay_all(versions, mag, cfg, plan, margin, first_margin, own_position, own_samples=False):
     """The versions' replays of ``plan``, their likelihoods evaluated together
     (:class:`shearfit.engine.sampling.VersionLikelihoods`: the same numbers as one replay after another, which
     is what a version whose setup fails, and every version where the joint evaluation fails, gets)."""
@@ -451,7 +466,9 @@ def _replay_all(versions, mag, cfg, plan, margin, first_margin, own_position):
     if not ready:
         return out
     try:
-        samples = replay_versions(VersionLikelihoods([r[3] for r in ready]), plan.samples, cfg, margin, first_margin)
+        likes = VersionLikelihoods([r[3] for r in ready])
+        samples = (adaptive_versions(likes, plan.samples, cfg, margin, first_margin) if own_samples
+                   else replay_versions(likes, plan.samples, cfg, margin, first_margin))
         for (k, obs, jm, like, shift), s in zip(ready, samples):
             out[k] = _replayed_result(obs, cfg, mag, jm, like, s, shift)
     except _FIT_ERRORS as exc:
@@ -460,7 +477,7 @@ def _replay_all(versions, mag, cfg, plan, margin, first_margin, own_position):
         for k, obs, *_ in ready:   # one at a time, so that one version's failure is its own
             try:
                 out[k] = _measure(obs, mag, cfg, False, plan=plan, margin=margin, first_margin=first_margin,
-                                  own_position=own_position)[0]
+                                  own_position=own_position, own_samples=own_samples)[0]
             except _FIT_ERRORS as exc2:
                 if isinstance(exc2, ShearfitValueError):
                     raise

@@ -31,7 +31,7 @@ from .likelihood import (Marginal, linear_vectors, flux_position_marginal, mode_
                          mode_bins_versions, model_sums, node_matrices, shares_bins_geometry, versions_channels)
 
 __all__ = ["EllipticityLikelihood", "VersionLikelihoods", "Samples", "adaptive_samples", "two_pass_samples",
-           "replay_samples", "replay_versions",
+           "replay_samples", "replay_versions", "adaptive_versions",
            "estimate", "lensing_weight"]
 
 
@@ -135,6 +135,22 @@ class EllipticityLikelihood:
         e = np.hypot(e1, e2)
         q = (1 - e) / (1 + e)
         return self.r_center * q ** (-1.0 / 3.0)
+
+    def replayed_centres(self, e1, e2, keys):
+        """The size centres of ``fixed_centres`` at (e1, e2) (their ``keys``). An ellipticity the replayed fit
+        never sampled (a version's own ellipticity grid, :func:`adaptive_versions`) gets its nearest sampled
+        neighbour's ratio to the predicted centre, as a fit reuses a located neighbour's (``_located_centres``).
+        """
+        fc = self.fixed_centres
+        rc = np.array([fc.get(k, np.nan) for k in keys], float)
+        miss = np.isnan(rc)
+        if np.any(miss):
+            ke = np.array(list(fc.keys()), float) * 1e-9
+            kr = np.array(list(fc.values()), float)
+            d2 = (e1[miss, None] - ke[None, :, 0]) ** 2 + (e2[miss, None] - ke[None, :, 1]) ** 2
+            nn = np.argmin(d2, axis=1)
+            rc[miss] = self.centre(e1[miss], e2[miss]) * kr[nn] / self.centre(ke[nn, 0], ke[nn, 1])
+        return rc
 
     def _located_centres(self, e1, e2, rc, bins=None):
         """Size peaks at each e, located by the passes of ``locate_widths``.
@@ -246,7 +262,7 @@ class EllipticityLikelihood:
             USE_KERNEL and cfg.mode_bins_per_octave > 0) else None
         tail, tail_point = np.zeros(ne, bool), None
         if self.fixed_centres is not None:
-            rc = np.array([self.fixed_centres[k] for k in keys])
+            rc = self.replayed_centres(e1, e2, keys)
         else:
             rc = self.centre(e1, e2)
             if self.locate_widths is not None:
@@ -403,7 +419,7 @@ class VersionLikelihoods:
         keys = e_key(e1, e2)
         bins = mode_bins_versions([lk.jm for lk in likes], e1, e2, l0.cfg.mode_bins_per_octave,
                                   channels=self.channels)
-        rc = np.array([l0.fixed_centres[k] for k in keys])
+        rc = l0.replayed_centres(e1, e2, keys)
         for lk in likes:
             lk.centres.update(zip(keys, rc.tolist()))
         R = rc[:, None] * np.exp(l0.x)[None, :]
@@ -534,12 +550,14 @@ class _Store:
     def _points(self, step, i0, j0, mask):
         """The step's lattice points in the region (mask over the box from (i0, j0)) with |e| below the model
         limit, row after row; records the region."""
-        I = np.arange(i0, i0 + mask.shape[0])
-        J = np.arange(j0, j0 + mask.shape[1])
+        # only the step's rows and columns of the box are looked at (a coarse step's are few: the whole box at
+        # the finest unit cost the pre-pass and its refinements some 2 ms a fit, at metacal's 0.005)
+        a = np.arange((-i0) % step, mask.shape[0], step)
+        b = np.arange((-j0) % step, mask.shape[1], step)
+        I, J = i0 + a, j0 + b
         limit = self.cfg.model_e_limit / self.unit
-        on = (((I % step == 0)[:, None] & (J % step == 0)[None, :])
-              & (I[:, None] ** 2 + J[None, :] ** 2 < limit * limit))
-        ii, jj = np.nonzero(mask & on)
+        on = mask[np.ix_(a, b)] & (I[:, None] ** 2 + J[None, :] ** 2 < limit * limit)
+        ii, jj = np.nonzero(on)
         self.regions.append((step, i0, j0, mask))
         return list(zip(I[ii].tolist(), J[jj].tolist()))
 
@@ -748,7 +766,6 @@ def replay_versions(likes: VersionLikelihoods, ref: Samples, cfg: FitConfig, mar
     logl = [np.full(n, -np.inf) for _ in range(nv)]
     logpost = [np.full(n, -np.inf) for _ in range(nv)]
     cols = [{f: np.full(n, np.nan) for f in fields_} for _ in range(nv)]
-    sel = [np.zeros(n, bool) for _ in range(nv)]
 
     def evaluate(which, versions):
         for v, pt in zip(versions, likes(ref.e1[which], ref.e2[which], versions=versions)):
@@ -756,30 +773,110 @@ def replay_versions(likes: VersionLikelihoods, ref: Samples, cfg: FitConfig, mar
             for f in fields_:
                 cols[v][f][which] = getattr(pt, f)
 
-    if np.any(ok):
-        top = np.max(ref.logpost[ok])
-        full = ok & (ref.logpost > top + np.log(cfg.posterior_cut) - margin)
-        if first_margin is not None and first_margin < margin:
-            first = ok & (ref.logpost > top + np.log(cfg.posterior_cut) - first_margin)
-            evaluate(first, list(range(nv)))
-            more = []
-            for v in range(nv):
-                sel[v] = first
-                lp = logpost[v][first]
-                good = np.isfinite(lp)
-                change = (np.abs((lp[good] - lp[good].max()) - (ref.logpost[first][good] - top)) if np.any(good)
-                          else [np.inf])
-                if not (2 * np.max(change) < first_margin):
-                    more.append(v)
-                    sel[v] = full
-            rest = full & ~first
-            if more and np.any(rest):
-                evaluate(rest, more)
-        else:
-            evaluate(full, list(range(nv)))
-            sel = [full] * nv
+    sel = _evaluate_near_cut(ref, ok, cfg, margin, first_margin, nv, evaluate, lambda v, which: logpost[v][which])
     return [Samples(e1=ref.e1, e2=ref.e2, area=ref.area, logl=logl[v], logpost=logpost[v],
                     point=EPoint(**cols[v]), evaluated=sel[v]) for v in range(nv)]
+
+
+def _evaluate_near_cut(ref, ok, cfg, margin, first_margin, nv, evaluate, logpost_of):
+    """Which of the reference's samples (``ok``) each of ``nv`` versions evaluates: those within ``margin`` nats
+    of the reference's posterior cut (``evaluate(which, versions)``); with ``first_margin`` (< ``margin``) those
+    within it first, and the rest only for the versions whose posterior, relative to its maximum, moved by half
+    ``first_margin`` or more over them (``logpost_of(v, which)``: version v's log posterior there). Returns
+    one mask per version."""
+    sel = [np.zeros(ref.e1.size, bool) for _ in range(nv)]
+    if not np.any(ok):
+        return sel
+    top = np.max(ref.logpost[ok])
+    full = ok & (ref.logpost > top + np.log(cfg.posterior_cut) - margin)
+    if first_margin is None or first_margin >= margin:
+        evaluate(full, list(range(nv)))
+        return [full] * nv
+    first = ok & (ref.logpost > top + np.log(cfg.posterior_cut) - first_margin)
+    evaluate(first, list(range(nv)))
+    more = []
+    for v in range(nv):
+        sel[v] = first
+        lp = logpost_of(v, first)
+        good = np.isfinite(lp)
+        change = (np.abs((lp[good] - lp[good].max()) - (ref.logpost[first][good] - top)) if np.any(good)
+                  else [np.inf])
+        if not (2 * np.max(change) < first_margin):
+            more.append(v)
+            sel[v] = full
+    rest = full & ~first
+    if more and np.any(rest):
+        evaluate(rest, more)
+    return sel
+
+
+def adaptive_versions(likes: VersionLikelihoods, ref: Samples, cfg: FitConfig, margin: float,
+                      first_margin: float = None) -> list:
+    """Each version's own adaptive grid (:func:`adaptive_samples`), its likelihood evaluated where it matters.
+
+    A replay (:func:`replay_versions`) keeps the reference fit's samples and cells, so its estimate at a
+    small shear is that of a grid fixed from the noshear pixels; a version's own grid moves with its pixels as
+    the noshear fit's moves with a true shear, and the differences between versions then see that too. Here
+    every version runs the adaptive grid on its own likelihood, but of the samples the reference had, only
+    those within ``margin`` nats of the reference's posterior cut are evaluated (for all versions together),
+    and the others carry the reference's values: they lie below any version's cut unless its posterior
+    moved by more than ``margin`` there (the replays' assumption), and below it they only decide where the
+    coarse pre-pass is refined, far from any sample the estimator uses (they are moved by the difference of the
+    version's and the reference's maxima, so that they stand as far below the version's maximum). With
+    ``first_margin`` (< ``margin``) the samples within ``first_margin`` of the cut are evaluated first, and the
+    rest within ``margin`` only for a version whose posterior moved, relative to its maximum, by half
+    ``first_margin`` or more there (as :func:`replay_versions` decides). A sample the reference never had (a
+    version refining where it did not) is evaluated for that version alone, its size centre carried from the
+    nearest replayed one (:meth:`EllipticityLikelihood.replayed_centres`). Every version must replay the
+    reference's size nodes and centres (``fixed_centres``).
+    """
+    fields_ = tuple(EPoint.__dataclass_fields__)
+    unit = cfg.e_grid_min
+    n = ref.e1.size
+    nv = len(likes.likes)
+    row = dict(zip(zip(np.rint(ref.e1 / unit).astype(int).tolist(), np.rint(ref.e2 / unit).astype(int).tolist()),
+                   range(n)))
+    # every version's values at the reference's samples: the reference's, until evaluated
+    cols = [{f: np.array(getattr(ref.point, f), float) for f in fields_} for _ in range(nv)]
+
+    def evaluate(which, versions):
+        for v, pt in zip(versions, likes(ref.e1[which], ref.e2[which], versions=versions)):
+            for f in fields_:
+                cols[v][f][which] = getattr(pt, f)
+
+    def logpost_of(v, which):
+        return _mix(EPoint(**{f: cols[v][f][which] for f in fields_}), ref.e1[which], ref.e2[which], cfg)[1]
+
+    ok = np.isfinite(ref.logpost)
+    done = _evaluate_near_cut(ref, ok, cfg, margin, first_margin, nv, evaluate, logpost_of)
+    for v in range(nv):
+        # the reference's values a version carries are put on its own scale: moved by the difference of the
+        # two maxima over the samples evaluated (a version's log L differs from the reference's by its noise's)
+        d = done[v] & ok
+        lp = _mix(EPoint(**{f: cols[v][f][d] for f in fields_}), ref.e1[d], ref.e2[d], cfg)[1]
+        if np.any(np.isfinite(lp)):
+            shift = float(np.max(lp[np.isfinite(lp)]) - np.max(ref.logpost[d]))
+            for f in ("logl_disk", "logl_bulge"):
+                cols[v][f][~done[v]] += shift
+    out = []
+    for v, like in enumerate(likes.likes):
+        def lookup(e1, e2, v=v, like=like):
+            r = np.array([row.get(key, -1) for key in zip(np.rint(e1 / unit).astype(int).tolist(),
+                                                          np.rint(e2 / unit).astype(int).tolist())], int)
+            have = r >= 0
+            got = {f: np.where(have, cols[v][f][np.maximum(r, 0)], np.nan) for f in fields_}
+            fresh = np.nonzero(~have)[0]
+            if fresh.size:
+                pt = like(e1[fresh], e2[fresh])
+                for f in fields_:
+                    got[f][fresh] = getattr(pt, f)
+            return EPoint(**got)
+        s = adaptive_samples(lookup, cfg)
+        r = np.array([row.get(key, -1) for key in zip(np.rint(s.e1 / unit).astype(int).tolist(),
+                                                      np.rint(s.e2 / unit).astype(int).tolist())], int)
+        s.evaluated = (r < 0) | done[v][np.maximum(r, 0)]
+        out.append(s)
+    return out
 
 
 @dataclass

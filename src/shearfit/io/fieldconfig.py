@@ -111,6 +111,13 @@ class PipelineConfig:
         "family m higher by +0.025 +- 0.010 at SNR 10-14, about the replays' whole bias there, and by +0.0024 +- "
         "0.0016 at 14-20: benchmarks/README.md), for 1.6-1.8 times the time of the fits and a noisier response "
         "without noise", "implementation")
+    metacal_own_grid: bool = setting(
+        False, "with calibration: metacal and metacal_replay, each sheared version runs the adaptive ellipticity "
+        "grid on its own likelihood (the noshear fit's samples evaluated for the four together) instead of replaying "
+        "the noshear fit's samples and cells, so that R also holds the estimate's response through its grid (on "
+        "galaxies outside the model family m higher by +0.009 +- 0.004 at SNR 10-14, about half of what "
+        "metacal_replay: false takes, for 3.07 instead of 2.78 plain fits: benchmarks/README.md, session 46)",
+        "implementation")
 
     psf_size: int = setting(25, "side of the fitted PSF model and of the star stamps, native pixels (odd)", "sec. 5")
     psf_oversampling: int = setting(

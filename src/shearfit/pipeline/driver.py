@@ -385,6 +385,10 @@ def _measure_field(cfg, out_path, progress, processes, restart, scheduler, execu
     out_path = out_path or cfg.output
     if out_path is None:
         raise ShearfitValueError("no output path: give --out or output: in the config")
+    if (cfg.calibration == "metacal" and cfg.pipeline.metacal_replay and cfg.pipeline.metacal_own_grid
+            and cfg.fit.sampling != "adaptive"):
+        raise ShearfitValueError(f"{cfg.source}: setting metacal_own_grid needs sampling: adaptive "
+                                 f"(the config has sampling: {cfg.fit.sampling})")
     out_dir = os.path.dirname(os.path.abspath(out_path))
     if not os.path.isdir(out_dir) or not os.access(out_dir, os.W_OK):
         raise ShearfitValueError(f"cannot write the output: directory {out_dir} does not exist or is not writable")
@@ -450,7 +454,9 @@ def _measure_field(cfg, out_path, progress, processes, restart, scheduler, execu
         cards += [("CALMODE", "metacal", "shear response: metacal (R columns)"),
                   ("MCDELTA", cfg.pipeline.metacal_delta, "metacal shear step"),
                   ("MCPSF", cfg.pipeline.metacal_psf, "metacal new PSF: dilated or round"),
-                  ("MCREPLAY", bool(cfg.pipeline.metacal_replay), "metacal versions replay the noshear fit")]
+                  ("MCREPLAY", bool(cfg.pipeline.metacal_replay), "metacal versions replay the noshear fit"),
+                  ("MCOWNGRD", bool(cfg.pipeline.metacal_replay and cfg.pipeline.metacal_own_grid),
+                   "metacal replays run their own ellipticity grid")]
     else:
         if calibration is not None:
             src = os.path.basename(cfg.calibration)
@@ -857,7 +863,8 @@ def _measure_on_stamps(hits, exposures, mag, cfg, pc, obj_id, size, geometry=Non
             from ..simulate.stamps import NegatedNormal
 
             rng = NegatedNormal(rng)
-        mc = measure_metacal(obs, mag, cfg.fit, pc.metacal_delta, rng, psf=pc.metacal_psf, replay=pc.metacal_replay)
+        mc = measure_metacal(obs, mag, cfg.fit, pc.metacal_delta, rng, psf=pc.metacal_psf, replay=pc.metacal_replay,
+                             own_samples=pc.metacal_own_grid)
         res = mc.noshear
         extra = {f"{q}_{v}": getattr(mc.results[v], q) for v in SHEARED for q, _, _ in METACAL_QUANTITIES}
         extra.update({f"R{i + 1}{j + 1}": float(mc.R[i, j]) for i in range(2) for j in range(2)})

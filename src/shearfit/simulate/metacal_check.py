@@ -48,7 +48,7 @@ def shear_sets(n_galaxies, h, seed, **ring_kwargs):
 
 
 def fixed_sample_responses(sets, i, h, delta, config, seed, noisy=False, twin=False, free=True, psf="dilated",
-                           own=False, own_position=False):
+                           own=False, own_position=False, own_samples=False):
     """Galaxy ``i`` of :func:`shear_sets`: its diagonal responses ``(R, A, A_free, fitclasses)``.
 
     R: metacal's; A: the noshear fit's to the true shear, both replaying the choices of the unsheared
@@ -58,7 +58,8 @@ def fixed_sample_responses(sets, i, h, delta, config, seed, noisy=False, twin=Fa
     antithetic ``twin``); otherwise the symmetrising noise is :class:`QuietNormal`. ``psf``: metacal's new PSF
     (:func:`shearfit.calib.metacal.metacal_observations`). ``own``: every image fitted on its own instead (R as
     ``measure_metacal(..., replay=False)`` measures it, A the same as A_free; A_free is then None).
-    ``own_position``: the replays find their own position (``measure_metacal(..., own_position=True)``).
+    ``own_position``: the replays find their own position (``measure_metacal(..., own_position=True)``);
+    ``own_samples``: their own ellipticity grid (``measure_metacal(..., own_samples=True)``).
     """
     def rng(j):
         # exposure j's symmetrising noise: its own field, the same for the galaxy at 0 and +-h
@@ -81,7 +82,7 @@ def fixed_sample_responses(sets, i, h, delta, config, seed, noisy=False, twin=Fa
         R = np.array([(r[1].e1 - r[2].e1), (r[3].e2 - r[4].e2)]) / (2 * delta)
         A = np.array([(r[5].e1 - r[6].e1), (r[7].e2 - r[8].e2)]) / (2 * h)
         return R, A, None, [x.fitclass for x in r]
-    r = measure_versions(versions, mag, config, margin=10.0, own_position=own_position)
+    r = measure_versions(versions, mag, config, margin=10.0, own_position=own_position, own_samples=own_samples)
     R = np.array([(r[1].e1 - r[2].e1), (r[3].e2 - r[4].e2)]) / (2 * delta)
     A = np.array([(r[5].e1 - r[6].e1), (r[7].e2 - r[8].e2)]) / (2 * h)
     if not free:
