@@ -297,12 +297,14 @@ def test_pipeline_metacal_columns(tmp_path):
     assert np.array_equal(np.asarray(t3["e1"]), np.asarray(t["e1"]), equal_nan=True)
     assert not np.array_equal(np.asarray(t3["e1_1p"])[gal], np.asarray(t["e1_1p"])[gal])
     assert 0.3 < np.nanmedian(np.asarray(t3["R11"])[gal]) < 1.5
-    # metacal_own_grid: the replays run their own ellipticity grids: the same noshear fits, other sheared ones
+    # metacal_own_grid and metacal_own_position: the replays run their own ellipticity grids and find their own
+    # positions: the same noshear fits, other sheared ones
     out4 = tmp_path / "mc_grid.fits"
-    assert main(["measure", str(d / "field_truepsf.yaml"), "calibration=metacal", "metacal_own_grid=true", "--out",
-                 str(out4), "--quiet"]) == 0
+    assert main(["measure", str(d / "field_truepsf.yaml"), "calibration=metacal", "metacal_own_grid=true",
+                 "metacal_own_position=true", "--out", str(out4), "--quiet"]) == 0
     t4 = Table.read(out4)
     assert t4.meta["MCOWNGRD"] is True and t.meta["MCOWNGRD"] is False and t3.meta["MCOWNGRD"] is False
+    assert t4.meta["MCOWNPOS"] is True and t.meta["MCOWNPOS"] is False
     assert np.array_equal(np.asarray(t4["e1"]), np.asarray(t["e1"]), equal_nan=True)
     assert not np.array_equal(np.asarray(t4["e1_1p"])[gal], np.asarray(t["e1_1p"])[gal])
     assert 0.3 < np.nanmedian(np.asarray(t4["R11"])[gal]) < 1.5

@@ -118,6 +118,12 @@ class PipelineConfig:
         "galaxies outside the model family m higher by +0.009 +- 0.004 at SNR 10-14, about half of what "
         "metacal_replay: false takes, for 3.07 instead of 2.78 plain fits: benchmarks/README.md, session 46)",
         "implementation")
+    metacal_own_position: bool = setting(
+        False, "with calibration: metacal and metacal_replay, each sheared version finds its own position (the "
+        "fit's Newton search on its own cross-correlation, from the noshear fit's peak) instead of replaying the "
+        "noshear fit's; with metacal_own_grid as well, m is that of versions fitted on their own to -0.007 +- 0.005 "
+        "at SNR 10-14 and +0.0001 +- 0.0017 at 14-20, for 3.26 plain fits (benchmarks/README.md, session 46)",
+        "implementation")
 
     psf_size: int = setting(25, "side of the fitted PSF model and of the star stamps, native pixels (odd)", "sec. 5")
     psf_oversampling: int = setting(

@@ -456,7 +456,9 @@ def _measure_field(cfg, out_path, progress, processes, restart, scheduler, execu
                   ("MCPSF", cfg.pipeline.metacal_psf, "metacal new PSF: dilated or round"),
                   ("MCREPLAY", bool(cfg.pipeline.metacal_replay), "metacal versions replay the noshear fit"),
                   ("MCOWNGRD", bool(cfg.pipeline.metacal_replay and cfg.pipeline.metacal_own_grid),
-                   "metacal replays run their own ellipticity grid")]
+                   "metacal replays run their own ellipticity grid"),
+                  ("MCOWNPOS", bool(cfg.pipeline.metacal_replay and cfg.pipeline.metacal_own_position),
+                   "metacal replays find their own position")]
     else:
         if calibration is not None:
             src = os.path.basename(cfg.calibration)
@@ -864,7 +866,7 @@ def _measure_on_stamps(hits, exposures, mag, cfg, pc, obj_id, size, geometry=Non
 
             rng = NegatedNormal(rng)
         mc = measure_metacal(obs, mag, cfg.fit, pc.metacal_delta, rng, psf=pc.metacal_psf, replay=pc.metacal_replay,
-                             own_samples=pc.metacal_own_grid)
+                             own_samples=pc.metacal_own_grid, own_position=pc.metacal_own_position)
         res = mc.noshear
         extra = {f"{q}_{v}": getattr(mc.results[v], q) for v in SHEARED for q, _, _ in METACAL_QUANTITIES}
         extra.update({f"R{i + 1}{j + 1}": float(mc.R[i, j]) for i in range(2) for j in range(2)})
