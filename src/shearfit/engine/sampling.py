@@ -836,6 +836,11 @@ def adaptive_versions(likes: VersionLikelihoods, ref: Samples, cfg: FitConfig, m
     nv = len(likes.likes)
     row = dict(zip(zip(np.rint(ref.e1 / unit).astype(int).tolist(), np.rint(ref.e2 / unit).astype(int).tolist()),
                    range(n)))
+
+    def rows_of(e1, e2):
+        """The reference's sample at each (e1, e2), -1 where it had none."""
+        keys = zip(np.rint(e1 / unit).astype(int).tolist(), np.rint(e2 / unit).astype(int).tolist())
+        return np.array([row.get(key, -1) for key in keys], int)
     # every version's values at the reference's samples: the reference's, until evaluated
     cols = [{f: np.array(getattr(ref.point, f), float) for f in fields_} for _ in range(nv)]
 
@@ -853,7 +858,7 @@ def adaptive_versions(likes: VersionLikelihoods, ref: Samples, cfg: FitConfig, m
         # the reference's values a version carries are put on its own scale: moved by the difference of the
         # two maxima over the samples evaluated (a version's log L differs from the reference's by its noise's)
         d = done[v] & ok
-        lp = _mix(EPoint(**{f: cols[v][f][d] for f in fields_}), ref.e1[d], ref.e2[d], cfg)[1]
+        lp = logpost_of(v, d)
         if np.any(np.isfinite(lp)):
             shift = float(np.max(lp[np.isfinite(lp)]) - np.max(ref.logpost[d]))
             for f in ("logl_disk", "logl_bulge"):
@@ -861,8 +866,7 @@ def adaptive_versions(likes: VersionLikelihoods, ref: Samples, cfg: FitConfig, m
     out = []
     for v, like in enumerate(likes.likes):
         def lookup(e1, e2, v=v, like=like):
-            r = np.array([row.get(key, -1) for key in zip(np.rint(e1 / unit).astype(int).tolist(),
-                                                          np.rint(e2 / unit).astype(int).tolist())], int)
+            r = rows_of(e1, e2)
             have = r >= 0
             got = {f: np.where(have, cols[v][f][np.maximum(r, 0)], np.nan) for f in fields_}
             fresh = np.nonzero(~have)[0]
@@ -872,8 +876,7 @@ def adaptive_versions(likes: VersionLikelihoods, ref: Samples, cfg: FitConfig, m
                     got[f][fresh] = getattr(pt, f)
             return EPoint(**got)
         s = adaptive_samples(lookup, cfg)
-        r = np.array([row.get(key, -1) for key in zip(np.rint(s.e1 / unit).astype(int).tolist(),
-                                                      np.rint(s.e2 / unit).astype(int).tolist())], int)
+        r = rows_of(s.e1, s.e2)
         s.evaluated = (r < 0) | done[v][np.maximum(r, 0)]
         out.append(s)
     return out
