@@ -63,11 +63,20 @@ A metacal run's result can be kept without its per-object tables (several MB per
 writes, per galaxy and sign, the weighted sums its metacal m and c are made of (about 180 bytes per galaxy;
 :func:`shearfit.calib.bias.metacal_ring_sums`), and ``--from-tables`` reads such files beside tables. The
 metacal report and lensfit's m on the noshear images come out as from the tables (the bootstrap resamples the
-same galaxies); the reports that need the objects (SNR bins, other weights, --paired-with) do not::
+same galaxies); the reports that need the objects (other weights, --all-objects) do not::
 
     python benchmarks/ring_test.py --from-tables T.fits --metacal --snr-min 10 --snr-max 40 --save-sums S.fits
     python benchmarks/ring_test.py --from-tables benchmarks/campaigns/outside_metacal/*.fits --metacal \
         --snr-min 10 --snr-max 40
+
+Galaxy sums of two settings pair galaxy by galaxy (``--paired-with``): each galaxy of ``--from-tables`` is found
+among the other's by its family, half-light radius and target SNR, drawn from its own seed. The other side may be
+a longer campaign: then the first setting's m on the other's whole population is also given, as the other's m
+there plus the paired difference (a control variate: the paired difference is measured several times better
+than either m, so a short campaign of a new setting borrows the precision of a long one)::
+
+    python benchmarks/ring_test.py --from-tables benchmarks/campaigns/own_grid_metacal/*.fits --metacal \
+        --snr-min 10 --snr-max 40 --paired-with benchmarks/campaigns/outside_metacal/*.fits
 """
 
 from __future__ import annotations
@@ -445,6 +454,27 @@ class MetacalRings:
         return cls(sums, t["family"], t["true_hlr"], t["snr_target"], t["n_objects"], t["n_other"],
                    (t.meta["G1"], t.meta["G2"]), t.meta["WEIGHTED"])
 
+    def keys(self):
+        """Each galaxy's (family, half-light radius, target SNR) as float32 (as a file of sums keeps them): drawn
+        from the galaxy's own seed, the same for a galaxy in every run of its seed, whatever the setting."""
+        return list(zip(self.family.tolist(), self.true_hlr.astype(np.float32).tolist(),
+                        self.snr_target.astype(np.float32).tolist()))
+
+    def match_in(self, other, source=""):
+        """Indices into ``other`` (a run of another setting holding these galaxies, and maybe more) of each of
+        these galaxies, found by :meth:`keys`. Raises ValueError if a galaxy is missing there or a key repeats."""
+        where = {}
+        for i, k in enumerate(other.keys()):
+            if k in where:
+                raise ValueError(f"{source}: two galaxies share family, half-light radius and target SNR {k}; they "
+                                 "cannot be paired")
+            where[k] = i
+        idx = np.array([where.get(k, -1) for k in self.keys()], dtype=int)
+        if np.any(idx < 0):
+            raise ValueError(f"{source}: {int(np.sum(idx < 0))} of the {idx.size} galaxies of --from-tables are not "
+                             "among its galaxies (give the other setting's runs of the same seeds)")
+        return idx
+
     @classmethod
     def is_sums_file(cls, path):
         from astropy.io import fits
@@ -513,6 +543,53 @@ def report_metacal_difference(rings, other, args):
     print(f"  with the diagonal of <R> only: delta m1 = {format_with_error(est[6], err[6])}, delta m2 = "
           f"{format_with_error(est[7], err[7])}; with its mean: delta m1 = {format_with_error(est[8], err[8])}, "
           f"delta m2 = {format_with_error(est[9], err[9])}")
+
+
+def report_paired_population(rings, other, idx, args):
+    """Metacal m and c of the setting of ``rings`` on the population of ``other``, a longer campaign of another
+    setting of which ``other.subset(idx)`` are the galaxies of ``rings``: m_B(all) + [m_A - m_B](paired), a
+    control variate (the paired difference is much better measured than either m, so the estimate's error is
+    near that of the longer campaign). Errors from a bootstrap over all the galaxies of ``other``, the paired ones
+    resampled alike in both."""
+    g, g_other = np.array(rings.g, dtype=float), np.array(other.g, dtype=float)
+    paired = other.subset(idx)
+
+    def estimate(counts=None):
+        sub = None if counts is None else counts[..., idx]
+        return (metacal_bias_from_sums(rings.sums, g, sub)[0] - metacal_bias_from_sums(paired.sums, g_other, sub)[0]
+                + metacal_bias_from_sums(other.sums, g_other, counts)[0])
+
+    est = estimate()
+    counts = bootstrap_counts(other.n_galaxies, args.n_bootstrap, np.random.default_rng([args.seed, 54323]))
+    err = np.std(estimate(counts), axis=0)
+    hlr, hlr_paired = other.true_hlr, paired.true_hlr
+    print(f"\nmetacal of these tables' setting on the population of --paired-with ({other.n_galaxies} galaxies, "
+          f"{rings.n_galaxies} of them paired): its m there plus the paired difference above, {args.n_bootstrap} "
+          f"bootstrap resamplings of all its galaxies (half-light radii {np.nanmin(hlr):.2f}-{np.nanmax(hlr):.2f}\", "
+          f"the paired ones {np.nanmin(hlr_paired):.2f}-{np.nanmax(hlr_paired):.2f}\"):")
+    print(f"  m1 = {format_with_error(est[0], err[0])}    c1 = {format_with_error(est[2], err[2])}")
+    print(f"  m2 = {format_with_error(est[1], err[1])}    c2 = {format_with_error(est[3], err[3])}")
+    print(f"  with the diagonal of <R> only: m1 = {format_with_error(est[6], err[6])}, m2 = "
+          f"{format_with_error(est[7], err[7])}; with its mean: m1 = {format_with_error(est[8], err[8])}, "
+          f"m2 = {format_with_error(est[9], err[9])}")
+
+
+def read_paired_rings(args):
+    """The metacal galaxies of --paired-with (tables or files of galaxy sums), as one :class:`MetacalRings`."""
+    files = [p for p in args.paired_with if MetacalRings.is_sums_file(p)]
+    tables = [p for p in args.paired_with if p not in files]
+    parts = []
+    if tables:
+        other, n_other = read_tables(tables)
+        other_args = argparse.Namespace(**{**vars(args), "shear": table_shear(other, args.shear)})
+        parts.append(MetacalRings.from_table(other, n_other, other_args))
+    for path in files:
+        part = MetacalRings.read(path)
+        if part.weighted == bool(args.unweighted):
+            raise ValueError(f"{path}: galaxy sums of {'lensfit' if part.weighted else 'unit'} weights: give the "
+                             "--unweighted of the runs")
+        parts.append(part)
+    return MetacalRings.concatenate(parts, source=" ".join(files))
 
 
 def report_plain_difference(tab, other, args, n_gal):
@@ -807,7 +884,9 @@ def parse_args(argv=None):
     p.add_argument("--paired-with", nargs="+", metavar="TABLE", default=None,
                    help="with --from-tables: also the m and c of these tables less those of TABLE (a run on the "
                         "same galaxies and noise with another setting), the same galaxies resampled for both (metacal's "
-                        "with --metacal; else plain lensfit's, with the objects' differences in e)")
+                        "with --metacal; else plain lensfit's, with the objects' differences in e). Galaxy sums pair "
+                        "galaxy by galaxy and TABLE may hold more galaxies: then also this setting's m on all of them, "
+                        "TABLE's m plus the paired difference")
     p.add_argument("--from-tables", nargs="+", metavar="TABLE",
                    help="report on per-object tables written by earlier runs (--out) instead of simulating: "
                         "runs of different --seed add up (their galaxies are renumbered); give the shear, SNR "
@@ -1005,7 +1084,7 @@ def report_tables(args):
                 except ValueError as exc:
                     raise ValueError(f"{path}: {exc}") from None
                 parts.append(part)
-            rings = MetacalRings.concatenate(parts, source=" ".join(sums_files))
+            rings = unweighted = MetacalRings.concatenate(parts, source=" ".join(sums_files))
             if args.hlr_log_uniform:
                 # each run weighted by its galaxies' share of the weights found on all of them (the jackknife
                 # over runs needs the runs weighted too), then put together again
@@ -1023,14 +1102,33 @@ def report_tables(args):
         rings.write(args.save_sums, args.from_tables)
         print(f"galaxy sums of {rings.n_galaxies} galaxies written to {args.save_sums}")
     if sums_files:
+        paired = None
         if args.paired_with:
-            print("ring_test.py: error: --paired-with needs per-object tables, not galaxy sums", file=sys.stderr)
-            return 2
+            try:
+                other = read_paired_rings(args)
+                idx = unweighted.match_in(other, source="--paired-with")
+                mine = rings
+                if args.hlr_log_uniform:
+                    # both settings weighted as the other's whole population is, galaxy for galaxy
+                    w = hlr_log_uniform_weights(other.true_hlr, *args.hlr_log_uniform)
+                    other, mine = other.weighted_by(w), unweighted.weighted_by(w[idx])
+                paired = mine, other, idx
+            except (OSError, ValueError, KeyError) as exc:
+                print(f"ring_test.py: error: {exc}", file=sys.stderr)
+                return 2
         print(f"ring test from {len(tables)} table(s) and {len(sums_files)} file(s) of galaxy sums: "
               f"{rings.n_galaxies} galaxies, {rings.n_objects.sum()} objects")
         report_lensfit_sums(rings, args)
         report_metacal(rings, args)
         report_runs_jackknife(parts, args)
+        if paired is not None:
+            mine, other, idx = paired
+            if args.hlr_log_uniform:
+                print(f"\nthe paired reports below: every galaxy weighted as among --paired-with's {other.n_galaxies} "
+                      f"galaxies made log-uniform over {args.hlr_log_uniform[0]:g}-{args.hlr_log_uniform[1]:g}\"")
+            report_metacal_difference(mine, other.subset(idx), args)
+            if other.n_galaxies > mine.n_galaxies:
+                report_paired_population(mine, other, idx, args)
         report_families(None, args, rings)
         return 0
     print(f"ring test from {len(args.from_tables)} table(s): {n_gal} galaxies, {len(tab)} objects")

@@ -104,6 +104,85 @@ def test_galaxy_sums_report_as_the_tables(ring_test, tmp_path, capsys):
     assert abs(float(line.split()[3]) - (m[0] - m[1])) < 1e-5, (line, m)
 
 
+def _synthetic_rings(ring_test, rng, n, g):
+    """MetacalRings of ``n`` made-up galaxies: sums shaped like a run's (weights, e near +-g, R near 0.9, the
+    versions' sums), each galaxy its own half-light radius and target SNR."""
+    sums = np.empty((20, n, 2))
+    w = rng.uniform(0.5, 2.0, (n, 2))
+    sums[0] = sums[3] = w
+    sums[1:3] = w * rng.normal(0.0, 0.3, (2, n, 2)) + w * np.array([1, -1])[None, None, :] * np.reshape(g, (2, 1, 1))
+    sums[4] = sums[7] = w * rng.normal(0.9, 0.1, (n, 2))
+    sums[5] = sums[6] = w * rng.normal(0.0, 0.05, (n, 2))
+    for k in range(8, 20, 3):
+        sums[k] = w * rng.uniform(0.9, 1.1, (n, 2))
+        sums[k + 1:k + 3] = sums[k] * rng.normal(0.0, 0.3, (2, n, 2))
+    return ring_test.MetacalRings(sums, rng.integers(0, 3, n), rng.uniform(0.1, 2.0, n), rng.uniform(10, 40, n),
+                                  np.full(n, 16), np.zeros(n), g, True)
+
+
+def _line_value(out, start, after):
+    """The number that follows ``after`` on the first line of ``out`` that starts with ``start``."""
+    lines = out.splitlines()
+    k = next(i for i, s in enumerate(lines) if s.startswith(start))
+    line = next(s for s in lines[k + 1:] if after in s)
+    return float(line.split(after)[1].split()[0])
+
+
+def test_galaxy_sums_pair_by_galaxy_and_extend_to_the_other_campaign(ring_test, tmp_path, capsys):
+    """--paired-with files of galaxy sums: the galaxies of --from-tables are found among the other setting's by
+    their family, size and SNR (in any order), their m difference is that of the matched galaxies, and A's m on
+    B's whole population is m_B(all) + m_A(paired) - m_B(paired); with --hlr-log-uniform both settings carry the
+    weights of B's population, galaxy for galaxy; a galaxy missing from B is refused."""
+    from shearfit.calib.bias import metacal_bias_from_sums
+
+    rng = np.random.default_rng(11)
+    g = (0.03, -0.02)
+    b = _synthetic_rings(ring_test, rng, 40, g)
+    pick = rng.permutation(40)[:15]
+    a = b.subset(pick)
+    a.sums = a.sums * rng.uniform(0.95, 1.05, a.sums.shape)   # another setting: the same galaxies, other sums
+    a_path, b_path = tmp_path / "a.fits", tmp_path / "b.fits"
+    a.write(str(a_path))
+    b.write(str(b_path))
+    a, b = ring_test.MetacalRings.read(str(a_path)), ring_test.MetacalRings.read(str(b_path))
+    base = ["--metacal", "--n-bootstrap", "20", "--seed", "2", "--from-tables", str(a_path), "--paired-with"]
+    assert ring_test.main(base + [str(b_path)]) == 0
+    out = capsys.readouterr().out
+    m_a, m_b_paired, m_b = (metacal_bias_from_sums(r.sums, g)[0] for r in (a, b.subset(pick), b))
+    assert abs(_line_value(out, "metacal, these tables less", "delta m1 =") - (m_a[0] - m_b_paired[0])) < 2e-5
+    assert "(40 galaxies, 15 of them paired)" in out
+    assert abs(_line_value(out, "metacal of these tables' setting", "m2 =") - (m_b[1] + m_a[1] - m_b_paired[1])) < 2e-5
+    # weighted to log-uniform sizes over B's galaxies, both settings with B's weights galaxy for galaxy
+    edges = np.linspace(np.log(0.1), np.log(2.0), ring_test.HLR_WEIGHT_BINS + 1)
+    centres = np.exp(0.5 * (edges[:-1] + edges[1:]))
+    # each bin one galaxy, the 10 smallest bins two more: weights a third of the others' there
+    order = rng.permutation(40)
+    b.true_hlr = np.concatenate([centres, centres[:10] * 1.01, centres[:10] * 1.02])[order]
+    b.write(str(b_path))
+    a_w = b.subset(pick)
+    a_w.sums = a.sums
+    a_w.write(str(a_path))
+    assert ring_test.main(base + [str(b_path), "--hlr-log-uniform", "0.1", "2.0"]) == 2   # A alone has empty bins
+    assert "no galaxy of half-light radius" in capsys.readouterr().err
+    pick = np.argsort(order)[:20]   # the first 20 of the concatenation: each bin holds one of A's
+    a_w = b.subset(pick)
+    a_w.sums = a_w.sums * rng.uniform(0.95, 1.05, a_w.sums.shape)
+    a_w.write(str(a_path))
+    assert ring_test.main(base + [str(b_path), "--hlr-log-uniform", "0.1", "2.0"]) == 0
+    out = capsys.readouterr().out
+    w = ring_test.hlr_log_uniform_weights(b.true_hlr, 0.1, 2.0)
+    a_w = ring_test.MetacalRings.read(str(a_path))
+    m_a, m_b_paired, m_b = (metacal_bias_from_sums(r.sums, g)[0] for r in
+                            (a_w.weighted_by(w[pick]), b.weighted_by(w).subset(pick), b.weighted_by(w)))
+    assert not np.allclose(w, 1.0)
+    assert abs(_line_value(out, "metacal, these tables less", "delta m1 =") - (m_a[0] - m_b_paired[0])) < 2e-5
+    assert abs(_line_value(out, "metacal of these tables' setting", "m1 =") - (m_b[0] + m_a[0] - m_b_paired[0])) < 2e-5
+    # a galaxy of A that B lacks
+    b.subset(np.setdiff1d(np.arange(40), pick[:1])).write(str(b_path))
+    assert ring_test.main(base + [str(b_path)]) == 2
+    assert "1 of the 20 galaxies of --from-tables are not among its galaxies" in capsys.readouterr().err
+
+
 def test_runs_jackknife_leaves_each_run_out(ring_test):
     """The jackknife over runs of --from-tables: each left-out estimate is that of the other runs put together
     (made here by concatenating them, not by the zero counts the function uses), and the error is the
@@ -112,21 +191,7 @@ def test_runs_jackknife_leaves_each_run_out(ring_test):
 
     rng = np.random.default_rng(5)
     g = (0.03, -0.02)
-
-    def run(n):
-        sums = np.empty((20, n, 2))
-        w = rng.uniform(0.5, 2.0, (n, 2))
-        sums[0] = sums[3] = w
-        sums[1:3] = w * rng.normal(0.0, 0.3, (2, n, 2)) + w * np.array([1, -1])[None, None, :] * np.reshape(g, (2, 1, 1))
-        sums[4] = sums[7] = w * rng.normal(0.9, 0.1, (n, 2))
-        sums[5] = sums[6] = w * rng.normal(0.0, 0.05, (n, 2))
-        for k in range(8, 20, 3):
-            sums[k] = w * rng.uniform(0.9, 1.1, (n, 2))
-            sums[k + 1:k + 3] = sums[k] * rng.normal(0.0, 0.3, (2, n, 2))
-        return ring_test.MetacalRings(sums, np.zeros(n), np.ones(n), np.full(n, 20.0), np.full(n, 16),
-                                      np.zeros(n), g, True)
-
-    parts = [run(n) for n in (7, 9, 8, 11, 6, 10)]
+    parts = [_synthetic_rings(ring_test, rng, n, g) for n in (7, 9, 8, 11, 6, 10)]
     est, err, left_out = ring_test.runs_jackknife(parts, g)
     whole = ring_test.MetacalRings.concatenate(parts)
     assert np.allclose(est, metacal_bias_from_sums(whole.sums, g)[0], rtol=0, atol=1e-14)
