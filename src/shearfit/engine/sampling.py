@@ -834,13 +834,20 @@ def adaptive_versions(likes: VersionLikelihoods, ref: Samples, cfg: FitConfig, m
     unit = cfg.e_grid_min
     n = ref.e1.size
     nv = len(likes.likes)
-    row = dict(zip(zip(np.rint(ref.e1 / unit).astype(int).tolist(), np.rint(ref.e2 / unit).astype(int).tolist()),
-                   range(n)))
+    def key_of(e1, e2):
+        # a lattice point (|e| <= 1, so |e / unit| < 2^20) as one integer
+        return (np.rint(np.asarray(e1) / unit).astype(np.int64) << 21) + np.rint(np.asarray(e2) / unit).astype(np.int64)
+    ref_keys = key_of(ref.e1, ref.e2)
+    order = np.argsort(ref_keys, kind="stable")
+    sorted_keys = ref_keys[order]
 
     def rows_of(e1, e2):
         """The reference's sample at each (e1, e2), -1 where it had none."""
-        keys = zip(np.rint(e1 / unit).astype(int).tolist(), np.rint(e2 / unit).astype(int).tolist())
-        return np.array([row.get(key, -1) for key in keys], int)
+        k = key_of(e1, e2)
+        if n == 0:
+            return np.full(k.shape, -1)
+        i = np.minimum(np.searchsorted(sorted_keys, k), n - 1)
+        return np.where(sorted_keys[i] == k, order[i], -1)
     # every version's values at the reference's samples: the reference's, until evaluated
     cols = [{f: np.array(getattr(ref.point, f), float) for f in fields_} for _ in range(nv)]
 
