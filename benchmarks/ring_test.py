@@ -543,6 +543,19 @@ def report_metacal_difference(rings, other, args):
     print(f"  with the diagonal of <R> only: delta m1 = {format_with_error(est[6], err[6])}, delta m2 = "
           f"{format_with_error(est[7], err[7])}; with its mean: delta m1 = {format_with_error(est[8], err[8])}, "
           f"delta m2 = {format_with_error(est[9], err[9])}")
+    if args.snr_max / args.snr_min > WIDE_SNR_RATIO and args.snr_bins > 1:
+        edges = np.geomspace(args.snr_min, args.snr_max, args.snr_bins + 1)
+        print("    by target SNR, with the mean of <R>'s diagonal:")
+        for k, (lo, hi, sel) in enumerate(snr_bin_masks(np.asarray(rings.snr_target, float), edges)):
+            n = int(sel.sum())
+            if n < 2:
+                continue
+            a, b = rings.subset(sel), other.subset(sel)
+            d = metacal_bias_from_sums(a.sums, g)[0] - metacal_bias_from_sums(b.sums, g_other)[0]
+            c = bootstrap_counts(n, args.n_bootstrap, np.random.default_rng([args.seed, 54322, k]))
+            e = np.std(metacal_bias_from_sums(a.sums, g, c)[0] - metacal_bias_from_sums(b.sums, g_other, c)[0], axis=0)
+            print(f"      {lo:6.1f} - {hi:6.1f}  {n:6d} galaxies: delta m1 = {format_with_error(d[8], e[8])}, "
+                  f"delta m2 = {format_with_error(d[9], e[9])}")
 
 
 def report_paired_population(rings, other, idx, args):
