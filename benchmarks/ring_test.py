@@ -72,8 +72,8 @@ same galaxies); the reports that need the objects (other weights, --all-objects)
 Galaxy sums of two settings pair galaxy by galaxy (``--paired-with``): each galaxy of ``--from-tables`` is found
 among the other's by its family, half-light radius and target SNR, drawn from its own seed. The other side may be
 a longer campaign: then the first setting's m on the other's whole population is also given, as the other's m
-there plus the paired difference (a control variate: the paired difference is measured several times better
-than either m, so a short campaign of a new setting borrows the precision of a long one)::
+there plus the paired difference (a control variate: the paired difference is better measured than either m,
+so a short campaign of a new setting borrows some of the precision of a long one)::
 
     python benchmarks/ring_test.py --from-tables benchmarks/campaigns/own_grid_metacal/*.fits --metacal \
         --snr-min 10 --snr-max 40 --paired-with benchmarks/campaigns/outside_metacal/*.fits
@@ -558,14 +558,16 @@ def report_metacal_difference(rings, other, args):
                   f"delta m2 = {format_with_error(d[9], e[9])}")
 
 
-def report_paired_population(rings, other, idx, args):
+def report_paired_population(rings, paired, other, args):
     """Metacal m and c of the setting of ``rings`` on the population of ``other``, a longer campaign of another
-    setting of which ``other.subset(idx)`` are the galaxies of ``rings``: m_B(all) + [m_A - m_B](paired), a
-    control variate (the paired difference is much better measured than either m, so the estimate's error is
-    near that of the longer campaign). Errors from a bootstrap over all the galaxies of ``other``, the paired ones
+    setting in which ``paired`` are the galaxies of ``rings`` (galaxy for galaxy, weighted alike): m_B(all) +
+    [m_A - m_B](paired), a control variate (the paired difference is better measured than either m, so the
+    estimate's error comes closer to that of the longer campaign). Unbiased where the paired galaxies are a fair
+    sample of the population (whole seeds, or a stopped seed's first galaxies; with --hlr-log-uniform each side
+    weighted to the same sizes). Errors from a bootstrap over all the galaxies of ``other``, the paired ones
     resampled alike in both."""
     g, g_other = np.array(rings.g, dtype=float), np.array(other.g, dtype=float)
-    paired = other.subset(idx)
+    idx = rings.match_in(other)
 
     def estimate(counts=None):
         sub = None if counts is None else counts[..., idx]
@@ -1120,12 +1122,13 @@ def report_tables(args):
             try:
                 other = read_paired_rings(args)
                 idx = unweighted.match_in(other, source="--paired-with")
-                mine = rings
+                theirs = other.subset(idx)
                 if args.hlr_log_uniform:
-                    # both settings weighted as the other's whole population is, galaxy for galaxy
-                    w = hlr_log_uniform_weights(other.true_hlr, *args.hlr_log_uniform)
-                    other, mine = other.weighted_by(w), unweighted.weighted_by(w[idx])
-                paired = mine, other, idx
+                    # the paired galaxies weighted as these runs' own (log-uniform among themselves, the other
+                    # setting's with the same weights galaxy for galaxy); the other's whole population as its own
+                    theirs = theirs.weighted_by(hlr_log_uniform_weights(unweighted.true_hlr, *args.hlr_log_uniform))
+                    other = other.weighted_by(hlr_log_uniform_weights(other.true_hlr, *args.hlr_log_uniform))
+                paired = theirs, other
             except (OSError, ValueError, KeyError) as exc:
                 print(f"ring_test.py: error: {exc}", file=sys.stderr)
                 return 2
@@ -1135,13 +1138,10 @@ def report_tables(args):
         report_metacal(rings, args)
         report_runs_jackknife(parts, args)
         if paired is not None:
-            mine, other, idx = paired
-            if args.hlr_log_uniform:
-                print(f"\nthe paired reports below: every galaxy weighted as among --paired-with's {other.n_galaxies} "
-                      f"galaxies made log-uniform over {args.hlr_log_uniform[0]:g}-{args.hlr_log_uniform[1]:g}\"")
-            report_metacal_difference(mine, other.subset(idx), args)
-            if other.n_galaxies > mine.n_galaxies:
-                report_paired_population(mine, other, idx, args)
+            theirs, other = paired
+            report_metacal_difference(rings, theirs, args)
+            if other.n_galaxies > rings.n_galaxies:
+                report_paired_population(rings, theirs, other, args)
         report_families(None, args, rings)
         return 0
     print(f"ring test from {len(args.from_tables)} table(s): {n_gal} galaxies, {len(tab)} objects")

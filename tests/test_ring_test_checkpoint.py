@@ -131,8 +131,8 @@ def _line_value(out, start, after):
 def test_galaxy_sums_pair_by_galaxy_and_extend_to_the_other_campaign(ring_test, tmp_path, capsys):
     """--paired-with files of galaxy sums: the galaxies of --from-tables are found among the other setting's by
     their family, size and SNR (in any order), their m difference is that of the matched galaxies, and A's m on
-    B's whole population is m_B(all) + m_A(paired) - m_B(paired); with --hlr-log-uniform both settings carry the
-    weights of B's population, galaxy for galaxy; a galaxy missing from B is refused."""
+    B's whole population is m_B(all) + m_A(paired) - m_B(paired); with --hlr-log-uniform the paired galaxies carry
+    A's own weights on both sides, and B's whole population its own; a galaxy missing from B is refused."""
     from shearfit.calib.bias import metacal_bias_from_sums
 
     rng = np.random.default_rng(11)
@@ -152,7 +152,7 @@ def test_galaxy_sums_pair_by_galaxy_and_extend_to_the_other_campaign(ring_test, 
     assert abs(_line_value(out, "metacal, these tables less", "delta m1 =") - (m_a[0] - m_b_paired[0])) < 2e-5
     assert "(40 galaxies, 15 of them paired)" in out
     assert abs(_line_value(out, "metacal of these tables' setting", "m2 =") - (m_b[1] + m_a[1] - m_b_paired[1])) < 2e-5
-    # weighted to log-uniform sizes over B's galaxies, both settings with B's weights galaxy for galaxy
+    # weighted to log-uniform sizes: B's population with its weights, the paired galaxies with A's
     edges = np.linspace(np.log(0.1), np.log(2.0), ring_test.HLR_WEIGHT_BINS + 1)
     centres = np.exp(0.5 * (edges[:-1] + edges[1:]))
     # each bin one galaxy, the 10 smallest bins two more: weights a third of the others' there
@@ -172,8 +172,9 @@ def test_galaxy_sums_pair_by_galaxy_and_extend_to_the_other_campaign(ring_test, 
     out = capsys.readouterr().out
     w = ring_test.hlr_log_uniform_weights(b.true_hlr, 0.1, 2.0)
     a_w = ring_test.MetacalRings.read(str(a_path))
+    w_a = ring_test.hlr_log_uniform_weights(a_w.true_hlr, 0.1, 2.0)
     m_a, m_b_paired, m_b = (metacal_bias_from_sums(r.sums, g)[0] for r in
-                            (a_w.weighted_by(w[pick]), b.weighted_by(w).subset(pick), b.weighted_by(w)))
+                            (a_w.weighted_by(w_a), b.subset(pick).weighted_by(w_a), b.weighted_by(w)))
     assert not np.allclose(w, 1.0)
     assert abs(_line_value(out, "metacal, these tables less", "delta m1 =") - (m_a[0] - m_b_paired[0])) < 2e-5
     assert abs(_line_value(out, "metacal of these tables' setting", "m1 =") - (m_b[0] + m_a[0] - m_b_paired[0])) < 2e-5
