@@ -524,16 +524,24 @@ def table_shear(tab, default):
     return float(np.asarray(tab["g1"])[plus][0]), float(np.asarray(tab["g2"])[plus][0])
 
 
+def _paired_bias_difference(rings, other, n_boot, rng):
+    """:func:`metacal_bias_from_sums` of ``rings`` less that of ``other`` (the same galaxies, each at its own g),
+    and its bootstrap error with the galaxies resampled alike in both: (estimate, error)."""
+    g, g_other = np.array(rings.g, dtype=float), np.array(other.g, dtype=float)
+    est = metacal_bias_from_sums(rings.sums, g)[0] - metacal_bias_from_sums(other.sums, g_other)[0]
+    counts = bootstrap_counts(rings.n_galaxies, n_boot, rng)
+    err = np.std(metacal_bias_from_sums(rings.sums, g, counts)[0]
+                 - metacal_bias_from_sums(other.sums, g_other, counts)[0], axis=0)
+    return est, err
+
+
 def report_metacal_difference(rings, other, args):
     """Metacal m and c of ``rings`` less those of ``other``, a run on the same galaxies and noise (another new PSF,
     say, or another shear: each run's m is taken at its own ``g``): the same galaxies resampled for both, so that
     what they share cancels from the errors."""
     g, g_other = np.array(rings.g, dtype=float), np.array(other.g, dtype=float)
     n_gal = rings.n_galaxies
-    est = metacal_bias_from_sums(rings.sums, g)[0] - metacal_bias_from_sums(other.sums, g_other)[0]
-    counts = bootstrap_counts(n_gal, args.n_bootstrap, np.random.default_rng([args.seed, 54322]))
-    err = np.std(metacal_bias_from_sums(rings.sums, g, counts)[0]
-                 - metacal_bias_from_sums(other.sums, g_other, counts)[0], axis=0)
+    est, err = _paired_bias_difference(rings, other, args.n_bootstrap, np.random.default_rng([args.seed, 54322]))
     shears = ("" if np.allclose(g, g_other) else
               f"; m at g = ({g[0]:+g}, {g[1]:+g}) less m at g = ({g_other[0]:+g}, {g_other[1]:+g})")
     print(f"\nmetacal, these tables less --paired-with's ({n_gal} galaxies resampled together, {args.n_bootstrap} "
@@ -550,24 +558,21 @@ def report_metacal_difference(rings, other, args):
             n = int(sel.sum())
             if n < 2:
                 continue
-            a, b = rings.subset(sel), other.subset(sel)
-            d = metacal_bias_from_sums(a.sums, g)[0] - metacal_bias_from_sums(b.sums, g_other)[0]
-            c = bootstrap_counts(n, args.n_bootstrap, np.random.default_rng([args.seed, 54322, k]))
-            e = np.std(metacal_bias_from_sums(a.sums, g, c)[0] - metacal_bias_from_sums(b.sums, g_other, c)[0], axis=0)
+            d, e = _paired_bias_difference(rings.subset(sel), other.subset(sel), args.n_bootstrap,
+                                           np.random.default_rng([args.seed, 54322, k]))
             print(f"      {lo:6.1f} - {hi:6.1f}  {n:6d} galaxies: delta m1 = {format_with_error(d[8], e[8])}, "
                   f"delta m2 = {format_with_error(d[9], e[9])}")
 
 
-def report_paired_population(rings, paired, other, args):
+def report_paired_population(rings, paired, other, idx, args):
     """Metacal m and c of the setting of ``rings`` on the population of ``other``, a longer campaign of another
-    setting in which ``paired`` are the galaxies of ``rings`` (galaxy for galaxy, weighted alike): m_B(all) +
-    [m_A - m_B](paired), a control variate (the paired difference is better measured than either m, so the
-    estimate's error comes closer to that of the longer campaign). Unbiased where the paired galaxies are a fair
+    setting in which ``paired`` (``other``'s galaxies ``idx``) are the galaxies of ``rings`` (galaxy for galaxy,
+    weighted alike): m_B(all) + [m_A - m_B](paired), a control variate (the paired difference is better measured
+    than either m, so the estimate's error comes closer to that of the longer campaign). Unbiased where the paired galaxies are a fair
     sample of the population (whole seeds, or a stopped seed's first galaxies; with --hlr-log-uniform each side
     weighted to the same sizes). Errors from a bootstrap over all the galaxies of ``other``, the paired ones
     resampled alike in both."""
     g, g_other = np.array(rings.g, dtype=float), np.array(other.g, dtype=float)
-    idx = rings.match_in(other)
 
     def estimate(counts=None):
         sub = None if counts is None else counts[..., idx]
@@ -1128,7 +1133,7 @@ def report_tables(args):
                     # setting's with the same weights galaxy for galaxy); the other's whole population as its own
                     theirs = theirs.weighted_by(hlr_log_uniform_weights(unweighted.true_hlr, *args.hlr_log_uniform))
                     other = other.weighted_by(hlr_log_uniform_weights(other.true_hlr, *args.hlr_log_uniform))
-                paired = theirs, other
+                paired = theirs, other, idx
             except (OSError, ValueError, KeyError) as exc:
                 print(f"ring_test.py: error: {exc}", file=sys.stderr)
                 return 2
@@ -1138,10 +1143,10 @@ def report_tables(args):
         report_metacal(rings, args)
         report_runs_jackknife(parts, args)
         if paired is not None:
-            theirs, other = paired
+            theirs, other, idx = paired
             report_metacal_difference(rings, theirs, args)
             if other.n_galaxies > rings.n_galaxies:
-                report_paired_population(rings, theirs, other, args)
+                report_paired_population(rings, theirs, other, idx, args)
         report_families(None, args, rings)
         return 0
     print(f"ring test from {len(args.from_tables)} table(s): {n_gal} galaxies, {len(tab)} objects")
