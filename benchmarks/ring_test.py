@@ -568,10 +568,10 @@ def report_paired_population(rings, paired, other, idx, args):
     """Metacal m and c of the setting of ``rings`` on the population of ``other``, a longer campaign of another
     setting in which ``paired`` (``other``'s galaxies ``idx``) are the galaxies of ``rings`` (galaxy for galaxy,
     weighted alike): m_B(all) + [m_A - m_B](paired), a control variate (the paired difference is better measured
-    than either m, so the estimate's error comes closer to that of the longer campaign). Unbiased where the paired galaxies are a fair
-    sample of the population (whole seeds, or a stopped seed's first galaxies; with --hlr-log-uniform each side
-    weighted to the same sizes). Errors from a bootstrap over all the galaxies of ``other``, the paired ones
-    resampled alike in both."""
+    than either m, so the estimate's error comes closer to that of the longer campaign). Unbiased where the paired
+    galaxies are a fair sample of the population (whole seeds, or a stopped seed's first galaxies; with
+    --hlr-log-uniform each side weighted to the same sizes). Errors from a bootstrap over all the galaxies of
+    ``other``, the paired ones resampled alike in both."""
     g, g_other = np.array(rings.g, dtype=float), np.array(other.g, dtype=float)
 
     def estimate(counts=None):
