@@ -1131,7 +1131,7 @@ def report_tables(args):
                 if args.hlr_log_uniform:
                     # the paired galaxies weighted as these runs' own (log-uniform among themselves, the other
                     # setting's with the same weights galaxy for galaxy); the other's whole population as its own
-                    theirs = theirs.weighted_by(hlr_log_uniform_weights(unweighted.true_hlr, *args.hlr_log_uniform))
+                    theirs = theirs.weighted_by(w)   # the weights the runs' own report was given above
                     other = other.weighted_by(hlr_log_uniform_weights(other.true_hlr, *args.hlr_log_uniform))
                 paired = theirs, other, idx
             except (OSError, ValueError, KeyError) as exc:
