@@ -109,6 +109,8 @@ from shearfit.calib.weights import isotropic_weights  # noqa: E402
 
 # m(SNR) is printed when snr_max / snr_min exceeds this: a narrower range has no noise-bias trend to see.
 WIDE_SNR_RATIO = 2.5
+#: the shear of the +g objects of a run without --shear
+DEFAULT_SHEAR = (0.03, -0.02)
 #: runs needed for the jackknife over runs of --from-tables (report_runs_jackknife)
 JACKKNIFE_MIN_RUNS = 5
 #: bins in ln(half-light radius) of --hlr-log-uniform's weights
@@ -517,11 +519,28 @@ def table_shear(tab, default):
     """The shear (g1, g2) of a ring table's +g objects (its ``g1``, ``g2`` and ``sign`` columns), else ``default``."""
     names = tab.dtype.names if hasattr(tab, "dtype") else tab.colnames
     if not {"g1", "g2", "sign"} <= set(names):
-        return tuple(default)
+        return None if default is None else tuple(default)
     plus = np.asarray(tab["sign"]) > 0
     if not np.any(plus):
-        return tuple(default)
+        return None if default is None else tuple(default)
     return float(np.asarray(tab["g1"])[plus][0]), float(np.asarray(tab["g2"])[plus][0])
+
+
+def resolve_shear(args, found):
+    """Set ``args.shear`` to the shear of the runs read (``found``: (source, shear or None) each): given, every
+    run's must be it; else the first run's, and every other's must equal that. A table's g would otherwise be
+    taken for the default's (a run at another shear then reads as a biased one)."""
+    for source, g in found:
+        if g is None:
+            continue
+        if args.shear is None:
+            args.shear = [float(g[0]), float(g[1])]
+        elif not np.allclose(g, args.shear):
+            raise ValueError(f"{source}: objects of g = ({g[0]:+.4f}, {g[1]:+.4f}), not ({args.shear[0]:+.4f}, "
+                             f"{args.shear[1]:+.4f}) as the --shear given or the runs read before it: give runs "
+                             "of one shear")
+    if args.shear is None:
+        args.shear = list(DEFAULT_SHEAR)
 
 
 def _paired_bias_difference(rings, other, n_boot, rng):
@@ -837,7 +856,9 @@ def parse_args(argv=None):
     p.add_argument("--noise-sigma", type=float, default=None,
                    help="one pixel sigma for every galaxy (counts, zero point 30) instead of the target SNR: "
                         "the SNR follows from magnitude and size as on a field (the closure fields: 4.29)")
-    p.add_argument("--shear", type=float, nargs=2, default=[0.03, -0.02], metavar=("G1", "G2"))
+    p.add_argument("--shear", type=float, nargs=2, default=None, metavar=("G1", "G2"),
+                   help="the shear of the +g objects (default: (0.03, -0.02)); with --from-tables, the runs' own, "
+                        "which must be one shear (given, it must be theirs)")
     p.add_argument("--seed", type=int, default=1)
     p.add_argument("--processes", type=int, default=os.cpu_count() or 1)
     p.add_argument("--psf-oversampling", type=int, default=1)
@@ -928,6 +949,8 @@ def parse_args(argv=None):
                         "(about 180 bytes per galaxy; --from-tables reads it as it reads tables, so a long "
                         "campaign can be kept and reported without its per-object tables)")
     args = p.parse_args(argv)
+    if args.shear is None and not args.from_tables:
+        args.shear = list(DEFAULT_SHEAR)
     if args.save_sums and not args.from_tables:
         p.error("--save-sums needs --from-tables")
     if any(not h > 0 for h in args.hlr_edges):
@@ -1039,15 +1062,18 @@ def _to_array(records):
     return arr
 
 
-def read_tables(paths):
+def read_tables(paths, shears=None):
     """Several runs' per-object tables as one (galaxies renumbered 0..n-1): (array, n_galaxies). Only the
     columns every table has are kept (the others are named on stderr): a column that some runs did not write
-    (``plain_*`` of --with-plain, metacal's) would otherwise be filled with placeholders for their objects."""
+    (``plain_*`` of --with-plain, metacal's) would otherwise be filled with placeholders for their objects.
+    ``shears``, a list: each table's (path, shear of its +g objects or None) is appended to it."""
     from astropy.table import Table, vstack
 
     parts, offset = [], 0
     for path in paths:
         t = Table.read(path)
+        if shears is not None:
+            shears.append((path, table_shear(t, None)))
         t["galaxy"] = np.asarray(t["galaxy"]) + offset
         offset = int(np.max(t["galaxy"])) + 1
         parts.append(t)
@@ -1088,8 +1114,12 @@ def report_tables(args):
               "(--save-sums) in --from-tables", file=sys.stderr)
         return 2
     try:
-        tab, n_gal = read_tables(tables) if tables else (None, 0)
-        ref = read_tables(args.reference_tables) if args.reference_tables else None
+        found = []
+        tab, n_gal = read_tables(tables, found) if tables else (None, 0)
+        ref = read_tables(args.reference_tables, found) if args.reference_tables else None
+        if args.shear is None and not found and sums_files:
+            found.append((sums_files[0], MetacalRings.read(sums_files[0]).g))
+        resolve_shear(args, found)
         if args.plain:
             tab = _plain_columns(tab)
             ref = (_plain_columns(ref[0]), ref[1]) if ref is not None else None

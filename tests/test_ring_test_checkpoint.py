@@ -102,6 +102,18 @@ def test_galaxy_sums_report_as_the_tables(ring_test, tmp_path, capsys):
          for f, g in ((table, (0.03, -0.02)), (half, (0.015, -0.01)))]
     line = next(s for s in out.splitlines() if s.strip().startswith("delta m1"))
     assert abs(float(line.split()[3]) - (m[0] - m[1])) < 1e-5, (line, m)
+    # a table is reported at its own shear and its sums keep it (the default's would make its m about +1);
+    # tables of two shears, or a --shear that is not the tables', are refused
+    half_sums = tmp_path / "mc_half_sums.fits"
+    assert ring_test.main(base + [str(half), "--save-sums", str(half_sums)]) == 0
+    assert np.allclose(ring_test.MetacalRings.read(str(half_sums)).g, (0.015, -0.01))
+    assert abs(_line_value(capsys.readouterr().out, "metacal shear bias", "m1 =") - m[1]) < 1e-5
+    assert ring_test.main(base + [str(half_sums)]) == 0
+    assert abs(_line_value(capsys.readouterr().out, "metacal shear bias", "m1 =") - m[1]) < 1e-5
+    assert ring_test.main(base + [str(table), str(half)]) == 2
+    assert f"{half}: objects of g = (+0.0150, -0.0100), not (+0.0300, -0.0200)" in capsys.readouterr().err
+    assert ring_test.main(base + [str(half), "--shear", "0.03", "-0.02"]) == 2
+    assert f"{half}: objects of g = (+0.0150, -0.0100)" in capsys.readouterr().err
 
 
 def _synthetic_rings(ring_test, rng, n, g):
