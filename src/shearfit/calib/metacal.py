@@ -54,8 +54,8 @@ numbers, to rounding. The replays' R is the response at fixed choices; the noshe
 a true shear too, and at low SNR the response through them need not vanish: versions each fitted on their own
 (``measure_metacal(..., replay=False)``, the pipeline's ``metacal_replay: false``) include it, at the price of
 their choices' jumps (noise-free responses a true shear's to a few 1e-3 instead of 1e-4). On the outside-model
-galaxies they raise m by +0.025 +- 0.010 at SNR 10-14 and +0.0024 +- 0.0016 at 14-20 (``benchmarks/README.md``,
-session 44).
+galaxies they raise m by +0.011 +- 0.007 at SNR 10-14 (5500 galaxies, of the replays' -0.028 there) and +0.0024 +-
+0.0016 at 14-20 (``benchmarks/README.md``, sessions 44 and 48).
 ``R_ij = (e_i[j+] - e_i[j-]) / (2 delta)`` per galaxy, and an ensemble
 shear is ``<R>^-1 <e>`` with the lensfit weights of the ``noshear`` fit.
 Cuts and weights computed from measured quantities respond to the shear too

@@ -108,9 +108,9 @@ class PipelineConfig:
         "position, size nodes, ellipticity samples): their estimates follow the pixels smoothly and the four cost "
         "about 1.2 plain fits together. false: each version is fitted on its own, so that R also holds the "
         "estimator's response through its choices, which the replays leave out (on galaxies outside the model "
-        "family m higher by +0.025 +- 0.010 at SNR 10-14, about the replays' whole bias there, and by +0.0024 +- "
-        "0.0016 at 14-20: benchmarks/README.md), for 1.6-1.8 times the time of the fits and a noisier response "
-        "without noise", "implementation")
+        "family m higher by +0.011 +- 0.007 at SNR 10-14, of the replays' -0.028 there, and by +0.0024 +- "
+        "0.0016 at 14-20: benchmarks/README.md, sessions 44-48), for 1.5-1.8 times the time of the fits and a "
+        "noisier response without noise", "implementation")
     metacal_own_grid: bool = setting(
         False, "with calibration: metacal and metacal_replay, each sheared version runs the adaptive ellipticity "
         "grid on its own likelihood (the noshear fit's samples evaluated for the four together) instead of replaying "
