@@ -857,8 +857,8 @@ def parse_args(argv=None):
                    help="one pixel sigma for every galaxy (counts, zero point 30) instead of the target SNR: "
                         "the SNR follows from magnitude and size as on a field (the closure fields: 4.29)")
     p.add_argument("--shear", type=float, nargs=2, default=None, metavar=("G1", "G2"),
-                   help="the shear of the +g objects (default: (0.03, -0.02)); with --from-tables, the runs' own, "
-                        "which must be one shear (given, it must be theirs)")
+                   help=f"the shear of the +g objects (default: {DEFAULT_SHEAR}); with --from-tables, the runs' "
+                        "own, which must be one shear (given, it must be theirs)")
     p.add_argument("--seed", type=int, default=1)
     p.add_argument("--processes", type=int, default=os.cpu_count() or 1)
     p.add_argument("--psf-oversampling", type=int, default=1)
@@ -1117,8 +1117,9 @@ def report_tables(args):
         found = []
         tab, n_gal = read_tables(tables, found) if tables else (None, 0)
         ref = read_tables(args.reference_tables, found) if args.reference_tables else None
-        if args.shear is None and not found and sums_files:
-            found.append((sums_files[0], MetacalRings.read(sums_files[0]).g))
+        sums = [MetacalRings.read(path) for path in sums_files]   # read once: the shear, then the report
+        if args.shear is None and not found and sums:
+            found.append((sums_files[0], sums[0].g))
         resolve_shear(args, found)
         if args.plain:
             tab = _plain_columns(tab)
@@ -1127,8 +1128,7 @@ def report_tables(args):
         rings = None
         if args.metacal:
             parts = [MetacalRings.from_table(tab, n_gal, args)] if tab is not None else []
-            for path in sums_files:
-                part = MetacalRings.read(path)
+            for path, part in zip(sums_files, sums):
                 try:
                     _metacal_check(part, args)
                 except ValueError as exc:
