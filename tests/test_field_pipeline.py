@@ -329,10 +329,18 @@ def test_psf_moments_do_not_depend_on_which_guess_came_first():
         m = galsim.hsm.FindAdaptiveMom(galsim.Image(img, scale=1.0), weight=ones, guess_sig=guess)
         return m.moments_sigma, (m.observed_shape.g1, m.observed_shape.g2)
 
+    def shared():   # a given PSF image: read-only, so that its moments are remembered
+        ro = img.copy()
+        ro.setflags(write=False)
+        return ro
+
     s = direct(5.0)[0]
     assert direct(s) != direct(5.0)            # the guess matters at this precision: the test can fail
-    assert psf_moments(img.copy()) == direct(5.0)
-    assert psf_moments(img.copy(), s) == direct(s)       # not the first guess's moments
+    assert psf_moments(shared()) == direct(5.0)
+    assert psf_moments(shared(), s) == direct(s)       # not the first guess's moments
+    assert psf_moments(shared()) == direct(5.0)
+    # a model's image at one object (writable, its own) is measured directly, with the same moments
+    assert psf_moments(img.copy(), s) == direct(s)
     assert psf_moments(img.copy()) == direct(5.0)
 
 

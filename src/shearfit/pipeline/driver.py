@@ -47,7 +47,7 @@ from ..errors import (FITCLASS_BAD_INPUT, FITCLASS_FEW_EXPOSURES, FITCLASS_FIT_F
 from ..calib.calibrate import calibration_m, default_calibration, load_calibration
 from ..engine.measure import measure_object
 from ..engine.model import ContentMemo, inv2, psf_moffat
-from ..observation import Observation
+from ..observation import Observation, is_immutable
 from ..io.fieldconfig import CALIBRATION_MODES, FieldConfig
 from ..io.fits import (METACAL_QUANTITIES, attach_pixels, bad_rows, detached, empty_output_table, provenance_cards,
                        read_catalog, read_exposure, release_pages, write_catalog_atomic)
@@ -67,32 +67,57 @@ __all__ = ["measure_field", "calibration_m", "psf_ellipticity", "psf_fwhm_arcsec
 _PSF_MOMENTS = ContentMemo(32 * 2 ** 20)
 
 
-#: images of ones, by shape: HSM's mask for PSF images (GalSim makes one per call otherwise)
-_HSM_ONES = {}
+#: per image shape: HSM's mask (an image of ones: GalSim makes one per call otherwise) and the image's bounds
+_HSM_FRAME = {}
+
+
+def _hsm_frame(shape):
+    got = _HSM_FRAME.get(shape)
+    if got is None:
+        import galsim
+
+        ny, nx = shape
+        got = _HSM_FRAME[shape] = (galsim.ImageI(np.ones(shape, np.int32), scale=1.0), galsim.BoundsI(1, nx, 1, ny))
+    return got
+
+
+@functools.lru_cache(maxsize=1)
+def _hsm_options():
+    """FindAdaptiveMom's ``check=False`` (its checks of mask and image, which :func:`_hsm_frame` makes right),
+    where this GalSim has it."""
+    import inspect
+
+    import galsim
+
+    return {"check": False} if "check" in inspect.signature(galsim.hsm.FindAdaptiveMom).parameters else {}
 
 
 def psf_moments(psf, guess_sig=None):
     """Adaptive moments of a PSF image: (sigma in array pixels, reduced shear (g1, g2)), or None if HSM fails.
-    Remembered by the image and the guess (:class:`shearfit.engine.model.ContentMemo`). ``guess_sig``: HSM's
-    starting size (pixels; 5 if None), e.g. that of a PSF nearby; the iteration then converges in fewer steps
-    to the same moments within HSM's precision (1e-6), not to the last bit: the guess is part of the key, so
-    that an image's moments do not depend on which guess reached it first (a catalogue is then the same for
-    any chunking and any number of workers)."""
+    ``guess_sig``: HSM's starting size (pixels; 5 if None), e.g. that of a PSF nearby; the iteration then
+    converges in fewer steps to the same moments within HSM's precision (1e-6), not to the last bit.
+
+    A read-only image (a given PSF image, which the objects of its CCD share) has its moments remembered by the
+    image and the guess (:class:`shearfit.engine.model.ContentMemo`); the guess is part of the key, so that an
+    image's moments do not depend on which guess reached it first (a catalogue is then the same for any chunking
+    and any number of workers). Any other image (a fitted or PSFEx model's at one object, its own) is measured
+    directly: remembering it would cost a copy and a comparison that no later object uses."""
     import galsim
 
     guess = 5.0 if guess_sig is None else float(guess_sig)
 
     def make():
-        shape = np.shape(psf)
-        ones = _HSM_ONES.get(shape)
-        if ones is None:
-            ones = _HSM_ONES[shape] = galsim.ImageI(np.ones(shape, np.int32), scale=1.0)
+        a = np.ascontiguousarray(psf, dtype=np.float64)
+        ones, bounds = _hsm_frame(a.shape)
         try:
-            mom = galsim.hsm.FindAdaptiveMom(galsim.Image(np.ascontiguousarray(psf, dtype=np.float64), scale=1.0),
-                                             weight=ones, guess_sig=guess)
+            # galsim._Image: GalSim's documented light constructor; the mask is ours, of the image's shape
+            mom = galsim.hsm.FindAdaptiveMom(galsim._Image(a, bounds, None), weight=ones, guess_sig=guess,
+                                             **_hsm_options())
         except Exception:   # noqa: BLE001 - HSM fails on pathological images
             return None
         return mom.moments_sigma, (mom.observed_shape.g1, mom.observed_shape.g2)
+    if not is_immutable(psf):
+        return make()
     return _PSF_MOMENTS.get(psf, guess, make)
 
 
