@@ -16,7 +16,8 @@
 # ../outside_metacal_large/run.sh runs the large galaxies in 128-pixel stamps so. RUN_OPTS (default none) adds
 # options to each seed's run, e.g. RUN_OPTS=--metacal-fresh with a DEST of its own (the versions fitted on their
 # own: a campaign of another setting, whose sums must not join these). SNR_RANGE (default "10 40") is the target SNR
-# range of the runs and of their sums (../faint_fresh_pairs runs SNR 10-14.14 so).
+# range of the runs and of their sums (../faint_fresh_pairs runs SNR 10-14.14 so). POPULATION_OPTS (default
+# "--population outside"; set but empty: the paper's population) chooses the galaxies (../paper_faint runs the paper's).
 set -u
 here=$(cd "$(dirname "$0")" && pwd)
 bench=$(cd "$here/../.." && pwd)
@@ -28,6 +29,8 @@ size_opts=(${SIZE_OPTS:---n-galaxies 800 --stamp-size 64})
 run_opts=(${RUN_OPTS:-})
 # shellcheck disable=SC2206
 snr=(${SNR_RANGE:-10 40})
+# shellcheck disable=SC2206
+population=(${POPULATION_OPTS---population outside})
 work=$1
 shift
 mkdir -p "$work" "$dest"
@@ -36,7 +39,7 @@ for seed in "$@"; do
     if [ -f "$dest/seed$id.fits" ] || [ -f "$dest/seed${id}_part.fits" ]; then
         continue
     fi
-    OMP_NUM_THREADS=1 "$py" "$bench/ring_test.py" --population outside "${size_opts[@]}" ${run_opts[@]+"${run_opts[@]}"} \
+    OMP_NUM_THREADS=1 "$py" "$bench/ring_test.py" ${population[@]+"${population[@]}"} "${size_opts[@]}" ${run_opts[@]+"${run_opts[@]}"} \
         --rotate-exposures --metacal --antithetic --snr-min "${snr[0]}" --snr-max "${snr[1]}" --seed "$seed" --processes 1 \
         --out "$work/out$seed.fits" --resume --quiet > "$work/log$seed.txt" 2>&1 || exit $?
     "$py" "$bench/ring_test.py" --from-tables "$work/out$seed.fits" --metacal --snr-min "${snr[0]}" --snr-max "${snr[1]}" \
