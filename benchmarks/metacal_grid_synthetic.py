@@ -99,13 +99,24 @@ def responses(job):
 
 
 def _settings(items):
+    """metacal's fit settings (its finest ellipticity step) with the KEY=VALUE items of ``--set``."""
     cfg = replace(FitConfig(), e_grid_min=E_GRID_MIN)
     types = {f.name: type(getattr(cfg, f.name)) for f in fields(cfg)}
     for item in items:
         key, _, value = item.partition("=")
         if key not in types:
             raise SystemExit(f"--set {item}: FitConfig has no setting {key!r}")
-        cfg = replace(cfg, **{key: types[key](value)})
+        kind = types[key]
+        try:
+            if kind is bool:
+                if value.lower() not in ("true", "false"):
+                    raise ValueError(value)
+                got = value.lower() == "true"
+            else:
+                got = kind(value)
+        except ValueError:
+            raise SystemExit(f"--set {item}: {key} takes a {kind.__name__}, not {value!r}") from None
+        cfg = replace(cfg, **{key: got})
     return cfg
 
 
@@ -123,11 +134,15 @@ def main(argv=None):
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="a FitConfig setting")
     args = ap.parse_args(argv)
     cfg = _settings(args.set)
+    try:
+        widths = [float(w) for w in args.widths.split(",")]
+    except ValueError:
+        ap.error(f"--widths {args.widths}: give widths as numbers separated by commas")
     sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
     from speed import cpu_name   # benchmarks/speed.py, beside this script
 
     specs = ([("log-uniform", *args.log_uniform)] if args.log_uniform else
-             [("fixed", float(w)) for w in args.widths.split(",")])
+             [("fixed", w) for w in widths])
     print(f"CPU: {cpu_name()}; {args.processes} process(es); likelihood Gaussian in "
           f"{args.likelihood}, |e_int| = {args.e_int}, delta = {args.delta}; e_grid_min {cfg.e_grid_min}, n_above "
           f"{cfg.n_above}, above_fraction {cfg.above_fraction}, posterior_cut {cfg.posterior_cut}")
