@@ -1,19 +1,13 @@
 """The package's architecture (tools/import_graph.py): layers import downwards, no cycles, no private names
 imported across modules; and the checker itself catches each kind of violation."""
 
-import importlib.util
-import pathlib
-
 import pytest
 
-ROOT = pathlib.Path(__file__).resolve().parents[1]
+from scripts import load_script
 
 
 def _checker():
-    spec = importlib.util.spec_from_file_location("import_graph", ROOT / "tools" / "import_graph.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_script("tools/import_graph.py", "import_graph")
 
 
 def test_package_layers_cycles_and_private_names():

@@ -830,17 +830,6 @@ def test_versions_can_run_their_own_ellipticity_grid():
     assert np.hypot(replayed.e1 - c.e1, replayed.e2 - c.e2) > 1e-4
 
 
-def _grid_synthetic():
-    import importlib.util
-    import os
-
-    path = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "benchmarks", "metacal_grid_synthetic.py")
-    spec = importlib.util.spec_from_file_location("metacal_grid_synthetic", path)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
-
-
 def test_replayed_grid_misses_the_response_through_its_choices():
     """benchmarks/metacal_grid_synthetic.py on made-up Gaussian likelihoods with the package's grids, priors and
     estimator: where the posterior cut is far in the tails (1e-6), the likelihood mean is the peak, and the replays'
@@ -850,7 +839,9 @@ def test_replayed_grid_misses_the_response_through_its_choices():
     replay's samples or cells differ from the reference fit's, or if the script's pairing is broken."""
     from dataclasses import replace
 
-    syn = _grid_synthetic()
+    from scripts import load_script
+
+    syn = load_script("benchmarks/metacal_grid_synthetic.py")
     seed = np.random.SeedSequence(7)
     far = replace(syn._settings([]), posterior_cut=1e-6)
     got = np.array(syn.responses((seed, 120, ("fixed", 0.05), "e", 0.3, 0.01, far)))

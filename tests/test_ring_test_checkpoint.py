@@ -1,22 +1,17 @@
 """benchmarks/ring_test.py's checkpoint: a stopped run continued with --resume gives the uninterrupted run's table."""
 
-import importlib.util
 import os
 
 import numpy as np
 import pytest
 from astropy.table import Table
 
-HERE = os.path.dirname(os.path.abspath(__file__))
+from scripts import load_script
 
 
 @pytest.fixture(scope="module")
 def ring_test():
-    spec = importlib.util.spec_from_file_location("ring_test_bench", os.path.join(HERE, "..", "benchmarks",
-                                                                                  "ring_test.py"))
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_script("benchmarks/ring_test.py", "ring_test_bench")
 
 
 def _args(out, seed=2):
