@@ -41,12 +41,12 @@ for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
 import argparse  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
-from dataclasses import fields, replace  # noqa: E402
 
 import numpy as np  # noqa: E402
 
 from shearfit.calib.metacal import E_GRID_MIN, REPLAY_FIRST_MARGIN  # noqa: E402
-from shearfit.config import FitConfig  # noqa: E402
+from shearfit.config import fit_config_from_mapping  # noqa: E402
+from shearfit.errors import ShearfitKeyError, ShearfitValueError  # noqa: E402
 from shearfit.engine.sampling import EPoint, adaptive_samples, estimate, replay_samples  # noqa: E402
 from shearfit.workers import process_pool  # noqa: E402
 
@@ -99,25 +99,20 @@ def responses(job):
 
 
 def _settings(items):
-    """metacal's fit settings (its finest ellipticity step) with the KEY=VALUE items of ``--set``."""
-    cfg = replace(FitConfig(), e_grid_min=E_GRID_MIN)
-    types = {f.name: type(getattr(cfg, f.name)) for f in fields(cfg)}
+    """metacal's fit settings (its finest ellipticity step) with the KEY=VALUE items of ``--set``, read as
+    ``ring_test.py --set`` reads them (YAML values, :func:`shearfit.config.fit_config_from_mapping`'s checks)."""
+    import yaml
+
+    mapping = {"e_grid_min": E_GRID_MIN}
     for item in items:
-        key, _, value = item.partition("=")
-        if key not in types:
-            raise SystemExit(f"--set {item}: FitConfig has no setting {key!r}")
-        kind = types[key]
-        try:
-            if kind is bool:
-                if value.lower() not in ("true", "false"):
-                    raise ValueError(value)
-                got = value.lower() == "true"
-            else:
-                got = kind(value)
-        except ValueError:
-            raise SystemExit(f"--set {item}: {key} takes a {kind.__name__}, not {value!r}") from None
-        cfg = replace(cfg, **{key: got})
-    return cfg
+        key, sep, value = item.partition("=")
+        if not sep:
+            raise SystemExit(f"--set needs KEY=VALUE, got {item!r}")
+        mapping[key.strip()] = yaml.safe_load(value)
+    try:
+        return fit_config_from_mapping(mapping)
+    except (ShearfitKeyError, ShearfitValueError) as exc:
+        raise SystemExit(f"--set: {exc}") from None
 
 
 def main(argv=None):
