@@ -458,8 +458,10 @@ class MetacalRings:
 
     def keys(self):
         """Each galaxy's (family, half-light radius, target SNR) as float32 (as a file of sums keeps them): drawn
-        from the galaxy's own seed, the same for a galaxy in every run of its seed, whatever the setting."""
-        return list(zip(self.family.tolist(), self.true_hlr.astype(np.float32).tolist(),
+        from the galaxy's own seed, the same for a galaxy in every run of its seed, whatever the setting. The paper's
+        population has no half-light radius (NaN, which equals nothing): it keys as -1."""
+        hlr = np.nan_to_num(self.true_hlr.astype(np.float32), nan=-1.0)
+        return list(zip(self.family.tolist(), hlr.tolist(),
                         self.snr_target.astype(np.float32).tolist()))
 
     def match_in(self, other, source=""):

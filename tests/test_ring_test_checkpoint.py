@@ -256,3 +256,20 @@ def test_noise_free_metacal_is_refused(ring_test):
         ring_test.parse_args(["--hlr-log-uniform", "0.1", "2"])   # needs --from-tables and --metacal
     with pytest.raises(SystemExit):
         ring_test.parse_args(["--metacal-fresh"])   # needs --metacal
+
+
+def test_galaxy_sums_of_the_papers_population_pair(ring_test):
+    """The paper's population keeps no half-light radius (NaN in its sums), and a NaN equals nothing: its
+    galaxies must still be found in another setting's sums of the same seeds, and a galaxy missing there named."""
+    n = 4
+    snr = np.array([10.5, 11.25, 12.0, 13.5])
+
+    def rings(order):
+        return ring_test.MetacalRings(np.zeros((20, n, 2)), np.full(n, -1), np.full(n, np.nan), snr[order],
+                                      np.full(n, 16), np.zeros(n, int), (0.03, -0.02), True)
+
+    mine, theirs = rings([0, 1, 2, 3]), rings([2, 0, 3, 1])
+    assert mine.match_in(theirs).tolist() == [1, 3, 0, 2]
+    other = ring_test.MetacalRings(np.zeros((20, 1, 2)), [-1], [np.nan], [99.0], [16], [0], (0.03, -0.02), True)
+    with pytest.raises(ValueError, match="4 of the 4 galaxies"):
+        mine.match_in(other)
