@@ -187,7 +187,10 @@ def _work(task):
             for name in RESULT_FIELDS + (METACAL_FIELDS if metacal else ()):
                 rec[name] = np.nan
             if measure is not None and metacal:
+                from shearfit.calib import metacal as metacal_module
                 from shearfit.calib.metacal import SHEARED, measure_metacal
+
+                metacal_module.SYMMETRISE_NOISE = not opts.get("metacal_unsymmetrised", False)
 
                 t0 = time.perf_counter()
                 mrng = np.random.default_rng([int(seed.generate_state(1)[0]), truth["rotation"]])
@@ -915,6 +918,10 @@ def parse_args(argv=None):
                    help="with --metacal: the sheared versions run the adaptive ellipticity grid on their own likelihoods "
                         "(the noshear fit's samples evaluated for all four together; measure_metacal's "
                         "own_samples=True)")
+    p.add_argument("--metacal-unsymmetrised", action="store_true",
+                   help="with --metacal: metacal's added noise field processed unturned, so that the versions' whole "
+                        "noise is sheared with the galaxy (shearfit.calib.metacal.SYMMETRISE_NOISE = False): paired "
+                        "with a shipped run, the fits' response to the noise's shear")
     p.add_argument("--with-plain", action="store_true",
                    help="with --metacal: also measure every object with plain lensfit (columns plain_*)")
     p.add_argument("--plain", action="store_true",
@@ -973,6 +980,8 @@ def parse_args(argv=None):
         p.error("--metacal-own-position needs --metacal, without --metacal-fresh")
     if args.metacal_own_samples and not (args.metacal and not args.metacal_fresh):
         p.error("--metacal-own-samples needs --metacal, without --metacal-fresh")
+    if args.metacal_unsymmetrised and not args.metacal:
+        p.error("--metacal-unsymmetrised needs --metacal")
     if args.noise_free and args.metacal:
         p.error("--noise-free with --metacal: metacal's symmetrising noise would be the images' only noise, and "
                 "nothing cancels its processed correlation (a biased response); benchmarks/metacal_noise_free.py "
@@ -1237,6 +1246,7 @@ def main(argv=None):
         "shear": tuple(args.shear), "dry_run": args.dry_run, "config": cfg, "metacal": args.metacal,
         "metacal_psf": args.metacal_psf, "metacal_fresh": args.metacal_fresh,
         "metacal_own_position": args.metacal_own_position, "metacal_own_samples": args.metacal_own_samples,
+        "metacal_unsymmetrised": args.metacal_unsymmetrised,
         "antithetic": args.antithetic, "with_plain": args.with_plain and args.metacal,
         "ring_kwargs": dict(n_rotations=args.n_rotations, n_exposures=args.n_exposures,
                             snr_range=(args.snr_min, args.snr_max), mag_range=(args.mag_min, args.mag_max),

@@ -108,6 +108,11 @@ _LANCZOS = galsim.Lanczos(15)
 #: The versions of stamps with native PSFs made by shearfit's own k-space operations (:func:`own_kspace_images`;
 #: False: by GalSim's objects, :func:`_galsim_images`).
 OWN_KSPACE = True
+#: The symmetrising noise turned by 90 degrees before the operations and back after them, so that its correlation
+#: is the processed noise's sheared the other way (False: processed as it is, so that the versions' whole noise
+#: is sheared with the galaxy; for benchmarks that measure what the turn does, ``ring_test.py
+#: --metacal-unsymmetrised``: at SNR 10-14 the fits' <R> falls from 0.71 to 0.19, benchmarks/README.md, session 51).
+SYMMETRISE_NOISE = True
 
 
 def _wcs(J, k=1):
@@ -499,7 +504,8 @@ def metacal_observations(obs: Observation, delta=0.01, rng=None, versions=tuple(
         # a 90-degree rotation of a non-square stamp is another shape: the added noise is then not rotated,
         # and its correlation doubles the processed noise's instead of symmetrising it
         log.warning("metacal: a %d x %d stamp is not square; its noise is not symmetrised", *w.shape)
-    nrot = np.rot90(noise, 1) if square else noise
+    turn = square and SYMMETRISE_NOISE
+    nrot = np.rot90(noise, 1) if turn else noise
     # (a stamp without a masked pixel, the usual one, has nothing to grow)
     mask = ndimage.binary_dilation(~good, iterations=_MASK_GROW) if not good.all() else np.zeros(good.shape, bool)
     mask[:_EDGE, :] = mask[-_EDGE:, :] = True
@@ -512,7 +518,7 @@ def metacal_observations(obs: Observation, delta=0.01, rng=None, versions=tuple(
         images = _galsim_images(image, nrot, obs.psf, _wcs(J), _wcs(J, k), delta, names,
                                 new_psf_image=psf_img if psf == "round" else None)
     images = np.asarray(images)
-    nims = np.rot90(images[1::2], -1, axes=(1, 2)) if square else images[1::2]
+    nims = np.rot90(images[1::2], -1, axes=(1, 2)) if turn else images[1::2]
     # the versions' noise: the original, processed, plus the added field: twice the added field's variance,
     # measured on the noshear version and used for all, so that every version is fitted with the same weights
     # (and the same Fourier modes)
