@@ -71,21 +71,24 @@ class FixedDraw:
         return np.zeros(size) if self.field is None else np.array(self.field, float)
 
 
-def _sky_wavevectors(shape, J):
+def sky_frame(shape, J):
+    """For power spectra of ``shape`` (numpy's FFT layout) on pixels of Jacobian ``J``: the sky wavevectors'
+    (Ku^2 - Kv^2, 2 Ku Kv, |K|^2) and the low-pass filter, made once for an exposure's versions."""
     ky, kx = np.meshgrid(2 * np.pi * np.fft.fftfreq(shape[0]), 2 * np.pi * np.fft.fftfreq(shape[1]), indexing="ij")
     jit = np.linalg.inv(np.asarray(J, float)).T     # pixel wavevectors to the sky's: K = J^-T k
-    return jit[0, 0] * kx + jit[0, 1] * ky, jit[1, 0] * kx + jit[1, 1] * ky
-
-
-def spin2_moments(power, J):
-    """(q1, q2) of a power spectrum (numpy's FFT layout) in the sky frame of the Jacobian ``J``, over every
-    wavevector and under the low-pass filter: shape (2, 2)."""
-    ku, kv = _sky_wavevectors(power.shape, J)
+    ku, kv = jit[0, 0] * kx + jit[0, 1] * ky, jit[1, 0] * kx + jit[1, 1] * ky
     k2 = ku * ku + kv * kv
+    return ku * ku - kv * kv, 2 * ku * kv, k2, np.exp(-k2 * LOW_PASS ** 2)
+
+
+def spin2_moments(power, frame):
+    """(q1, q2) of a power spectrum over every wavevector and under the low-pass filter, in the sky frame
+    ``frame`` (:func:`sky_frame`'s): shape (2, 2)."""
+    c1, c2, k2, low = frame
     out = []
-    for w in (power, power * np.exp(-k2 * LOW_PASS ** 2)):
+    for w in (power, power * low):
         norm = np.sum(w * k2)
-        out.append([np.sum(w * (ku * ku - kv * kv)) / norm, np.sum(w * 2 * ku * kv) / norm])
+        out.append([np.sum(w * c1) / norm, np.sum(w * c2) / norm])
     return np.array(out)
 
 
@@ -96,8 +99,11 @@ def _responses(q, delta):
     return np.stack([d1[:, 0], d2[:, 1], d1[:, 1], d2[:, 0]], axis=1)
 
 
-def _noise_obs(obs, image):
-    return Observation(image=image, psf=obs.psf, jacobian=obs.jacobian, weight=np.ones(obs.weight.shape),
+def _noise_obs(obs, image, weight=None):
+    """``obs``'s PSF, Jacobian and stamp with other pixels (and unit weights unless given), and a Moffat of its
+    own (metacal's images do not depend on it)."""
+    return Observation(image=image, psf=obs.psf, jacobian=obs.jacobian,
+                       weight=np.ones(obs.weight.shape) if weight is None else weight,
                        psf_oversampling=obs.psf_oversampling, psf_moffat=(1.0, 3.0))
 
 
@@ -113,8 +119,9 @@ def expected_noise_response(obs, delta=0.01, psf="dilated"):
     out = np.empty(SHAPE)
     ps = {v: np.abs(np.fft.fft2(stamp[v].image)) ** 2 for v in VERSIONS}
     pa = {v: np.abs(np.fft.fft2(added[v].image)) ** 2 for v in VERSIONS}
-    out[0] = _responses({v: spin2_moments(ps[v] + pa[v], obs.jacobian) for v in VERSIONS}, delta)
-    out[1] = _responses({v: spin2_moments(ps[v], obs.jacobian) for v in VERSIONS}, delta)
+    frame = sky_frame(shape, obs.jacobian)
+    out[0] = _responses({v: spin2_moments(ps[v] + pa[v], frame) for v in VERSIONS}, delta)
+    out[1] = _responses({v: spin2_moments(ps[v], frame) for v in VERSIONS}, delta)
     return out
 
 
@@ -124,17 +131,17 @@ def noise_shear_response(obs, rng, delta=0.01, psf="dilated"):
     pixels): an array of :data:`SHAPE`."""
     good = obs.weight > 0
     noise = np.where(good, rng.normal(size=obs.weight.shape) / np.sqrt(np.where(good, obs.weight, 1.0)), 0.0)
-    o = Observation(image=noise, psf=obs.psf, jacobian=obs.jacobian, weight=obs.weight, offset=tuple(obs.offset),
-                    psf_oversampling=obs.psf_oversampling, psf_moffat=(1.0, 3.0))
+    o = _noise_obs(obs, noise, obs.weight)
     seed = int(rng.integers(1 << 62))
     out = np.empty(SHAPE)
+    inner = tuple(n - 2 * EDGE for n in obs.weight.shape)
+    frame, window = sky_frame(inner, obs.jacobian), np.outer(np.hanning(inner[0]), np.hanning(inner[1]))
     for k, gen in enumerate((np.random.default_rng(seed), FixedDraw())):
         v = metacal_observations(o, delta, gen, fit_moffat=False, psf=psf)
         q = {}
         for name in VERSIONS:
             a = v[name].image[EDGE:-EDGE, EDGE:-EDGE]
-            a = (a - a.mean()) * np.outer(np.hanning(a.shape[0]), np.hanning(a.shape[1]))
-            q[name] = spin2_moments(np.abs(np.fft.fft2(a)) ** 2, obs.jacobian)
+            q[name] = spin2_moments(np.abs(np.fft.fft2((a - a.mean()) * window)) ** 2, frame)
         out[k] = _responses(q, delta)
     return out
 
