@@ -45,7 +45,7 @@ import time  # noqa: E402
 import numpy as np  # noqa: E402
 
 from shearfit.calib.metacal import E_GRID_MIN, REPLAY_FIRST_MARGIN  # noqa: E402
-from shearfit.config import fit_config_from_mapping  # noqa: E402
+from shearfit.config import fit_config_from_mapping, settings_from_items  # noqa: E402
 from shearfit.errors import ShearfitKeyError, ShearfitValueError  # noqa: E402
 from shearfit.engine.sampling import EPoint, adaptive_samples, estimate, replay_samples  # noqa: E402
 from shearfit.workers import process_pool  # noqa: E402
@@ -101,16 +101,8 @@ def responses(job):
 def _settings(items):
     """metacal's fit settings (its finest ellipticity step) with the KEY=VALUE items of ``--set``, read as
     ``ring_test.py --set`` reads them (YAML values, :func:`shearfit.config.fit_config_from_mapping`'s checks)."""
-    import yaml
-
-    mapping = {"e_grid_min": E_GRID_MIN}
-    for item in items:
-        key, sep, value = item.partition("=")
-        if not sep:
-            raise SystemExit(f"--set needs KEY=VALUE, got {item!r}")
-        mapping[key.strip()] = yaml.safe_load(value)
     try:
-        return fit_config_from_mapping(mapping)
+        return fit_config_from_mapping({"e_grid_min": E_GRID_MIN, **settings_from_items(items)})
     except (ShearfitKeyError, ShearfitValueError) as exc:
         raise SystemExit(f"--set: {exc}") from None
 

@@ -158,11 +158,9 @@ def _with_settings(cfg, items):
     """The field config with KEY=VALUE settings of the engine (cfg.fit) or the pipeline (cfg.pipeline)."""
     from dataclasses import replace
 
-    import yaml
+    from shearfit.config import settings_from_items
 
-    for item in items:
-        key, _, value = item.partition("=")
-        value = yaml.safe_load(value)
+    for key, value in settings_from_items(items).items():
         if hasattr(cfg.fit, key):
             cfg = replace(cfg, fit=replace(cfg.fit, **{key: value}))
         elif hasattr(cfg.pipeline, key):

@@ -152,6 +152,10 @@ def _work(task):
     metacal = opts.get("metacal", False)
     n_rot = opts["ring_kwargs"]["n_rotations"]
     draw_cache = {}   # what the two signs share: PSF images and transforms, the unsheared stamps
+    if metacal:
+        from shearfit.calib import metacal as metacal_module
+
+        metacal_module.SYMMETRISE_NOISE = not opts.get("metacal_unsymmetrised", False)
     for sign in (+1, -1):
         # The same seed for both signs: nothing ring_set draws depends on the shear, so the
         # galaxy, PSFs, dithers and noise are identical and cancel in the +g / -g difference.
@@ -187,10 +191,7 @@ def _work(task):
             for name in RESULT_FIELDS + (METACAL_FIELDS if metacal else ()):
                 rec[name] = np.nan
             if measure is not None and metacal:
-                from shearfit.calib import metacal as metacal_module
                 from shearfit.calib.metacal import SHEARED, measure_metacal
-
-                metacal_module.SYMMETRISE_NOISE = not opts.get("metacal_unsymmetrised", False)
 
                 t0 = time.perf_counter()
                 mrng = np.random.default_rng([int(seed.generate_state(1)[0]), truth["rotation"]])
@@ -477,13 +478,8 @@ class MetacalRings:
         where = {}
         for i, k in enumerate(other.keys()):
             where.setdefault(k, []).append(i)
-        taken = {}
-        idx = np.full(self.n_galaxies, -1, dtype=int)
-        for j, k in enumerate(self.keys()):
-            n = taken.get(k, 0)
-            if n < len(where.get(k, ())):
-                idx[j] = where[k][n]
-                taken[k] = n + 1
+        queues = {k: iter(v) for k, v in where.items()}
+        idx = np.array([next(queues.get(k, iter(())), -1) for k in self.keys()], dtype=int)
         if np.any(idx < 0):
             raise ValueError(f"{source}: {int(np.sum(idx < 0))} of the {idx.size} galaxies of --from-tables are not "
                              "among its galaxies (give the other setting's runs of the same seeds)")
@@ -1043,15 +1039,9 @@ def read_checkpoint(path, signature):
 
 
 def _config(settings):
-    import yaml
+    from shearfit.config import settings_from_items
 
-    mapping = {}
-    for item in settings:
-        key, sep, value = item.partition("=")
-        if not sep:
-            raise SystemExit(f"ring_test.py: error: --set needs KEY=VALUE, got {item!r}")
-        mapping[key.strip()] = yaml.safe_load(value)
-    return shearfit.fit_config_from_mapping(mapping)
+    return shearfit.fit_config_from_mapping(settings_from_items(settings))
 
 
 def _write_table(tab, path, meta=None):

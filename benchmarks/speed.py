@@ -495,13 +495,9 @@ def main(argv=None):
                          "how far the speed settings (mode binning, flux nodes, ...) move the estimates; then the "
                          "mode cut's own effect (mode_chi2_tolerance: 0, every mode the PSF passes)")
     args = ap.parse_args(argv)
-    import yaml
+    from shearfit.config import settings_from_items
 
-    cfg = {}
-    for kv in args.set:
-        k, v = kv.split("=", 1)
-        cfg[k.strip()] = yaml.safe_load(v)   # 16 -> int, 0.32 -> float, true -> bool, as a config file reads them
-    cfg = shearfit.fit_config_from_mapping(cfg)
+    cfg = shearfit.fit_config_from_mapping(settings_from_items(args.set))
     from shearfit.engine.kernel import kernel_info
 
     info = kernel_info()
@@ -564,8 +560,7 @@ def main(argv=None):
     if args.moffat_ab:
         moffat_ab_report(sets, cfg)
     if args.setting_ab:
-        setting_ab_report(sets, cfg, {k.strip(): yaml.safe_load(v) for k, v in (kv.split("=", 1)
-                                                                                 for kv in args.setting_ab)})
+        setting_ab_report(sets, cfg, settings_from_items(args.setting_ab))
     if args.workers > 1:
         workers_report([g for s in sets[:2] for g in s], cfg, args.workers)
     if args.scaling:

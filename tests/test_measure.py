@@ -949,3 +949,15 @@ def test_measure_objects_in_process_holds_blas_to_one_thread(monkeypatch):
         after = [get() for get, _ in libs]
     assert seen == [[1] * len(libs)] * 2
     assert after == [2] * len(libs)
+
+
+def test_settings_from_items_read_values_as_a_config_file_does():
+    """The benchmarks' ``--set KEY=VALUE`` items: YAML values (int, float, bool), keys stripped, an item without
+    ``=`` refused naming it."""
+    from shearfit.config import settings_from_items
+
+    got = settings_from_items(["n_size=21", " posterior_cut =0.001", "self_calibration=true"])
+    assert got == {"n_size": 21, "posterior_cut": 0.001, "self_calibration": True}
+    assert type(got["n_size"]) is int
+    with pytest.raises(ShearfitValueError, match="'n_size'"):
+        settings_from_items(["n_size"])

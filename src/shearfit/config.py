@@ -17,7 +17,8 @@ from typing import Any, Mapping
 
 from .errors import ShearfitKeyError, ShearfitValueError
 
-__all__ = ["FitConfig", "fit_config_from_mapping", "as_config", "describe", "setting", "check_choices", "coerce_setting"]
+__all__ = ["FitConfig", "fit_config_from_mapping", "as_config", "describe", "setting", "check_choices", "coerce_setting",
+           "settings_from_items"]
 
 
 def setting(default, help, ref="", choices=None):
@@ -248,6 +249,20 @@ def coerce_setting(name: str, ftype, value, source: str | None = None):
         where = f"{source}: " if source else ""
         raise ShearfitValueError(f"{where}setting {name}={value!r} must be of type {kind}")
     return float(value) if kind == "float" else value
+
+
+def settings_from_items(items) -> dict:
+    """Settings given as ``KEY=VALUE`` strings (the benchmarks' ``--set``) as a mapping, each value read as a
+    config file reads it (YAML: 16 is an int, 0.32 a float, true a bool); an item without ``=`` is refused."""
+    import yaml
+
+    mapping = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep:
+            raise ShearfitValueError(f"--set needs KEY=VALUE, got {item!r}")
+        mapping[key.strip()] = yaml.safe_load(value)
+    return mapping
 
 
 def fit_config_from_mapping(mapping: Mapping[str, Any] | None) -> FitConfig:
