@@ -200,7 +200,8 @@ def _work(task):
                 mc = measure_metacal(obs, truth["mag"], cfg, rng=mrng, psf=opts.get("metacal_psf", "dilated"),
                                      replay=not opts.get("metacal_fresh", False),
                                      own_position=opts.get("metacal_own_position", False),
-                                     own_samples=opts.get("metacal_own_samples", False))
+                                     own_samples=opts.get("metacal_own_samples", False),
+                                     own_sizes=opts.get("metacal_own_sizes", False))
                 res = mc.noshear
                 rec["fitclass"] = int(res.fitclass)
                 for name in RESULT_FIELDS:
@@ -921,6 +922,9 @@ def parse_args(argv=None):
                    help="with --metacal: the sheared versions run the adaptive ellipticity grid on their own likelihoods "
                         "(the noshear fit's samples evaluated for all four together; measure_metacal's "
                         "own_samples=True)")
+    p.add_argument("--metacal-own-sizes", action="store_true",
+                   help="with --metacal: the sheared versions place their own size nodes and centres from their own "
+                        "round model's size posterior (measure_metacal's own_sizes=True)")
     p.add_argument("--metacal-unsymmetrised", action="store_true",
                    help="with --metacal: metacal's added noise field processed unturned, so that the versions' whole "
                         "noise is sheared with the galaxy (shearfit.calib.metacal.SYMMETRISE_NOISE = False): paired "
@@ -983,6 +987,8 @@ def parse_args(argv=None):
         p.error("--metacal-own-position needs --metacal, without --metacal-fresh")
     if args.metacal_own_samples and not (args.metacal and not args.metacal_fresh):
         p.error("--metacal-own-samples needs --metacal, without --metacal-fresh")
+    if args.metacal_own_sizes and not (args.metacal and not args.metacal_fresh):
+        p.error("--metacal-own-sizes needs --metacal, without --metacal-fresh")
     if args.metacal_unsymmetrised and not args.metacal:
         p.error("--metacal-unsymmetrised needs --metacal")
     if args.noise_free and args.metacal:
@@ -1243,6 +1249,7 @@ def main(argv=None):
         "shear": tuple(args.shear), "dry_run": args.dry_run, "config": cfg, "metacal": args.metacal,
         "metacal_psf": args.metacal_psf, "metacal_fresh": args.metacal_fresh,
         "metacal_own_position": args.metacal_own_position, "metacal_own_samples": args.metacal_own_samples,
+        "metacal_own_sizes": args.metacal_own_sizes,
         "metacal_unsymmetrised": args.metacal_unsymmetrised,
         "antithetic": args.antithetic, "with_plain": args.with_plain and args.metacal,
         "ring_kwargs": dict(n_rotations=args.n_rotations, n_exposures=args.n_exposures,

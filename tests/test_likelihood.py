@@ -217,6 +217,47 @@ def test_position_integral_bounded_where_the_curvature_vanishes():
     assert v1[0] == pytest.approx(v2[0], abs=1e-12)
 
 
+def test_a_models_position_step_gains_no_more_than_its_cross_correlation_peak():
+    """A thin model (e = 0.95) whose reference position lies on the flank of its own cross-correlation peak,
+    across its width: there the curvature nearly vanishes and the gradient is large, and the second-order
+    move to the peak, allowed the whole position prior's radius (``position_max_step`` = ``max_centroid_shift``,
+    4 pixels), credited it more than its peak has: up to 5 nats here on noise-free data, and up to 17 nats
+    in noisy fits, where such a model then outweighed every other ellipticity (benchmarks/README.md, session
+    52). With the default step of one pixel the best value the marginalisation credits the model (its chi^2)
+    never exceeds the exact peak, found by evaluating the cross-correlation on a grid of positions."""
+    import shearfit
+    from shearfit.engine.likelihood import model_sums, shift_joint
+    from shearfit.engine.measure import _measure
+    from shearfit.engine.profiles import fast_pair
+    from shearfit.simulate.stamps import draw_psf_image, draw_stamp, galaxy_profile, moffat_psf, noise_for_snr
+
+    pix = 0.187
+    J = pix * np.eye(2)
+    psfs = [moffat_psf(0.65 + 0.05 * i, 3.5) for i in range(3)]
+    offs = [(0.1, -0.2), (-0.3, 0.25), (0.2, 0.3)]
+    gal = galaxy_profile(0.35, 0.0, 0.0, 0.0, flux=1000.0)
+    clean = [draw_stamp(gal, p, J, o) for p, o in zip(psfs, offs)]
+    sig = noise_for_snr(clean, 10.0)
+    obs = [shearfit.Observation(image=im, weight=np.full(im.shape, 1 / sig ** 2),
+                                psf=draw_psf_image(p, J, size=25), jacobian=J, offset=o)
+           for im, p, o in zip(clean, psfs, offs)]
+    e1, e2, r = np.array([0.95]), np.array([0.0]), np.array([0.5])
+    grid = np.arange(-0.6, 0.601, 0.02)
+    for step, dv in ((1.0, 0.2), (1.0, 0.3), (1.0, 0.4), (4.0, 0.4)):
+        cfg = FitConfig(position_max_step=step)
+        fast = fast_pair(cfg.truncation)
+        jm = shift_joint(_measure(obs, 23.0, cfg, False)[1].joint, 0.0, dv)   # the reference, moved across
+        credited = -0.5 * flux_position_marginal(model_sums(jm, e1, e2, r, fast, cfg.bulge_size_ratio), cfg,
+                                                 jm.pixel_scale).chi2_disk[0]
+        sums = [model_sums(shift_joint(jm, a, b), e1, e2, r, fast, cfg.bulge_size_ratio, bins_per_octave=0)
+                for a in grid[::5] for b in grid]
+        peak = max(0.5 * s.hf[0] ** 2 / s.ff[0] for s in sums)
+        if step == 1.0:
+            assert credited <= peak + 0.2, (dv, credited, peak)
+        else:
+            assert credited > peak + 3.0   # the old bound: the flank's quadratic runs away
+
+
 def test_interpolation_matrices_of_uniform_grids_are_shared():
     """spline_matrix and interp_matrix serve every uniform grid pair with as many points from one
     matrix (a spline commutes with an affine map of its axis): applied to values on grids of other

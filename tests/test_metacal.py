@@ -776,19 +776,11 @@ def test_replayed_versions_can_find_their_own_position():
     assert np.hypot(b.e1 - a.e1, b.e2 - a.e2) > 2e-4
 
 
-def test_versions_can_run_their_own_ellipticity_grid():
-    """``adaptive_versions`` runs the adaptive grid on each version's own likelihood, the reference's samples
-    evaluated once for all: with every reference sample evaluated (an infinite margin) it is
-    ``adaptive_samples`` on the version's likelihood, sample for sample; with the default margin the same
-    estimate to 1e-9; the reference's own version gives the reference's estimate. The noisy version's grid
-    differs from the reference's, with samples the reference never had (so the replay's cells would not be its
-    own, and the centres of new samples are exercised)."""
-    from shearfit.config import as_config
-    from shearfit.engine.measure import _measure, _replay_exposures, _replay_likelihood, measure_versions
-    from shearfit.engine.sampling import VersionLikelihoods, adaptive_samples, adaptive_versions, estimate
-
-    rng = np.random.default_rng(3)
-    J = PIX * np.array([[-1.0, 0.0], [0.0, 1.0]])
+def _noisy_reference_and_version(seed, jacobian, version_noise):
+    """Three exposures of a faint (SNR 12) galaxy with their own elliptical PSFs and dithers: a noisy reference and
+    a version of it with more noise (``version_noise`` of the reference's sigma) added, as Observations."""
+    rng = np.random.default_rng(seed)
+    J = PIX * np.asarray(jacobian, float)
     offs = rng.uniform(-0.5, 0.5, (3, 2))
     psfs = [moffat_psf(0.6 + 0.05 * i, 3.0, 0.04 * (-1) ** i, 0.03) for i in range(3)]
     gal = galaxy_profile(0.25, 0.2, -0.1, 0.1, flux=1000.0)
@@ -801,7 +793,49 @@ def test_versions_can_run_their_own_ellipticity_grid():
                 for im, p, o in zip(ims, psfs, offs)]
 
     ref = obs([im + rng.normal(0, sig, im.shape) for im in clean])
-    ver = obs([o.image + rng.normal(0, 0.5 * sig, o.image.shape) for o in ref])
+    return ref, obs([o.image + rng.normal(0, version_noise * sig, o.image.shape) for o in ref])
+
+
+def test_replayed_versions_can_place_their_own_size_nodes():
+    """With ``own_sizes``, a version places its size nodes and centres from its own round model's size posterior
+    and replays every other choice: the reference's own pixels give the reference's nodes, centre and estimate
+    (to 1e-12); a version with other noise gets nodes of its own, and an estimate that differs from the full
+    replay's (which keeps the reference's nodes) but lies within a tenth of the error on e of it."""
+    from shearfit.config import as_config
+    from shearfit.engine.measure import _measure, _replay_exposures, _replay_likelihood, measure_versions
+
+    ref, ver = _noisy_reference_and_version(5, [[0.0, -1.0], [1.0, 0.0]], 0.3)
+    cfg = as_config(None)
+    res, plan = _measure(ref, 23.0, cfg, False)
+    assert res.fitclass == FITCLASS_GALAXY
+
+    def version_like(o, own):
+        return _replay_likelihood(_replay_exposures(o, cfg, plan), 23.0, cfg, plan, own_sizes=own)[1]
+
+    same = version_like(ref, True)
+    assert np.array_equal(same.x, plan.size_nodes) and same.r_center == plan.r_center and same.fixed_centres is None
+    other = version_like(ver, True)
+    assert not np.allclose(other.x, plan.size_nodes, rtol=0, atol=1e-3) and other.r_center != plan.r_center
+    assert version_like(ver, False).fixed_centres is plan.centres
+    a, b, c = measure_versions([ref, ref, ver], 23.0, own_sizes=True)
+    assert abs(b.e1 - a.e1) < 1e-12 and abs(b.e2 - a.e2) < 1e-12
+    replayed = measure_versions([ref, ver], 23.0)[1]
+    d = np.hypot(replayed.e1 - c.e1, replayed.e2 - c.e2)
+    assert 1e-6 < d < 0.1 * np.sqrt(replayed.e_var)
+
+
+def test_versions_can_run_their_own_ellipticity_grid():
+    """``adaptive_versions`` runs the adaptive grid on each version's own likelihood, the reference's samples
+    evaluated once for all: with every reference sample evaluated (an infinite margin) it is
+    ``adaptive_samples`` on the version's likelihood, sample for sample; with the default margin the same
+    estimate to 1e-9; the reference's own version gives the reference's estimate. The noisy version's grid
+    differs from the reference's, with samples the reference never had (so the replay's cells would not be its
+    own, and the centres of new samples are exercised)."""
+    from shearfit.config import as_config
+    from shearfit.engine.measure import _measure, _replay_exposures, _replay_likelihood, measure_versions
+    from shearfit.engine.sampling import VersionLikelihoods, adaptive_samples, adaptive_versions, estimate
+
+    ref, ver = _noisy_reference_and_version(3, [[-1.0, 0.0], [0.0, 1.0]], 0.5)
     cfg = as_config(None)
     res, plan = _measure(ref, 23.0, cfg, False)
     assert res.fitclass == FITCLASS_GALAXY

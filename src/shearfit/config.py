@@ -82,6 +82,12 @@ class FitConfig:
     # --- position marginalisation (sec. 3.2) ------------------------------------
     delta_chi2_crit: float = setting(6.0, "Delta chi^2 that defines r_max of the position integral", "sec. 3.2")
     max_centroid_shift: float = setting(4.0, "largest accepted position offset of the fitted centre, pixels", "sec. 3.6")
+    position_max_step: float = setting(
+        1.0, "largest step, pixels, of each model's second-order move from the reference position to its own "
+        "cross-correlation peak: the quadratic expansion holds only near the reference, and an extreme-ellipticity "
+        "model whose reference lies on the flank of its peak (curvature near zero, gradient large) was credited "
+        "with up to 17 nats it does not have when allowed max_centroid_shift (benchmarks/README.md, session 52)",
+        "sec. 3.2 (implementation)")
 
     # --- flux and size marginalisation (sec. 3.2) -------------------------------
     n_flux: int = setting(7, "flux values per (e, r) for the spline integral (over +-flux_halfwidth sigma; of 80 "
@@ -193,7 +199,7 @@ class FitConfig:
         check_choices(self)
         positive = ["disk_e_max", "disk_e_a", "bulge_fraction_sigma", "size_alpha", "size_rd_over_a",
                     "truncation", "bulge_size_ratio", "delta_chi2_crit", "flux_halfwidth", "e_grid_start",
-                    "e_grid_min", "weight_e_max", "sigma_pop"]
+                    "e_grid_min", "weight_e_max", "sigma_pop", "position_max_step"]
         for name in positive:
             if not getattr(self, name) > 0:
                 raise ShearfitValueError(f"setting {name}={getattr(self, name)!r} must be positive")

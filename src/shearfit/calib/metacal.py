@@ -575,7 +575,7 @@ def _fit_new_moffats(per_exp):
 
 def measure_metacal(observations, mag, config=None, delta=0.01, rng=None, replay_margin=10.0,
                     replay_first_margin=REPLAY_FIRST_MARGIN, psf="dilated", replay=True,
-                    own_position=False, own_samples=False) -> MetacalResult:
+                    own_position=False, own_samples=False, own_sizes=False) -> MetacalResult:
     """Measure the five metacal versions of one object jointly over its exposures (see the module doc); ``psf``:
     the versions' new PSF, 'dilated' or 'round' (:func:`metacal_observations`). ``replay=False``: every version
     is fitted on its own, with its own choices (modes, position, sizes, samples), as the ``noshear`` fit is: R
@@ -586,7 +586,9 @@ def measure_metacal(observations, mag, config=None, delta=0.01, rng=None, replay
     position (measured on paired runs in ``benchmarks/README.md``, session 45). ``own_samples``: each sheared
     version runs the adaptive ellipticity grid on its own likelihood, the noshear fit's samples evaluated for
     all four together (:func:`shearfit.engine.sampling.adaptive_versions`), so that R holds the estimate's
-    response through its grid (session 46)."""
+    response through its grid (session 46). ``own_sizes``: each sheared version places its own size nodes and
+    centres from its own round model's size posterior, so that R holds the estimate's response through the size
+    integral's quadrature (session 52)."""
     from dataclasses import replace
 
     from ..config import as_config
@@ -605,7 +607,7 @@ def measure_metacal(observations, mag, config=None, delta=0.01, rng=None, replay
         if replay:
             results = measure_versions([[v[name] for v in per_exp] for name in VERSIONS], mag, config,
                                        margin=replay_margin, first_margin=replay_first_margin,
-                                       own_position=own_position, own_samples=own_samples)
+                                       own_position=own_position, own_samples=own_samples, own_sizes=own_sizes)
         else:
             results = [measure_object([v[name] for v in per_exp], mag, config) for name in VERSIONS]
     out = MetacalResult(delta=float(delta))

@@ -1030,8 +1030,16 @@ def _position_bounds(cfg, pixel_scale):
     """The position integral's bounds (see :func:`_position_integral`): none without a pixel scale."""
     if pixel_scale is None:
         return {}
-    radius = cfg.max_centroid_shift * float(pixel_scale)
-    return dict(mu_min=1.0 / radius ** 2, max_step=radius)
+    mu_min, max_step = _position_limits(cfg.max_centroid_shift, cfg.position_max_step, pixel_scale)
+    return dict(mu_min=mu_min, max_step=max_step)
+
+
+def _position_limits(max_centroid_shift, position_max_step, pixel_scale):
+    """(mu_min, max_step) of the position integral: the curvature's floor, from the position prior's radius
+    (``max_centroid_shift`` pixels), and the largest step of a model's second-order move to its own peak
+    (``position_max_step`` pixels, at most that radius)."""
+    radius = max_centroid_shift * float(pixel_scale)
+    return 1.0 / radius ** 2, min(radius, position_max_step * float(pixel_scale))
 
 
 def _marginal_setup(cfg, pixel_scale):
@@ -1040,17 +1048,18 @@ def _marginal_setup(cfg, pixel_scale):
     cost more than the lookup)."""
     return _marginal_setup_cached(cfg.n_flux, cfg.bulge_fraction_sigma, cfg.bulge_fraction_mean,
                                   cfg.delta_chi2_crit, cfg.max_centroid_shift, cfg.flux_prior_slope,
-                                  cfg.flux_halfwidth, pixel_scale)
+                                  cfg.flux_halfwidth, pixel_scale, cfg.position_max_step)
 
 
 @functools.lru_cache(maxsize=32)
 def _marginal_setup_cached(n_flux, sb, b0, delta_chi2_crit, max_centroid_shift, flux_prior_slope, flux_halfwidth,
-                           pixel_scale):
+                           pixel_scale, position_max_step):
     u, uf, spl, itp = _flux_grids(n_flux)
-    radius = None if pixel_scale is None else max_centroid_shift * float(pixel_scale)   # _position_bounds'
-    par = np.array([sb ** 2, b0, _log_zb_of(sb, b0), 0.5 * delta_chi2_crit,
-                    0.0 if radius is None else 1.0 / radius ** 2, np.inf if radius is None else radius,
-                    flux_prior_slope, flux_halfwidth, 0.0 if radius is None else 1.0, 0.0])
+    bounded = pixel_scale is not None
+    mu_min, max_step = (_position_limits(max_centroid_shift, position_max_step, pixel_scale) if bounded
+                        else (0.0, np.inf))   # _position_bounds'
+    par = np.array([sb ** 2, b0, _log_zb_of(sb, b0), 0.5 * delta_chi2_crit, mu_min, max_step,
+                    flux_prior_slope, flux_halfwidth, 1.0 if bounded else 0.0, 0.0])
     return u, uf, spl, itp, par
 
 

@@ -60,6 +60,22 @@ def _size_range(jm, cfg, mag, fast):
     return float(med), float(lo), float(hi)
 
 
+def _size_likelihood(jm, cfg, mag, fast, rng):
+    """The likelihood of ellipticity with its size nodes placed from ``rng`` (:func:`_size_range`'s median,
+    0.1 % and 99.9 % points in ln r).
+
+    Spline nodes uniform in ln r from the round model's 0.1 % to its 99.9 % point (plus a margin), carried to
+    each ellipticity by the predicted growth of the best size with e; where that range is narrower than the
+    +-15 % uncertainty of the prediction, passes of 5 nodes over +-0.6 and then +-0.15 first locate the peak at
+    each ellipticity.
+    """
+    med, lo, hi = rng
+    margin_x = 0.1
+    x = np.linspace(lo - med - margin_x, hi - med + margin_x, cfg.n_size)
+    locate = (0.6, 0.15) if (hi - lo) < 1.2 else None
+    return EllipticityLikelihood(jm, cfg, mag, fast, x, float(np.exp(med)), locate_widths=locate)
+
+
 @contextlib.contextmanager
 def paused_gc():
     """Python's cyclic garbage collector paused for one fit (a context manager), as it was before afterwards: a
@@ -158,13 +174,14 @@ def _position_search(mag, cfg, pix):
 
 
 def _measure(obs, mag, cfg, return_samples, plan=None, margin=np.inf, first_margin=None, own_position=False,
-             own_samples=False):
+             own_samples=False, own_sizes=False):
     """One object's fit: (FitResult, the FitPlan it made, or None where it stopped early).
 
     With ``plan``, the fit replays another version's choices (modes, position, size nodes and centres,
     ellipticity samples within ``margin`` nats of its posterior cut) instead of making its own; with
     ``own_position`` as well, it finds its own position from the plan's (:func:`_replay_likelihood`); with
-    ``own_samples``, its own ellipticity grid (:func:`shearfit.engine.sampling.adaptive_versions`).
+    ``own_samples``, its own ellipticity grid (:func:`shearfit.engine.sampling.adaptive_versions`); with
+    ``own_sizes``, its own size nodes and centres (:func:`_replay_likelihood`).
     """
     fast = fast_pair(cfg.truncation)
     exposures = prepare_exposures(obs, cfg) if plan is None else _replay_exposures(obs, cfg, plan)
@@ -184,21 +201,13 @@ def _measure(obs, mag, cfg, return_samples, plan=None, margin=np.inf, first_marg
         if rng is None:
             return FitResult(fitclass=FITCLASS_FIT_FAILED, n_exposures_used=len(obs), centroid_shift=shift / pix,
                              message="no model correlates with the data"), None
-        med, lo, hi = rng
-        # spline nodes uniform in ln r from the round model's 0.1 % to its 99.9 % point (plus a margin),
-        # carried to each ellipticity by the predicted growth of the best size with e; where that range
-        # is narrower than the +-15 % uncertainty of the prediction, passes of 5 nodes over +-0.6 and then
-        # +-0.15 first locate the peak at each ellipticity
-        margin_x = 0.1
-        x = np.linspace(lo - med - margin_x, hi - med + margin_x, cfg.n_size)
-        locate = (0.6, 0.15) if (hi - lo) < 1.2 else None
-        like = EllipticityLikelihood(jm, cfg, mag, fast, x, float(np.exp(med)), locate_widths=locate)
+        like = _size_likelihood(jm, cfg, mag, fast, rng)
         samples = adaptive_samples(like, cfg) if cfg.sampling == "adaptive" else two_pass_samples(like, cfg)
         n_samples = samples.e1.size
-        plan = FitPlan(keep=jm.keep, shift=(du, dv), size_nodes=x, r_center=like.r_center, centres=like.centres,
+        plan = FitPlan(keep=jm.keep, shift=(du, dv), size_nodes=like.x, r_center=like.r_center, centres=like.centres,
                        samples=samples, observations=list(obs), exposures=exposures, joint=jm, decoupled=jm.decoupled)
     else:
-        jm, like, shift = _replay_likelihood(exposures, mag, cfg, plan, own_position)
+        jm, like, shift = _replay_likelihood(exposures, mag, cfg, plan, own_position, own_sizes)
         if like is None:
             return _off_centre(obs, shift, jm.pixel_scale), plan
         if own_samples:
@@ -228,7 +237,7 @@ def _off_centre(obs, shift, pix):
 SAME_POSITION = 1e-6
 
 
-def _replay_likelihood(exposures, mag, cfg, plan, own_position=False):
+def _replay_likelihood(exposures, mag, cfg, plan, own_position=False, own_sizes=False):
     """(joint modes, likelihood, centroid shift in arcsec) of a version that replays ``plan`` (its modes, size
     nodes and centres); the likelihood is None where the version's own peak lies too far away.
 
@@ -236,7 +245,9 @@ def _replay_likelihood(exposures, mag, cfg, plan, own_position=False):
     from the plan's, which is the version's position where the two agree to ``SAME_POSITION`` pixels) rather
     than the plan's: the estimate then also follows the position's response to the version's pixels, as a
     fit of its own would (metacal's responses, ``benchmarks/README.md``, session 45). Every other choice
-    is replayed.
+    is replayed but, with ``own_sizes``, the size nodes and centres: the version places its own from its
+    round model's size posterior (:func:`_size_range`, as the fit does), so that the estimate's response
+    through the size integral's quadrature is part of the differences too (the plan's where that fails).
     """
     if plan.keep is not None and [k.size for k in plan.keep] != [e.kx.size for e in exposures]:
         raise ShearfitValueError("a replayed fit needs the same PSFs (Fourier modes) as the fit it replays")
@@ -258,7 +269,11 @@ def _replay_likelihood(exposures, mag, cfg, plan, own_position=False):
         if np.hypot(ddu, ddv) > SAME_POSITION * jm.pixel_scale:
             jm = shift_joint(jm, ddu, ddv)
             du, dv = du + ddu, dv + ddv
-    like = EllipticityLikelihood(jm, cfg, mag, fast_pair(cfg.truncation), plan.size_nodes, plan.r_center)
+    fast = fast_pair(cfg.truncation)
+    rng = _size_range(jm, cfg, mag, fast) if own_sizes else None
+    if rng is not None:
+        return jm, _size_likelihood(jm, cfg, mag, fast, rng), float(np.hypot(du, dv))
+    like = EllipticityLikelihood(jm, cfg, mag, fast, plan.size_nodes, plan.r_center)
     like.fixed_centres = plan.centres
     return jm, like, float(np.hypot(du, dv))
 
@@ -390,7 +405,7 @@ def _self_calibrate(obs, mag, cfg, res, plan, margin=10.0):
 
 def measure_versions(versions: Sequence[Sequence[Observation]], mag: float, config=None,
                      margin: float = 10.0, first_margin: float = None, own_position: bool = False,
-                     own_samples: bool = False) -> list:
+                     own_samples: bool = False, own_sizes: bool = False) -> list:
     """Measure versions of one object (its stamps slightly transformed, as metacalibration's) alike.
 
     The first version is fitted as :func:`measure_object` fits it; every
@@ -407,7 +422,9 @@ def measure_versions(versions: Sequence[Sequence[Observation]], mag: float, conf
     samples evaluated for all versions together,
     :func:`shearfit.engine.sampling.adaptive_versions`), so that the
     estimate's response through its grid is part of them as well (metacal
-    at low SNR, ``benchmarks/README.md``, session 46). The versions must carry the
+    at low SNR, ``benchmarks/README.md``, session 46). With ``own_sizes`` each
+    version places its own size nodes and centres from its own round model's
+    size posterior (:func:`_replay_likelihood`). The versions must carry the
     same PSFs, Jacobians and weights. ``margin`` and ``first_margin``: which samples a replay evaluates
     (:func:`shearfit.engine.sampling.replay_samples`). The replays are evaluated together where the versions
     share the first's Fourier modes (:class:`shearfit.engine.sampling.VersionLikelihoods`), each version's
@@ -437,7 +454,7 @@ def measure_versions(versions: Sequence[Sequence[Observation]], mag: float, conf
         return [res] + [measure_object(v, mag, cfg) for v in versions[1:]]
     with paused_gc():
         return [res] + _replay_all(versions[1:], float(mag), cfg, plan, margin, first_margin, own_position,
-                                   own_samples)
+                                   own_samples, own_sizes)
 
 
 _FIT_ERRORS = (np.linalg.LinAlgError, FloatingPointError, ZeroDivisionError, ValueError)
@@ -447,14 +464,15 @@ def _failed(obs, exc):
     return FitResult(fitclass=FITCLASS_FIT_FAILED, n_exposures_used=len(obs), message=f"fit failed: {exc}")
 
 
-def _replay_all(versions, mag, cfg, plan, margin, first_margin, own_position, own_samples=False):
+def _replay_all(versions, mag, cfg, plan, margin, first_margin, own_position, own_samples=False, own_sizes=False):
     """The versions' replays of ``plan``, their likelihoods evaluated together
     (:class:`shearfit.engine.sampling.VersionLikelihoods`: the same numbers as one replay after another, which
     is what a version whose setup fails, and every version where the joint evaluation fails, gets)."""
     ready, out = [], [None] * len(versions)
     for k, obs in enumerate(versions):
         try:
-            jm, like, shift = _replay_likelihood(_replay_exposures(obs, cfg, plan), mag, cfg, plan, own_position)
+            jm, like, shift = _replay_likelihood(_replay_exposures(obs, cfg, plan), mag, cfg, plan, own_position,
+                                                 own_sizes)
             if like is None:
                 out[k] = _off_centre(obs, shift, jm.pixel_scale)
             else:
@@ -477,7 +495,7 @@ def _replay_all(versions, mag, cfg, plan, margin, first_margin, own_position, ow
         for k, obs, *_ in ready:   # one at a time, so that one version's failure is its own
             try:
                 out[k] = _measure(obs, mag, cfg, False, plan=plan, margin=margin, first_margin=first_margin,
-                                  own_position=own_position, own_samples=own_samples)[0]
+                                  own_position=own_position, own_samples=own_samples, own_sizes=own_sizes)[0]
             except _FIT_ERRORS as exc2:
                 if isinstance(exc2, ShearfitValueError):
                     raise
