@@ -434,3 +434,19 @@ def test_ring_set_draw_cache_shared_by_the_signs():
                 assert np.array_equal(x.psf, y.psf)
     kinds = [k[0] for k in cache]
     assert kinds.count("stamps") == 2 and kinds.count("psf_image") == 4
+
+
+def test_negated_generator_copies_and_pickles():
+    """A NegatedNormal (the antithetic twin's generator) can be deep-copied and pickled, as a numpy Generator can:
+    the copy draws what the original would, negated where the original negates; its attribute lookup used to
+    recurse without end on a copy, whose ``rng`` is not yet set when the copy is made."""
+    import copy
+    import pickle
+
+    from shearfit.simulate.stamps import NegatedNormal, _RecordedNormal
+
+    a = NegatedNormal(np.random.default_rng(4))
+    for b in (copy.deepcopy(a), pickle.loads(pickle.dumps(a))):
+        assert np.array_equal(b.normal(size=5), -np.random.default_rng(4).normal(size=5))
+    r = copy.deepcopy(_RecordedNormal(np.random.default_rng(4)))
+    assert np.array_equal(r.normal(size=3), np.random.default_rng(4).normal(size=3)) and len(r.drawn) == 1

@@ -388,6 +388,8 @@ class NegatedNormal:
         return -self.rng.normal(*args, **kwargs)
 
     def __getattr__(self, name):
+        if name == "rng":   # not set yet (a copy or an unpickling in progress): no recursion through this method
+            raise AttributeError(name)
         return getattr(self.rng, name)
 
 
@@ -404,6 +406,8 @@ class _RecordedNormal:
         return z
 
     def __getattr__(self, name):
+        if name == "rng":   # not set yet (a copy or an unpickling in progress): no recursion through this method
+            raise AttributeError(name)
         return getattr(self.rng, name)
 
 
