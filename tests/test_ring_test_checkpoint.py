@@ -293,3 +293,23 @@ def test_galaxy_sums_with_coinciding_keys_pair_in_their_order(ring_test):
     assert mine.match_in(theirs).tolist() == [1, 2, 3, 4, 5]
     with pytest.raises(ValueError, match="1 of the 5 galaxies"):
         mine.match_in(rings(snr[:4]))
+
+
+def test_measuring_only_the_faint_galaxies_keeps_the_others_draws(ring_test, tmp_path):
+    """--measure-snr-below leaves out the galaxies at or above that target SNR and measures the rest exactly as
+    the whole run does (each galaxy has its own seed): their rows are the whole run's, so a change that acts only
+    on faint galaxies pairs with the whole run at a fraction of its cost."""
+    whole, faint = tmp_path / "whole.fits", tmp_path / "faint.fits"
+    base = _args(whole, seed=5) + ["--n-galaxies", "6", "--snr-min", "10", "--snr-max", "40"]
+    assert ring_test.main(base) == 0
+    ref = Table.read(whole)
+    snr = {int(g): float(s) for g, s in zip(ref["galaxy"], ref["snr_target"])}
+    cut = float(np.median(list(snr.values())))
+    assert ring_test.main(_args(faint, seed=5) + ["--n-galaxies", "6", "--snr-min", "10", "--snr-max", "40",
+                                                  "--measure-snr-below", str(cut)]) == 0
+    got = Table.read(faint)
+    kept = sorted(g for g, s in snr.items() if s < cut)
+    assert 0 < len(kept) < 6 and sorted(set(int(g) for g in got["galaxy"])) == kept
+    sub = ref[np.isin(ref["galaxy"], kept)]
+    for name in ("e1", "e2", "weight", "snr_target", "e1_int"):
+        assert np.array_equal(np.asarray(sub[name]), np.asarray(got[name]), equal_nan=True), name
