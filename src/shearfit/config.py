@@ -86,7 +86,8 @@ class FitConfig:
         1.0, "largest step, pixels, of each model's second-order move from the reference position to its own "
         "cross-correlation peak: the quadratic expansion holds only near the reference, and an extreme-ellipticity "
         "model whose reference lies on the flank of its peak (curvature near zero, gradient large) was credited "
-        "with up to 17 nats it does not have when allowed max_centroid_shift (benchmarks/README.md, session 52)",
+        "with up to 34 nats it does not have when allowed max_centroid_shift (benchmarks/position_step.py; "
+        "benchmarks/README.md, session 52)",
         "sec. 3.2 (implementation)")
 
     # --- flux and size marginalisation (sec. 3.2) -------------------------------
