@@ -73,16 +73,23 @@ def _peak(jm, e1, e2, r, cfg, fast):
     return best, at
 
 
+def _observations(seed, opts):
+    """One galaxy's exposures and truth, drawn from ``seed`` (metacal's noshear images of them with
+    ``opts["metacal"]``): the same each time, for the fit and for the GalSim check."""
+    rng = np.random.default_rng(seed)
+    (obs, truth), = ring_set(1, (0.0, 0.0), rng, n_rotations=1, snr_range=opts["snr"], rotate_exposures=True,
+                             cfg=opts["cfg"])
+    if opts["metacal"]:
+        from shearfit.calib.metacal import metacal_observations
+        obs = [metacal_observations(o, 0.01, rng, versions=("noshear",))["noshear"] for o in obs]
+    return obs, truth
+
+
 def _galaxy(task):
     index, seed, opts = task
     cfg = opts["cfg"]
     fast = fast_pair(cfg.truncation)
-    rng = np.random.default_rng(seed)
-    (obs, truth), = ring_set(1, (0.0, 0.0), rng, n_rotations=1, snr_range=opts["snr"], rotate_exposures=True,
-                             cfg=cfg)
-    if opts["metacal"]:
-        from shearfit.calib.metacal import metacal_observations
-        obs = [metacal_observations(o, 0.01, rng, versions=("noshear",))["noshear"] for o in obs]
+    obs, truth = _observations(seed, opts)
     _, plan = _measure(obs, truth["mag"], cfg, False)
     if plan is None:
         return None
@@ -154,12 +161,7 @@ def main(argv=None):
         flat = [(f["credited"][i] - f["peak"][i], k, i) for k, f in enumerate(fits) for i in range(f["e1"].size)]
         for _, k, i in sorted(flat, reverse=True)[:args.galsim]:
             f = fits[k]
-            rng = np.random.default_rng(f["seed"])
-            (obs, truth), = ring_set(1, (0.0, 0.0), rng, n_rotations=1, snr_range=opts["snr"], rotate_exposures=True,
-                                     cfg=cfg)
-            if args.metacal:
-                from shearfit.calib.metacal import metacal_observations
-                obs = [metacal_observations(o, 0.01, rng, versions=("noshear",))["noshear"] for o in obs]
+            obs, _ = _observations(f["seed"], opts)
             grid = [(a, b) for a in COARSE for b in COARSE]
             g = _galsim_value(obs, f["shift"], f["e1"][i], f["e2"][i], f["r"][i], cfg, [(0.0, 0.0)] + grid)
             print(f"  galaxy {f['index']} (target SNR {f['snr']:.1f}), e = ({f['e1'][i]:+.3f}, {f['e2'][i]:+.3f}), "
