@@ -77,6 +77,14 @@ so a short campaign of a new setting borrows some of the precision of a long one
 
     python benchmarks/ring_test.py --from-tables benchmarks/campaigns/own_grid_metacal/*.fits --metacal \
         --snr-min 10 --snr-max 40 --paired-with benchmarks/campaigns/outside_metacal/*.fits
+
+A setting that changes only the faint galaxies' estimates is run on them alone (``--measure-snr-below 20``: every
+galaxy is drawn, only those below SNR 20 are measured) and read with ``--paired-below 20``: the other campaign's
+population with its galaxies below that SNR moved to the new setting (the summed move of those measured scaled up to
+all of them, within each size bin with ``--hlr-log-uniform``) and the others kept as they were::
+
+    python benchmarks/ring_test.py --from-tables benchmarks/campaigns/stepcap_outside/faint/*.fits --metacal \
+        --snr-min 10 --snr-max 40 --paired-with benchmarks/campaigns/outside_metacal/*.fits --paired-below 20
 """
 
 from __future__ import annotations
@@ -500,6 +508,14 @@ class MetacalRings:
             return False
 
 
+def hlr_bins(hlr, lo, hi, n_bins=HLR_WEIGHT_BINS):
+    """Each half-light radius's bin of ``n_bins`` equal bins of ln(hlr) over [lo, hi]: (bin, inside, edges)."""
+    x = np.log(np.asarray(hlr, dtype=float))
+    edges = np.linspace(np.log(lo), np.log(hi), n_bins + 1)
+    inside = np.isfinite(x) & (x >= edges[0]) & (x <= edges[-1])
+    return np.clip(np.searchsorted(edges, x, side="right") - 1, 0, n_bins - 1), inside, edges
+
+
 def hlr_log_uniform_weights(hlr, lo, hi, n_bins=HLR_WEIGHT_BINS):
     """Weights that make galaxies drawn from runs of different size ranges one population with half-light
     radii log-uniform from ``lo`` to ``hi``: each galaxy's weight is the inverse of the number of galaxies in its
@@ -508,10 +524,7 @@ def hlr_log_uniform_weights(hlr, lo, hi, n_bins=HLR_WEIGHT_BINS):
     Runs of the outside population in 64-pixel stamps hold half-light radii up to about 0.9" (larger galaxies
     are redrawn), so the population of 0.1-2" is a run in 64-pixel stamps joined with one of the large galaxies
     in 128-pixel ones (``--size-range``), each galaxy weighted by how thinly its size was sampled."""
-    x = np.log(np.asarray(hlr, dtype=float))
-    edges = np.linspace(np.log(lo), np.log(hi), n_bins + 1)
-    inside = np.isfinite(x) & (x >= edges[0]) & (x <= edges[-1])
-    k = np.clip(np.searchsorted(edges, x, side="right") - 1, 0, n_bins - 1)
+    k, inside, edges = hlr_bins(hlr, lo, hi, n_bins)
     count = np.bincount(k[inside], minlength=n_bins)
     if np.any(count == 0):
         raise ValueError(f"--hlr-log-uniform {lo:g} {hi:g}: no galaxy of half-light radius "
@@ -623,6 +636,61 @@ def report_paired_population(rings, paired, other, idx, args):
     print(f"  with the diagonal of <R> only: m1 = {format_with_error(est[6], err[6])}, m2 = "
           f"{format_with_error(est[7], err[7])}; with its mean: m1 = {format_with_error(est[8], err[8])}, "
           f"m2 = {format_with_error(est[9], err[9])}")
+
+
+def _span(x):
+    """'a' or 'a-b', the range of ``x`` to three decimals."""
+    lo, hi = f"{np.min(x):.3f}", f"{np.max(x):.3f}"
+    return lo if lo == hi else f"{lo}-{hi}"
+
+
+def report_replaced_population(rings, other, idx, args):
+    """Metacal m and c of the setting of ``rings`` on the whole population of ``other`` where ``rings`` measured
+    only galaxies of target SNR below ``--paired-below`` (``--measure-snr-below``), and the setting is taken to leave
+    the others' estimates as they are (shown where whole seeds of both settings pair: their difference there is
+    zero). ``other``'s sums with those of each paired galaxy below the limit moved to the setting's, the summed move
+    scaled up to all of ``other``'s galaxies below the limit (the paired ones a fair sample of them: whole seeds, or a
+    stopped seed's first galaxies): with every one of them paired, the setting's own m on that population. With
+    ``--hlr-log-uniform`` every galaxy weighted so in ``other``'s population, and the move scaled within each size
+    bin (campaigns of small and of large galaxies rerun in different shares). Bootstrap errors over ``other``'s
+    galaxies, a paired galaxy resampled with its move."""
+    if not np.allclose(rings.g, other.g):
+        raise ValueError(f"--paired-below: runs of g = {rings.g} and --paired-with's {other.g}: give runs of one shear")
+    below = args.paired_below
+    w = (hlr_log_uniform_weights(other.true_hlr, *args.hlr_log_uniform) if args.hlr_log_uniform
+         else np.ones(other.n_galaxies))
+    mine = rings.snr_target < below
+    j = idx[mine]
+    eligible = other.snr_target < below
+    if not np.any(w[j] > 0):
+        raise ValueError(f"--paired-below {below:g}: none of these tables' galaxies below target SNR {below:g} "
+                         "counts in --paired-with's population")
+    # the summed move scaled up within each size bin (the runs of 64- and 128-pixel stamps sample theirs apart)
+    stratum = (hlr_bins(other.true_hlr, *args.hlr_log_uniform)[0] if args.hlr_log_uniform
+               else np.zeros(other.n_galaxies, dtype=int))
+    n_strata = int(stratum.max()) + 1
+    total = np.bincount(stratum[eligible], weights=w[eligible], minlength=n_strata)
+    measured = np.bincount(stratum[j], weights=w[j], minlength=n_strata)
+    if np.any((total > 0) & (measured <= 0)):
+        raise ValueError(f"--paired-below {below:g}: --paired-with's galaxies below target SNR {below:g} of "
+                         f"{int(np.sum((total > 0) & (measured <= 0)))} size bin(s) have none measured here, so "
+                         "their move cannot be scaled from a sample")
+    scale = total[stratum[j]] / np.where(measured[stratum[j]] > 0, measured[stratum[j]], 1.0)
+    moved = other.sums.copy()
+    moved[:, j] += scale[None, :, None] * (rings.sums[:, mine] - other.sums[:, j])
+    moved *= w[None, :, None]
+    est = metacal_bias_from_sums(moved, other.g)[0]
+    counts = bootstrap_counts(other.n_galaxies, args.n_bootstrap, np.random.default_rng([args.seed, 54324]))
+    err = np.std(metacal_bias_from_sums(moved, other.g, counts)[0], axis=0)
+    print(f"\nmetacal of these tables' setting on the population of --paired-with ({other.n_galaxies} galaxies), its "
+          f"{int(eligible.sum())} below target SNR {below:g} moved to this setting ({int(mine.sum())} measured here, "
+          f"their move scaled by {_span(scale[w[j] > 0])}) and the others unchanged, {args.n_bootstrap} bootstrap resamplings:")
+    print(f"  m1 = {format_with_error(est[0], err[0])}    c1 = {format_with_error(est[2], err[2])}")
+    print(f"  m2 = {format_with_error(est[1], err[1])}    c2 = {format_with_error(est[3], err[3])}")
+    print(f"  with the diagonal of <R> only: m1 = {format_with_error(est[6], err[6])}, m2 = "
+          f"{format_with_error(est[7], err[7])}; with its mean: m1 = {format_with_error(est[8], err[8])}, "
+          f"m2 = {format_with_error(est[9], err[9])}")
+    return est, err
 
 
 def read_paired_rings(args):
@@ -951,6 +1019,12 @@ def parse_args(argv=None):
                         "with --metacal; else plain lensfit's, with the objects' differences in e). Galaxy sums pair "
                         "galaxy by galaxy and TABLE may hold more galaxies: then also this setting's m on all of them, "
                         "TABLE's m plus the paired difference")
+    p.add_argument("--paired-below", type=float, default=None, metavar="SNR",
+                   help="with --paired-with and galaxy sums: these tables measured only galaxies below target SNR "
+                        "SNR (--measure-snr-below) of TABLE's population, and the setting leaves the others' estimates "
+                        "as they are: this setting's m on all of TABLE's galaxies, those below SNR moved to it (their "
+                        "summed move scaled up to all of them, within each size bin with --hlr-log-uniform) and the "
+                        "others kept")
     p.add_argument("--from-tables", nargs="+", metavar="TABLE",
                    help="report on per-object tables written by earlier runs (--out) instead of simulating: "
                         "runs of different --seed add up (their galaxies are renumbered); give the shear, SNR "
@@ -1130,6 +1204,10 @@ def report_tables(args):
         print("ring_test.py: error: --all-objects re-selects the objects of per-object metacal tables: give --metacal "
               "and tables only (no galaxy sums, no --save-sums)", file=sys.stderr)
         return 2
+    if args.paired_below is not None and not (sums_files and args.paired_with):
+        print("ring_test.py: error: --paired-below moves --paired-with's galaxies below an SNR to these runs': give "
+              "--paired-with and files of galaxy sums (--save-sums) in --from-tables", file=sys.stderr)
+        return 2
     if args.hlr_log_uniform and not sums_files:
         print("ring_test.py: error: --hlr-log-uniform weights galaxy sums: give at least one file of them "
               "(--save-sums) in --from-tables", file=sys.stderr)
@@ -1176,7 +1254,7 @@ def report_tables(args):
         paired = None
         if args.paired_with:
             try:
-                other = read_paired_rings(args)
+                other = whole = read_paired_rings(args)
                 idx = unweighted.match_in(other, source="--paired-with")
                 theirs = other.subset(idx)
                 if args.hlr_log_uniform:
@@ -1184,7 +1262,7 @@ def report_tables(args):
                     # setting's with the same weights galaxy for galaxy); the other's whole population as its own
                     theirs = theirs.weighted_by(w)   # the weights the runs' own report was given above
                     other = other.weighted_by(hlr_log_uniform_weights(other.true_hlr, *args.hlr_log_uniform))
-                paired = theirs, other, idx
+                paired = theirs, other, idx, whole
             except (OSError, ValueError, KeyError) as exc:
                 print(f"ring_test.py: error: {exc}", file=sys.stderr)
                 return 2
@@ -1194,9 +1272,15 @@ def report_tables(args):
         report_metacal(rings, args)
         report_runs_jackknife(parts, args)
         if paired is not None:
-            theirs, other, idx = paired
+            theirs, other, idx, whole = paired
             report_metacal_difference(rings, theirs, args)
-            if other.n_galaxies > rings.n_galaxies:
+            if args.paired_below is not None:
+                try:
+                    report_replaced_population(unweighted, whole, idx, args)
+                except ValueError as exc:
+                    print(f"ring_test.py: error: {exc}", file=sys.stderr)
+                    return 2
+            elif other.n_galaxies > rings.n_galaxies:
                 report_paired_population(rings, theirs, other, idx, args)
         report_families(None, args, rings)
         return 0
@@ -1252,6 +1336,9 @@ def main(argv=None):
             return 2
     if args.from_tables:
         return report_tables(args)
+    if args.paired_below is not None:
+        print("ring_test.py: error: --paired-below reads runs: give --from-tables", file=sys.stderr)
+        return 2
     opts = {
         "shear": tuple(args.shear), "dry_run": args.dry_run, "config": cfg, "metacal": args.metacal,
         "measure_snr_below": args.measure_snr_below,

@@ -313,3 +313,78 @@ def test_measuring_only_the_faint_galaxies_keeps_the_others_draws(ring_test, tmp
     sub = ref[np.isin(ref["galaxy"], kept)]
     for name in ("e1", "e2", "weight", "snr_target", "e1_int"):
         assert np.array_equal(np.asarray(sub[name]), np.asarray(got[name]), equal_nan=True), name
+
+
+def test_paired_below_moves_the_faint_galaxies_and_scales_a_sample_of_them(ring_test, tmp_path, capsys):
+    """--paired-below: a run that measured only galaxies below an SNR (--measure-snr-below) gives its setting's m on
+    the other campaign's whole population, those galaxies moved to it and the others kept. With every faint galaxy
+    measured that is B's sums with theirs replaced; with half of them, each moved by the same amount, the summed move
+    scaled by two is the same population. A's galaxies above the limit are not used."""
+    from shearfit.calib.bias import metacal_bias_from_sums
+
+    rng = np.random.default_rng(12)
+    g = (0.03, -0.02)
+    b = _synthetic_rings(ring_test, rng, 60, g)
+    b.snr_target = np.repeat([12.0, 30.0], 30) + rng.uniform(0, 5, 60)
+    faint = np.flatnonzero(b.snr_target < 20)
+    b_path, a_path = tmp_path / "b.fits", tmp_path / "a.fits"
+    b.write(str(b_path))
+    b = ring_test.MetacalRings.read(str(b_path))
+    move = np.zeros_like(b.sums[:, :1])
+    move[1:3] = 0.05 * b.sums[0, :1].mean()      # every faint galaxy's e sums moved alike
+    a = b.subset(faint)
+    a.sums = a.sums + move
+    a.write(str(a_path))
+    base = ["--metacal", "--n-bootstrap", "20", "--seed", "2", "--from-tables", str(a_path), "--paired-with",
+            str(b_path), "--paired-below", "20"]
+    expected = b.sums.copy()
+    expected[:, faint] += move
+    m_all = metacal_bias_from_sums(expected, g)[0]
+    assert ring_test.main(base) == 0
+    out = capsys.readouterr().out
+    assert "its 30 below target SNR 20 moved to this setting (30 measured here, their move scaled by 1.000)" in out
+    assert abs(_line_value(out, "metacal of these tables' setting", "m1 =") - m_all[0]) < 2e-5
+    assert abs(metacal_bias_from_sums(b.sums, g)[0][0] - m_all[0]) > 1e-2   # the move matters
+    # half the faint galaxies, with two bright ones whose sums differ (ignored): the same population
+    half = b.subset(np.concatenate([faint[:15], np.flatnonzero(b.snr_target > 20)[:2]]))
+    half.sums = half.sums + move
+    half.write(str(a_path))
+    assert ring_test.main(base) == 0
+    out = capsys.readouterr().out
+    assert "(15 measured here, their move scaled by 2.000)" in out
+    assert abs(_line_value(out, "metacal of these tables' setting", "m2 =") - m_all[1]) < 2e-5
+    assert ring_test.main(base[:-4] + base[-2:]) == 2   # no --paired-with
+    assert "--paired-below moves --paired-with's galaxies" in capsys.readouterr().err
+    # sizes made log-uniform: the move scaled within each size bin, so that small galaxies rerun in a larger share
+    # than large ones (two campaigns) give the same population; each faint galaxy of the bins below moved by
+    # `move`, of the bins above by twice it, a third of the small ones and two thirds of the large ones measured
+    edges = np.linspace(np.log(0.1), np.log(2.0), ring_test.HLR_WEIGHT_BINS + 1)
+    centres = np.exp(0.5 * (edges[:-1] + edges[1:]))
+    b.true_hlr = np.resize(centres, 60)[rng.permutation(60)]
+    b.write(str(b_path))
+    large = b.true_hlr > centres[ring_test.HLR_WEIGHT_BINS // 2]
+    w = ring_test.hlr_log_uniform_weights(b.true_hlr, 0.1, 2.0)
+    expected = b.sums.copy()
+    expected[:, faint] += move * np.where(large[faint], 2.0, 1.0)[None, :, None]
+    m_all = metacal_bias_from_sums(expected * w[None, :, None], g)[0]
+    k, _, _ = ring_test.hlr_bins(b.true_hlr, 0.1, 2.0)
+    bright = np.flatnonzero(b.snr_target > 20)   # A holds them too (every size bin has galaxies), moved but not used
+
+    def write_a(faint_picked):
+        picked = np.concatenate([faint_picked, bright])
+        part = b.subset(picked)
+        part.sums = part.sums + move * np.where(large[picked], 2.0, 1.0)[None, :, None]
+        part.write(str(a_path))
+
+    gap = next(c for c in np.unique(k[faint]) if np.any(k[bright] == c))   # a bin of faint and bright galaxies
+    write_a(faint[k[faint] != gap])
+    assert ring_test.main(base + ["--hlr-log-uniform", "0.1", "2.0"]) == 2
+    assert "1 size bin(s) have none measured here" in capsys.readouterr().err
+    first = np.array([faint[k[faint] == c][0] for c in np.unique(k[faint])])   # one of each bin's faint galaxies
+    picked = np.union1d(first[~large[first]], faint[large[faint]])
+    write_a(picked)
+    assert ring_test.main(base + ["--hlr-log-uniform", "0.1", "2.0"]) == 0
+    out = capsys.readouterr().out
+    assert f"({picked.size} measured here, their move scaled by 1.000-" in out
+    assert abs(_line_value(out, "metacal of these tables' setting", "m1 =") - m_all[0]) < 2e-5
+    assert abs(_line_value(out, "metacal of these tables' setting", "m2 =") - m_all[1]) < 2e-5
