@@ -608,6 +608,15 @@ def report_metacal_difference(rings, other, args):
                   f"delta m2 = {format_with_error(d[9], e[9])}")
 
 
+def _print_population_bias(est, err):
+    """The lines of a population's metacal m and c (:func:`metacal_bias_from_sums`' estimates and errors)."""
+    print(f"  m1 = {format_with_error(est[0], err[0])}    c1 = {format_with_error(est[2], err[2])}")
+    print(f"  m2 = {format_with_error(est[1], err[1])}    c2 = {format_with_error(est[3], err[3])}")
+    print(f"  with the diagonal of <R> only: m1 = {format_with_error(est[6], err[6])}, m2 = "
+          f"{format_with_error(est[7], err[7])}; with its mean: m1 = {format_with_error(est[8], err[8])}, "
+          f"m2 = {format_with_error(est[9], err[9])}")
+
+
 def report_paired_population(rings, paired, other, idx, args):
     """Metacal m and c of the setting of ``rings`` on the population of ``other``, a longer campaign of another
     setting in which ``paired`` (``other``'s galaxies ``idx``) are the galaxies of ``rings`` (galaxy for galaxy,
@@ -631,11 +640,7 @@ def report_paired_population(rings, paired, other, idx, args):
           f"{rings.n_galaxies} of them paired): its m there plus the paired difference above, {args.n_bootstrap} "
           f"bootstrap resamplings of all its galaxies (half-light radii {np.nanmin(hlr):.2f}-{np.nanmax(hlr):.2f}\", "
           f"the paired ones {np.nanmin(hlr_paired):.2f}-{np.nanmax(hlr_paired):.2f}\"):")
-    print(f"  m1 = {format_with_error(est[0], err[0])}    c1 = {format_with_error(est[2], err[2])}")
-    print(f"  m2 = {format_with_error(est[1], err[1])}    c2 = {format_with_error(est[3], err[3])}")
-    print(f"  with the diagonal of <R> only: m1 = {format_with_error(est[6], err[6])}, m2 = "
-          f"{format_with_error(est[7], err[7])}; with its mean: m1 = {format_with_error(est[8], err[8])}, "
-          f"m2 = {format_with_error(est[9], err[9])}")
+    _print_population_bias(est, err)
 
 
 def _span(x):
@@ -685,11 +690,7 @@ def report_replaced_population(rings, other, idx, args):
     print(f"\nmetacal of these tables' setting on the population of --paired-with ({other.n_galaxies} galaxies), its "
           f"{int(eligible.sum())} below target SNR {below:g} moved to this setting ({int(mine.sum())} measured here, "
           f"their move scaled by {_span(scale[w[j] > 0])}) and the others unchanged, {args.n_bootstrap} bootstrap resamplings:")
-    print(f"  m1 = {format_with_error(est[0], err[0])}    c1 = {format_with_error(est[2], err[2])}")
-    print(f"  m2 = {format_with_error(est[1], err[1])}    c2 = {format_with_error(est[3], err[3])}")
-    print(f"  with the diagonal of <R> only: m1 = {format_with_error(est[6], err[6])}, m2 = "
-          f"{format_with_error(est[7], err[7])}; with its mean: m1 = {format_with_error(est[8], err[8])}, "
-          f"m2 = {format_with_error(est[9], err[9])}")
+    _print_population_bias(est, err)
     return est, err
 
 
