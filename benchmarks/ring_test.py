@@ -918,7 +918,7 @@ def report_dry(tab):
 
 # ----------------------------------------------------------------------------- main
 
-def parse_args(argv=None):
+def build_parser():
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                 formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     p.add_argument("--n-galaxies", type=int, default=100, help="galaxies (each gives 2 x n-rotations objects)")
@@ -1046,6 +1046,11 @@ def parse_args(argv=None):
                    help="with --from-tables and --metacal: also write the galaxy sums of what was read to FILE "
                         "(about 180 bytes per galaxy; --from-tables reads it as it reads tables, so a long "
                         "campaign can be kept and reported without its per-object tables)")
+    return p
+
+
+def parse_args(argv=None):
+    p = build_parser()
     args = p.parse_args(argv)
     if args.shear is None and not args.from_tables:
         args.shear = list(DEFAULT_SHEAR)
@@ -1090,10 +1095,13 @@ _RUN_ONLY_OPTIONS = {"out", "resume", "checkpoint_seconds", "processes", "quiet"
 
 def run_signature(args):
     """A short digest of the options that decide a run's galaxies and measurements (a checkpoint records it and
-    --resume checks it)."""
+    --resume checks it). Options at their defaults are left out, so that an option added later (at a default that
+    keeps what runs did before) does not orphan the checkpoints of earlier runs."""
     import hashlib
 
-    items = sorted((k, v) for k, v in vars(args).items() if k not in _RUN_ONLY_OPTIONS)
+    defaults = vars(build_parser().parse_args([]))
+    items = sorted((k, v) for k, v in vars(args).items()
+                   if k not in _RUN_ONLY_OPTIONS and (k not in defaults or v != defaults[k]))
     return hashlib.sha1(repr(items).encode()).hexdigest()[:16]
 
 

@@ -52,6 +52,27 @@ def test_resume_from_checkpoint_gives_the_whole_run(ring_test, tmp_path, capsys)
             assert np.array_equal(a, b, equal_nan=a.dtype.kind == "f"), name
 
 
+def test_an_option_added_at_its_default_keeps_the_checkpoints_of_earlier_runs(ring_test, tmp_path, monkeypatch):
+    """A checkpoint's signature covers the options that decide a run, not the options a later version adds: one added
+    at a default that keeps the earlier runs leaves the signature, and any other value of it changes it."""
+    args = _args(tmp_path / "t.fits")
+    before = ring_test.run_signature(ring_test.parse_args(args))
+    parser = ring_test.build_parser
+
+    def later_version():
+        p = parser()
+        p.add_argument("--added-later", type=float, default=None)
+        return p
+
+    monkeypatch.setattr(ring_test, "build_parser", later_version)
+    assert ring_test.parse_args(args).added_later is None
+    assert ring_test.run_signature(ring_test.parse_args(args)) == before
+    assert ring_test.run_signature(ring_test.parse_args(args + ["--added-later", "2"])) != before
+    # an option that decides a run changes it, given at any value other than its default
+    assert ring_test.run_signature(ring_test.parse_args(args + ["--mag-min", "21"])) == before
+    assert ring_test.run_signature(ring_test.parse_args(args + ["--mag-min", "22"])) != before
+
+
 def test_galaxy_sums_report_as_the_tables(ring_test, tmp_path, capsys):
     """A metacal run kept as galaxy sums (--save-sums) reports the metacal m and c of its tables, alone and
     added to a table; sums of another shear are refused."""
