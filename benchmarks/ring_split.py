@@ -1,8 +1,13 @@
 #!/usr/bin/env python
 """m and c of a ring-test table (benchmarks/ring_test.py --out) split by true scalelength and by sigma_e.
 
-    python benchmarks/ring_split.py ring.fits [--r-bins 0,0.15,0.3,10] [--unweighted | --paired-weights |
-                                              --isotropic-weights]
+    python benchmarks/ring_split.py ring.fits [ring2.fits ...] [--r-bins 0,0.15,0.3,10] [--unweighted |
+                                              --paired-weights | --isotropic-weights] [--uncorrected]
+
+Several tables (runs of the same shear) are read as one, their galaxies numbered on.
+
+``--uncorrected``: for a run with ``--set noise_bias_correction=true``, each estimate with the noise bias it had
+subtracted added back (its ``nb_de1``, ``nb_de2``): the same fits without the correction.
 
 ``--paired-weights``: each object's weight replaced by the mean over its pair (the same galaxy, orientation and
 noise at +g and at -g; ``shearfit.calib.bias.paired_weights``), so that no weight responds to the shear while
@@ -17,14 +22,31 @@ ring pairs can use, and that do not respond to shear either.
 import argparse
 
 import numpy as np
-from astropy.table import Table
+from astropy.table import Table, vstack
 
 from shearfit.calib.bias import paired_weights, ring_sums, shear_bias
 from shearfit.calib.weights import isotropic_weights
 
 
-def main(path, r_bins=(0, 0.15, 0.3, 10), unweighted=False, paired=False, isotropic=False):
-    t = Table.read(path)
+def read_rings(paths):
+    """The tables of ``paths`` as one, the galaxies of each numbered after the previous ones'."""
+    parts, n0 = [], 0
+    for p in paths:
+        t = Table.read(p)
+        t["galaxy"] = np.asarray(t["galaxy"]) + n0
+        n0 = int(t["galaxy"].max()) + 1
+        parts.append(t)
+    return vstack(parts, metadata_conflicts="silent") if len(parts) > 1 else parts[0]
+
+
+def main(paths, r_bins=(0, 0.15, 0.3, 10), unweighted=False, paired=False, isotropic=False, uncorrected=False):
+    t = read_rings(paths)
+    if uncorrected:
+        if "nb_de1" not in t.colnames:
+            raise SystemExit("ring_split.py: --uncorrected needs a run with noise_bias_correction (columns nb_de1, "
+                             "nb_de2)")
+        for i in (1, 2):
+            t[f"e{i}"] = np.asarray(t[f"e{i}"]) + np.nan_to_num(np.asarray(t[f"nb_de{i}"]))
     if unweighted:   # unit weights for the galaxies (fitclass 0), none for the rest
         t["weight"] = np.where(t["fitclass"] == 0, 1.0, 0.0)
     elif paired:
@@ -61,14 +83,17 @@ def main(path, r_bins=(0, 0.15, 0.3, 10), unweighted=False, paired=False, isotro
 
 if __name__ == "__main__":
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("table")
+    ap.add_argument("table", nargs="+")
     ap.add_argument("--r-bins", default="0,0.15,0.3,10", help="edges of the true-scalelength bins, arcsec")
     ap.add_argument("--unweighted", action="store_true", help="unit weights for fitclass 0 instead of lensfit's")
     ap.add_argument("--paired-weights", action="store_true",
                     help="each weight the mean over its +g / -g pair: weights that do not respond to the shear")
     ap.add_argument("--isotropic-weights", action="store_true",
                     help="each weight the mean of its bin of SNR and circularised scalelength")
+    ap.add_argument("--uncorrected", action="store_true",
+                    help="add back the noise bias that noise_bias_correction subtracted")
     a = ap.parse_args()
     if a.unweighted + a.paired_weights + a.isotropic_weights > 1:
         ap.error("--unweighted, --paired-weights and --isotropic-weights exclude each other")
-    main(a.table, [float(x) for x in a.r_bins.split(",")], a.unweighted, a.paired_weights, a.isotropic_weights)
+    main(a.table, [float(x) for x in a.r_bins.split(",")], a.unweighted, a.paired_weights, a.isotropic_weights,
+         a.uncorrected)

@@ -201,6 +201,8 @@ def _work(task):
             }
             for name in RESULT_FIELDS + (METACAL_FIELDS if metacal else ()):
                 rec[name] = np.nan
+            if cfg.noise_bias_correction:
+                rec["nb_de1"] = rec["nb_de2"] = np.nan
             if measure is not None and metacal:
                 from shearfit.calib.metacal import SHEARED, measure_metacal
 
@@ -233,8 +235,11 @@ def _work(task):
                         rec[f"plain_{name}"] = float(getattr(res, name, np.nan))
             elif measure is not None:
                 t0 = time.perf_counter()
+                # the noise that noise_bias_correction adds: the same at +g and -g, as the pixel noise is
+                kw = {"noise_seed": [int(seed.generate_state(1)[0]), truth["rotation"], int(noise_sign > 0)]} \
+                    if cfg.noise_bias_correction else {}
                 try:
-                    res = measure(obs, mag=truth["mag"], config=cfg)
+                    res = measure(obs, mag=truth["mag"], config=cfg, **kw)
                 except Exception as exc:  # a benchmark reports failures, it does not stop on them
                     rec["fitclass"] = -2
                     rec["error"] = f"{type(exc).__name__}: {exc}"[:200]
@@ -242,6 +247,8 @@ def _work(task):
                     rec["fitclass"] = int(res.fitclass)
                     for name in RESULT_FIELDS:
                         rec[name] = float(getattr(res, name, np.nan))
+                    if res.noise_bias_de is not None:
+                        rec["nb_de1"], rec["nb_de2"] = res.noise_bias_de
                 rec["time"] = time.perf_counter() - t0
                 t_meas += rec["time"]
             records.append(rec)

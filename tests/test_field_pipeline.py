@@ -19,6 +19,7 @@ galsim = pytest.importorskip("galsim")
 
 from shearfit.app.cli import main  # noqa: E402
 from shearfit.simulate.stamps import galaxy_profile, moffat_psf  # noqa: E402
+from shearfit.pipeline import driver  # noqa: E402
 from skyfield import DEC0, PIX, RA0, sky_header, write_dithered_exposure  # noqa: E402
 
 G = (0.04, -0.03)
@@ -287,6 +288,44 @@ def test_self_calibrated_fits_get_their_own_default_calibration(field):
     hdr = fits.getheader(out, 1)
     assert "self-cal" in hdr.comments["CALALPHA"]
     assert json.loads(hdr["SFCONFIG"])["self_calibration"] is True
+
+
+def test_noise_bias_corrected_fits_carry_no_simulation_calibration(field, monkeypatch):
+    """With ``noise_bias_correction: true`` and no calibration file, the estimates are corrected in the engine
+    (each object's added noise drawn from its own stream of ``metacal_seed``): the m column is 0, the header
+    says ``CALMODE = 'noise-bias extrapolation'``, the same run repeated gives the same catalogue, and every
+    object's fit is given a seed of its own."""
+    d, gals = field
+    conf = yaml.safe_load((d / "field.yaml").read_text())
+    conf["self_calibration"] = True
+    conf["noise_bias_correction"] = True
+    conf.pop("calibration", None)
+    (d / "field_nbc.yaml").write_text(yaml.safe_dump(conf))
+    tabs = []
+    for k in range(2):
+        out = d / f"shear_nbc{k}.fits"
+        assert main(["measure", str(d / "field_nbc.yaml"), "--out", str(out), "--quiet"]) == 0
+        tabs.append(Table.read(out))
+    t = tabs[0]
+    good = t["fitclass"] == 0
+    assert good.sum() >= 2
+    assert np.all(t["m"][good] == 0.0)
+    np.testing.assert_array_equal(t["e1"], tabs[1]["e1"])
+    hdr = fits.getheader(d / "shear_nbc0.fits", 1)
+    assert hdr["CALMODE"] == "noise-bias extrapolation"
+    assert "CALALPHA" not in hdr
+    assert json.loads(hdr["SFCONFIG"])["noise_bias_correction"] is True
+    seeds = []
+    real = driver.measure_object
+
+    def spy(obs, mag, config=None, return_samples=False, noise_seed=None):
+        seeds.append(noise_seed)
+        return real(obs, mag, config, return_samples, noise_seed)
+
+    monkeypatch.setattr(driver, "measure_object", spy)
+    assert main(["measure", str(d / "field_nbc.yaml"), "--out", str(d / "shear_nbc2.fits"), "--quiet", "-j", "1"]) == 0
+    assert len(seeds) >= good.sum() and len({tuple(x) for x in seeds}) == len(seeds)
+    assert all(x[0] == 0 and x[2] == 1 for x in seeds)   # metacal_seed's default, the noise-bias stream
 
 
 def test_psf_ellipticity_is_the_sheared_gaussians_on_the_sky():

@@ -175,6 +175,16 @@ class FitConfig:
         "own, and shearfit measure applies a default calibration fitted with it (DEFAULT_CALIBRATION_SELFCAL) "
         "where the config names none. Not applied to metacal's versions",
         "sec. 3.4 (extension)")
+    noise_bias_correction: bool = setting(
+        False, "noise-bias extrapolation: measure the object twice more, with a noise field n drawn from its "
+        "weights added to and subtracted from its pixels, and subtract the bias b = (e(y + n) + e(y - n)) / 2 - "
+        "e(y) from the estimate e(y). Doubling the noise variance doubles the estimator's noise bias to second "
+        "order, while the antithetic pair cancels the noise's first-order effect, so 2 e(y) - (e(y + n) + "
+        "e(y - n)) / 2 is free of the noise bias to second order in the noise. The fits run with every other "
+        "setting as given (self_calibration included), at about 2.8 times their cost; see benchmarks/README.md, "
+        "'Noise-bias extrapolation'. shearfit measure applies no simulation calibration with it where the "
+        "config names none. Not applied to metacal's versions",
+        "sec. 3.4 (extension)")
     weight_e_max: float = setting(0.804, "e_max of the weight", "eq. (weight)")
     sigma_pop: float = setting(0.255, "1D rms ellipticity of the population, sigma_pop", "eq. (weight)")
 

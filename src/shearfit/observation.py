@@ -190,6 +190,9 @@ class FitResult:
     are self-calibrated, ``selfcal_de`` is the correction subtracted from the
     likelihood mean and ``selfcal_response`` the estimator's response found
     on the model (radial, tangential; before bounding); otherwise both are None.
+    With the ``noise_bias_correction`` setting, ``noise_bias_de`` is the noise
+    bias (e1, e2) found by noise-bias extrapolation and subtracted; otherwise
+    None.
     """
 
     e1: float = np.nan
@@ -211,3 +214,4 @@ class FitResult:
     samples: Optional[np.ndarray] = field(default=None, repr=False)
     selfcal_de: Optional[tuple] = field(default=None, repr=False)
     selfcal_response: Optional[tuple] = field(default=None, repr=False)
+    noise_bias_de: Optional[tuple] = field(default=None, repr=False)

@@ -90,7 +90,8 @@ class PipelineConfig:
         0.01, "with calibration: metacal, the shear applied to the deconvolved stamps in each component",
         "Huff & Mandelbaum 2017; Sheldon & Huff 2017")
     metacal_seed: int = setting(
-        0, "with calibration: metacal, seed of the symmetrising noise fields (one stream per object id)",
+        0, "seed of the noise fields shearfit adds: metacal's symmetrising ones (calibration: metacal) and "
+        "those of the engine's noise_bias_correction (one stream per object id and use)",
         "implementation")
     metacal_noise_sign: int = setting(
         1, "with calibration: metacal, 1, or -1 to negate the symmetrising noise fields: a simulated field's "

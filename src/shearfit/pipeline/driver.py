@@ -484,6 +484,10 @@ def _measure_field(cfg, out_path, progress, processes, restart, scheduler, execu
                    "metacal replays run their own ellipticity grid"),
                   ("MCOWNPOS", bool(cfg.pipeline.metacal_replay and cfg.pipeline.metacal_own_position),
                    "metacal replays find their own position")]
+    elif calibration is None and cfg.fit.noise_bias_correction:
+        # the estimates are corrected for their noise bias by extrapolation: no simulation table was fitted so
+        table["m"] = np.where(measured, 0.0, np.nan)
+        cards += [("CALMODE", "noise-bias extrapolation", "e corrected by noise_bias_correction; m 0")]
     else:
         if calibration is not None:
             src = os.path.basename(cfg.calibration)
@@ -896,7 +900,8 @@ def _measure_on_stamps(hits, exposures, mag, cfg, pc, obj_id, size, geometry=Non
         extra = {f"{q}_{v}": getattr(mc.results[v], q) for v in SHEARED for q, _, _ in METACAL_QUANTITIES}
         extra.update({f"R{i + 1}{j + 1}": float(mc.R[i, j]) for i in range(2) for j in range(2)})
     else:
-        res = measure_object(obs, mag, cfg.fit)
+        seed = [int(pc.metacal_seed) & _U64, int(obj_id) & _U64, 1] if cfg.fit.noise_bias_correction else None
+        res = measure_object(obs, mag, cfg.fit, noise_seed=seed)
         extra = {}
     row = {"e1": res.e1, "e2": res.e2, "weight": res.weight, "e_var": res.e_var, "fitclass": res.fitclass,
            "snr": res.snr, "scalelength": res.scalelength, "bulge_fraction": res.bulge_fraction,
