@@ -389,8 +389,6 @@ def test_measure_field_holds_blas_to_one_thread(field, monkeypatch):
 
     from shearfit.workers import thread_controls
 
-    from shearfit.pipeline import driver
-
     libs = thread_controls()
     if not libs:
         pytest.skip("no BLAS or OpenMP thread control found through /proc/self/maps (not Linux)")
