@@ -22,25 +22,17 @@ ring pairs can use, and that do not respond to shear either.
 import argparse
 
 import numpy as np
-from astropy.table import Table, vstack
+from astropy.table import Table
 
 from shearfit.calib.bias import paired_weights, ring_sums, shear_bias
 from shearfit.calib.weights import isotropic_weights
 
-
-def read_rings(paths):
-    """The tables of ``paths`` as one, the galaxies of each numbered after the previous ones'."""
-    parts, n0 = [], 0
-    for p in paths:
-        t = Table.read(p)
-        t["galaxy"] = np.asarray(t["galaxy"]) + n0
-        n0 = int(t["galaxy"].max()) + 1
-        parts.append(t)
-    return vstack(parts, metadata_conflicts="silent") if len(parts) > 1 else parts[0]
+# benchmarks/ring_test.py, beside this script: several runs' tables read as one
+from ring_test import read_tables
 
 
 def main(paths, r_bins=(0, 0.15, 0.3, 10), unweighted=False, paired=False, isotropic=False, uncorrected=False):
-    t = read_rings(paths)
+    t = Table(read_tables(paths)[0])
     if uncorrected:
         if "nb_de1" not in t.colnames:
             raise SystemExit("ring_split.py: --uncorrected needs a run with noise_bias_correction (columns nb_de1, "
