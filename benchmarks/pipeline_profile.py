@@ -46,7 +46,7 @@ STAGES = [
     ("cut stamps", "io/stamps.py", "cut_stamp"),
     ("local WCS Jacobians", "io/wcs.py", "local_jacobian"),
     ("PSF at the object", "pipeline/driver.py", "at"),
-    ("PSF adaptive moments (FWHM, psf_e)", "pipeline/driver.py", "psf_moments"),
+    ("PSF adaptive moments (FWHM, psf_e)", "pipeline/driver.py", "moments_at"),
     ("above-Nyquist Moffat per CCD", "pipeline/driver.py", "moffat"),
     ("isophotes, neighbours, blends (sec. 3.6)", "pipeline/driver.py", "_isophote_analysis"),
     ("the engine: measure_object", "engine/measure.py", "measure_object"),
@@ -151,7 +151,8 @@ class _PsfClock(_CpuClock):
 
         return [(drv, "_load_psf"), (drv, "fit_exposure_psf"), (drv, "psf_moments"),
                 (drv._ExposurePSF, "at"), (drv._ExposurePSF, "fitted_at_many"), (drv._ExposurePSF, "moffat"),
-                (drv._ExposurePSF, "shift"), (drv._ExposurePSF, "model_uv"), (drv._ExposurePSF, "sigma_guess")]
+                (drv._ExposurePSF, "shift"), (drv._ExposurePSF, "model_uv"), (drv._ExposurePSF, "sigma_guess"),
+                (drv._ExposurePSF, "moments_at"), (drv._ExposurePSF, "moments_many")]
 
 
 def _with_settings(cfg, items):
@@ -275,6 +276,12 @@ def _compare_catalogues(before, after, mode):
           f"{de.max() if de.size else 0:.2e} (at most {rel.max() if rel.size else 0:.1e} of the error on e); "
           f"more than 1e-7, 1e-5, 1e-4: {int(np.sum(de > 1e-7))}, {int(np.sum(de > 1e-5))}, {int(np.sum(de > 1e-4))}; "
           f"weight at most {dw.max() if dw.size else 0:.2e} apart; fitclass changed for {flips}")
+    # the PSF's adaptive moments at the objects (psf_e1, psf_e2, psf_fwhm), e.g. against a psf_moment_grid=0 run
+    dp = [np.abs(np.asarray(a[c], float) - np.asarray(b[c], float)) for c in ("psf_e1", "psf_e2")]
+    dp.append(np.abs(np.asarray(b["psf_fwhm"], float) / np.asarray(a["psf_fwhm"], float) - 1))
+    if all(np.any(np.isfinite(x)) for x in dp):
+        print(f"PSF {label}: at the objects, psf_e1 and psf_e2 at most {np.nanmax(dp[0]):.1e} and {np.nanmax(dp[1]):.1e} "
+              f"apart, psf_fwhm at most {np.nanmax(dp[2]):.1e} of itself")
 
 
 def main(argv=None):

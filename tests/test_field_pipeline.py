@@ -258,8 +258,8 @@ def test_a_chunks_jacobians_and_psf_positions_are_those_of_one_call_each():
     hits = [[(0, 0, 10.0, 20.0), (1, 0, 11.5, 19.25)], [(0, 0, 150.25, 40.75)], [(0, 0, 10.0, 20.0)]]
     geo = _chunk_geometry(exposures, hits)
     assert len(geo) == 3
-    for (e, c, x, y), (J, uv, got, shift) in geo.items():
-        assert got is None and shift is None   # no fitted model here
+    for (e, c, x, y), (J, uv, got, shift, mom) in geo.items():
+        assert got is None and shift is None and mom is None   # no fitted model, no moment grid here
         assert np.array_equal(J, local_jacobian(h, x, y))
         if e == 0:
             assert uv == tuple(pixel_to_sky(h, x, y))

@@ -150,6 +150,11 @@ class PipelineConfig:
                                 "sigmas before the last fit (0: keep all)", "implementation")
     registration_order: int = setting(1, "polynomial order per CCD of the astrometric registration offsets "
                                       "measured on the PSF stars", "sec. 4")
+    psf_moment_grid: int = setting(
+        7, "a PSF that varies over a CCD (fitted, PSFEx or Piff model) has its adaptive moments (the catalogue's "
+        "psf_e1, psf_e2, psf_fwhm) measured on this many points per axis of each CCD and interpolated to the objects "
+        "by a bicubic spline, instead of at every object (0: at every object). 7 leaves them within 5e-6 of the "
+        "direct measurement (benchmarks/pipeline_profile.py --compare-with a run with 0)", "implementation")
     psf_bootstrap: int = setting(64, "bootstrap resamplings of the stars for the PSF model's rms "
                                   "(shearfit psf diagnostics)", "sec. 5")
 
@@ -176,6 +181,9 @@ class PipelineConfig:
                                      f"of MiB, positive, or 0 for no limit")
         if self.chunk_size < 1:
             raise ShearfitValueError(f"setting chunk_size={self.chunk_size!r} must be at least 1")
+        if self.psf_moment_grid != 0 and self.psf_moment_grid < 4:
+            raise ShearfitValueError(f"setting psf_moment_grid={self.psf_moment_grid!r} must be 0 (every object) or at "
+                                     f"least 4 (a bicubic spline's points per axis)")
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)

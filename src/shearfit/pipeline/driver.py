@@ -167,6 +167,7 @@ class _ExposurePSF:
     _frame: Optional[FieldFrame] = None
     _moffat: dict = field(default_factory=dict)    # per-CCD Moffat fits; copies made by replace() share it
     _sigma: dict = field(default_factory=dict)     # per-CCD PSF sizes at the centre (HSM's starting guess)
+    _moment_splines: dict = field(default_factory=dict)   # per (CCD, grid): splines of the PSF's moments, or None
 
     def moffat(self, ccd_index, shape):
         """The CCD's above-Nyquist Moffat (rs, beta), fitted once to its PSF at the CCD centre (App. A).
@@ -188,6 +189,55 @@ class _ExposurePSF:
             mom = psf_moments(got[0]) if got is not None else None
             self._sigma[ccd_index] = None if mom is None else mom[0]
         return self._sigma[ccd_index]
+
+    def moments_at(self, ccd_index, shape, x, y, psf, grid=0):
+        """Adaptive moments of the PSF at CCD pixel (x, y), whose image there is ``psf`` (as :func:`psf_moments`
+        returns them). A given image (one per CCD, remembered) is measured by HSM from the CCD's guess; a PSF that
+        varies over the CCD (a fitted, PSFEx or Piff model), with ``grid`` >= 4, is measured on grid x grid points
+        spanning the CCD and the moments at (x, y) are those points' bicubic splines there
+        (:meth:`moment_splines`), so that the CCD's objects cost no HSM call each. ``grid`` = 0, or a grid point
+        where HSM fails: HSM on ``psf`` itself."""
+        many = self.moments_many(ccd_index, shape, np.array([x], float), np.array([y], float), grid)
+        if many is not None:
+            return many[0]
+        return psf_moments(psf, self.sigma_guess(ccd_index, shape))
+
+    def moments_many(self, ccd_index, shape, x, y, grid):
+        """:meth:`moments_at` of a varying PSF at CCD pixels (x, y) (arrays) from the CCD's splines, as a list
+        of (sigma, (g1, g2)), in one evaluation per quantity; None where the PSF is given as images, ``grid`` is
+        0 or the CCD has no splines (then HSM at each object)."""
+        if not grid or self.images is not None:
+            return None
+        splines = self.moment_splines(ccd_index, shape, grid)
+        if splines is None:
+            return None
+        sigma, g1, g2 = (f.ev(y, x).tolist() for f in splines)
+        return [(s, (a, b)) for s, a, b in zip(sigma, g1, g2)]
+
+    def moment_splines(self, ccd_index, shape, grid):
+        """Bicubic splines (scipy's RectBivariateSpline, in CCD pixels y, x) through the PSF's adaptive size and
+        shear (sigma, g1, g2) measured by HSM at grid x grid points from corner to corner of the CCD; the same
+        for every object and chunk of the CCD, made once. None where the CCD has no PSF or HSM fails at a point."""
+        key = (ccd_index, int(grid))
+        if key not in self._moment_splines:
+            from scipy.interpolate import RectBivariateSpline
+
+            ny, nx = shape
+            xs, ys = np.linspace(0.0, nx - 1.0, grid), np.linspace(0.0, ny - 1.0, grid)
+            guess = self.sigma_guess(ccd_index, shape)
+            vals = np.empty((3, grid, grid))
+            made = guess is not None
+            for i, yy in enumerate(ys):
+                for j, xx in enumerate(xs):
+                    got = self.at(ccd_index, xx, yy) if made else None
+                    mom = psf_moments(got[0], guess) if got is not None else None
+                    if mom is None:
+                        made = False
+                        break
+                    vals[:, i, j] = mom[0], mom[1][0], mom[1][1]
+            self._moment_splines[key] = tuple(RectBivariateSpline(ys, xs, v, kx=3, ky=3) for v in vals) \
+                if made else None
+        return self._moment_splines[key]
 
     def _model(self, ccd_index):
         return ccd_index if self.model_ccd is None else self.model_ccd[ccd_index]
@@ -612,7 +662,7 @@ def _measure_objects(exposures, hits, mags, ids, cfg):
     chunk's would add up; released after every object, the next one, often on the same rows, reads them again)."""
     hits = list(hits)
     opened = _attached(exposures)
-    geometry = _chunk_geometry(opened, hits)
+    geometry = _chunk_geometry(opened, hits, cfg.pipeline.psf_moment_grid)
     rows = []
     for n, (h, m, i) in enumerate(zip(hits, mags, ids)):
         rows.append(_measure_one(h, opened, m, cfg, cfg.pipeline, i, geometry))
@@ -626,12 +676,13 @@ def _measure_objects(exposures, hits, mags, ids, cfg):
 RELEASE_EVERY = 8
 
 
-def _chunk_geometry(exposures, hits) -> dict:
+def _chunk_geometry(exposures, hits, moment_grid=0) -> dict:
     """At every (exposure, CCD, x, y) the chunk's objects fall on, keyed so: (the local WCS Jacobian, the fitted
-    PSF model's (u, v), its (PSF image, oversampling) and its registration shift (dx, dy); the last three None
-    without a fitted model), from one vectorised :func:`local_jacobian`, one sky conversion and one product of
-    the model's terms with its images per CCD instead of one call per object and exposure (the same numbers,
-    to rounding)."""
+    PSF model's (u, v), its (PSF image, oversampling), its registration shift (dx, dy) and the PSF's adaptive
+    moments from the CCD's grid (:meth:`_ExposurePSF.moments_many`); (u, v), image and shift None without a
+    fitted model, the moments None without a grid), from one vectorised :func:`local_jacobian`, one sky
+    conversion, one product of the model's terms with its images and one evaluation of the moments' splines per
+    CCD instead of one call per object and exposure (the same numbers, to rounding)."""
     where = {}
     for obj in hits:
         for e, c, x, y in obj:
@@ -646,9 +697,12 @@ def _chunk_geometry(exposures, hits) -> dict:
         batch = None
         if uv is not None:
             batch = epsf.fitted_at_many(c, xy[:, 0], xy[:, 1], uv)
+        moments = epsf.moments_many(c, exposures[e][0][c].shape, xy[:, 0], xy[:, 1], moment_grid) \
+            if moment_grid else None
         for n, (x, y) in enumerate(pts):
             got, shift = (None, None) if batch is None else ((batch[0][n], batch[1]), tuple(batch[2][n].tolist()))
-            out[(e, c, x, y)] = (J[n], None if uv is None else (uv[0][n], uv[1][n]), got, shift)
+            out[(e, c, x, y)] = (J[n], None if uv is None else (uv[0][n], uv[1][n]), got, shift,
+                                 None if moments is None else moments[n])
     return out
 
 
@@ -693,7 +747,7 @@ def _run_dask(cfg, exposures, tasks, mags, ids, chunks, todo, table, ckpt, bar, 
     try:
         # one copy of the run's settings, CCD metadata and PSF models per worker (a list of one: scatter sends
         # it whole); the PSF models' caches are rebuilt there
-        portable = [(ccds, replace(p, _frame=None, _moffat={})) for ccds, p in exposures]
+        portable = [(ccds, replace(p, _frame=None, _moffat={}, _moment_splines={})) for ccds, p in exposures]
         [run] = client.scatter([(cfg, portable)], broadcast=True)
         futures = [client.submit(_dask_chunk, run, k, [tasks[i] for i in chunks[k]], mags[chunks[k]], ids[chunks[k]],
                                  pure=False) for k in todo]
@@ -844,7 +898,7 @@ def _measure_on_stamps(hits, exposures, mag, cfg, pc, obj_id, size, geometry=Non
     for e, (margin, c, x, y) in sorted(best.items()):
         ccd = exposures[e][0][c]
         epsf = exposures[e][1]
-        J, uv, got, shift = (None,) * 4 if geometry is None else geometry.get((e, c, x, y), (None,) * 4)
+        J, uv, got, shift, mom = (None,) * 5 if geometry is None else geometry.get((e, c, x, y), (None,) * 5)
         if got is None:
             got = epsf.at(c, x, y, uv=uv)
         if got is None:   # a CCD without enough PSF stars
@@ -857,7 +911,8 @@ def _measure_on_stamps(hits, exposures, mag, cfg, pc, obj_id, size, geometry=Non
             continue
         cuts.append(dict(e=e, ccd=ccd, image=np.array(st.image, float), weight=np.array(st.weight, float),
                          offset=st.offset, J=local_jacobian(ccd.wcs, x, y) if J is None else J, psf=psf, k=k,
-                         moments=psf_moments(psf, epsf.sigma_guess(c, ccd.image.shape)),
+                         moments=mom if mom is not None else epsf.moments_at(c, ccd.image.shape, x, y, psf,
+                                                                               pc.psf_moment_grid),
                          moffat=epsf.moffat(c, ccd.image.shape) if k == 1 else None))
     if not cuts:
         return {"fitclass": FITCLASS_FEW_EXPOSURES, "n_exposures_used": 0, "stamp_size": 0}
