@@ -276,8 +276,9 @@ def main(argv=None):
                     help="grid: the whole galaxy grid of each CCD; inner: only the slots within 176 pixels of "
                          "the CCD centre, whose stamps stay on the CCD in every exposure whatever its rotation "
                          "and dither, so every WCS variant observes every galaxy on every exposure")
-    ap.add_argument("--size-split", type=float, default=None, metavar="R",
-                    help="also print m and c for the rings of true scalelength below and above R arcsec")
+    ap.add_argument("--size-split", type=_edges, default=None, metavar="R[,R2,...]",
+                    help="also print m and c for the rings of true scalelength below and above R arcsec (several "
+                         "comma-separated edges: below the first, between each two, and above the last)")
     ap.add_argument("--reuse", action="store_true",
                     help="with --keep: read the catalogue of a field already measured there (same options) "
                          "instead of simulating and measuring it again")
@@ -433,16 +434,31 @@ def _rows(tables, gals):
     return {k: np.array(v) for k, v in rows.items()}
 
 
+def _edges(text):
+    """``--size-split``'s edges: one number or several, comma-separated, increasing."""
+    try:
+        edges = [float(x) for x in str(text).split(",")]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number or a comma-separated list of numbers: {text!r}") from None
+    if any(b <= a for a, b in zip(edges[:-1], edges[1:])):
+        raise argparse.ArgumentTypeError(f"the edges must increase: {text!r}")
+    return edges
+
+
 def size_subsets(gals, args):
-    """With ``--size-split R``: (label, ring indices) of the rings of true scalelength below and above R.
+    """With ``--size-split R[,R2,...]``: (label, ring indices) of the rings of true scalelength below the first
+    edge, between each two and at or above the last.
 
     A choice on the truth, the same for the 8 objects of a ring; subsets of fewer than 2 rings are left out.
     """
     if not args.size_split:
         return []
     r = np.array([gals[4 * k]["r"] for k in range(args.n_galaxies)])
-    return [(f"{op} {args.size_split}\"", np.flatnonzero(sel))
-            for op, sel in (("<", r < args.size_split), (">=", r >= args.size_split)) if sel.sum() > 1]
+    edges = list(args.size_split)
+    out = [(f"< {edges[0]}\"", r < edges[0])]
+    out += [(f"{a}-{b}\"", (r >= a) & (r < b)) for a, b in zip(edges[:-1], edges[1:])]
+    out.append((f">= {edges[-1]}\"", r >= edges[-1]))
+    return [(lab, np.flatnonzero(sel)) for lab, sel in out if sel.sum() > 1]
 
 
 def exposure_psfs(d, n_exposures):
