@@ -47,6 +47,7 @@ STAGES = [
     ("local WCS Jacobians", "io/wcs.py", "local_jacobian"),
     ("PSF at the object", "pipeline/driver.py", "at"),
     ("PSF adaptive moments (FWHM, psf_e)", "pipeline/driver.py", "moments_at"),
+    ("PSF moments from the per-CCD grid", "pipeline/driver.py", "moments_many"),
     ("above-Nyquist Moffat per CCD", "pipeline/driver.py", "moffat"),
     ("isophotes, neighbours, blends (sec. 3.6)", "pipeline/driver.py", "_isophote_analysis"),
     ("the engine: measure_object", "engine/measure.py", "measure_object"),
