@@ -422,7 +422,7 @@ def main(argv=None):
 def _rows(tables, gals):
     """The objects of every field as one table: ``tables`` maps (sign, twin) to a catalogue (the twin's objects
     are more members of their rings); the metacal columns come along where the catalogues have them."""
-    cols = ("e1", "e2", "e_var", "weight", "fitclass", "m") + METACAL_FIELDS
+    cols = ("e1", "e2", "e_var", "weight", "iso_weight", "fitclass", "m") + METACAL_FIELDS
     rows = {k: [] for k in ("galaxy", "sign", "twin") + cols}
     for (sign, twin), t in tables.items():
         for gal, row in zip(gals, t):
@@ -526,12 +526,16 @@ def report(tables, gals, args, name, wcs_mode):
                                   np.random.default_rng(0))
         print(f"  without the star/galaxy selection ({int(star.sum())} objects classified as stars kept): "
               f"m1 = {est_s[0]:+.5f} +/- {err_s[0]:.5f}, m2 = {est_s[1]:+.5f} +/- {err_s[1]:.5f}")
-    # unit weights for the galaxies: no weight that responds to the shear (lensfit's do, for small galaxies)
-    unit = dict(tab, weight=np.where(fc == 0, 1.0, 0.0))
-    unit_sums = ring_sums(unit, args.n_galaxies)
-    est_u, err_u = shear_bias(unit_sums, np.array(args.shear), args.n_bootstrap, np.random.default_rng(0))
-    print(f"  with unit weights (fitclass 0): m1 = {est_u[0]:+.5f} +/- {err_u[0]:.5f}, m2 = {est_u[1]:+.5f} +/- "
-          f"{err_u[1]:.5f}")
+    # weights that do not respond to the shear (lensfit's do, for small galaxies): unit weights for the
+    # galaxies, and the catalogue's iso_weight (each galaxy's bin mean of lensfit's weight)
+    others = [("unit weights (fitclass 0)", np.where(fc == 0, 1.0, 0.0))]
+    if np.any(np.nan_to_num(tab["iso_weight"]) > 0):
+        others.append(("the catalogue's iso_weight", np.nan_to_num(tab["iso_weight"])))
+    other_sums = []
+    for label, w in others:
+        other_sums.append(ring_sums(dict(tab, weight=w), args.n_galaxies))
+        est_u, err_u = shear_bias(other_sums[-1], np.array(args.shear), args.n_bootstrap, np.random.default_rng(0))
+        print(f"  with {label}: m1 = {est_u[0]:+.5f} +/- {err_u[0]:.5f}, m2 = {est_u[1]:+.5f} +/- {err_u[1]:.5f}")
     if args.metacal:
         report_metacal(Table(tab), args, args.n_galaxies)
     subsets = size_subsets(gals, args)
@@ -542,8 +546,11 @@ def report(tables, gals, args, name, wcs_mode):
             print(f"  rings of scalelength {lab} ({sel.size}): m1 = {e_s[0]:+.5f} +/- {r_s[0]:.5f}, "
                   f"m2 = {e_s[1]:+.5f} +/- {r_s[1]:.5f}, c1 = {e_s[2]:+.6f} +/- {r_s[2]:.6f}, "
                   f"c2 = {e_s[3]:+.6f} +/- {r_s[3]:.6f}")
-            e_u, r_u = shear_bias(unit_sums[:, sel], np.array(args.shear), args.n_bootstrap, np.random.default_rng(0))
-            print(f"    with unit weights: m1 = {e_u[0]:+.5f} +/- {r_u[0]:.5f}, m2 = {e_u[1]:+.5f} +/- {r_u[1]:.5f}")
+            for (label, _), o_sums in zip(others, other_sums):
+                e_u, r_u = shear_bias(o_sums[:, sel], np.array(args.shear), args.n_bootstrap,
+                                      np.random.default_rng(0))
+                print(f"    with {label}: m1 = {e_u[0]:+.5f} +/- {r_u[0]:.5f}, m2 = {e_u[1]:+.5f} +/- "
+                      f"{r_u[1]:.5f}")
         if args.metacal:
             for lab, sel in subsets:
                 # the subset's rings renumbered 0 .. n - 1, for the metacal report's bootstrap over rings

@@ -14,9 +14,9 @@ noise at +g and at -g; ``shearfit.calib.bias.paired_weights``), so that no weigh
 each keeps its dependence on the galaxy, its orientation and its noise. m with lensfit's weights less m with
 paired weights is the part of m that comes from the weights' response to shear.
 
-``--isotropic-weights``: each weight the mean weight of its bin of measured SNR and circularised scalelength
-(``shearfit.calib.weights.isotropic_weights``, 10 x 10 equal-number bins): weights that a catalogue without
-ring pairs can use, and that do not respond to shear either.
+``--isotropic-weights``: each weight the mean weight of its bin of ``flux_snr``
+(``shearfit.calib.weights.isotropic_weights``, 10 equal-number bins; tables from session 57 on): the weights a
+catalogue without ring pairs has (its ``iso_weight``), which do not respond to shear either.
 """
 
 import argparse
@@ -81,7 +81,7 @@ if __name__ == "__main__":
     ap.add_argument("--paired-weights", action="store_true",
                     help="each weight the mean over its +g / -g pair: weights that do not respond to the shear")
     ap.add_argument("--isotropic-weights", action="store_true",
-                    help="each weight the mean of its bin of SNR and circularised scalelength")
+                    help="each weight the mean of its bin of flux_snr (the catalogue's iso_weight)")
     ap.add_argument("--uncorrected", action="store_true",
                     help="add back the noise bias that noise_bias_correction subtracted")
     a = ap.parse_args()

@@ -123,7 +123,10 @@ DEFAULT_SHEAR = (0.03, -0.02)
 JACKKNIFE_MIN_RUNS = 5
 #: bins in ln(half-light radius) of --hlr-log-uniform's weights
 HLR_WEIGHT_BINS = 20
-RESULT_FIELDS = ("e1", "e2", "e_var", "weight", "snr", "scalelength", "bulge_fraction", "model_flux")
+RESULT_FIELDS = ("e1", "e2", "e_var", "weight", "snr", "scalelength", "bulge_fraction", "model_flux", "flux_snr",
+                 "round_scalelength")
+#: fields that tables written before session 57 have not
+NEWER_FIELDS = ("flux_snr", "round_scalelength")
 METACAL_FIELDS = tuple(f"{q}_{v}" for v in ("1p", "1m", "2p", "2m") for q in ("e1", "e2", "weight", "fitclass")) + \
     ("R11", "R12", "R21", "R22")
 
@@ -323,12 +326,14 @@ def report_bias(tab, args, n_gal):
     print(f"  m2 = {format_with_error(est[1], err[1])}    c2 = {format_with_error(est[3], err[3])}")
     print_leakage(est[2:4], err[2:4], args)
     # the same rings with weights that do not respond to the shear: each +g / -g pair's mean weight (ring
-    # tables), and the mean of each bin of SNR and circularised size (what a catalogue can use)
+    # tables), and the mean of each bin of flux_snr (what a catalogue can use: its iso_weight; tables written
+    # before session 57 have no flux_snr)
     others = []
     if weighted and "rotation" in tab.dtype.names:
         others.append(("each pair's mean weight (no weight responds to the shear)", paired_weights))
-    if weighted and "snr" in tab.dtype.names and "scalelength" in tab.dtype.names:
-        others.append(("isotropic weights (each the mean of its bin of SNR and circularised size)", isotropic_weights))
+    if weighted and "flux_snr" in tab.dtype.names and "round_scalelength" in tab.dtype.names:
+        others.append(("isotropic weights (each the mean of its bin of flux_snr, as iso_weight)",
+                       isotropic_weights))
     for label, weights_of in others:
         alt = tab.copy()
         alt["weight"] = weights_of(tab)
@@ -1202,6 +1207,8 @@ def _plain_columns(tab):
     """A --with-plain table with its plain lensfit columns in the places of the measured ones."""
     out = tab.copy()
     for name in RESULT_FIELDS + ("fitclass",):
+        if name in NEWER_FIELDS and f"plain_{name}" not in tab.dtype.names:
+            continue
         if f"plain_{name}" not in tab.dtype.names:
             raise KeyError(f"no column plain_{name}: the tables were not written by a --with-plain run")
         out[name] = tab[f"plain_{name}"]

@@ -555,10 +555,11 @@ def test_output_columns_and_empty_rows():
     names = [c.name for c in output_columns()]
     assert names == ["id", "ra", "dec", "mag", "e1", "e2", "weight", "e_var", "fitclass", "snr",
                      "scalelength", "bulge_fraction", "model_flux", "n_exposures_used", "psf_e1", "psf_e2",
-                     "psf_fwhm", "m", "star_pvalue", "stamp_size"]
+                     "psf_fwhm", "m", "star_pvalue", "stamp_size", "flux_snr", "round_scalelength", "iso_weight"]
     row = empty_result_row()
     assert set(row) == set(names) - {"id", "ra", "dec", "mag"}
     assert row["weight"] == 0 and row["fitclass"] == FITCLASS_FIT_FAILED and np.isnan(row["e1"])
+    assert row["iso_weight"] == 0 and np.isnan(row["flux_snr"])
     assert empty_result_row(FITCLASS_OFF_EXPOSURES)["fitclass"] == FITCLASS_OFF_EXPOSURES
     cat = Table({"id": ["a", "b"], "ra": [1.0, 2.0], "dec": [3.0, 4.0], "mag": [20.0, 21.0]})
     out = empty_output_table(cat)

@@ -96,11 +96,14 @@ def test_measure_field_end_to_end(field, capsys):
     assert "SFCONFIG" in hdr and "SFVERS" in hdr
     from shearfit.engine.kernel import kernel_info
     assert hdr["SFKERNEL"] == kernel_info()["path"] and hdr["SFISA"] == kernel_info()["isa"]
+    # too few galaxies for bins of 100: one bin, every galaxy the mean of lensfit's weights; 0 off the exposures
+    assert hdr["ISOBINS"] == 1 and t["iso_weight"][-1] == 0
+    np.testing.assert_allclose(good["iso_weight"], np.mean(good["weight"]), rtol=1e-12)
     # the same catalogue with two worker processes, bit for bit
     out2 = d / "shear_j2.fits"
     assert main(["measure", str(d / "field.yaml"), "--out", str(out2), "--quiet", "-j", "2"]) == 0
     t2 = Table.read(out2)
-    for col in ("e1", "e2", "weight", "fitclass", "snr"):
+    for col in ("e1", "e2", "weight", "fitclass", "snr", "iso_weight"):
         assert np.array_equal(np.asarray(t[col]), np.asarray(t2[col]), equal_nan=True)
 
 

@@ -961,3 +961,28 @@ def test_settings_from_items_read_values_as_a_config_file_does():
     assert type(got["n_size"]) is int
     with pytest.raises(ShearfitValueError, match="'n_size'"):
         settings_from_items(["n_size"])
+
+
+def test_flux_snr_and_round_scalelength_do_not_depend_on_the_shape():
+    """flux_snr is the SNR of the fitted flux were the object a point source: a star's own SNR, and, per unit of
+    noise, the same for a round and an elongated galaxy of one flux, where the profile-weighted snr falls as the
+    light spreads. round_scalelength is the round scalelength of the same area, r sqrt(q), r the semi-major axis
+    the models keep under ellipticity."""
+    star = shearfit.measure_object(_observations(0.001, (0.0, 0.0), B=0.0, snr=200), mag=20.0)
+    assert star.flux_snr == pytest.approx(200.0, rel=0.03) and star.flux_snr == pytest.approx(star.snr, rel=0.03)
+    scaled = shearfit.measure_object(_observations(0.001, (0.0, 0.0), B=0.0, snr=200, flux_scales=[1.0, 0.5, 2.0]),
+                                     mag=20.0)
+    assert scaled.flux_snr == pytest.approx(200.0, rel=0.03)
+    per_noise, snr_per_noise = [], []
+    for e in ((0.0, 0.0), (0.35, -0.35)):
+        # the same area: the semi-major axis 0.3 / sqrt(q)
+        a = float(np.hypot(*e))
+        obs = _observations(0.3 / np.sqrt((1 - a) / (1 + a)), e, snr=300)
+        res = shearfit.measure_object(obs, mag=22.0)
+        assert res.round_scalelength == pytest.approx(0.3, rel=0.05)
+        sigma = 1 / np.sqrt(obs[0].weight[0, 0])
+        per_noise.append(res.flux_snr * sigma)
+        snr_per_noise.append(res.snr * sigma)
+    # per unit of noise, 254.06 and 253.91 (0.06 %); snr 160.5 and 150.4
+    assert per_noise[1] == pytest.approx(per_noise[0], rel=0.005)
+    assert snr_per_noise[1] < 0.96 * snr_per_noise[0]

@@ -101,7 +101,7 @@ def test_paired_weights_remove_the_weights_response_to_shear():
 
 
 def test_isotropic_weights_remove_the_weights_response_to_shear():
-    """A catalogue's own bins of SNR and circularised scalelength (which a shear keeps) give every orientation of
+    """A catalogue's own bins of flux_snr and round_scalelength (which a shear keeps) give every orientation of
     a galaxy the same weight: the weighted mean's m is the estimates' own, while the galaxies' weights still
     differ from bin to bin and the total weight is kept."""
     from shearfit.calib.weights import isotropic_weights
@@ -112,9 +112,7 @@ def test_isotropic_weights_remove_the_weights_response_to_shear():
     gal = tab["galaxy"]
     snr = rng.uniform(10, 100, n)[gal]
     r0 = rng.uniform(0.1, 1.0, n)[gal]
-    e = np.hypot(tab["e1"], tab["e2"])
-    # the measured semi-major axis grows as a shear elongates the galaxy at fixed area
-    tab.update(snr=snr, scalelength=r0 / np.sqrt((1 - e) / (1 + e)))
+    tab.update(flux_snr=snr, round_scalelength=r0)
     raw, _ = shear_bias(ring_sums(tab, n), G, 10, rng)
     assert np.all(raw[:2] > 0.01 + 0.01)
     w = isotropic_weights(tab, n_snr=4, n_size=2)
@@ -122,8 +120,20 @@ def test_isotropic_weights_remove_the_weights_response_to_shear():
     np.testing.assert_allclose(est[:2], 0.01, atol=1e-12)
     assert np.unique(np.round(w, 12)).size == 8
     np.testing.assert_allclose(w.sum(), tab["weight"].sum(), rtol=1e-12)
+    # the default: bins of flux_snr alone
+    w = isotropic_weights(tab, n_snr=4)
+    est, _ = shear_bias(ring_sums(dict(tab, weight=w), n), G, 10, rng)
+    np.testing.assert_allclose(est[:2], 0.01, atol=1e-12)
+    assert np.unique(np.round(w, 12)).size == 4
     tab["fitclass"][0] = 1
     w = isotropic_weights(tab, n_snr=4, n_size=2)
     assert w[0] == 0 and w[1] > 0
-    with pytest.raises(shearfit.errors.ShearfitValueError, match="'snr'"):
-        isotropic_weights({k: v for k, v in tab.items() if k != "snr"})
+    with pytest.raises(shearfit.errors.ShearfitValueError, match="'flux_snr'"):
+        isotropic_weights({k: v for k, v in tab.items() if k != "flux_snr"})
+
+
+def test_isotropic_bins_hold_a_hundred_galaxies_each():
+    """The pipeline's bins of flux_snr: at least 100 galaxies in each, at most 10."""
+    from shearfit.calib.weights import isotropic_bins
+
+    assert [isotropic_bins(n) for n in (0, 50, 199, 200, 999, 1000, 10 ** 7)] == [1, 1, 1, 2, 9, 10, 10]

@@ -123,6 +123,19 @@ def test_selection_and_errors(tmp_path):
     t2.write(tmp_path / "noweight.fits")
     with pytest.raises(ShearfitIOError, match="no column 'weight'"):
         read_shear_catalog(tmp_path / "noweight.fits")
+    # another column of weights: it becomes 'weight', lensfit's is kept beside it
+    with pytest.raises(ShearfitIOError, match="no column 'iso_weight'"):
+        read_shear_catalog(p, weight_column="iso_weight")
+    t3 = tab.copy()
+    t3["iso_weight"] = np.where(np.arange(len(t3)) % 2 == 0, 2.0, 0.0)
+    t3.write(tmp_path / "iso.fits")
+    iso = read_shear_catalog(tmp_path / "iso.fits", weight_column="iso_weight")
+    assert len(iso) == int(np.sum(np.arange(10, len(t3)) % 2 == 0)) and np.all(iso["weight"] == 2.0)
+    np.testing.assert_array_equal(iso["lensfit_weight"], t3["weight"][10::2])
+    t3["weight_1p"] = t3["weight"]
+    t3.write(tmp_path / "mcal.fits")
+    with pytest.raises(ShearfitValueError, match="metacal catalogue"):
+        read_shear_catalog(tmp_path / "mcal.fits", weight_column="iso_weight")
 
 
 def test_cli(tmp_path, capsys):

@@ -192,7 +192,12 @@ class FitResult:
     on the model (radial, tangential; before bounding); otherwise both are None.
     With the ``noise_bias_correction`` setting, ``noise_bias_de`` is the noise
     bias (e1, e2) found by noise-bias extrapolation and subtracted; otherwise
-    None.
+    None. ``flux_snr`` is the SNR ``model_flux`` would have were the object a
+    point source (on the same exposures), and ``round_scalelength`` the
+    likelihood mean of the scalelength of the round model of each sample's
+    area, ``r sqrt(q)``: neither depends on the object's shape, so a shear
+    leaves both unchanged to first order where it changes ``snr`` and
+    ``scalelength`` (the axes of :func:`shearfit.calib.weights.isotropic_weights`).
     """
 
     e1: float = np.nan
@@ -210,6 +215,8 @@ class FitResult:
     n_samples: int = 0
     n_models: int = 0
     shape_weight: float = 0.0
+    flux_snr: float = np.nan
+    round_scalelength: float = np.nan
     message: str = ""
     samples: Optional[np.ndarray] = field(default=None, repr=False)
     selfcal_de: Optional[tuple] = field(default=None, repr=False)

@@ -84,7 +84,7 @@ def _cmd_xipm(args):
         raise ShearfitError(f"--plot {args.plot}: expected a .png file name")
     sel = [parse_selection(t) for t in args.select]
     spec = parse_bins(args.bins) if args.bins is not None else None
-    full = read_shear_catalog(args.catalog, sel, measured_only=False)
+    full = read_shear_catalog(args.catalog, sel, measured_only=False, weight_column=args.weight_column)
     if spec is not None:
         col, edges = spec
         fulls = split_bins(full, col, edges, args.catalog)
@@ -100,7 +100,8 @@ def _cmd_xipm(args):
     calib = args.calibration or ("metacal response" if metacal else "catalogue m column")
     common = [("CALIB", calib, "calibration used"),
               ("BINSLOP", float(args.bin_slop), "TreeCorr bin_slop (0: exact pair binning)"),
-              ("ANGSLOP", float(args.angle_slop), "TreeCorr angle_slop (rad)")]
+              ("ANGSLOP", float(args.angle_slop), "TreeCorr angle_slop (rad)"),
+              ("WEIGHTS", args.weight_column, "the catalogue's column of weights")]
     common += [(f"SELECT{i}", t, "selection") for i, t in enumerate(args.select)]
     if args.patches:
         common += [("NPATCH", int(args.patches), "jackknife patches (k-means, seeded by SEED)"),
@@ -395,6 +396,9 @@ def build_parser():
                    help="jackknife covariance over N TreeCorr patches (k-means on positions, seeded by --seed): "
                         "HDU COV and columns sigma_xip_jk, sigma_xim_jk")
     p.add_argument("--plot", default=None, metavar="FILE.png", help="plot theta*xi+- of every pair of bins")
+    p.add_argument("--weight-column", default="weight", metavar="NAME",
+                   help="the column of weights (default weight, lensfit's; iso_weight: the same made isotropic, "
+                        "which a shear does not change)")
     # 0.0 = shearfit.stats.twopoint.DEFAULT_BIN_SLOP (not imported here: the parser stays free of TreeCorr)
     p.add_argument("--bin-slop", type=float, default=0.0,
                    help="TreeCorr's bin_slop (default 0: exact pair binning; benchmarks/xipm_binning.py)")

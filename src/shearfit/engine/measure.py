@@ -310,7 +310,8 @@ def _result(obs, cfg, mag, jm, like, samples, n_samples, centroid_shift, return_
         snr=like.best_snr, scalelength=est.scalelength, bulge_fraction=est.bulge_fraction,
         model_flux=est.model_flux, fitclass=FITCLASS_STAR if is_star else FITCLASS_GALAXY,
         n_exposures_used=len(obs), star_pvalue=pvalue, centroid_shift=centroid_shift,
-        n_samples=n_samples)
+        n_samples=n_samples, round_scalelength=est.round_scalelength,
+        flux_snr=est.model_flux * float(np.sqrt(max(like.point_ff, 0.0))))
     if not np.isfinite(est.e1):
         result.fitclass = FITCLASS_FIT_FAILED
         result.weight = 0.0

@@ -106,6 +106,9 @@ class EllipticityLikelihood:
         s0 = model_sums(jm, [0.0], [0.0], [0.0], fast, cfg.bulge_size_ratio, lin=self.lin,
                           bins_per_octave=cfg.mode_bins_per_octave)
         self.zero = flux_position_marginal(s0, cfg, jm.pixel_scale)
+        # sum over the modes of |unit-flux point source|^2 / sigma^2: a flux F's SNR were it unresolved is
+        # F sqrt(point_ff)
+        self.point_ff = float(s0.ff[0])
         self.n_models = 1
         self.chi2_star = None
         self.best_chi2_gal = np.inf
@@ -899,6 +902,7 @@ class Estimate:
     bulge_fraction: float
     model_flux: float
     n_used: int
+    round_scalelength: float = np.nan
 
 
 def estimate(s: Samples, cfg: FitConfig) -> Estimate:
@@ -914,7 +918,10 @@ def estimate(s: Samples, cfg: FitConfig) -> Estimate:
     e2 = float(np.sum(w * s.e2[keep]))
     var = float(0.5 * np.sum(w * ((s.e1[keep] - e1) ** 2 + (s.e2[keep] - e2) ** 2)))
     p = s.point
+    # the round scalelength of each sample's model, of the same area: r sqrt(q), q = (1 - |e|) / (1 + |e|)
+    ae = np.minimum(np.hypot(s.e1[keep], s.e2[keep]), 1.0)
     return Estimate(e1=e1, e2=e2, e_var=var, weight=float(lensing_weight(var, cfg)),
                     scalelength=float(np.sum(w * p.mean_r[keep])),
                     bulge_fraction=float(np.sum(w * p.mean_b[keep])),
-                    model_flux=float(np.sum(w * p.mean_flux[keep])), n_used=int(keep.sum()))
+                    model_flux=float(np.sum(w * p.mean_flux[keep])), n_used=int(keep.sum()),
+                    round_scalelength=float(np.sum(w * p.mean_r[keep] * np.sqrt((1 - ae) / (1 + ae)))))

@@ -846,6 +846,13 @@ _OUTPUT_COLUMNS = (
                                           "source is chance (sec. 3.2); large for stars"),
     OutputColumn("stamp_size", "i2", "pix", "side of the stamps the object was measured on (larger than "
                                             "stamp_size where its model needed it); 0 where none was cut"),
+    OutputColumn("flux_snr", "f8", "", "SNR of model_flux were the object a point source (its shape does "
+                                       "not enter: a shear leaves it unchanged)"),
+    OutputColumn("round_scalelength", "f8", "arcsec", "likelihood mean of the round scalelength of the same "
+                                                      "area, r sqrt(q) (a shear leaves it unchanged)"),
+    OutputColumn("iso_weight", "f8", "", "lensfit's weight made isotropic: the mean weight of the catalogue's "
+                                         "galaxies in the object's bin of flux_snr; "
+                                         "a shear leaves it unchanged; 0 where not a measured galaxy"),
 )
 
 
@@ -903,6 +910,7 @@ def empty_result_row(fitclass: int = FITCLASS_FIT_FAILED) -> dict:
     for c in output_columns(include_input=False):
         row[c.name] = np.nan if c.dtype.startswith("f") else 0
     row["weight"] = 0.0
+    row["iso_weight"] = 0.0
     row["fitclass"] = int(fitclass)
     return row
 

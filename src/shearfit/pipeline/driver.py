@@ -42,9 +42,10 @@ from astropy.table import Table
 from ..version import __version__
 from ..workers import process_pool, single_threaded
 from ..files import atomic_path
-from ..errors import (FITCLASS_BAD_INPUT, FITCLASS_FEW_EXPOSURES, FITCLASS_FIT_FAILED, FITCLASS_MEMORY,
+from ..errors import (FITCLASS_BAD_INPUT, FITCLASS_FEW_EXPOSURES, FITCLASS_FIT_FAILED, FITCLASS_GALAXY, FITCLASS_MEMORY,
                       FITCLASS_OFF_EXPOSURES, FITCLASS_TOO_LARGE, ShearfitIOError, ShearfitValueError)
 from ..calib.calibrate import calibration_m, default_calibration, load_calibration
+from ..calib.weights import isotropic_bins, isotropic_weights
 from ..engine.measure import measure_object
 from ..engine.model import ContentMemo, inv2, psf_moffat
 from ..observation import Observation, is_immutable
@@ -522,7 +523,12 @@ def _measure_field(cfg, out_path, progress, processes, restart, scheduler, execu
         if bar is not None:
             bar.close()
     measured = np.asarray(table["fitclass"]) >= 0
+    # lensfit's weight responds to shear where likelihoods are broad (small galaxies): the catalogue also
+    # carries each galaxy's bin mean of it, which does not (shearfit.calib.weights)
+    nb = isotropic_bins(int(np.count_nonzero(np.asarray(table["fitclass"]) == FITCLASS_GALAXY)))
+    table["iso_weight"] = isotropic_weights(table, nb)
     cards = list(provenance_cards(cfg.to_dict(), __version__))
+    cards += [("ISOBINS", nb, "iso_weight: bins of flux_snr")]
     if metacal:
         # the response is measured per galaxy (R11 .. R22): no simulation-based m
         table["m"] = np.where(measured, 0.0, np.nan)
@@ -960,7 +966,8 @@ def _measure_on_stamps(hits, exposures, mag, cfg, pc, obj_id, size, geometry=Non
         extra = {}
     row = {"e1": res.e1, "e2": res.e2, "weight": res.weight, "e_var": res.e_var, "fitclass": res.fitclass,
            "snr": res.snr, "scalelength": res.scalelength, "bulge_fraction": res.bulge_fraction,
-           "model_flux": res.model_flux, "n_exposures_used": res.n_exposures_used, "star_pvalue": res.star_pvalue}
+           "model_flux": res.model_flux, "n_exposures_used": res.n_exposures_used, "star_pvalue": res.star_pvalue,
+           "flux_snr": res.flux_snr, "round_scalelength": res.round_scalelength}
     row.update(extra)
     pe = np.array(psf_stats, float)
     with warnings.catch_warnings():   # an object whose PSF moments failed everywhere: NaN, silently

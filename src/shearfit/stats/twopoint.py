@@ -58,7 +58,7 @@ def parse_selection(text):
     return parts[0], lo, hi
 
 
-def read_shear_catalog(path, selections=(), extra=None, measured_only=True) -> Table:
+def read_shear_catalog(path, selections=(), extra=None, measured_only=True, weight_column="weight") -> Table:
     """The measured galaxies of a shearfit catalogue (fitclass 0, weight > 0, finite e), after the selections.
 
     ``selections``: (column, lo, hi) ranges, e.g. a tomographic bin of a
@@ -66,14 +66,23 @@ def read_shear_catalog(path, selections=(), extra=None, measured_only=True) -> T
     ``measured_only=False`` keeps every object that passes the selections
     (a metacal selection response needs the objects that only the sheared
     versions select); :func:`measured` takes the galaxies from it.
+    ``weight_column``: the column whose values are the weights (``iso_weight``, say: it is copied into
+    ``weight``, and lensfit's is kept as ``lensfit_weight``). A metacal catalogue keeps its own weights: its
+    selection response is measured with the sheared versions' ``weight_1p`` ...
     """
     try:
         t = Table.read(path)
     except (OSError, ValueError) as exc:
         raise ShearfitIOError(f"{path}: cannot read the shear catalogue: {str(exc).splitlines()[0]}") from None
-    for col in tuple(_NEEDED) + tuple(extra or ()):
+    for col in tuple(_NEEDED) + tuple(extra or ()) + (weight_column,):
         if col not in t.colnames:
             raise ShearfitIOError(f"{path}: shear catalogue has no column {col!r}")
+    if weight_column != "weight":
+        if "weight_1p" in t.colnames:
+            raise ShearfitValueError(f"{path}: a metacal catalogue: its weights are 'weight' and the sheared "
+                                     f"versions' (the selection response), not {weight_column!r}")
+        t["lensfit_weight"] = t["weight"]
+        t["weight"] = np.asarray(t[weight_column], float)
     keep = np.ones(len(t), bool)
     for col, lo, hi in selections:
         if col not in t.colnames:
