@@ -368,11 +368,12 @@ def _self_calibrate(obs, mag, cfg, res, plan, margin=10.0):
     f(e): the estimate on the noise-free image of the model of ellipticity e (with the fit's posterior-mean
     size, bulge fraction and flux, at its position; :func:`model_observations`), measured as the data were
     (same exposures, weights, modes, position and ellipticity samples). The corrected estimate solves
-    f(e) = e_hat, the data's estimate, by one Newton step from e_hat: the bias b = f(e_hat) - e_hat divided by
-    f's response, radially the finite difference of f over min(SELFCAL_STEP, 2 sigma_e) towards e = 0 and
-    tangentially |f(e_hat)| / |e_hat| (an estimator that turns with the galaxy), each bounded to
-    SELFCAL_RESPONSE. For a small galaxy at high |e| the radial response is well below 1, and the bias it
-    leaves is the larger for it.
+    f(e) = e_hat, the data's estimate, by Newton steps from e_hat (``self_calibration_steps``, one by default;
+    each further step evaluates f at the last solution and keeps the first step's responses): the bias
+    b = f(e_hat) - e_hat divided by f's response, radially the finite difference of f over min(SELFCAL_STEP,
+    2 sigma_e) towards e = 0 and tangentially |f(e_hat)| / |e_hat| (an estimator that turns with the galaxy),
+    each bounded to SELFCAL_RESPONSE. For a small galaxy at high |e| the radial response is well below 1, and
+    the bias it leaves is the larger for it.
     """
     e_hat = np.array([res.e1, res.e2])
     a = float(np.hypot(*e_hat))
@@ -401,13 +402,23 @@ def _self_calibrate(obs, mag, cfg, res, plan, margin=10.0):
     s_rad = float(np.clip(r_rad, lo, hi))
     s_tan = float(np.clip(r_tan, lo, hi)) if a > abs(h) else s_rad
     b = f0 - e_hat
-    e_out = e_hat - (np.dot(b, u) / s_rad) * u - (np.dot(b, v) / s_tan) * v
-    n = float(np.hypot(*e_out))
-    if n > cfg.model_e_limit:
-        e_out *= cfg.model_e_limit / n
+    e_out = _within(e_hat - (np.dot(b, u) / s_rad) * u - (np.dot(b, v) / s_tan) * v, cfg.model_e_limit)
+    # more steps of the same Newton solve (self_calibration_steps), with the first step's responses
+    for _ in range(int(cfg.self_calibration_steps) - 1):
+        f1 = f(e_out)
+        if not np.all(np.isfinite(f1)):
+            break
+        b = f1 - e_hat
+        e_out = _within(e_out - (np.dot(b, u) / s_rad) * u - (np.dot(b, v) / s_tan) * v, cfg.model_e_limit)
     res.selfcal_de = (float(e_hat[0] - e_out[0]), float(e_hat[1] - e_out[1]))
     res.selfcal_response = (r_rad, r_tan)
     res.e1, res.e2 = float(e_out[0]), float(e_out[1])
+
+
+def _within(e, limit):
+    """``e`` scaled back onto the circle ``|e| = limit`` if beyond it."""
+    n = float(np.hypot(*e))
+    return e * (limit / n) if n > limit else e
 
 
 def noise_bias_noise(observations: Sequence[Observation], seed=None) -> list:
