@@ -849,7 +849,8 @@ _OUTPUT_COLUMNS = (
     OutputColumn("flux_snr", "f8", "", "SNR of model_flux were the object a point source (its shape does "
                                        "not enter: a shear leaves it unchanged)"),
     OutputColumn("round_scalelength", "f8", "arcsec", "likelihood mean of the round scalelength of the same "
-                                                      "area, r sqrt(q) (a shear leaves it unchanged)"),
+                                                      "area, r sqrt(q) (a shear changes it far less than "
+                                                      "scalelength)"),
     OutputColumn("iso_weight", "f8", "", "lensfit's weight made isotropic: the mean weight of the catalogue's "
                                          "galaxies in the object's bin of flux_snr; "
                                          "a shear leaves it unchanged; 0 where not a measured galaxy"),
