@@ -129,3 +129,51 @@ def test_more_newton_steps_converge_on_the_models_solution():
     for bad in (0, 21):
         with pytest.raises(shearfit.errors.ShearfitValueError, match="self_calibration_steps"):
             as_config({"self_calibration_steps": bad})
+
+
+def _fake_solve(monkeypatch, F, e_hat, steps, sigma_e=0.02):
+    """_self_calibrate on a noise-free estimator F(e) of our own (the model images and their fits replaced):
+    returns the result and the ellipticities F was evaluated at."""
+    seen = []
+    monkeypatch.setattr(M, "model_observations", lambda obs, plan, params, cfg: np.array(params[:2]))
+    def fake(models, mag, cfg, return_samples, plan=None, **kw):
+        seen.append(np.array(models))
+        f = F(np.array(models))
+        return shearfit.FitResult(e1=float(f[0]), e2=float(f[1])), None
+    monkeypatch.setattr(M, "_measure", fake)
+    res = shearfit.FitResult(e1=e_hat[0], e2=e_hat[1], e_var=sigma_e ** 2, scalelength=0.1, bulge_fraction=0.0,
+                             model_flux=1.0, fitclass=0)
+    M._self_calibrate(None, 24.0, as_config({"self_calibration": True, "self_calibration_steps": steps}), res,
+                      plan=object())
+    return res, seen
+
+
+def test_further_steps_stop_where_the_solve_does_not_contract(monkeypatch):
+    """The further Newton steps go on while each shrinks |f(e) - e_hat| by SELFCAL_CONTRACTION: an estimator
+    whose solution the steps approach (f(e) = e - 0.4 e |e|^2) is solved to 1e-6 in 4 steps; one that saturates
+    short of the data's estimate (|f| < 0.3 everywhere, e_hat 0.35: no solution) stops at the evaluated iterate of
+    the smallest residual instead of being carried towards the model's limit."""
+    e_hat = np.array([0.3, 0.25])
+
+    def solvable(e):
+        return e - 0.4 * e * np.dot(e, e)
+
+    res, seen = _fake_solve(monkeypatch, solvable, e_hat, 4)
+    assert res.selfcal_steps == 4 and len(seen) == 2 + 3
+    assert np.hypot(*(solvable(np.array([res.e1, res.e2])) - e_hat)) < 1e-6
+
+    def saturating(e):
+        a = np.hypot(*e)
+        return e / a * 0.3 * np.tanh(a / 0.3) if a > 0 else e
+
+    e_hat = np.array([0.3, -0.18])   # |e_hat| 0.35
+    res, seen = _fake_solve(monkeypatch, saturating, e_hat, 6)
+    evaluated = seen[2:]   # f(e_hat) and the finite difference first, then each further step's iterate
+    resid = [np.hypot(*(saturating(e) - e_hat)) for e in evaluated]
+    assert res.selfcal_steps < 6 and len(evaluated) < 5
+    assert np.allclose([res.e1, res.e2], evaluated[int(np.argmin(resid))], atol=1e-12)
+    assert np.hypot(res.e1, res.e2) < as_config({}).model_e_limit - 0.05
+    # without the guard the same steps carry it to the model's limit
+    monkeypatch.setattr(M, "SELFCAL_CONTRACTION", np.inf)
+    far, _ = _fake_solve(monkeypatch, saturating, e_hat, 6)
+    assert np.hypot(far.e1, far.e2) > as_config({}).model_e_limit - 1e-9

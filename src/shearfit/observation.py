@@ -189,7 +189,8 @@ class FitResult:
     (e, r) models evaluated. With the ``self_calibration`` setting, ``e1, e2``
     are self-calibrated, ``selfcal_de`` is the correction subtracted from the
     likelihood mean and ``selfcal_response`` the estimator's response found
-    on the model (radial, tangential; before bounding); otherwise both are None.
+    on the model (radial, tangential; before bounding), and ``selfcal_steps`` the Newton steps whose result
+    stands (``self_calibration_steps`` at most); otherwise None, None and 0.
     With the ``noise_bias_correction`` setting, ``noise_bias_de`` is the noise
     bias (e1, e2) found by noise-bias extrapolation and subtracted; otherwise
     None. ``flux_snr`` is the SNR ``model_flux`` would have were the object a
@@ -221,4 +222,5 @@ class FitResult:
     samples: Optional[np.ndarray] = field(default=None, repr=False)
     selfcal_de: Optional[tuple] = field(default=None, repr=False)
     selfcal_response: Optional[tuple] = field(default=None, repr=False)
+    selfcal_steps: int = field(default=0, repr=False)
     noise_bias_de: Optional[tuple] = field(default=None, repr=False)
