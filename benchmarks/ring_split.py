@@ -3,6 +3,7 @@
 
     python benchmarks/ring_split.py ring.fits [ring2.fits ...] [--r-bins 0,0.15,0.3,10] [--unweighted |
                                               --paired-weights | --isotropic-weights] [--uncorrected]
+                                              [--e-bins 0,0.3,0.5,0.6,0.7,1] [--paired-with B.fits ...]
 
 Several tables (runs of the same shear) are read as one, their galaxies numbered on.
 
@@ -14,61 +15,134 @@ noise at +g and at -g; ``shearfit.calib.bias.paired_weights``), so that no weigh
 each keeps its dependence on the galaxy, its orientation and its noise. m with lensfit's weights less m with
 paired weights is the part of m that comes from the weights' response to shear.
 
+``--paired-with B ...``: the same split for another run of the same galaxies (the same ``--seed``, ``--n-galaxies``
+and population; another setting, or ``--noise-free``), and the first run less it object by object, the galaxies
+resampled together: only objects both runs have, measured as galaxies in both, enter either. A run without
+``--antithetic`` (a noise-free one, whose twins would be copies) stands for the twins too. The weight options apply
+to both runs, ``--uncorrected`` to the first only: ``A --uncorrected --paired-with NF`` (NF the same galaxies without
+noise) is the noise bias that ``noise_bias_correction`` removes, ``A --paired-with NF`` what it leaves.
+
 ``--isotropic-weights``: each weight the mean weight of its bin of ``flux_snr``
 (``shearfit.calib.weights.isotropic_weights``, 10 equal-number bins; tables from session 57 on): the weights a
 catalogue without ring pairs has (its ``iso_weight``), which do not respond to shear either.
 """
 
 import argparse
+import os
+import sys
 
 import numpy as np
 from astropy.table import Table
 
-from shearfit.calib.bias import paired_weights, ring_sums, shear_bias
+from shearfit.calib.bias import bias_from_sums, bootstrap_counts, paired_weights, ring_sums, shear_bias
 from shearfit.calib.weights import isotropic_weights
 
 # benchmarks/ring_test.py, beside this script: several runs' tables read as one
-from ring_test import read_tables
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from ring_test import read_tables  # noqa: E402
 
 
-def main(paths, r_bins=(0, 0.15, 0.3, 10), unweighted=False, paired=False, isotropic=False, uncorrected=False):
-    t = Table(read_tables(paths)[0])
-    if uncorrected:
-        if "nb_de1" not in t.colnames:
-            raise SystemExit("ring_split.py: --uncorrected needs a run with noise_bias_correction (columns nb_de1, "
-                             "nb_de2)")
-        for i in (1, 2):
-            t[f"e{i}"] = np.asarray(t[f"e{i}"]) + np.nan_to_num(np.asarray(t[f"nb_de{i}"]))
+def _weighted(t, unweighted, paired, isotropic):
     if unweighted:   # unit weights for the galaxies (fitclass 0), none for the rest
         t["weight"] = np.where(t["fitclass"] == 0, 1.0, 0.0)
     elif paired:
         t["weight"] = paired_weights(t)
     elif isotropic:
         t["weight"] = isotropic_weights(t)
+    return t
+
+
+def _matched(t, other):
+    """``t`` and ``other`` on their common objects (galaxy, rotation, sign) in one order, an object that failed in
+    either failed in both; ``other`` without twins (rotations 4-7) standing for them where ``t`` has them."""
+    if np.max(other["rotation"]) < 4 <= np.max(t["rotation"]):
+        twins = other.copy()
+        twins["rotation"] = twins["rotation"] + 4
+        other = Table(np.concatenate([np.asarray(other), np.asarray(twins)]))
+
+    def key(x):
+        return (np.asarray(x["galaxy"], np.int64) * 64 + np.asarray(x["rotation"])) * 2 + (np.asarray(x["sign"]) > 0)
+
+    ka, kb = key(t), key(other)
+    if np.unique(ka).size != ka.size or np.unique(kb).size != kb.size:
+        raise SystemExit("ring_split.py: --paired-with: an object (galaxy, rotation, sign) occurs twice in a run")
+    common = np.intersect1d(ka, kb)
+    t = t[np.isin(ka, common)]
+    other = other[np.isin(kb, common)]
+    t, other = t[np.argsort(key(t))], other[np.argsort(key(other))]
+    bad = (np.asarray(t["fitclass"]) != 0) | (np.asarray(other["fitclass"]) != 0)
+    t["fitclass"] = np.where(bad, -1, t["fitclass"])
+    other["fitclass"] = np.where(bad, -1, other["fitclass"])
+    return t, other
+
+
+def main(paths, r_bins=(0, 0.15, 0.3, 10), unweighted=False, paired=False, isotropic=False, uncorrected=False,
+         paired_with=None, e_bins=None):
+    if paired_with and (len(paths) != 1 or len(paired_with) != 1):
+        # several tables are renumbered as one, and two runs' numbers would then not pair
+        raise SystemExit("ring_split.py: --paired-with compares one table with one other")
+    # a paired run is read as written: its galaxy numbers are the seed's (a stopped run's table may lack some)
+    t = Table.read(paths[0]) if paired_with else Table(read_tables(paths)[0])
+    if uncorrected:
+        if "nb_de1" not in t.colnames:
+            raise SystemExit("ring_split.py: --uncorrected needs a run with noise_bias_correction (columns nb_de1, "
+                             "nb_de2)")
+        for i in (1, 2):
+            t[f"e{i}"] = np.asarray(t[f"e{i}"]) + np.nan_to_num(np.asarray(t[f"nb_de{i}"]))
+    other = None
+    if paired_with:
+        t, other = _matched(t, Table.read(paired_with[0]))
+        other = _weighted(other, unweighted, paired, isotropic)
+    t = _weighted(t, unweighted, paired, isotropic)
     plus = t[t["sign"] > 0]
     g = np.array([plus["g1"][0], plus["g2"][0]])   # the shear of the +g set
     n = int(t["galaxy"].max()) + 1
     rgal = np.zeros(n)
     rgal[t["galaxy"]] = t["true_scalelength"]
-    sdg = np.array([np.sqrt(np.nanmean(t["e_var"][t["galaxy"] == k])) for k in range(n)])
+    egal = np.zeros(n)
+    egal[t["galaxy"]] = np.hypot(t["e1_int"], t["e2_int"])
+    ev = np.asarray(t["e_var"], float)
+    gal = np.asarray(t["galaxy"])
+    ok = np.isfinite(ev)
+    with np.errstate(invalid="ignore", divide="ignore"):   # a galaxy a stopped run lacks: NaN
+        sdg = np.sqrt(np.bincount(gal[ok], ev[ok], n) / np.bincount(gal[ok], None, n))
     rng = np.random.default_rng(0)
 
+    present = np.zeros(n, bool)
+    present[t["galaxy"]] = True
+
     def sub(sel, label):
-        idx = np.flatnonzero(sel)
+        idx = np.flatnonzero(sel & present)
         if idx.size < 2:
             return
         remap = -np.ones(n, int)
         remap[idx] = np.arange(idx.size)
-        tt = t[np.isin(t["galaxy"], idx)]
-        tab = {c: np.array(tt[c]) for c in ("sign", "e1", "e2", "weight", "fitclass")}
-        tab["galaxy"] = remap[np.array(tt["galaxy"])]
-        est, err = shear_bias(ring_sums(tab, idx.size), g, 500, rng)
-        print(f"{label:26s} rings={idx.size:4d}  m1={est[0]:+.4f}+-{err[0]:.4f}  m2={est[1]:+.4f}+-{err[1]:.4f}  "
-              f"c1={est[2]:+.5f}+-{err[2]:.5f}  c2={est[3]:+.5f}+-{err[3]:.5f}")
+        def sums_of(x):
+            xx = x[np.isin(x["galaxy"], idx)]
+            tab = {c: np.array(xx[c]) for c in ("sign", "e1", "e2", "weight", "fitclass")}
+            tab["galaxy"] = remap[np.array(xx["galaxy"])]
+            return ring_sums(tab, idx.size)
+
+        sa = sums_of(t)
+        if other is None:
+            est, err = shear_bias(sa, g, 500, rng)
+            print(f"{label:26s} rings={idx.size:4d}  m1={est[0]:+.4f}+-{err[0]:.4f}  m2={est[1]:+.4f}+-{err[1]:.4f}  "
+                  f"c1={est[2]:+.5f}+-{err[2]:.5f}  c2={est[3]:+.5f}+-{err[3]:.5f}")
+            return
+        sb = sums_of(other)
+        counts = bootstrap_counts(idx.size, 500, rng)
+        ba, bb = bias_from_sums(sa, g, counts), bias_from_sums(sb, g, counts)
+        for name, est, boot in (("", bias_from_sums(sa, g), ba), (" paired run", bias_from_sums(sb, g), bb),
+                                (" first less paired", bias_from_sums(sa, g) - bias_from_sums(sb, g), ba - bb)):
+            err = np.nanstd(boot, axis=0)
+            print(f"{(label + name):44s} rings={idx.size:4d}  m1={est[0]:+.4f}+-{err[0]:.4f}  "
+                  f"m2={est[1]:+.4f}+-{err[1]:.4f}  c1={est[2]:+.5f}+-{err[2]:.5f}")
 
     sub(np.ones(n, bool), "all")
     for lo, hi in zip(r_bins[:-1], r_bins[1:]):
         sub((rgal >= lo) & (rgal < hi), f"r in [{lo}, {hi}) arcsec")
+    for lo, hi in zip((e_bins or [])[:-1], (e_bins or [])[1:]):
+        sub((egal >= lo) & (egal < hi), f"|e_int| in [{lo}, {hi})")
     for lo, hi in [(0, 0.02), (0.02, 0.05), (0.05, 1)]:
         sub((sdg >= lo) & (sdg < hi), f"sigma_e in [{lo}, {hi})")
 
@@ -84,8 +158,13 @@ if __name__ == "__main__":
                     help="each weight the mean of its bin of flux_snr (the catalogue's iso_weight)")
     ap.add_argument("--uncorrected", action="store_true",
                     help="add back the noise bias that noise_bias_correction subtracted")
+    ap.add_argument("--e-bins", default=None,
+                    help="edges of bins of the galaxies' intrinsic |e| (e.g. 0,0.3,0.5,0.6,0.7,1), each split too")
+    ap.add_argument("--paired-with", nargs="+", metavar="TABLE", default=None,
+                    help="another run of the same galaxies: its m and c, and the first run's less its, object by "
+                         "object with the galaxies resampled together")
     a = ap.parse_args()
     if a.unweighted + a.paired_weights + a.isotropic_weights > 1:
         ap.error("--unweighted, --paired-weights and --isotropic-weights exclude each other")
     main(a.table, [float(x) for x in a.r_bins.split(",")], a.unweighted, a.paired_weights, a.isotropic_weights,
-         a.uncorrected)
+         a.uncorrected, a.paired_with, [float(x) for x in a.e_bins.split(",")] if a.e_bins else None)

@@ -125,6 +125,10 @@ JACKKNIFE_MIN_RUNS = 5
 HLR_WEIGHT_BINS = 20
 RESULT_FIELDS = ("e1", "e2", "e_var", "weight", "snr", "scalelength", "bulge_fraction", "model_flux", "flux_snr",
                  "round_scalelength")
+#: with self_calibration (not metacal): the correction subtracted from the likelihood mean, the responses found
+#: on the model (radial, tangential) and the Newton steps kept (FitResult.selfcal_de, selfcal_response,
+#: selfcal_steps; tables from session 59 on)
+SELFCAL_FIELDS = ("sc_de1", "sc_de2", "sc_rrad", "sc_rtan", "sc_steps")
 #: fields that tables written before session 57 have not
 NEWER_FIELDS = ("flux_snr", "round_scalelength")
 METACAL_FIELDS = tuple(f"{q}_{v}" for v in ("1p", "1m", "2p", "2m") for q in ("e1", "e2", "weight", "fitclass")) + \
@@ -206,6 +210,9 @@ def _work(task):
                 rec[name] = np.nan
             if cfg.noise_bias_correction:
                 rec["nb_de1"] = rec["nb_de2"] = np.nan
+            if cfg.self_calibration and not metacal:
+                for name in SELFCAL_FIELDS:
+                    rec[name] = np.nan
             if measure is not None and metacal:
                 from shearfit.calib.metacal import SHEARED, measure_metacal
 
@@ -252,6 +259,10 @@ def _work(task):
                         rec[name] = float(getattr(res, name, np.nan))
                     if res.noise_bias_de is not None:
                         rec["nb_de1"], rec["nb_de2"] = res.noise_bias_de
+                    if cfg.self_calibration and res.selfcal_de is not None:
+                        rec["sc_de1"], rec["sc_de2"] = res.selfcal_de
+                        rec["sc_rrad"], rec["sc_rtan"] = res.selfcal_response
+                        rec["sc_steps"] = float(res.selfcal_steps)
                 rec["time"] = time.perf_counter() - t0
                 t_meas += rec["time"]
             records.append(rec)

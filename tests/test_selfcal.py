@@ -131,7 +131,7 @@ def test_more_newton_steps_converge_on_the_models_solution():
             as_config({"self_calibration_steps": bad})
 
 
-def _fake_solve(monkeypatch, F, e_hat, steps, sigma_e=0.02):
+def _fake_solve(monkeypatch, F, e_hat, steps, sigma_e=0.02, **settings):
     """_self_calibrate on a noise-free estimator F(e) of our own (the model images and their fits replaced):
     returns the result and the ellipticities F was evaluated at."""
     seen = []
@@ -143,8 +143,8 @@ def _fake_solve(monkeypatch, F, e_hat, steps, sigma_e=0.02):
     monkeypatch.setattr(M, "_measure", fake)
     res = shearfit.FitResult(e1=e_hat[0], e2=e_hat[1], e_var=sigma_e ** 2, scalelength=0.1, bulge_fraction=0.0,
                              model_flux=1.0, fitclass=0)
-    M._self_calibrate(None, 24.0, as_config({"self_calibration": True, "self_calibration_steps": steps}), res,
-                      plan=object())
+    M._self_calibrate(None, 24.0, as_config({"self_calibration": True, "self_calibration_steps": steps, **settings}),
+                      res, plan=object())
     return res, seen
 
 
@@ -177,3 +177,27 @@ def test_further_steps_stop_where_the_solve_does_not_contract(monkeypatch):
     monkeypatch.setattr(M, "SELFCAL_CONTRACTION", np.inf)
     far, _ = _fake_solve(monkeypatch, saturating, e_hat, 6)
     assert np.hypot(far.e1, far.e2) > as_config({}).model_e_limit - 1e-9
+
+
+def test_min_response_bounds_the_radial_correction(monkeypatch):
+    """self_calibration_min_response: an estimator that responds radially with slope 0.3 (an estimate pulled in
+    towards a saturating |e|, as small galaxies' at high |e|; tangentially it turns with the galaxy) and is linear
+    there: with the bound at 0.5 one step corrects 0.3 / 0.5 of the bias and leaves the rest, with the bound below
+    0.3 one step solves it exactly. Settings outside (0, 1] are refused."""
+    e_true = np.array([0.54, 0.42])   # |e| 0.684
+    u = e_true / np.hypot(*e_true)
+
+    def pulled(e):   # radially f = 0.62 + 0.3 (|e| - 0.684), along the galaxy's own direction
+        a = np.hypot(*e)
+        return e / a * (0.62 + 0.3 * (a - np.hypot(*e_true)))
+
+    e_hat = pulled(e_true)
+    bounded, _ = _fake_solve(monkeypatch, pulled, e_hat, 1, sigma_e=0.08)
+    free, _ = _fake_solve(monkeypatch, pulled, e_hat, 1, sigma_e=0.08, self_calibration_min_response=0.2)
+    assert bounded.selfcal_response[0] == pytest.approx(0.3, abs=1e-9)
+    short = np.dot(e_true - np.array([bounded.e1, bounded.e2]), u)
+    assert short == pytest.approx((1 - 0.3 / 0.5) * np.dot(e_true - e_hat, u), rel=1e-6)
+    assert np.hypot(free.e1 - e_true[0], free.e2 - e_true[1]) < 1e-9
+    for bad in (0, -0.1, 1.2):
+        with pytest.raises(shearfit.errors.ShearfitValueError, match="self_calibration_min_response"):
+            as_config({"self_calibration_min_response": bad})

@@ -190,6 +190,18 @@ class FitConfig:
         "paper's population at SNR 10-40: +0.008 +- 0.003 / +0.002 +- 0.004, 2.5 % of the estimates moved by more "
         "than 0.05",
         "sec. 3.4 (extension)")
+    self_calibration_min_response: float = setting(
+        0.5, "the smallest response (radial and tangential) by which the self-calibration divides the bias it finds "
+        "(the largest is 1.5): 0.5 allows at most a twofold correction. Small galaxies at high |e| respond less: "
+        "for a scalelength of 0.11\" at SNR 150 the noise-free estimate's slope along |e| is 0.41 between 0.6 and "
+        "0.7 and 0.13-0.19 between 0.7 and 0.8 (a broad likelihood in |e|, and the prior ends at disk_e_max), so the "
+        "bound cuts 12 % of the responses of galaxies of 0.1-0.125\" and leaves their correction short: m -0.007 "
+        "there without noise, -0.008 with noise and noise_bias_correction (700 rings). 0.25 cuts none of them "
+        "without noise; with noise_bias_correction it leaves -0.005 +- 0.003 / -0.002 +- 0.004 with one step and "
+        "-0.000 +- 0.004 / +0.004 +- 0.005 with self_calibration_steps 4, whose errors are 1.5 times larger "
+        "(benchmarks/README.md, session 59; benchmarks/selfcal_response.py). The default calibration tables were "
+        "fitted with 0.5",
+        "sec. 3.4 (extension)")
     noise_bias_correction: bool = setting(
         False, "noise-bias extrapolation: measure the object twice more, with a noise field n drawn from its "
         "weights added to and subtracted from its pixels, and subtract the bias b = (e(y + n) + e(y - n)) / 2 - "
@@ -243,6 +255,9 @@ class FitConfig:
                                          f"({self.e_grid_start!r}) times a power of 2 (2, 4, ...)")
         if not self.e_grid_prepass_margin >= 0:
             raise ShearfitValueError(f"setting e_grid_prepass_margin={self.e_grid_prepass_margin!r} must be >= 0")
+        if not 0 < self.self_calibration_min_response <= 1:
+            raise ShearfitValueError(f"setting self_calibration_min_response={self.self_calibration_min_response!r} "
+                                     "must lie in (0, 1]")
         if not 1 <= self.self_calibration_steps <= 20:
             raise ShearfitValueError(f"setting self_calibration_steps={self.self_calibration_steps!r} must lie in "
                                      "[1, 20]")

@@ -358,8 +358,8 @@ def model_observations(obs, plan: "FitPlan", params, cfg):
 #: wide enough to see the response's trend over the sampler's lattice (0.02 apart), narrow enough to stay
 #: local; the step is at most twice the likelihood's width, within which the replayed samples lie.
 SELFCAL_STEP = 0.05
-#: The bounds of the responses the self-calibration divides by: at most a twofold correction of the bias.
-SELFCAL_RESPONSE = (0.5, 1.5)
+#: The largest response the self-calibration divides by (the smallest is the setting self_calibration_min_response).
+SELFCAL_MAX_RESPONSE = 1.5
 #: The self-calibration's further Newton steps (``self_calibration_steps``) go on while each shrinks the residual
 #: |f(e) - e_hat| to at most this fraction of the last one; where one does not, the evaluated iterate with the
 #: smallest residual stands. Near a solution the steps shrink it 3 to 30 times (small galaxies at SNR 100-200);
@@ -382,8 +382,9 @@ def _self_calibrate(obs, mag, cfg, res, plan, margin=10.0):
     halves the residual: SELFCAL_CONTRACTION): the bias
     b = f(e_hat) - e_hat divided by f's response, radially the finite difference of f over min(SELFCAL_STEP,
     2 sigma_e) towards e = 0 and tangentially |f(e_hat)| / |e_hat| (an estimator that turns with the galaxy),
-    each bounded to SELFCAL_RESPONSE. For a small galaxy at high |e| the radial response is well below 1, and
-    the bias it leaves is the larger for it.
+    each bounded to [self_calibration_min_response, SELFCAL_MAX_RESPONSE]. For a small galaxy at high |e| the radial
+    response is well below 1 (0.15-0.4 for scalelengths of 0.1-0.125" at |e| 0.6-0.75), and where the bound cuts it
+    the bias left is the larger for it.
     """
     e_hat = np.array([res.e1, res.e2])
     a = float(np.hypot(*e_hat))
@@ -406,7 +407,7 @@ def _self_calibrate(obs, mag, cfg, res, plan, margin=10.0):
         res.weight = 0.0
         res.message = "self-calibration: no estimate on the model's image"
         return
-    lo, hi = SELFCAL_RESPONSE
+    lo, hi = float(cfg.self_calibration_min_response), SELFCAL_MAX_RESPONSE
     r_rad = float(np.dot(f0 - fb, u) / h)
     r_tan = float(np.dot(f0, u) / a) if a > 0 else np.nan
     s_rad = float(np.clip(r_rad, lo, hi))
