@@ -3,7 +3,7 @@
 
     python benchmarks/ring_split.py ring.fits [ring2.fits ...] [--r-bins 0,0.15,0.3,10] [--unweighted |
                                               --paired-weights | --isotropic-weights] [--uncorrected]
-                                              [--e-bins 0,0.3,0.5,0.6,0.7,1] [--paired-with B.fits ...]
+                                              [--e-bins 0,0.3,0.5,0.6,0.7,1] [--paired-with B.fits]
 
 Several tables (runs of the same shear) are read as one, their galaxies numbered on.
 
@@ -15,7 +15,7 @@ noise at +g and at -g; ``shearfit.calib.bias.paired_weights``), so that no weigh
 each keeps its dependence on the galaxy, its orientation and its noise. m with lensfit's weights less m with
 paired weights is the part of m that comes from the weights' response to shear.
 
-``--paired-with B ...``: the same split for another run of the same galaxies (the same ``--seed``, ``--n-galaxies``
+``--paired-with B``: the same split for another run of the same galaxies (the same ``--seed``, ``--n-galaxies``
 and population; another setting, or ``--noise-free``), and the first run less it object by object, the galaxies
 resampled together: only objects both runs have, measured as galaxies in both, enter either. A run without
 ``--antithetic`` (a noise-free one, whose twins would be copies) stands for the twins too. The weight options apply
@@ -160,11 +160,12 @@ if __name__ == "__main__":
                     help="add back the noise bias that noise_bias_correction subtracted")
     ap.add_argument("--e-bins", default=None,
                     help="edges of bins of the galaxies' intrinsic |e| (e.g. 0,0.3,0.5,0.6,0.7,1), each split too")
-    ap.add_argument("--paired-with", nargs="+", metavar="TABLE", default=None,
+    ap.add_argument("--paired-with", metavar="TABLE", default=None,
                     help="another run of the same galaxies: its m and c, and the first run's less its, object by "
                          "object with the galaxies resampled together")
     a = ap.parse_args()
     if a.unweighted + a.paired_weights + a.isotropic_weights > 1:
         ap.error("--unweighted, --paired-weights and --isotropic-weights exclude each other")
+    e_edges = [float(x) for x in a.e_bins.split(",")] if a.e_bins else None
     main(a.table, [float(x) for x in a.r_bins.split(",")], a.unweighted, a.paired_weights, a.isotropic_weights,
-         a.uncorrected, a.paired_with, [float(x) for x in a.e_bins.split(",")] if a.e_bins else None)
+         a.uncorrected, [a.paired_with] if a.paired_with else None, e_edges)
