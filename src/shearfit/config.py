@@ -178,17 +178,15 @@ class FitConfig:
         "sec. 3.4 (extension)")
     self_calibration_steps: int = setting(
         1, "Newton steps of the self-calibration's solve f(e) = e_hat (each after the first one more noise-free "
-        "fit of the model, with the first step's responses), taken while each at least halves the residual "
-        "|f(e) - e_hat|; where one does not (the sampler's floor of about 1e-4, or a broad likelihood whose "
-        "noise-free estimate cannot reach the data's), the evaluated ellipticity of the smallest residual stands "
-        "(FitResult.selfcal_steps). One step leaves, for galaxies of scalelength 0.1-0.125\" at |e| 0.4-0.55, "
-        "residuals of up to 0.008 that alternate in sign from step to step (the response found towards e = 0 is "
-        "below the one at the solution): m -0.0035 +- 0.0019 on noise-free rings, -0.0012 +- 0.0008 with 4 steps "
-        "(benchmarks/README.md, session 57). With noise (SNR 100-200) 4 steps move m there by -0.003 +- 0.002 / "
-        "-0.004 +- 0.005 (139 rings, rotated exposures); without the halving rule they moved it by +0.013 +- 0.003, "
-        "all of it from the 4 % of objects they carried 0.1-0.3 towards the model's limit (session 58). On the "
-        "paper's population at SNR 10-40: +0.008 +- 0.003 / +0.002 +- 0.004, 2.5 % of the estimates moved by more "
-        "than 0.05",
+        "fit of the model, radially with the secant over the last step as the response), each damped by how well "
+        "the last one contracted the residual |f(e) - e_hat| (SELFCAL_DAMPING: undamped while a step shrinks it to "
+        "0.3 of the last or less, fading to no step at 0.7), so that the result moves smoothly with the pixels and "
+        "an estimate the model's cannot reach (a broad likelihood near the model's limit) is not carried outwards "
+        "(FitResult.selfcal_steps counts the steps taken). One step leaves, for galaxies of scalelength 0.1-0.125\" "
+        "at |e| 0.4-0.55, residuals of up to 0.008 that alternate in sign from step to step (the response found "
+        "towards e = 0 is below the one at the solution). With self_calibration_min_response 0.25, on 700 noise-free "
+        "rings of such galaxies m is -0.0046 +- 0.0012 / -0.0034 +- 0.0013 with one step and -0.0012 +- 0.0011 / "
+        "-0.0003 +- 0.0013 with 4 (benchmarks/README.md, session 60)",
         "sec. 3.4 (extension)")
     self_calibration_min_response: float = setting(
         0.5, "the smallest response (radial and tangential) by which the self-calibration divides the bias it finds "

@@ -189,8 +189,8 @@ class FitResult:
     (e, r) models evaluated. With the ``self_calibration`` setting, ``e1, e2``
     are self-calibrated, ``selfcal_de`` is the correction subtracted from the
     likelihood mean and ``selfcal_response`` the estimator's response found
-    on the model (radial, tangential; before bounding), and ``selfcal_steps`` the Newton steps whose result
-    stands (``self_calibration_steps`` at most); otherwise None, None and 0.
+    on the model (radial, tangential; before bounding), and ``selfcal_steps`` the Newton steps taken
+    (``self_calibration_steps`` at most; the further ones damped); otherwise None, None and 0.
     With the ``noise_bias_correction`` setting, ``noise_bias_de`` is the noise
     bias (e1, e2) found by noise-bias extrapolation and subtracted; otherwise
     None. ``flux_snr`` is the SNR ``model_flux`` would have were the object a

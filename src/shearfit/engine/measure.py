@@ -360,15 +360,19 @@ def model_observations(obs, plan: "FitPlan", params, cfg):
 SELFCAL_STEP = 0.05
 #: The largest response the self-calibration divides by (the smallest is the setting self_calibration_min_response).
 SELFCAL_MAX_RESPONSE = 1.5
-#: The self-calibration's further Newton steps (``self_calibration_steps``) go on while each shrinks the residual
-#: |f(e) - e_hat| to at most this fraction of the last one; where one does not, the evaluated iterate with the
-#: smallest residual stands. Near a solution the steps shrink it 3 to 30 times (small galaxies at SNR 100-200);
-#: a step that does not halve it has met the sampler's floor (a residual of about 1e-4, f being measured on the
-#: lattice of ellipticity samples) or an estimate f cannot reach (a broad likelihood whose noise-free estimate stays
-#: short of the data's at every |e| below the model's limit). Without the rule, on 0.1-0.125" galaxies at SNR 100-200,
-#: 4 steps carried 3.8 % of the objects (one-step |e| 0.54-0.86) by 0.1-0.3, most to the limit, and those made all of
-#: the +0.013 by which the steps moved m (benchmarks/README.md, session 58); at SNR 10-40, by up to 0.44.
-SELFCAL_CONTRACTION = 0.5
+#: The self-calibration's further Newton steps (``self_calibration_steps``) are damped by how well each contracted
+#: the residual |f(e) - e_hat|: with q the ratio of a step's residual to the last one's, the next step is scaled by
+#: the product over the steps so far of (0.7 - q) / (0.7 - 0.3), within [0, 1], and the steps end where it reaches 0.
+#: Near a solution the steps shrink the residual 3 to 30 times and go on undamped; a step that shrinks it less has
+#: met the sampler's floor (a residual of about 1e-4, f being measured on the lattice of ellipticity samples) or an
+#: estimate f cannot reach (a broad likelihood whose noise-free estimate stays short of the data's at every |e| below
+#: the model's limit), and the steps after it fade. Undamped, on 0.1-0.125" galaxies at SNR 100-200, 4 steps carried
+#: 3.8 % of the objects (one-step |e| 0.54-0.86) by 0.1-0.3, most to the limit, and those made all of the +0.013 by
+#: which the steps moved m (benchmarks/README.md, session 58); at SNR 10-40, by up to 0.44. The damping is a
+#: continuous function of the residuals, so the result moves smoothly with the pixels: session 58's rule (go on while
+#: a step halves the residual, else keep the iterate of the smallest) stopped the two members of 36 % of the +g / -g
+#: pairs of a ring at different steps, and their unconverged residuals became scatter in m (session 60).
+SELFCAL_DAMPING = (0.3, 0.7)
 
 
 def _self_calibrate(obs, mag, cfg, res, plan, margin=10.0):
@@ -378,8 +382,8 @@ def _self_calibrate(obs, mag, cfg, res, plan, margin=10.0):
     size, bulge fraction and flux, at its position; :func:`model_observations`), measured as the data were
     (same exposures, weights, modes, position and ellipticity samples). The corrected estimate solves
     f(e) = e_hat, the data's estimate, by Newton steps from e_hat (``self_calibration_steps``, one by default;
-    each further step evaluates f at the last solution and keeps the first step's responses, while each at least
-    halves the residual: SELFCAL_CONTRACTION): the bias
+    each further step evaluates f at the last solution, takes the secant over the last step as the radial response
+    and is damped by how well the last contracted the residual: SELFCAL_DAMPING): the bias
     b = f(e_hat) - e_hat divided by f's response, radially the finite difference of f over min(SELFCAL_STEP,
     2 sigma_e) towards e = 0 and tangentially |f(e_hat)| / |e_hat| (an estimator that turns with the galaxy),
     each bounded to [self_calibration_min_response, SELFCAL_MAX_RESPONSE]. For a small galaxy at high |e| the radial
@@ -414,25 +418,29 @@ def _self_calibrate(obs, mag, cfg, res, plan, margin=10.0):
     s_tan = float(np.clip(r_tan, lo, hi)) if a > abs(h) else s_rad
     b = f0 - e_hat
     e_out = _within(e_hat - (np.dot(b, u) / s_rad) * u - (np.dot(b, v) / s_tan) * v, cfg.model_e_limit)
-    # more steps of the same Newton solve (self_calibration_steps), with the first step's responses, while each
-    # step shrinks the residual |f(e) - e_hat| by SELFCAL_CONTRACTION at least; else the evaluated iterate of the
-    # smallest residual stands (see SELFCAL_CONTRACTION)
+    # more steps of the same Newton solve (self_calibration_steps), radially with the secant over the last step,
+    # each damped by how well the last contracted the residual |f(e) - e_hat| (SELFCAL_DAMPING): the result moves
+    # smoothly with the pixels, and an estimate f cannot reach is not carried towards the model's limit
     steps = 1
     resid = float(np.hypot(*b))
-    best = None
+    w = 1.0
+    e_prev, f_prev = e_hat, f0
     for _ in range(int(cfg.self_calibration_steps) - 1):
         f1 = f(e_out)
         if not np.all(np.isfinite(f1)):
             break
         b = f1 - e_hat
         r1 = float(np.hypot(*b))
-        if best is None or r1 < best[0]:
-            best = (r1, e_out, steps)
-        if not r1 <= SELFCAL_CONTRACTION * resid:
-            e_out, steps = best[1], best[2]
+        q = r1 / resid if resid > 0 else np.inf
+        w *= float(np.clip((SELFCAL_DAMPING[1] - q) / (SELFCAL_DAMPING[1] - SELFCAL_DAMPING[0]), 0.0, 1.0))
+        if w <= 0.0:
             break
+        de = float(np.dot(e_out - e_prev, u))
+        if abs(de) > 1e-6:   # the radial response: the secant over the last step, bounded as the first
+            s_rad = float(np.clip(np.dot(f1 - f_prev, u) / de, lo, hi))
+        e_prev, f_prev = e_out, f1
         resid = r1
-        e_out = _within(e_out - (np.dot(b, u) / s_rad) * u - (np.dot(b, v) / s_tan) * v, cfg.model_e_limit)
+        e_out = _within(e_out - w * ((np.dot(b, u) / s_rad) * u + (np.dot(b, v) / s_tan) * v), cfg.model_e_limit)
         steps += 1
     res.selfcal_steps = steps
     res.selfcal_de = (float(e_hat[0] - e_out[0]), float(e_hat[1] - e_out[1]))
