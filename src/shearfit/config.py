@@ -195,10 +195,10 @@ class FitConfig:
         "0.7 and 0.13-0.19 between 0.7 and 0.8 (a broad likelihood in |e|, and the prior ends at disk_e_max), so the "
         "bound cuts 12 % of the responses of galaxies of 0.1-0.125\" and leaves their correction short: m -0.007 "
         "there without noise, -0.008 with noise and noise_bias_correction (700 rings). 0.25 cuts none of them "
-        "without noise; with noise_bias_correction it leaves -0.005 +- 0.003 / -0.002 +- 0.004 with one step and "
-        "-0.000 +- 0.004 / +0.004 +- 0.005 with self_calibration_steps 4, whose errors are 1.5 times larger "
-        "(benchmarks/README.md, session 59; benchmarks/selfcal_response.py). The default calibration tables were "
-        "fitted with 0.5",
+        "without noise; with noise_bias_correction it leaves -0.005 +- 0.003 / -0.002 +- 0.004 with one step (700 "
+        "rings; session 59) and, with self_calibration_steps 4, +0.006 +- 0.002 / -0.002 +- 0.003 over 1500 plain "
+        "and rotated rings, where the default leaves -0.008 / -0.010 (benchmarks/README.md, session 60; "
+        "benchmarks/selfcal_response.py). The default calibration tables were fitted with 0.5",
         "sec. 3.4 (extension)")
     noise_bias_correction: bool = setting(
         False, "noise-bias extrapolation: measure the object twice more, with a noise field n drawn from its "
