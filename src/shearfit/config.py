@@ -197,7 +197,8 @@ class FitConfig:
         "there without noise, -0.008 with noise and noise_bias_correction (700 rings). 0.25 cuts none of them "
         "without noise; with noise_bias_correction it leaves -0.005 +- 0.003 / -0.002 +- 0.004 with one step (700 "
         "rings; session 59) and, with self_calibration_steps 4, +0.006 +- 0.002 / -0.002 +- 0.003 over 1500 plain "
-        "and rotated rings, where the default leaves -0.008 / -0.010 (benchmarks/README.md, session 60; "
+        "and rotated rings, where the default leaves -0.007 / -0.011 on the 800 it was run on (benchmarks/README.md, "
+        "session 60; "
         "benchmarks/selfcal_response.py). The default calibration tables were fitted with 0.5",
         "sec. 3.4 (extension)")
     noise_bias_correction: bool = setting(
