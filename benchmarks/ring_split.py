@@ -2,13 +2,15 @@
 """m and c of a ring-test table (benchmarks/ring_test.py --out) split by true scalelength and by sigma_e.
 
     python benchmarks/ring_split.py ring.fits [ring2.fits ...] [--r-bins 0,0.15,0.3,10] [--unweighted |
-                                              --paired-weights | --isotropic-weights] [--uncorrected]
+                                              --paired-weights | --isotropic-weights] [--uncorrected | --one-pair]
                                               [--e-bins 0,0.3,0.5,0.6,0.7,1] [--paired-with B.fits]
 
 Several tables (runs of the same shear) are read as one, their galaxies numbered on.
 
 ``--uncorrected``: for a run with ``--set noise_bias_correction=true``, each estimate with the noise bias it had
-subtracted added back (its ``nb_de1``, ``nb_de2``): the same fits without the correction.
+subtracted added back (its ``nb_de1``, ``nb_de2``): the same fits without the correction. ``--one-pair``: for a
+run with ``noise_bias_second_amplitude`` as well, each estimate as the one pair at the full amplitude alone would
+have corrected it (``nb1_de1``, ``nb1_de2``): the same fits with the one-pair extrapolation.
 
 ``--paired-weights``: each object's weight replaced by the mean over its pair (the same galaxy, orientation and
 noise at +g and at -g; ``shearfit.calib.bias.paired_weights``), so that no weight responds to the shear while
@@ -77,7 +79,7 @@ def _matched(t, other):
 
 
 def main(paths, r_bins=(0, 0.15, 0.3, 10), unweighted=False, paired=False, isotropic=False, uncorrected=False,
-         paired_with=None, e_bins=None):
+         paired_with=None, e_bins=None, one_pair=False):
     if paired_with and (len(paths) != 1 or len(paired_with) != 1):
         # several tables are renumbered as one, and two runs' numbers would then not pair
         raise SystemExit("ring_split.py: --paired-with compares one table with one other")
@@ -89,6 +91,13 @@ def main(paths, r_bins=(0, 0.15, 0.3, 10), unweighted=False, paired=False, isotr
                              "nb_de2)")
         for i in (1, 2):
             t[f"e{i}"] = np.asarray(t[f"e{i}"]) + np.nan_to_num(np.asarray(t[f"nb_de{i}"]))
+    if one_pair:
+        if "nb1_de1" not in t.colnames:
+            raise SystemExit("ring_split.py: --one-pair needs a run with noise_bias_second_amplitude (columns nb1_de1, "
+                             "nb1_de2)")
+        for i in (1, 2):
+            t[f"e{i}"] = (np.asarray(t[f"e{i}"]) + np.nan_to_num(np.asarray(t[f"nb_de{i}"]))
+                          - np.nan_to_num(np.asarray(t[f"nb1_de{i}"])))
     other = None
     if paired_with:
         t, other = _matched(t, Table.read(paired_with[0]))
@@ -158,14 +167,19 @@ if __name__ == "__main__":
                     help="each weight the mean of its bin of flux_snr (the catalogue's iso_weight)")
     ap.add_argument("--uncorrected", action="store_true",
                     help="add back the noise bias that noise_bias_correction subtracted")
+    ap.add_argument("--one-pair", action="store_true",
+                    help="the estimates as the one-pair extrapolation corrected them (runs with "
+                         "noise_bias_second_amplitude)")
     ap.add_argument("--e-bins", default=None,
                     help="edges of bins of the galaxies' intrinsic |e| (e.g. 0,0.3,0.5,0.6,0.7,1), each split too")
     ap.add_argument("--paired-with", metavar="TABLE", default=None,
                     help="another run of the same galaxies: its m and c, and the first run's less its, object by "
                          "object with the galaxies resampled together")
     a = ap.parse_args()
+    if a.uncorrected and a.one_pair:
+        ap.error("--uncorrected and --one-pair exclude each other")
     if a.unweighted + a.paired_weights + a.isotropic_weights > 1:
         ap.error("--unweighted, --paired-weights and --isotropic-weights exclude each other")
     e_edges = [float(x) for x in a.e_bins.split(",")] if a.e_bins else None
     main(a.table, [float(x) for x in a.r_bins.split(",")], a.unweighted, a.paired_weights, a.isotropic_weights,
-         a.uncorrected, [a.paired_with] if a.paired_with else None, e_edges)
+         a.uncorrected, [a.paired_with] if a.paired_with else None, e_edges, a.one_pair)

@@ -210,6 +210,8 @@ def _work(task):
                 rec[name] = np.nan
             if cfg.noise_bias_correction:
                 rec["nb_de1"] = rec["nb_de2"] = np.nan
+                if cfg.noise_bias_second_amplitude > 0:
+                    rec["nb1_de1"] = rec["nb1_de2"] = np.nan
             if cfg.self_calibration and not metacal:
                 for name in SELFCAL_FIELDS:
                     rec[name] = np.nan
@@ -259,6 +261,8 @@ def _work(task):
                         rec[name] = float(getattr(res, name, np.nan))
                     if res.noise_bias_de is not None:
                         rec["nb_de1"], rec["nb_de2"] = res.noise_bias_de
+                        if cfg.noise_bias_second_amplitude > 0:
+                            rec["nb1_de1"], rec["nb1_de2"] = res.noise_bias_de_one_pair
                     if cfg.self_calibration and res.selfcal_de is not None:
                         rec["sc_de1"], rec["sc_de2"] = res.selfcal_de
                         rec["sc_rrad"], rec["sc_rtan"] = res.selfcal_response

@@ -34,6 +34,68 @@ def test_the_estimate_is_the_extrapolation_of_its_two_noisier_fits():
     assert plain.noise_bias_de is None
 
 
+def test_a_second_pair_is_the_same_fits_at_a_smaller_amplitude():
+    """With noise_bias_second_amplitude a, the estimate is e - D(1) + 2 (D(a) - D(1)) / (a^2 - 1), D(t) =
+    ((e(y + t n) + e(y - t n)) / 2 - e(y)) / t^2, from the five fits made with every other setting as given, and
+    noise_bias_de_one_pair is the one-pair correction's bias, the same fits' D(1)."""
+    setup = _setup(n=3)
+    obs, _ = _obs(0.15, complex(0.3, -0.1), (0.0, 0.0), *setup, snr=60.0)
+    a = np.sqrt(2.0)
+    res = shearfit.measure_object(obs, mag=24.0, config={**CORRECTED, "noise_bias_second_amplitude": a},
+                                  noise_seed=11)
+    one = shearfit.measure_object(obs, mag=24.0, config=CORRECTED, noise_seed=11)
+    n = M.noise_bias_noise(obs, 11)
+    e = np.array([one.e1, one.e2]) + np.array(one.noise_bias_de)
+
+    def d(t):
+        pair = [shearfit.measure_object([o.with_image(o.image + s * t * x) for o, x in zip(obs, n)], mag=24.0,
+                                        config=SELFCAL) for s in (1, -1)]
+        return (0.5 * sum(np.array([r.e1, r.e2]) for r in pair) - e) / t ** 2
+
+    d1, da = d(1.0), d(a)
+    b = d1 - 2 * (da - d1) / (a * a - 1)
+    assert np.abs(d1 - da).max() > 1e-5                   # the two amplitudes' slopes differ
+    np.testing.assert_allclose(res.noise_bias_de_one_pair, one.noise_bias_de, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(res.noise_bias_de_one_pair, d1, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(res.noise_bias_de, b, rtol=0, atol=1e-12)
+    np.testing.assert_allclose([res.e1, res.e2], e - b, rtol=0, atol=1e-12)
+    assert one.noise_bias_de_one_pair == one.noise_bias_de
+
+
+def test_a_second_pair_removes_the_fourth_order_term(monkeypatch):
+    """An estimator whose mean is a known polynomial in the noise variance v: e(y) = e0 + beta z^2 + gamma z^4,
+    z the noise's projection on one unit direction of the pixels (variance v), so that its mean is e0 + beta v +
+    3 gamma v^2. Over data noise realisations, the one-pair correction leaves -6 gamma (-2 C), the two-pair one
+    (a second amplitude below 1 and above it) nothing; the second component, linear in z^2 (no fourth-order
+    term), is left unbiased by all."""
+    rng = np.random.default_rng(8)
+    shape = (5, 5)
+    w = np.ones(shape)
+    u = np.full(shape, 1.0 / 5.0)                    # unit norm over the 25 pixels
+    mu = np.zeros(shape)
+    beta, gamma, e0 = 0.02, 0.004, np.array([0.1, -0.2])
+
+    def estimator(observations, mag, config=None, return_samples=False, noise_seed=None):
+        z = float(np.sum((observations[0].image - mu) * u))
+        return FitResult(e1=e0[0] + beta * z * z + gamma * z ** 4, e2=e0[1] - beta * z * z, fitclass=0)
+
+    monkeypatch.setattr(M, "measure_object", estimator)
+    psf = np.full((5, 5), 1 / 25.0)
+    out = {0.0: [], 0.5: [], np.sqrt(2.0): []}
+    for k in range(6000):
+        obs = [shearfit.Observation(image=mu + rng.normal(size=shape), weight=w, psf=psf, jacobian=0.2 * np.eye(2))]
+        for a in out:
+            cfg = shearfit.fit_config_from_mapping({**CORRECTED, "noise_bias_second_amplitude": a})
+            res = estimator(obs, 24.0)
+            M._correct_noise_bias(obs, 24.0, cfg, res, [3, k])
+            out[a].append([res.e1 - e0[0], res.e2 - e0[1]])
+    for a, expect in ((0.0, -6 * gamma), (0.5, 0.0), (np.sqrt(2.0), 0.0)):
+        r = np.array(out[a])
+        mean, err = r.mean(axis=0), r.std(axis=0, ddof=1) / np.sqrt(len(r))
+        assert abs(mean[0] - expect) < 4 * err[0] and err[0] < gamma, (a, mean, err)
+        assert abs(mean[1]) < 4 * err[1], (a, mean, err)
+
+
 def test_the_added_noise_follows_the_weights_and_is_reproducible():
     """Deviates of variance 1 / weight, none where the weight is 0; the same for the same seed, and by
     default a seed made from the pixels and weights."""

@@ -192,7 +192,10 @@ class FitResult:
     on the model (radial, tangential; before bounding), and ``selfcal_steps`` the Newton steps taken
     (``self_calibration_steps`` at most; the further ones damped); otherwise None, None and 0.
     With the ``noise_bias_correction`` setting, ``noise_bias_de`` is the noise
-    bias (e1, e2) found by noise-bias extrapolation and subtracted; otherwise
+    bias (e1, e2) found by noise-bias extrapolation and subtracted (as scaled
+    where the corrected estimate would lie beyond ``model_e_limit``), and
+    ``noise_bias_de_one_pair`` what the pair at the full amplitude alone
+    subtracts (the same without ``noise_bias_second_amplitude``); otherwise
     None. ``flux_snr`` is the SNR ``model_flux`` would have were the object a
     point source (on the same exposures), and ``round_scalelength`` the
     likelihood mean of the scalelength of the round model of each sample's
@@ -224,3 +227,4 @@ class FitResult:
     selfcal_response: Optional[tuple] = field(default=None, repr=False)
     selfcal_steps: int = field(default=0, repr=False)
     noise_bias_de: Optional[tuple] = field(default=None, repr=False)
+    noise_bias_de_one_pair: Optional[tuple] = field(default=None, repr=False)

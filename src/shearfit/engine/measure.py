@@ -481,25 +481,42 @@ def _correct_noise_bias(obs, mag, cfg, res, seed):
     To second order in the noise, the estimate's mean is e0 + B s^2 for pixel noise of variance s^2; y +- n
     has variance 2 s^2, so the pair's mean is e0 + 2 B s^2 on average, while the first-order effect of n
     cancels between its two signs: b estimates B s^2, and e(y) - b is free of the noise bias to that order
-    (what is left is of fourth order, -2 C s^4 where C s^4 is the bias's next term)."""
+    (what is left is of fourth order, -2 C s^4 where C s^4 is the bias's next term).
+
+    With ``noise_bias_second_amplitude`` a (positive, not 1), a second pair y +- a n (the same n) gives the
+    fourth-order term too. With the mean e0 + B v + C v^2 at noise variance v s^2, D(t) = ((e(y + t n) +
+    e(y - t n)) / 2 - e(y)) / t^2 has the mean B + 2 C + C t^2 (the pair adds t^2 s^2 of variance to data that
+    already carry s^2), so C = (D(a) - D(1)) / (a^2 - 1) and e0 = e(y) - B - C = e(y) - D(1) + 2 C. The leading
+    fluctuation of D(t), n's quadratic form in the estimate's second derivative, is the same at every t and
+    enters with the coefficient 1 as in the one-pair correction; a fit's own discrete jumps (samples crossing
+    the cut, modes kept or dropped) enter D(t) divided by t^2, so an a above 1 amplifies them least (a = sqrt(2):
+    e0 = 3 e(y) - 3 e(2) + e(3) in the variance's multiples, Richardson's extrapolation).
+    """
     noise = noise_bias_noise(obs, seed)
     sub = replace(cfg, noise_bias_correction=False)
-    pair = []
-    for sign in (1.0, -1.0):
-        r = measure_object([o.with_image(o.image + sign * n) for o, n in zip(obs, noise)], mag, sub)
-        if r.fitclass < FITCLASS_GALAXY or not (np.isfinite(r.e1) and np.isfinite(r.e2)):
-            res.fitclass = FITCLASS_FIT_FAILED
-            res.weight = 0.0
-            res.message = f"noise-bias correction: the fit with added noise failed ({r.message or r.fitclass})"
-            return
-        pair.append((r.e1, r.e2))
+    a = float(cfg.noise_bias_second_amplitude)
+    levels = (1.0, a) if a > 0 else (1.0,)
     e = np.array([res.e1, res.e2])
-    b = 0.5 * (np.array(pair[0]) + np.array(pair[1])) - e
-    e_out = e - b
-    n = float(np.hypot(*e_out))
-    if n > cfg.model_e_limit:
-        e_out *= cfg.model_e_limit / n
-    res.noise_bias_de = (float(b[0]), float(b[1]))
+    d = []
+    for amp in levels:
+        pair = []
+        for sign in (1.0, -1.0):
+            r = measure_object([o.with_image(o.image + (sign * amp) * n) for o, n in zip(obs, noise)], mag, sub)
+            if r.fitclass < FITCLASS_GALAXY or not (np.isfinite(r.e1) and np.isfinite(r.e2)):
+                res.fitclass = FITCLASS_FIT_FAILED
+                res.weight = 0.0
+                res.message = (f"noise-bias correction: the fit with added noise (amplitude {amp:g}) failed "
+                               f"({r.message or r.fitclass})")
+                return
+            pair.append((r.e1, r.e2))
+        d.append((0.5 * (np.array(pair[0]) + np.array(pair[1])) - e) / amp ** 2)
+    b = d[0]
+    if a > 0:
+        b = d[0] - 2.0 * (d[1] - d[0]) / (a * a - 1.0)
+    e_out = _within(e - b, cfg.model_e_limit)
+    # what was subtracted, the limit's scaling included, so that e + noise_bias_de is the uncorrected estimate
+    res.noise_bias_de = tuple(float(x) for x in e - e_out)
+    res.noise_bias_de_one_pair = tuple(float(x) for x in e - _within(e - d[0], cfg.model_e_limit))
     res.e1, res.e2 = float(e_out[0]), float(e_out[1])
 
 
