@@ -196,9 +196,9 @@ class FitConfig:
         "bound cuts 12 % of the responses of galaxies of 0.1-0.125\" and leaves their correction short: m -0.007 "
         "there without noise, -0.008 with noise and noise_bias_correction (700 rings). 0.25 cuts none of them "
         "without noise; with noise_bias_correction it leaves -0.005 +- 0.003 / -0.002 +- 0.004 with one step (700 "
-        "rings; session 59) and, with self_calibration_steps 4, +0.006 +- 0.002 / -0.002 +- 0.003 over 1500 plain "
-        "and rotated rings, where the default leaves -0.007 / -0.011 on the 800 it was run on (benchmarks/README.md, "
-        "session 60; "
+        "rings; session 59) and, with self_calibration_steps 4, +0.007 +- 0.002 / -0.000 +- 0.003 over 2200 plain "
+        "and rotated rings (m1 from the broad likelihoods, where the extrapolation leaves its fourth-order term), "
+        "where the default leaves -0.007 / -0.011 on the 800 it was run on (benchmarks/README.md, sessions 60-61; "
         "benchmarks/selfcal_response.py). The default calibration tables were fitted with 0.5",
         "sec. 3.4 (extension)")
     noise_bias_correction: bool = setting(
