@@ -217,8 +217,10 @@ class FitConfig:
         "term C (the mean estimate e0 + B v + C v^2 at noise variance v times the data's: the one pair leaves -2 C, "
         "two pairs none): D(t) = ((e(y + t n) + e(y - t n)) / 2 - e(y)) / t^2, C = (D(a) - D(1)) / (a^2 - 1), e0 = "
         "e(y) - D(1) + 2 C. Two more fits per object (five in all). A fit's discrete jumps enter D(a) divided by "
-        "a^2: an a below 1 amplifies them (0.5: the estimates' scatter grew 1.5-1.9 times on small galaxies at SNR "
-        "100-200), sqrt(2) least (3 e(y) - 3 e(2) + e(3) in multiples of the data's noise variance). 0: the one pair",
+        "a^2, so an a below 1 amplifies them: on small galaxies at SNR 100-200 the errors on m grew 3-4 times with "
+        "0.5 and 1.5-1.8 times with sqrt(2) (3 e(y) - 3 e(2) + e(3) in multiples of the data's noise variance), which "
+        "over 900 rings moved m1 by -0.006 +- 0.002, the one pair's remainder (benchmarks/README.md, session 61). 0: "
+        "the one pair",
         "sec. 3.4 (extension)")
     weight_e_max: float = setting(0.804, "e_max of the weight", "eq. (weight)")
     sigma_pop: float = setting(0.255, "1D rms ellipticity of the population, sigma_pop", "eq. (weight)")
