@@ -219,7 +219,7 @@ class FitConfig:
         "e(y) - D(1) + 2 C. Two more fits per object (five in all). A fit's discrete jumps enter D(a) divided by "
         "a^2, so an a below 1 amplifies them: on small galaxies at SNR 100-200 the errors on m grew 3-4 times with "
         "0.5 and 1.5-1.8 times with sqrt(2) (3 e(y) - 3 e(2) + e(3) in multiples of the data's noise variance), which "
-        "over 900 rings moved m1 by -0.006 +- 0.002, the one pair's remainder (benchmarks/README.md, session 61). 0: "
+        "over 1150 rings moved m1 by -0.007 +- 0.002, the one pair's remainder (benchmarks/README.md, session 61). 0: "
         "the one pair",
         "sec. 3.4 (extension)")
     weight_e_max: float = setting(0.804, "e_max of the weight", "eq. (weight)")
