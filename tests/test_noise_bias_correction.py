@@ -34,7 +34,7 @@ def test_the_estimate_is_the_extrapolation_of_its_two_noisier_fits():
     assert plain.noise_bias_de is None
 
 
-def test_a_second_pair_is_the_same_fits_at_a_smaller_amplitude():
+def test_a_second_pair_is_the_same_fits_at_another_amplitude():
     """With noise_bias_second_amplitude a, the estimate is e - D(1) + 2 (D(a) - D(1)) / (a^2 - 1), D(t) =
     ((e(y + t n) + e(y - t n)) / 2 - e(y)) / t^2, from the five fits made with every other setting as given, and
     noise_bias_de_one_pair is the one-pair correction's bias, the same fits' D(1)."""
@@ -82,10 +82,10 @@ def test_a_second_pair_removes_the_fourth_order_term(monkeypatch):
     monkeypatch.setattr(M, "measure_object", estimator)
     psf = np.full((5, 5), 1 / 25.0)
     out = {0.0: [], 0.5: [], np.sqrt(2.0): []}
+    cfgs = {a: shearfit.fit_config_from_mapping({**CORRECTED, "noise_bias_second_amplitude": a}) for a in out}
     for k in range(6000):
         obs = [shearfit.Observation(image=mu + rng.normal(size=shape), weight=w, psf=psf, jacobian=0.2 * np.eye(2))]
-        for a in out:
-            cfg = shearfit.fit_config_from_mapping({**CORRECTED, "noise_bias_second_amplitude": a})
+        for a, cfg in cfgs.items():
             res = estimator(obs, 24.0)
             M._correct_noise_bias(obs, 24.0, cfg, res, [3, k])
             out[a].append([res.e1 - e0[0], res.e2 - e0[1]])
