@@ -167,6 +167,30 @@ def test_merged_exposures_give_each_exposures_sums():
                 assert np.max(np.abs(x - y)) <= 1e-12 * np.max(np.abs(y)), (f, use_kernel)
 
 
+def test_distinct_pairs_of_rotated_lattices_are_np_unique():
+    """_distinct_pairs where exposures' lattices are rotated (almost every kx distinct: the sort by kx alone, then
+    the few runs of equal kx, here the K = 0 of every exposure and repeats of whole exposures), against np.unique:
+    the same first occurrences and numbering."""
+    from shearfit.engine.likelihood import _distinct_pairs
+
+    rng = np.random.default_rng(12)
+    for trial in range(30):
+        kx, ky = [], []
+        for _ in range(int(rng.integers(1, 8))):
+            y, x = np.mgrid[-5:6, 0:6] * 0.4
+            a = rng.uniform(-0.1, 0.1) if rng.random() < 0.8 else 0.0
+            kx.append((np.cos(a) * x - np.sin(a) * y).ravel())
+            ky.append((np.sin(a) * x + np.cos(a) * y).ravel())
+            if rng.random() < 0.3:   # an exposure with the same Jacobian as this one
+                kx.append(kx[-1].copy())
+                ky.append(ky[-1].copy())
+        kx, ky = np.concatenate(kx), np.concatenate(ky)
+        kx = np.where(kx == 0, rng.choice([0.0, -0.0], kx.size), kx)
+        first, inv = _distinct_pairs(kx, ky)
+        _, ref_first, ref_inv = np.unique(kx + 1j * ky, return_index=True, return_inverse=True)
+        assert np.array_equal(first, ref_first) and np.array_equal(inv, ref_inv.ravel()), trial
+
+
 def test_fold_groups_are_those_of_the_sparse_product():
     """join_exposures' distinct wavevectors and fold groups, made without sparse products, against np.unique
     and H = F^H F with scipy.sparse and its connected components: the same modes, groups and weights (to

@@ -346,9 +346,21 @@ def _distinct_pairs(kx, ky):
     (lexicographic): the index of each pair's first occurrence and, per item, its pair's number."""
     if kx.size == 0:
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
-    # stable: a pair's first occurrence leads its run; complex numbers sort as (real, imaginary) pairs, the
-    # order of np.lexsort((ky, kx)) in one sort instead of two
-    order = np.argsort(kx + 1j * ky, kind="stable")
+    # the order of np.lexsort((arange, ky, kx)): by kx, then ky, then position, so that a pair's first occurrence
+    # leads its run. kx alone first, by numpy's default sort (a sort of doubles several times faster than a stable
+    # one or one of complex numbers); then only the runs of equal kx (with distinct Jacobians few: the exposures'
+    # K = 0) are ordered by ky and position
+    order = np.argsort(kx)
+    sx = kx[order]
+    tie = sx[1:] == sx[:-1]
+    if np.any(tie):
+        in_run = np.zeros(order.size, bool)
+        in_run[1:] = tie
+        in_run[:-1] |= tie
+        at = np.nonzero(in_run)[0]
+        run = np.cumsum(np.concatenate(([True], ~tie)))[at]
+        sub = order[at]
+        order[at] = sub[np.lexsort((sub, ky[sub], run))]
     sx, sy = kx[order], ky[order]
     new = np.empty(order.size, bool)
     new[0] = True

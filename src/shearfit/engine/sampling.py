@@ -86,7 +86,7 @@ class EllipticityLikelihood:
     _SEG_U = np.linspace(0.0, 1.0, 9)   # u = (r / r_min)^2 of the segment from r = 0 to the first node
     _SEG_HALF_LOG_U = 0.5 * np.log(np.maximum(_SEG_U, 1e-300))   # ln(r / r_min) there
 
-    def __init__(self, jm, cfg: FitConfig, mag, fast, size_grid_x, r_center, chunk=64, locate_widths=None):
+    def __init__(self, jm, cfg: FitConfig, mag, fast, size_grid_x, r_center, chunk=256, locate_widths=None):
         self.jm = jm
         self.cfg = cfg
         self.mag = mag
@@ -100,6 +100,8 @@ class EllipticityLikelihood:
         self._loc_x = np.zeros(0)
         self._peak_max = -np.inf   # the highest first-pass peak so far (see _located_centres)
         self.lin = linear_vectors(jm)
+        # ellipticities evaluated together (their bins made in one call, their models' sums in one): 256 took 3 %
+        # less time than 64 on benchmarks/speed.py's galaxies, the same estimates to the bit (benchmarks/README.md)
         self.chunk = chunk
         # r = 0, the point source: one model shared by every ellipticity; the size integral runs
         # from it to the first node (sec. 3.2: "the set of r values included a point source")
