@@ -411,6 +411,57 @@ EXACT = {"mode_bins_per_octave": 0, "n_flux": 11, "fold_chi2_tolerance": 0.0, "p
 MODE_CUT = {"mode_chi2_tolerance": 0.0}
 
 
+class _TimedKernel:
+    """The compiled module with a clock around each call of its functions (their seconds summed by name)."""
+
+    def __init__(self, mod):
+        self._mod = mod
+        self.seconds = {}
+
+    def __getattr__(self, name):
+        fn = getattr(self._mod, name)
+        if not callable(fn):
+            return fn
+        seconds = self.seconds
+
+        def call(*a):
+            t0 = time.perf_counter()
+            try:
+                return fn(*a)
+            finally:
+                seconds[name] = seconds.get(name, 0.0) + time.perf_counter() - t0
+        return call
+
+
+def kernel_times_report(objs, cfg):
+    """One pass over ``objs`` with every call of the compiled loops timed (a clock around each call, no
+    profiler): milliseconds per galaxy in each, and what is left, Python and numpy."""
+    from shearfit.engine import likelihood, model, moffat, sampling
+
+    modules = (likelihood, sampling, model, moffat)
+    mod = likelihood.KERNEL
+    if mod is None:
+        print("\n  --kernel-times: the numpy loops run (no compiled module); nothing to time")
+        return
+    proxy = _TimedKernel(mod)
+    for m in modules:
+        m.KERNEL = proxy
+    try:
+        dt, _ = timed(objs, cfg)
+    finally:
+        for m in modules:
+            m.KERNEL = mod
+    n = len(objs)
+    total = sum(proxy.seconds.values())
+    print(f"\n  the compiled loops, one pass of {n} galaxies timed call by call (ms per galaxy; {1e3 * dt / n:.1f} in "
+          "all):")
+    for name, sec in sorted(proxy.seconds.items(), key=lambda kv: -kv[1]):
+        if 1e3 * sec / n >= 0.005:
+            print(f"    {name:24s} {1e3 * sec / n:7.3f}  {100 * sec / dt:5.1f} %")
+    print(f"    {'all compiled loops':24s} {1e3 * total / n:7.3f}  {100 * total / dt:5.1f} %")
+    print(f"    {'the rest (Python, numpy)':24s} {1e3 * (dt - total) / n:7.3f}  {100 * (dt - total) / dt:5.1f} %")
+
+
 def check_report(objs, cfg, res, seed, each=False):
     """The speed settings against the exact ones (EXACT), on the timed galaxies and on faint ones:
     how far the estimates move, in e and in units of their own error. ``each``: also every setting of EXACT
@@ -465,6 +516,9 @@ def main(argv=None):
     ap.add_argument("--workers", type=int, default=0, metavar="N",
                     help="also time N worker processes (shearfit.measure_objects) against one")
     ap.add_argument("--no-hsm", action="store_true", help="do not time GalSim's HSM on the same stamps")
+    ap.add_argument("--kernel-times", action="store_true",
+                    help="one more pass with a clock around every call of the compiled loops: the time in each, and "
+                         "the rest (Python and numpy), without a profiler's overhead")
     ap.add_argument("--isa-ab", metavar="LEVEL", default=None,
                     help="also time the loops in use against another level (avx512, avx2, baseline), galaxy by "
                          "galaxy in this process")
@@ -547,6 +601,9 @@ def main(argv=None):
               f"galaxy ({1 / hsm:.1f} galaxies / s; {sum(p[1] for p in peer)} failed stamps); "
               f"shearfit / HSM time: {per / hsm:.2f}")
     stage_report(pstats.Stats(prof))
+    if args.kernel_times:   # galaxies of their own (the PSFs' App. A Moffats are remembered by image)
+        extra = simulate(args.n_galaxies, 7, 48, args.seed + 1000 * n_sets, rotate, jitter, args.constant_psf)
+        kernel_times_report(one_moffat_per_exposure(extra) if args.moffat_per_exposure else extra, cfg)
     print("\n  top functions by internal time:")
     pstats.Stats(prof).sort_stats("tottime").print_stats(8)
     if args.metacal:
