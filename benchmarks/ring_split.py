@@ -4,6 +4,7 @@
     python benchmarks/ring_split.py ring.fits [ring2.fits ...] [--r-bins 0,0.15,0.3,10] [--unweighted |
                                               --paired-weights | --isotropic-weights] [--uncorrected | --one-pair]
                                               [--e-bins 0,0.3,0.5,0.6,0.7,1] [--paired-with B.fits]
+                                              [--control [A.fits=]B.fits ...]
 
 Several tables (runs of the same shear) are read as one, their galaxies numbered on.
 
@@ -23,6 +24,14 @@ resampled together: only objects both runs have, measured as galaxies in both, e
 ``--antithetic`` (a noise-free one, whose twins would be copies) stands for the twins too. The weight options apply
 to both runs, ``--uncorrected`` to the first only: ``A --uncorrected --paired-with NF`` (NF the same galaxies without
 noise) is the noise bias that ``noise_bias_correction`` removes, ``A --paired-with NF`` what it leaves.
+
+``--control [A=]B``: the tables given are runs with ``noise_bias_second_amplitude`` (two pairs), B a run with the one
+pair (any run of the same shear and population; a two-pair run's estimates are read as ``--one-pair``'s), ``A=B``
+one of the given runs A and a one-pair run B of the same ``--seed`` (its galaxies that A has are left out of B). m
+of the two pairs with the one pair as a control variate: m_two(S2) - m_one(S2) + m_one(S), S2 the galaxies with
+two pairs, S those and B's; a two-pair run's own one-pair estimates are in it. Unbiased for the two pairs' m, whose
+error it lowers where B adds galaxies: the difference of the two corrections on the same objects scatters less than
+either (the objects' own responses cancel in it). The bootstrap resamples S, S2 with it.
 
 ``--isotropic-weights``: each weight the mean weight of its bin of ``flux_snr``
 (``shearfit.calib.weights.isotropic_weights``, 10 equal-number bins; tables from session 57 on): the weights a
@@ -78,6 +87,112 @@ def _matched(t, other):
     return t, other
 
 
+def _one_pair(t):
+    """A two-pair run's table with each estimate as the one pair alone would have corrected it (``--one-pair``)."""
+    if "nb1_de1" not in t.colnames:
+        raise SystemExit("ring_split.py: --one-pair and --control need runs with noise_bias_second_amplitude "
+                         "(columns nb1_de1, nb1_de2)")
+    t = t.copy()
+    for i in (1, 2):
+        t[f"e{i}"] = (np.asarray(t[f"e{i}"]) + np.nan_to_num(np.asarray(t[f"nb_de{i}"]))
+                      - np.nan_to_num(np.asarray(t[f"nb1_de{i}"])))
+    return t
+
+
+def _plus_shear(t):
+    plus = t[t["sign"] > 0]
+    return np.array([plus["g1"][0], plus["g2"][0]])
+
+
+def control_main(paths, controls, r_bins=(0, 0.15, 0.3, 10), unweighted=False, paired=False, isotropic=False,
+                 e_bins=None, n_boot=500):
+    """m and c of two-pair runs ``paths`` with the one-pair estimates (theirs and those of ``controls``: "B" or
+    "A=B") as a control variate (``--control``)."""
+    two, one, offset, first = [], [], 0, {}
+    for path in paths:
+        t = Table.read(path)
+        t["galaxy"] = np.asarray(t["galaxy"], np.int64) + offset
+        first[path] = offset
+        b = _one_pair(t)
+        two.append(t)
+        one.append(b)
+        offset = int(np.max(t["galaxy"])) + 1
+    for spec in controls:
+        a_path, _, b_path = spec.rpartition("=")
+        b = Table.read(b_path)
+        if "nb1_de1" in b.colnames:
+            b = _one_pair(b)
+        gal = np.asarray(b["galaxy"], np.int64)
+        if a_path:
+            if a_path not in first:
+                raise SystemExit(f"ring_split.py: --control {spec}: {a_path} is not one of the tables given")
+            a = next(t for p, t in zip(paths, two) if p == a_path)
+            b = b[~np.isin(gal + first[a_path], np.asarray(a["galaxy"]))]   # A's galaxies are A's
+            gal = np.asarray(b["galaxy"], np.int64)
+        if len(b) == 0:
+            continue
+        _, b["galaxy"] = np.unique(gal, return_inverse=True)
+        b["galaxy"] = np.asarray(b["galaxy"], np.int64) + offset
+        offset = int(np.max(b["galaxy"])) + 1
+        one.append(b)
+    g = _plus_shear(two[0])
+    if any(not np.allclose(_plus_shear(t), g) for t in two + one):
+        raise SystemExit("ring_split.py: --control: the runs have different shears")
+    keep = ("galaxy", "sign", "e1", "e2", "weight", "fitclass", "e_var", "true_scalelength", "e1_int", "e2_int",
+            "flux_snr")
+    ta = _weighted(Table(np.concatenate([np.asarray(t[keep]) for t in two])), unweighted, paired, isotropic)
+    tb = _weighted(Table(np.concatenate([np.asarray(t[keep]) for t in one])), unweighted, paired, isotropic)
+    n = offset
+    in2 = np.zeros(n)
+    in2[np.asarray(ta["galaxy"])] = 1.0
+    present = np.zeros(n, bool)
+    present[np.asarray(tb["galaxy"])] = True
+    rgal, egal = np.zeros(n), np.zeros(n)
+    rgal[tb["galaxy"]] = tb["true_scalelength"]
+    egal[tb["galaxy"]] = np.hypot(tb["e1_int"], tb["e2_int"])
+    ev, gal = np.asarray(tb["e_var"], float), np.asarray(tb["galaxy"])
+    ok = np.isfinite(ev)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        sdg = np.sqrt(np.bincount(gal[ok], ev[ok], n) / np.bincount(gal[ok], None, n))
+    rng = np.random.default_rng(0)
+    print(f"two-pair runs: {len(paths)} ({int(in2.sum())} galaxies); with the one-pair control: {int(present.sum())} "
+          f"galaxies")
+
+    def sub(sel, label):
+        idx = np.flatnonzero(sel & present)
+        if idx.size < 2 or not np.any(in2[idx]):
+            return
+        remap = -np.ones(n, int)
+        remap[idx] = np.arange(idx.size)
+
+        def sums_of(x):
+            xx = x[np.isin(x["galaxy"], idx)]
+            tab = {c: np.array(xx[c]) for c in ("sign", "e1", "e2", "weight", "fitclass")}
+            tab["galaxy"] = remap[np.array(xx["galaxy"])]
+            return ring_sums(tab, idx.size)
+
+        sa, sb, w2 = sums_of(ta), sums_of(tb), in2[idx]
+        counts = bootstrap_counts(idx.size, n_boot, rng)
+        rows = (("two pairs", bias_from_sums(sa, g, w2), bias_from_sums(sa, g, counts * w2), int(w2.sum())),
+                ("one pair, same galaxies", bias_from_sums(sb, g, w2), bias_from_sums(sb, g, counts * w2),
+                 int(w2.sum())),
+                ("one pair, all", bias_from_sums(sb, g), bias_from_sums(sb, g, counts), idx.size))
+        cv = rows[0][1] - rows[1][1] + rows[2][1]
+        cv_boot = rows[0][2] - rows[1][2] + rows[2][2]
+        for name, est, boot, k in rows + (("two pairs, one-pair control", cv, cv_boot, idx.size),):
+            err = np.nanstd(boot, axis=0)
+            print(f"{label + ': ' + name:58s} rings={k:5d}  m1={est[0]:+.4f}+-{err[0]:.4f}  "
+                  f"m2={est[1]:+.4f}+-{err[1]:.4f}  c1={est[2]:+.5f}+-{err[2]:.5f}")
+
+    sub(np.ones(n, bool), "all")
+    for lo, hi in zip(r_bins[:-1], r_bins[1:]):
+        sub((rgal >= lo) & (rgal < hi), f"r in [{lo}, {hi})")
+    for lo, hi in zip((e_bins or [])[:-1], (e_bins or [])[1:]):
+        sub((egal >= lo) & (egal < hi), f"|e_int| in [{lo}, {hi})")
+    for lo, hi in [(0, 0.02), (0.02, 0.05), (0.05, 1)]:
+        sub((sdg >= lo) & (sdg < hi), f"sigma_e in [{lo}, {hi})")
+
+
 def main(paths, r_bins=(0, 0.15, 0.3, 10), unweighted=False, paired=False, isotropic=False, uncorrected=False,
          paired_with=None, e_bins=None, one_pair=False):
     if paired_with and (len(paths) != 1 or len(paired_with) != 1):
@@ -92,12 +207,7 @@ def main(paths, r_bins=(0, 0.15, 0.3, 10), unweighted=False, paired=False, isotr
         for i in (1, 2):
             t[f"e{i}"] = np.asarray(t[f"e{i}"]) + np.nan_to_num(np.asarray(t[f"nb_de{i}"]))
     if one_pair:
-        if "nb1_de1" not in t.colnames:
-            raise SystemExit("ring_split.py: --one-pair needs a run with noise_bias_second_amplitude (columns nb1_de1, "
-                             "nb1_de2)")
-        for i in (1, 2):
-            t[f"e{i}"] = (np.asarray(t[f"e{i}"]) + np.nan_to_num(np.asarray(t[f"nb_de{i}"]))
-                          - np.nan_to_num(np.asarray(t[f"nb1_de{i}"])))
+        t = _one_pair(t)
     other = None
     if paired_with:
         t, other = _matched(t, Table.read(paired_with[0]))
@@ -175,11 +285,19 @@ if __name__ == "__main__":
     ap.add_argument("--paired-with", metavar="TABLE", default=None,
                     help="another run of the same galaxies: its m and c, and the first run's less its, object by "
                          "object with the galaxies resampled together")
+    ap.add_argument("--control", action="append", default=[], metavar="[A=]B",
+                    help="a one-pair run B (A=B: of table A's seed) as a control variate for the two-pair tables given")
     a = ap.parse_args()
     if a.uncorrected and a.one_pair:
         ap.error("--uncorrected and --one-pair exclude each other")
     if a.unweighted + a.paired_weights + a.isotropic_weights > 1:
         ap.error("--unweighted, --paired-weights and --isotropic-weights exclude each other")
     e_edges = [float(x) for x in a.e_bins.split(",")] if a.e_bins else None
+    if a.control:
+        if a.uncorrected or a.one_pair or a.paired_with:
+            ap.error("--control excludes --uncorrected, --one-pair and --paired-with")
+        control_main(a.table, a.control, [float(x) for x in a.r_bins.split(",")], a.unweighted, a.paired_weights,
+                     a.isotropic_weights, e_edges)
+        sys.exit(0)
     main(a.table, [float(x) for x in a.r_bins.split(",")], a.unweighted, a.paired_weights, a.isotropic_weights,
          a.uncorrected, [a.paired_with] if a.paired_with else None, e_edges, a.one_pair)

@@ -51,3 +51,45 @@ def test_paired_with_is_the_difference_object_by_object(tmp_path, capsys):
     assert np.allclose(first, 0.004, atol=1e-4)
     assert np.allclose(other, -0.002, atol=1e-4)
     assert np.allclose(diff, 0.006, atol=1e-4)
+
+
+def _two_pair(m_two, m_one, **kw):
+    """A two-pair run's table: estimates responding by 1 + m_two, and the one-pair correction (nb1_de) such that
+    the one pair alone would have left 1 + m_one (nb_de, the correction applied, is 0)."""
+    t = _run(m_two, **kw)
+    sign = np.asarray(t["sign"], float)
+    t["nb_de1"] = np.zeros(len(t))
+    t["nb_de2"] = np.zeros(len(t))
+    t["nb1_de1"] = -(m_one - m_two) * G[0] * sign
+    t["nb1_de2"] = -(m_one - m_two) * G[1] * sign
+    return t
+
+
+def _control_lines(out):
+    return {ln.split(": ", 1)[1].split("  rings=")[0].strip(): (int(re.search(r"rings=\s*(\d+)", ln).group(1)),
+                                                                 tuple(float(x) for x in re.findall(
+                                                                     r"m[12]=([+-][0-9.]+)", ln)))
+            for ln in out.splitlines() if ln.startswith("all: ")}
+
+
+def test_control_is_the_two_pairs_m_with_the_one_pairs_galaxies_added(tmp_path, capsys):
+    """--control: m_two(S2) - m_one(S2) + m_one(S). The one-pair run B of the two-pair run A's seed holds A's 40
+    galaxies and 40 more; A's are left out of B (80 galaxies in S, not 120), and a run of other galaxies adds its own.
+    B's galaxies respond by as much as A's one-pair estimates, so the control's m is A's two-pair m exactly."""
+    a, b, c = tmp_path / "a.fits", tmp_path / "b.fits", tmp_path / "c.fits"
+    _two_pair(0.004, 0.011).write(a)
+    _run(0.011, n_gal=80).write(b)
+    _run(0.011, n_gal=20, seed=9).write(c)
+    ring_split.control_main([str(a)], [f"{a}={b}", str(c)], r_bins=(0.1, 0.125), unweighted=True)
+    lines = _control_lines(capsys.readouterr().out)
+    assert lines["two pairs"][0] == 40 and lines["one pair, all"][0] == 100
+    assert np.allclose(lines["two pairs"][1], 0.004, atol=1e-4)
+    assert np.allclose(lines["one pair, same galaxies"][1], 0.011, atol=1e-4)
+    assert np.allclose(lines["two pairs, one-pair control"][1], 0.004, atol=1e-4)
+    # where B's extra galaxies respond otherwise, the control moves by their share of S: (40 / 80) x 0.01
+    _run(0.011, n_gal=40).write(b, overwrite=True)
+    _run(0.021, n_gal=80).write(c, overwrite=True)
+    ring_split.control_main([str(a)], [f"{a}={b}", f"{a}={c}"], r_bins=(0.1, 0.125), unweighted=True)
+    lines = _control_lines(capsys.readouterr().out)
+    assert lines["one pair, all"][0] == 80
+    assert np.allclose(lines["two pairs, one-pair control"][1], 0.004 + 0.005, atol=1e-4)
