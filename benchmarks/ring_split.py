@@ -87,6 +87,41 @@ def _matched(t, other):
     return t, other
 
 
+def _galaxy_columns(t, n):
+    """Per galaxy of ``t`` (numbers below n): its true scalelength, intrinsic |e| and sigma_e (the rms of its
+    objects' e_var; NaN for a galaxy a stopped run lacks)."""
+    rgal, egal = np.zeros(n), np.zeros(n)
+    rgal[t["galaxy"]] = t["true_scalelength"]
+    egal[t["galaxy"]] = np.hypot(t["e1_int"], t["e2_int"])
+    ev, gal = np.asarray(t["e_var"], float), np.asarray(t["galaxy"])
+    ok = np.isfinite(ev)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        sdg = np.sqrt(np.bincount(gal[ok], ev[ok], n) / np.bincount(gal[ok], None, n))
+    return rgal, egal, sdg
+
+
+def _subset_sums(x, idx, n):
+    """Ring sums of the objects of ``x`` whose galaxies are ``idx`` (of n), the galaxies numbered as in idx."""
+    remap = -np.ones(n, int)
+    remap[idx] = np.arange(idx.size)
+    xx = x[np.isin(x["galaxy"], idx)]
+    tab = {c: np.array(xx[c]) for c in ("sign", "e1", "e2", "weight", "fitclass")}
+    tab["galaxy"] = remap[np.array(xx["galaxy"])]
+    return ring_sums(tab, idx.size)
+
+
+def _splits(sub, columns, r_bins, e_bins, r_unit=""):
+    """``sub(selection, label)`` for all galaxies and each bin of scalelength, intrinsic |e| and sigma_e."""
+    rgal, egal, sdg = columns
+    sub(np.ones(rgal.size, bool), "all")
+    for lo, hi in zip(r_bins[:-1], r_bins[1:]):
+        sub((rgal >= lo) & (rgal < hi), f"r in [{lo}, {hi}){r_unit}")
+    for lo, hi in zip((e_bins or [])[:-1], (e_bins or [])[1:]):
+        sub((egal >= lo) & (egal < hi), f"|e_int| in [{lo}, {hi})")
+    for lo, hi in [(0, 0.02), (0.02, 0.05), (0.05, 1)]:
+        sub((sdg >= lo) & (sdg < hi), f"sigma_e in [{lo}, {hi})")
+
+
 def _one_pair(t):
     """A two-pair run's table with each estimate as the one pair alone would have corrected it (``--one-pair``)."""
     if "nb1_de1" not in t.colnames:
@@ -147,13 +182,7 @@ def control_main(paths, controls, r_bins=(0, 0.15, 0.3, 10), unweighted=False, p
     in2[np.asarray(ta["galaxy"])] = 1.0
     present = np.zeros(n, bool)
     present[np.asarray(tb["galaxy"])] = True
-    rgal, egal = np.zeros(n), np.zeros(n)
-    rgal[tb["galaxy"]] = tb["true_scalelength"]
-    egal[tb["galaxy"]] = np.hypot(tb["e1_int"], tb["e2_int"])
-    ev, gal = np.asarray(tb["e_var"], float), np.asarray(tb["galaxy"])
-    ok = np.isfinite(ev)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        sdg = np.sqrt(np.bincount(gal[ok], ev[ok], n) / np.bincount(gal[ok], None, n))
+    columns = _galaxy_columns(tb, n)
     rng = np.random.default_rng(0)
     print(f"two-pair runs: {len(paths)} ({int(in2.sum())} galaxies); with the one-pair control: {int(present.sum())} "
           f"galaxies")
@@ -162,16 +191,7 @@ def control_main(paths, controls, r_bins=(0, 0.15, 0.3, 10), unweighted=False, p
         idx = np.flatnonzero(sel & present)
         if idx.size < 2 or not np.any(in2[idx]):
             return
-        remap = -np.ones(n, int)
-        remap[idx] = np.arange(idx.size)
-
-        def sums_of(x):
-            xx = x[np.isin(x["galaxy"], idx)]
-            tab = {c: np.array(xx[c]) for c in ("sign", "e1", "e2", "weight", "fitclass")}
-            tab["galaxy"] = remap[np.array(xx["galaxy"])]
-            return ring_sums(tab, idx.size)
-
-        sa, sb, w2 = sums_of(ta), sums_of(tb), in2[idx]
+        sa, sb, w2 = _subset_sums(ta, idx, n), _subset_sums(tb, idx, n), in2[idx]
         counts = bootstrap_counts(idx.size, n_boot, rng)
         rows = (("two pairs", bias_from_sums(sa, g, w2), bias_from_sums(sa, g, counts * w2), int(w2.sum())),
                 ("one pair, same galaxies", bias_from_sums(sb, g, w2), bias_from_sums(sb, g, counts * w2),
@@ -184,13 +204,7 @@ def control_main(paths, controls, r_bins=(0, 0.15, 0.3, 10), unweighted=False, p
             print(f"{label + ': ' + name:58s} rings={k:5d}  m1={est[0]:+.4f}+-{err[0]:.4f}  "
                   f"m2={est[1]:+.4f}+-{err[1]:.4f}  c1={est[2]:+.5f}+-{err[2]:.5f}")
 
-    sub(np.ones(n, bool), "all")
-    for lo, hi in zip(r_bins[:-1], r_bins[1:]):
-        sub((rgal >= lo) & (rgal < hi), f"r in [{lo}, {hi})")
-    for lo, hi in zip((e_bins or [])[:-1], (e_bins or [])[1:]):
-        sub((egal >= lo) & (egal < hi), f"|e_int| in [{lo}, {hi})")
-    for lo, hi in [(0, 0.02), (0.02, 0.05), (0.05, 1)]:
-        sub((sdg >= lo) & (sdg < hi), f"sigma_e in [{lo}, {hi})")
+    _splits(sub, columns, r_bins, e_bins)
 
 
 def main(paths, r_bins=(0, 0.15, 0.3, 10), unweighted=False, paired=False, isotropic=False, uncorrected=False,
@@ -216,15 +230,7 @@ def main(paths, r_bins=(0, 0.15, 0.3, 10), unweighted=False, paired=False, isotr
     plus = t[t["sign"] > 0]
     g = np.array([plus["g1"][0], plus["g2"][0]])   # the shear of the +g set
     n = int(t["galaxy"].max()) + 1
-    rgal = np.zeros(n)
-    rgal[t["galaxy"]] = t["true_scalelength"]
-    egal = np.zeros(n)
-    egal[t["galaxy"]] = np.hypot(t["e1_int"], t["e2_int"])
-    ev = np.asarray(t["e_var"], float)
-    gal = np.asarray(t["galaxy"])
-    ok = np.isfinite(ev)
-    with np.errstate(invalid="ignore", divide="ignore"):   # a galaxy a stopped run lacks: NaN
-        sdg = np.sqrt(np.bincount(gal[ok], ev[ok], n) / np.bincount(gal[ok], None, n))
+    columns = _galaxy_columns(t, n)
     rng = np.random.default_rng(0)
 
     present = np.zeros(n, bool)
@@ -234,21 +240,13 @@ def main(paths, r_bins=(0, 0.15, 0.3, 10), unweighted=False, paired=False, isotr
         idx = np.flatnonzero(sel & present)
         if idx.size < 2:
             return
-        remap = -np.ones(n, int)
-        remap[idx] = np.arange(idx.size)
-        def sums_of(x):
-            xx = x[np.isin(x["galaxy"], idx)]
-            tab = {c: np.array(xx[c]) for c in ("sign", "e1", "e2", "weight", "fitclass")}
-            tab["galaxy"] = remap[np.array(xx["galaxy"])]
-            return ring_sums(tab, idx.size)
-
-        sa = sums_of(t)
+        sa = _subset_sums(t, idx, n)
         if other is None:
             est, err = shear_bias(sa, g, 500, rng)
             print(f"{label:26s} rings={idx.size:4d}  m1={est[0]:+.4f}+-{err[0]:.4f}  m2={est[1]:+.4f}+-{err[1]:.4f}  "
                   f"c1={est[2]:+.5f}+-{err[2]:.5f}  c2={est[3]:+.5f}+-{err[3]:.5f}")
             return
-        sb = sums_of(other)
+        sb = _subset_sums(other, idx, n)
         counts = bootstrap_counts(idx.size, 500, rng)
         ba, bb = bias_from_sums(sa, g, counts), bias_from_sums(sb, g, counts)
         for name, est, boot in (("", bias_from_sums(sa, g), ba), (" paired run", bias_from_sums(sb, g), bb),
@@ -257,13 +255,7 @@ def main(paths, r_bins=(0, 0.15, 0.3, 10), unweighted=False, paired=False, isotr
             print(f"{(label + name):44s} rings={idx.size:4d}  m1={est[0]:+.4f}+-{err[0]:.4f}  "
                   f"m2={est[1]:+.4f}+-{err[1]:.4f}  c1={est[2]:+.5f}+-{err[2]:.5f}")
 
-    sub(np.ones(n, bool), "all")
-    for lo, hi in zip(r_bins[:-1], r_bins[1:]):
-        sub((rgal >= lo) & (rgal < hi), f"r in [{lo}, {hi}) arcsec")
-    for lo, hi in zip((e_bins or [])[:-1], (e_bins or [])[1:]):
-        sub((egal >= lo) & (egal < hi), f"|e_int| in [{lo}, {hi})")
-    for lo, hi in [(0, 0.02), (0.02, 0.05), (0.05, 1)]:
-        sub((sdg >= lo) & (sdg < hi), f"sigma_e in [{lo}, {hi})")
+    _splits(sub, columns, r_bins, e_bins, " arcsec")
 
 
 if __name__ == "__main__":
