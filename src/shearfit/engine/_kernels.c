@@ -799,6 +799,52 @@ static void sums_from_bins(const double *restrict W, Py_ssize_t npad, const doub
  * terms are left out where a bound on each of them (from its transforms at the pair modes' bins) is within
  * pair_tol (FitConfig.pair_chi2_tolerance over S^2: likelihood.join_exposures); 0 keeps them in every model.
  */
+/* binned_sums' fold pairs of nk (<= PLB) models of one ellipticity: sum_k h_k R_a R_b over the pairs, added to
+   each model's ff, gg and fg (O: rows of NOUT), each pair mode's transforms R interpolated from its four bins (PI:
+   the first, PW: four arrays of weights; columns l of RFT, RGT: model kept[l]'s bins, rows of PLB) where its pair
+   needs them (a mode of several pairs, once for each). The same arithmetic, in the same order, as one model at a
+   time, the models in vectors of PLB (the unused columns hold earlier models' values, computed and left): no
+   gathers, and no pass over the modes apart from the pairs' */
+#define PLB 8
+static inline __attribute__((always_inline)) void pair_mode(Py_ssize_t g, Py_ssize_t n_g, const int *restrict PI,
+                                                             const double *restrict PW, const double *restrict RFT,
+                                                             const double *restrict RGT, double *restrict pf,
+                                                             double *restrict pg)
+{
+    const double *f = RFT + (Py_ssize_t)PI[g] * PLB, *r = RGT + (Py_ssize_t)PI[g] * PLB;
+    const double w0 = PW[g], w1 = PW[n_g + g], w2 = PW[2 * n_g + g], w3 = PW[3 * n_g + g];
+    for (int l = 0; l < PLB; l++) {
+        pf[l] = w0 * f[l] + w1 * f[PLB + l] + w2 * f[2 * PLB + l] + w3 * f[3 * PLB + l];
+        pg[l] = w0 * r[l] + w1 * r[PLB + l] + w2 * r[2 * PLB + l] + w3 * r[3 * PLB + l];
+    }
+}
+
+static void pair_block(int nk, const Py_ssize_t *kept, Py_ssize_t n_g, Py_ssize_t n_pairs, const int *restrict PI,
+                       const double *restrict PW, const long long *restrict PA, const long long *restrict PB,
+                       const double *restrict PH, const double *restrict RFT, const double *restrict RGT, double *O)
+{
+    if (nk <= 0) return;
+    double ff[PLB], gg[PLB], fg[PLB];
+    for (int l = 0; l < PLB; l++) ff[l] = gg[l] = fg[l] = 0.0;
+    for (Py_ssize_t k = 0; k < n_pairs; k++) {
+        double fa[PLB], fb[PLB], ga[PLB], gb[PLB];
+        pair_mode(PA[k], n_g, PI, PW, RFT, RGT, fa, ga);
+        pair_mode(PB[k], n_g, PI, PW, RFT, RGT, fb, gb);
+        const double h = PH[k];
+        for (int l = 0; l < PLB; l++) {
+            ff[l] += h * fa[l] * fb[l];
+            gg[l] += h * ga[l] * gb[l];
+            fg[l] += 0.5 * h * (fa[l] * gb[l] + ga[l] * fb[l]);
+        }
+    }
+    for (int l = 0; l < nk; l++) {
+        double *o = O + NOUT * kept[l];
+        o[12] += ff[l];
+        o[13] += gg[l];
+        o[14] += fg[l];
+    }
+}
+
 static PyObject *binned_sums(PyObject *self, PyObject *args)
 {
     Py_buffer shape, r2b, eidx, lob, offb, colb, dcb, gfb, ggb, pbsb, pab, pbb, phb, out;
@@ -839,10 +885,27 @@ static PyObject *binned_sums(PyObject *self, PyObject *args)
         PyErr_SetString(PyExc_ValueError, "binned_sums: inconsistent buffers");
         return NULL;
     }
-    void *rbuf = NULL;
+    void *rbuf = NULL, *tbuf = NULL;
     const Py_ssize_t ng1 = n_g > 0 ? n_g : 1;
+    /* the pair terms of up to PLB models of one ellipticity at a time: their bins' transforms (rows of PLB, the
+       bins and the four entries after them), so that the interpolation and the pairs' products run over the models
+       in vectors (pair_block) */
+    const Py_ssize_t trows = maxpad + BPAD + 4;
+    if (n_pairs > 0 && posix_memalign(&tbuf, 64, 2 * trows * PLB * sizeof(double)) != 0) {
+        BS_RELEASE;
+        return PyErr_NoMemory();
+    }
+    double *RFT = NULL, *RGT = NULL;
+    if (tbuf != NULL) {
+        RFT = (double *)tbuf;
+        RGT = RFT + trows * PLB;
+        memset(tbuf, 0, 2 * trows * PLB * sizeof(double));
+    }
+    Py_ssize_t kept[PLB];
+    int nk = 0;
     /* the bins' transforms; per pair mode its transforms, basis (3 arrays), position, bin and weights */
     if (posix_memalign(&rbuf, 64, (2 * (maxpad + BPAD) + 10 * ng1) * sizeof(double) + ng1 * sizeof(int)) != 0) {
+        free(tbuf);
         BS_RELEASE;
         return PyErr_NoMemory();
     }
@@ -889,6 +952,8 @@ static PyObject *binned_sums(PyObject *self, PyObject *args)
         sums_from_bins(W, npad, RF, RG, DC + 8 * e, zero_f, zero_g, o);
         if (n_pairs > 0) {
             if (e != cur_e) {   /* the pair modes' bins at this ellipticity, as make_bins placed them */
+                pair_block(nk, kept, n_g, n_pairs, PI, PW, PA, PB, PH, RFT, RGT, O);
+                nk = 0;
                 long long plo, phi;
                 bin_index(PB3, n_g, S[3 * e], S[3 * e + 1], S[3 * e + 2], nb, PX, PI, PW, &plo, &phi);
                 cur_e = e;
@@ -939,24 +1004,26 @@ static PyObject *binned_sums(PyObject *self, PyObject *args)
                 }
                 if (1.5625 * bound <= pair_tol) continue;
             }
-            if (npad < 4) {
-                for (Py_ssize_t g = 0; g < n_g; g++) {
-                    PF[g] = zero_f;
-                    PG[g] = zero_g;
-                }
-            } else {
+            if (npad >= 4) {
+                /* the model's bins' transforms into the block's column nk, and its pair terms with the block's */
                 for (int t = 0; t < 4; t++) {
                     RF[npad + t] = t == 1 ? zero_f : 0.0;
                     RG[npad + t] = t == 1 ? zero_g : 0.0;
                 }
-                const int *restrict I = PI;
-                const double *restrict W0 = PW, *restrict W1 = PW + n_g, *restrict W2 = PW + 2 * n_g;
-                const double *restrict W3 = PW + 3 * n_g;
-                for (Py_ssize_t g = 0; g < n_g; g++) {
-                    const Py_ssize_t i0 = I[g];
-                    PF[g] = W0[g] * RF[i0] + W1[g] * RF[i0 + 1] + W2[g] * RF[i0 + 2] + W3[g] * RF[i0 + 3];
-                    PG[g] = W0[g] * RG[i0] + W1[g] * RG[i0 + 1] + W2[g] * RG[i0 + 2] + W3[g] * RG[i0 + 3];
+                for (Py_ssize_t b = 0; b < npad + 4; b++) {
+                    RFT[b * PLB + nk] = RF[b];
+                    RGT[b * PLB + nk] = RG[b];
                 }
+                kept[nk++] = m;
+                if (nk == PLB) {
+                    pair_block(nk, kept, n_g, n_pairs, PI, PW, PA, PB, PH, RFT, RGT, O);
+                    nk = 0;
+                }
+                continue;
+            }
+            for (Py_ssize_t g = 0; g < n_g; g++) {
+                PF[g] = zero_f;
+                PG[g] = zero_g;
             }
             double ff = 0.0, gg = 0.0, fg = 0.0;
             for (Py_ssize_t k = 0; k < n_pairs; k++) {
@@ -970,9 +1037,11 @@ static PyObject *binned_sums(PyObject *self, PyObject *args)
             o[14] += fg;
         }
     }
+    if (n_pairs > 0) pair_block(nk, kept, n_g, n_pairs, PI, PW, PA, PB, PH, RFT, RGT, O);
     Py_END_ALLOW_THREADS
 
     free(rbuf);
+    free(tbuf);
     free(CG);
     BS_RELEASE;
 #undef BS_RELEASE
