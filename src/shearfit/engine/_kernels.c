@@ -993,7 +993,8 @@ static PyObject *binned_sums(PyObject *self, PyObject *args)
                    pairs of mode g), summed per first bin. Skipped where that is within pair_tol */
                 const double z = fabs(zero_f) > fabs(zero_g) ? fabs(zero_f) : fabs(zero_g);
                 double bound = c_zero * z * z;
-                for (Py_ssize_t b = lo_b; b <= hi_b; b++) {
+                for (Py_ssize_t b = lo_b; b <= hi_b && 1.5625 * bound <= pair_tol; b++) {
+                    /* (the terms are >= 0, so a partial sum past pair_tol decides as the whole one: stop there) */
                     if (CB[b] == 0.0) continue;
                     double a = 0.0;
                     for (int t = 0; t < 4; t++) {
