@@ -34,7 +34,7 @@ from scipy.interpolate import CubicSpline
 from ..config import FitConfig
 from ..errors import ShearfitValueError
 from .kernel import KERNEL, USE_KERNEL, special_capsules
-from .model import ExposureModes, indices_by_shape, inv2, shape_matrix
+from .model import ExposureModes, complex_bincount, indices_by_shape, inv2, shape_matrix
 
 
 __all__ = ["JointModes", "join_exposures", "model_sums", "ModelSums", "flux_position_marginal",
@@ -143,11 +143,6 @@ class JointModes:
         return cache
 
 
-def _complex_bincount(index, values, n):
-    """sum of complex ``values`` into ``n`` bins by ``index`` (numpy's bincount takes real weights)."""
-    return np.bincount(index, values.real, n) + 1j * np.bincount(index, values.imag, n)
-
-
 @dataclass
 class _DataMap:
     """How join_exposures made z from the exposures' data: z = bincount(inv, conj(data[index]) zf) phase,
@@ -163,7 +158,7 @@ class _DataMap:
     def merged_z(self, exposures):
         """The exposures' cross-correlation weights, summed per merged mode (before the shifts' phase)."""
         data = np.concatenate([ex.data_ft for ex in exposures])[self.index]
-        return _complex_bincount(self.inv, np.conj(data) * self.zf, self.phase.size)
+        return complex_bincount(self.inv, np.conj(data) * self.zf, self.phase.size)
 
 
 def _block_factors(A, sizes):
@@ -1183,7 +1178,7 @@ def coarse_peak(exposures, jacobians, disk, r_ref, half_width, step, keep=None):
             if keep is not None and keep[i] is not None:
                 ex = _select(ex, keep[i])
             R = disk.ft_rho2(r_ref * r_ref * (ex.kx ** 2 + ex.ky ** 2))
-            C = np.conj(ex.data_ft) * _complex_bincount(ex.coarse, ex.transfer * R, ny * (nx // 2 + 1))
+            C = np.conj(ex.data_ft) * complex_bincount(ex.coarse, ex.transfer * R, ny * (nx // 2 + 1))
             Cs.append(np.conj(C.reshape(ny, nx // 2 + 1)))
         for i, h in zip(idx, sfft.irfft2(np.stack(Cs), s=(ny, nx))):
             hs[i] = h / exposures[i].sigma2

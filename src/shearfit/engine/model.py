@@ -588,6 +588,12 @@ def prepare_exposure(obs: Observation, cfg: FitConfig, grid_shape=None, with_dat
                          data_ft=data_ft, sigma2=sigma2, yy=yy, npix=npix, pixel_scale=obs.pixel_scale)
 
 
+def complex_bincount(index, values, n):
+    """The sum of complex ``values`` into ``n`` bins by ``index`` (numpy's bincount takes real weights); each bin's
+    sum in the order of ``values``, as ``np.add.at`` makes it."""
+    return np.bincount(index, values.real, n) + 1j * np.bincount(index, values.imag, n)
+
+
 def model_ft(modes: ExposureModes, profile, e1, e2, r):
     """Model DFT on the rfft grid of ``modes.shape`` for unit flux of one component."""
     c11, c12, c22 = shape_matrix(e1, e2)
