@@ -600,9 +600,7 @@ def model_ft(modes: ExposureModes, profile, e1, e2, r):
     rho2 = r * r * (c11 * modes.kx ** 2 + 2 * c12 * modes.kx * modes.ky + c22 * modes.ky ** 2)
     vals = modes.transfer * profile.ft_rho2(rho2)
     ny, nx = modes.shape
-    M = np.zeros(ny * (nx // 2 + 1), dtype=complex)
-    np.add.at(M, modes.coarse, vals)
-    return M.reshape(ny, nx // 2 + 1)
+    return complex_bincount(modes.coarse, vals, ny * (nx // 2 + 1)).reshape(ny, nx // 2 + 1)
 
 
 def render_object(obs: Observation, e1, e2, scalelength, bulge_fraction, flux, config=None):
