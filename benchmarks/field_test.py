@@ -23,6 +23,8 @@ pipeline's throughput.
         --fitted-oversampling 1 3 --star-snr 200 2000                 # undersampled: native vs 3x fitted model
     python benchmarks/field_test.py --n-galaxies 320 --n-ccd 16 --metacal --antithetic --wcs distorted
                                       # metacal, each field with its antithetic twin (pixel and metacal noise negated)
+    python benchmarks/field_test.py ... --seed 65 --table t65.fits    # the objects as a ring-test table, and
+    python benchmarks/ring_split.py t64.fits t65.fits --unweighted    # several seeds' fields read as one
 
 With ``--psf fitted`` or ``both`` every CCD also holds stars (a star
 catalogue is given; at the default ``--spacing`` a star 31 pixels from a large galaxy blends with it:
@@ -282,6 +284,10 @@ def main(argv=None):
     ap.add_argument("--reuse", action="store_true",
                     help="with --keep: read the catalogue of a field already measured there (same options) "
                          "instead of simulating and measuring it again")
+    ap.add_argument("--table", default=None, metavar="FILE",
+                    help="write the measured objects as a ring-test table (benchmarks/ring_test.py --out's columns), "
+                         "for benchmarks/ring_split.py to read several runs (seeds) as one; with several variants, "
+                         "one file each, the variant's name before the extension")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="setting of every run (e.g. psf_oversampling=3 for the fitted-PSF runs, or an engine "
                          "setting such as size_prior_axis=area)")
@@ -397,6 +403,13 @@ def main(argv=None):
     results = {}
     for v in variants:
         results[label[v]] = report({k[1:]: t for k, t in tables.items() if k[0] == v}, gals, args, label[v], v[0])
+        if args.table:
+            path = args.table
+            if len(variants) > 1:
+                root, ext = os.path.splitext(args.table)
+                path = f"{root}_{label[v].replace(' ', '').replace(',', '_')}{ext or '.fits'}"
+            ring_table({k[1:]: t for k, t in tables.items() if k[0] == v}, gals, args).write(path, overwrite=True)
+            print(f"  objects written to {path} (benchmarks/ring_split.py reads it)")
     if len(variants) > 1:
         # differences from the first variant, resampling the same rings for all
         rng_b = np.random.default_rng(0)
@@ -432,6 +445,28 @@ def _rows(tables, gals):
             for key in cols:
                 rows[key].append(row[key] if key in t.colnames else np.nan)
     return {k: np.array(v) for k, v in rows.items()}
+
+
+def ring_table(tables, gals, args):
+    """The objects of every field in ``benchmarks/ring_test.py --out``'s form: ring (``galaxy``), the shear's
+    ``sign``, ``rotation`` (0-3, the twin's 4-7), the shear (``g1``, ``g2``, signed), the truth and the
+    catalogue's measurement, so that ``ring_split.py`` reads the runs of several seeds as one."""
+    tab = _rows(tables, gals)
+    index = np.concatenate([np.arange(len(gals))] * len(tables))
+    truth = {key: np.array([gals[i][src] for i in index]) for key, src in
+             (("e1_int", "e1"), ("e2_int", "e2"), ("true_scalelength", "r"), ("true_bulge_fraction", "B"))}
+    g = np.array(args.shear, float)
+    out = Table({"galaxy": tab["galaxy"].astype(np.int64), "sign": tab["sign"].astype(np.int64),
+                 "rotation": (index % 4 + np.where(tab["twin"] < 0, 4, 0)).astype(np.int64),
+                 "g1": tab["sign"] * g[0], "g2": tab["sign"] * g[1], **truth})
+    for key in ("fitclass", "e1", "e2", "e_var", "weight", "iso_weight"):
+        out[key] = tab[key]
+    out["fitclass"] = np.nan_to_num(out["fitclass"], nan=-1).astype(np.int64)
+    fields = [t for t in tables.values()]
+    for key in ("flux_snr", "snr", "scalelength"):
+        if all(key in t.colnames for t in fields):
+            out[key] = np.concatenate([np.asarray(t[key], float) for t in fields])
+    return out
 
 
 def _edges(text):

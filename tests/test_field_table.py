@@ -1,0 +1,61 @@
+"""benchmarks/field_test.py --table: a field's catalogues as a ring-test table, several seeds read as one."""
+
+import re
+
+import numpy as np
+from astropy.table import Table
+
+from scripts import load_script
+
+ring_split = load_script("benchmarks/ring_split.py")   # puts benchmarks/ on the path, for field_test's imports
+field_test = load_script("benchmarks/field_test.py")
+
+G = (0.03, -0.02)
+
+
+class _Args:
+    shear = G
+
+
+def _field(m, n_rings, seed):
+    """``field_test.py``'s galaxies (4 orientations a ring) and the catalogues of its four fields (+g and -g, each
+    with its antithetic twin) whose estimates respond to the shear by 1 + m exactly, the noise the same at +g and
+    -g and negated in the twin."""
+    rng = np.random.default_rng(seed)
+    gals = []
+    for k in range(n_rings):
+        e0 = rng.uniform(0.05, 0.6) * np.exp(2j * np.pi * rng.uniform())
+        r = rng.uniform(0.1, 0.125)
+        for j in range(4):
+            ej = e0 * np.exp(1j * np.pi * j / 2)
+            gals.append(dict(ring=k, r=r, B=0.0, e1=ej.real, e2=ej.imag))
+    noise = rng.normal(0, 0.05, (len(gals), 2)) @ np.array([1, 1j])
+    tables = {}
+    for sign in (1, -1):
+        for twin in (1, -1):
+            e = np.array([g["e1"] + 1j * g["e2"] for g in gals]) + (1 + m) * sign * complex(*G) + twin * noise
+            n = len(gals)
+            tables[(sign, twin)] = Table({"e1": e.real, "e2": e.imag, "e_var": np.full(n, 0.01),
+                                          "weight": rng.uniform(5, 10, n), "iso_weight": np.full(n, 7.0),
+                                          "fitclass": np.zeros(n, int), "m": np.zeros(n),
+                                          "flux_snr": rng.uniform(100, 200, n)})
+    return tables, gals
+
+
+def test_two_seeds_tables_read_as_one_by_ring_split(tmp_path, capsys):
+    paths = []
+    for seed, n in ((1, 30), (2, 20)):
+        tables, gals = _field(0.004, n, seed)
+        t = field_test.ring_table(tables, gals, _Args())
+        assert len(t) == 8 * n * 2
+        # each ring's eight objects at each shear: orientations 0-3 and the twin's 4-7
+        assert set(np.asarray(t["rotation"])) == set(range(8))
+        assert np.all(np.bincount(np.asarray(t["galaxy"]), minlength=n) == 16)
+        assert np.allclose(np.asarray(t["g1"]) * np.asarray(t["sign"]), G[0])
+        paths.append(tmp_path / f"t{seed}.fits")
+        t.write(paths[-1])
+    ring_split.main([str(p) for p in paths], r_bins=(0.1, 0.125), unweighted=True)
+    line = next(ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("all"))
+    assert "rings=  50" in line
+    m = [float(x) for x in re.findall(r"m[12]=([+-][0-9.]+)", line)]
+    assert np.allclose(m, 0.004, atol=1e-4)
