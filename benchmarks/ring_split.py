@@ -3,7 +3,7 @@
 
     python benchmarks/ring_split.py ring.fits [ring2.fits ...] [--r-bins 0,0.15,0.3,10] [--unweighted |
                                               --paired-weights | --isotropic-weights] [--uncorrected | --one-pair]
-                                              [--e-bins 0,0.3,0.5,0.6,0.7,1] [--paired-with B.fits]
+                                              [--e-bins 0,0.3,0.5,0.6,0.7,1] [--paired-with B.fits] [--keep-stars]
                                               [--control [A.fits=]B.fits ...]
 
 Several tables (runs of the same shear) are read as one, their galaxies numbered on.
@@ -33,6 +33,12 @@ two pairs, S those and B's; a two-pair run's own one-pair estimates are in it. U
 error it lowers where B adds galaxies: the difference of the two corrections on the same objects scatters less than
 either (the objects' own responses cancel in it). The bootstrap resamples S, S2 with it.
 
+``--keep-stars``: the objects classified as stars (fitclass 1) counted as galaxies, at the weight of their e_var
+(unit weight with ``--unweighted``). The star/galaxy classification selects on shape (an elongated small galaxy
+beats a point source by more), so it responds to the shear; an object classified at +g and not at -g also leaves
+its ring's intrinsic shapes uncancelled, which dominates the error of m where only a few rings have one. With the
+option m is the measurement's alone, without that selection.
+
 ``--isotropic-weights``: each weight the mean weight of its bin of ``flux_snr``
 (``shearfit.calib.weights.isotropic_weights``, 10 equal-number bins; tables from session 57 on): the weights a
 catalogue without ring pairs has (its ``iso_weight``), which do not respond to shear either.
@@ -47,6 +53,8 @@ from astropy.table import Table
 
 from shearfit.calib.bias import bias_from_sums, bootstrap_counts, paired_weights, ring_sums, shear_bias
 from shearfit.calib.weights import isotropic_weights
+from shearfit.config import FitConfig
+from shearfit.engine.sampling import lensing_weight
 
 # benchmarks/ring_test.py, beside this script: several runs' tables read as one
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
@@ -207,8 +215,19 @@ def control_main(paths, controls, r_bins=(0, 0.15, 0.3, 10), unweighted=False, p
     _splits(sub, columns, r_bins, e_bins)
 
 
+def _stars_kept(t):
+    """``t`` with the objects classified as stars (fitclass 1) counted as galaxies, at the weight of their e_var:
+    the measurement without the star/galaxy selection, which selects on shape and so responds to the shear."""
+    t = t.copy()
+    star = np.asarray(t["fitclass"]) == 1
+    t["weight"] = np.where(star, lensing_weight(np.asarray(t["e_var"], float), FitConfig()),
+                           np.asarray(t["weight"], float))
+    t["fitclass"] = np.where(star, 0, np.asarray(t["fitclass"]))
+    return t
+
+
 def main(paths, r_bins=(0, 0.15, 0.3, 10), unweighted=False, paired=False, isotropic=False, uncorrected=False,
-         paired_with=None, e_bins=None, one_pair=False):
+         paired_with=None, e_bins=None, one_pair=False, keep_stars=False):
     if paired_with and (len(paths) != 1 or len(paired_with) != 1):
         # several tables are renumbered as one, and two runs' numbers would then not pair
         raise SystemExit("ring_split.py: --paired-with compares one table with one other")
@@ -222,9 +241,13 @@ def main(paths, r_bins=(0, 0.15, 0.3, 10), unweighted=False, paired=False, isotr
             t[f"e{i}"] = np.asarray(t[f"e{i}"]) + np.nan_to_num(np.asarray(t[f"nb_de{i}"]))
     if one_pair:
         t = _one_pair(t)
+    if keep_stars:
+        t = _stars_kept(t)
     other = None
     if paired_with:
         t, other = _matched(t, Table.read(paired_with[0]))
+        if keep_stars:
+            other = _stars_kept(other)
         other = _weighted(other, unweighted, paired, isotropic)
     t = _weighted(t, unweighted, paired, isotropic)
     plus = t[t["sign"] > 0]
@@ -272,6 +295,9 @@ if __name__ == "__main__":
     ap.add_argument("--one-pair", action="store_true",
                     help="the estimates as the one-pair extrapolation corrected them (runs with "
                          "noise_bias_second_amplitude)")
+    ap.add_argument("--keep-stars", action="store_true",
+                    help="count the objects classified as stars (fitclass 1) as galaxies: m without the star/galaxy "
+                         "selection's response to the shear")
     ap.add_argument("--e-bins", default=None,
                     help="edges of bins of the galaxies' intrinsic |e| (e.g. 0,0.3,0.5,0.6,0.7,1), each split too")
     ap.add_argument("--paired-with", metavar="TABLE", default=None,
@@ -286,10 +312,10 @@ if __name__ == "__main__":
         ap.error("--unweighted, --paired-weights and --isotropic-weights exclude each other")
     e_edges = [float(x) for x in a.e_bins.split(",")] if a.e_bins else None
     if a.control:
-        if a.uncorrected or a.one_pair or a.paired_with:
-            ap.error("--control excludes --uncorrected, --one-pair and --paired-with")
+        if a.uncorrected or a.one_pair or a.paired_with or a.keep_stars:
+            ap.error("--control excludes --uncorrected, --one-pair, --paired-with and --keep-stars")
         control_main(a.table, a.control, [float(x) for x in a.r_bins.split(",")], a.unweighted, a.paired_weights,
                      a.isotropic_weights, e_edges)
         sys.exit(0)
     main(a.table, [float(x) for x in a.r_bins.split(",")], a.unweighted, a.paired_weights, a.isotropic_weights,
-         a.uncorrected, [a.paired_with] if a.paired_with else None, e_edges, a.one_pair)
+         a.uncorrected, [a.paired_with] if a.paired_with else None, e_edges, a.one_pair, a.keep_stars)

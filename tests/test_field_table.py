@@ -38,7 +38,7 @@ def _field(m, n_rings, seed):
             tables[(sign, twin)] = Table({"e1": e.real, "e2": e.imag, "e_var": np.full(n, 0.01),
                                           "weight": rng.uniform(5, 10, n), "iso_weight": np.full(n, 7.0),
                                           "fitclass": np.zeros(n, int), "m": np.zeros(n),
-                                          "flux_snr": rng.uniform(100, 200, n)})
+                                          "flux_snr": rng.uniform(100, 200, n), "round_scalelength": np.full(n, 0.11)})
     return tables, gals
 
 
@@ -59,3 +59,17 @@ def test_two_seeds_tables_read_as_one_by_ring_split(tmp_path, capsys):
     assert "rings=  50" in line
     m = [float(x) for x in re.findall(r"m[12]=([+-][0-9.]+)", line)]
     assert np.allclose(m, 0.004, atol=1e-4)
+
+
+def test_keep_stars_counts_the_objects_classified_as_stars(tmp_path, capsys):
+    """An object classified as a star at +g and not at -g leaves its ring's shapes uncancelled; --keep-stars
+    counts it again, and m is the estimates' own."""
+    tables, gals = _field(-0.003, 30, 3)
+    tables[(1, 1)]["fitclass"][[5, 17]] = 1
+    path = tmp_path / "t.fits"
+    field_test.ring_table(tables, gals, _Args()).write(path)
+    for keep, close in ((False, False), (True, True)):
+        ring_split.main([str(path)], r_bins=(0.1, 0.125), unweighted=True, keep_stars=keep)
+        line = next(ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("all"))
+        m = [float(x) for x in re.findall(r"m[12]=([+-][0-9.]+)", line)]
+        assert np.allclose(m, -0.003, atol=1e-4) == close
