@@ -462,7 +462,7 @@ def ring_table(tables, gals, args):
     for key in ("fitclass", "e1", "e2", "e_var", "weight", "iso_weight"):
         out[key] = tab[key]
     out["fitclass"] = np.nan_to_num(out["fitclass"], nan=-1).astype(np.int64)
-    fields = [t for t in tables.values()]
+    fields = list(tables.values())
     for key in ("flux_snr", "snr", "scalelength", "round_scalelength"):
         if all(key in t.colnames for t in fields):
             out[key] = np.concatenate([np.asarray(t[key], float) for t in fields])

@@ -245,9 +245,9 @@ def main(paths, r_bins=(0, 0.15, 0.3, 10), unweighted=False, paired=False, isotr
         t = _stars_kept(t)
     other = None
     if paired_with:
-        t, other = _matched(t, Table.read(paired_with[0]))
-        if keep_stars:
-            other = _stars_kept(other)
+        other = Table.read(paired_with[0])
+        # before the matching, which counts an object that is not a galaxy in either run as failed in both
+        t, other = _matched(t, _stars_kept(other) if keep_stars else other)
         other = _weighted(other, unweighted, paired, isotropic)
     t = _weighted(t, unweighted, paired, isotropic)
     plus = t[t["sign"] > 0]
