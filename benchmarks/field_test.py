@@ -50,15 +50,13 @@ import yaml
 from astropy.io import fits
 from astropy.table import Table
 
-from shearfit.config import FitConfig
 from shearfit.engine import priors
-from shearfit.engine.sampling import lensing_weight
 from shearfit.app.cli import main as shearfit_main
 from shearfit.calib.bias import ring_sums, shear_bias
 from shearfit.simulate.field import truth_galaxies
 from shearfit.simulate.stamps import galaxy_profile, mag_to_flux
 # benchmarks/ring_test.py, beside this script: the metacal columns, estimator and bootstrap
-from ring_test import METACAL_FIELDS, report_metacal
+from ring_test import METACAL_FIELDS, report_metacal, stars_kept
 
 PIX = 0.187
 RA0, DEC0 = 35.0, -4.0
@@ -555,8 +553,7 @@ def report(tables, gals, args, name, wcs_mode):
         # the star/galaxy test selects on shape (an elongated small galaxy beats a point source by more), and
         # so on the shear: the same objects with those classified as stars kept, at the weight of their e_var
         star = fc == 1
-        kept = dict(tab, fitclass=np.where(star, 0, fc),
-                    weight=np.where(star, lensing_weight(tab["e_var"], FitConfig()), tab["weight"]))
+        kept = stars_kept(tab)
         est_s, err_s = shear_bias(ring_sums(kept, args.n_galaxies), np.array(args.shear), args.n_bootstrap,
                                   np.random.default_rng(0))
         print(f"  without the star/galaxy selection ({int(star.sum())} objects classified as stars kept): "

@@ -53,12 +53,10 @@ from astropy.table import Table
 
 from shearfit.calib.bias import bias_from_sums, bootstrap_counts, paired_weights, ring_sums, shear_bias
 from shearfit.calib.weights import isotropic_weights
-from shearfit.config import FitConfig
-from shearfit.engine.sampling import lensing_weight
 
 # benchmarks/ring_test.py, beside this script: several runs' tables read as one
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from ring_test import read_tables  # noqa: E402
+from ring_test import read_tables, stars_kept  # noqa: E402
 
 
 def _weighted(t, unweighted, paired, isotropic):
@@ -215,17 +213,6 @@ def control_main(paths, controls, r_bins=(0, 0.15, 0.3, 10), unweighted=False, p
     _splits(sub, columns, r_bins, e_bins)
 
 
-def _stars_kept(t):
-    """``t`` with the objects classified as stars (fitclass 1) counted as galaxies, at the weight of their e_var:
-    the measurement without the star/galaxy selection, which selects on shape and so responds to the shear."""
-    t = t.copy()
-    star = np.asarray(t["fitclass"]) == 1
-    t["weight"] = np.where(star, lensing_weight(np.asarray(t["e_var"], float), FitConfig()),
-                           np.asarray(t["weight"], float))
-    t["fitclass"] = np.where(star, 0, np.asarray(t["fitclass"]))
-    return t
-
-
 def main(paths, r_bins=(0, 0.15, 0.3, 10), unweighted=False, paired=False, isotropic=False, uncorrected=False,
          paired_with=None, e_bins=None, one_pair=False, keep_stars=False):
     if paired_with and (len(paths) != 1 or len(paired_with) != 1):
@@ -242,12 +229,12 @@ def main(paths, r_bins=(0, 0.15, 0.3, 10), unweighted=False, paired=False, isotr
     if one_pair:
         t = _one_pair(t)
     if keep_stars:
-        t = _stars_kept(t)
+        t = stars_kept(t)
     other = None
     if paired_with:
         other = Table.read(paired_with[0])
         # before the matching, which counts an object that is not a galaxy in either run as failed in both
-        t, other = _matched(t, _stars_kept(other) if keep_stars else other)
+        t, other = _matched(t, stars_kept(other) if keep_stars else other)
         other = _weighted(other, unweighted, paired, isotropic)
     t = _weighted(t, unweighted, paired, isotropic)
     plus = t[t["sign"] > 0]

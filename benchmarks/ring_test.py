@@ -114,6 +114,8 @@ from shearfit.calib.bias import (METACAL_SUM_NAMES, bias_from_sums, bootstrap_co
                                   galaxy_column, metacal_bias_from_sums, metacal_ring_sums, paired_weights, ring_sums,
                                   shear_bias, shear_bias_by_snr, snr_bin_masks)
 from shearfit.calib.weights import isotropic_weights  # noqa: E402
+from shearfit.config import FitConfig  # noqa: E402
+from shearfit.engine.sampling import lensing_weight  # noqa: E402
 
 # m(SNR) is printed when snr_max / snr_min exceeds this: a narrower range has no noise-bias trend to see.
 WIDE_SNR_RATIO = 2.5
@@ -1191,6 +1193,20 @@ def _to_array(records):
     for n in names:
         arr[n] = cols[n]
     return arr
+
+
+def stars_kept(t):
+    """``t`` (a table or a mapping of columns) with the objects classified as stars (fitclass 1) counted as galaxies,
+    at the weight of their e_var: the measurement without the star/galaxy selection, which selects on shape (an
+    elongated small galaxy beats a point source by more) and so responds to the shear."""
+    star = np.asarray(t["fitclass"]) == 1
+    weight = np.where(star, lensing_weight(np.asarray(t["e_var"], float), FitConfig()), np.asarray(t["weight"], float))
+    fitclass = np.where(star, 0, np.asarray(t["fitclass"]))
+    if isinstance(t, dict):
+        return dict(t, weight=weight, fitclass=fitclass)
+    t = t.copy()
+    t["weight"], t["fitclass"] = weight, fitclass
+    return t
 
 
 def read_tables(paths, shears=None):
