@@ -356,6 +356,7 @@ def main(argv=None):
     settings = {name: st for name, _, st in psf_variants}
     label = {v: (v[1] if len(args.wcs) == 1 else f"{v[0]} WCS, {v[1]}") for v in variants}
     tables = {}
+    args.psf_sky = {}   # per WCS variant: its exposures' given PSFs in the sky frame (exposure_psfs)
     twins = (+1, -1) if args.antithetic else (+1,)
     t_meas = 0.0
     n_meas = 0
@@ -371,8 +372,8 @@ def main(argv=None):
                 what = f"{'+g' if sign > 0 else '-g'}{', twin' if twin < 0 else ''}"
                 if args.reuse and os.path.exists(out):
                     tables[(v, sign, twin)] = Table.read(out)
-                    if with_psf and getattr(args, "psf_sky", None) is None:
-                        args.psf_sky = exposure_psfs(d, args.n_exposures)
+                    if with_psf and wcs_mode not in args.psf_sky:
+                        args.psf_sky[wcs_mode] = exposure_psfs(d, args.n_exposures)
                     print(f"field {what} ({label[v]}): read from {out}", flush=True)
                     continue
                 t0 = time.perf_counter()
@@ -391,8 +392,9 @@ def main(argv=None):
                 if rc != 0:
                     raise SystemExit(f"shearfit measure failed ({rc})")
                 tables[(v, sign, twin)] = Table.read(out)
-                if with_psf and getattr(args, "psf_sky", None) is None:
-                    args.psf_sky = exposure_psfs(d, args.n_exposures)
+                if with_psf and wcs_mode not in args.psf_sky:
+                    # each WCS its own: rotated and distorted exposures carry the PSF to the sky differently
+                    args.psf_sky[wcs_mode] = exposure_psfs(d, args.n_exposures)
                 print(f"field {what} ({label[v]}): simulated in {t_sim:.0f} s, measured in "
                       f"{time.perf_counter() - t0:.0f} s", flush=True)
     if n_meas:
@@ -532,7 +534,7 @@ def report(tables, gals, args, name, wcs_mode):
           f"scalelength >= {args.min_size}\"")
     print(f"  m1 = {est[0]:+.5f} +/- {err[0]:.5f}    c1 = {est[2]:+.6f} +/- {err[2]:.6f}")
     print(f"  m2 = {est[1]:+.5f} +/- {err[1]:.5f}    c2 = {est[3]:+.6f} +/- {err[3]:.6f}")
-    sky = getattr(args, "psf_sky", None)
+    sky = getattr(args, "psf_sky", {}).get(wcs_mode)
     if sky is not None:
         # a PSF leakage alpha makes c = alpha e_psf, e_psf the exposures' PSF ellipticity as the fits weigh them:
         # for small galaxies the sharpest exposures count most (about as FWHM^-4)
@@ -541,6 +543,12 @@ def report(tables, gals, args, name, wcs_mode):
         print(f"  the exposures' given PSFs (sky frame, adaptive moments, CCD 1): ellipticity mean ({g[:, 0].mean():+.4f}, "
               f"{g[:, 1].mean():+.4f}), weighted by FWHM^-4 ({gw[0]:+.4f}, {gw[1]:+.4f}); FWHM {sky[:, 2].min():.2f}-"
               f"{sky[:, 2].max():.2f}\"")
+        gg = float(gw @ gw)
+        if gg > 0.005 ** 2:
+            # c's component along the weighted PSF ellipticity, as a leakage: alpha = c . e_psf / |e_psf|^2
+            alpha = (est[2] * gw[0] + est[3] * gw[1]) / gg
+            alpha_err = float(np.hypot(err[2] * gw[0], err[3] * gw[1])) / gg
+            print(f"  c along the weighted PSF ellipticity: alpha = {alpha:+.4f} +/- {alpha_err:.4f}")
     good = (fc == 0) & np.isfinite(tab["m"]) & (np.nan_to_num(tab["weight"]) > 0)
     if good.any():
         # the catalogue's m column (the calibration in force, shearfit's default unless --set calibration=...)

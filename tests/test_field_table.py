@@ -73,3 +73,28 @@ def test_keep_stars_counts_the_objects_classified_as_stars(tmp_path, capsys):
         line = next(ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("all"))
         m = [float(x) for x in re.findall(r"m[12]=([+-][0-9.]+)", line)]
         assert np.allclose(m, -0.003, atol=1e-4) == close
+
+
+def test_each_wcs_variant_reports_the_leakage_along_its_own_sky_psf(capsys):
+    """Rotated and distorted exposures carry the same pixel PSFs to the sky differently: each variant's report
+    takes its own exposures' sky-frame PSF, and c = alpha e_psf there gives alpha back."""
+    class Args:
+        shear, n_galaxies, n_bootstrap, n_exposures, n_ccd = G, 30, 50, 2, 1
+        antithetic, noise_free, noise_sigma, metacal = True, True, None, False
+        snr_min, snr_max, min_size, size_split = 100.0, 200.0, 0.1, None
+        psf_sky = {"plain": np.array([[0.01, 0.02, 0.7], [0.03, -0.01, 0.6]]),
+                   "distorted": np.array([[0.05, 0.00, 0.7], [0.04, -0.02, 0.6]])}
+    alpha = 0.02
+    for mode, sky in Args.psf_sky.items():
+        w = sky[:, 2] ** -4.0
+        e_psf = w @ sky[:, :2] / w.sum()
+        tables, gals = _field(0.0, Args.n_galaxies, 4)
+        for t in tables.values():
+            t["weight"] = 7.0   # equal weights: each ring's intrinsic shapes cancel, and c is alpha e_psf alone
+            t["e1"] += alpha * e_psf[0]
+            t["e2"] += alpha * e_psf[1]
+        field_test.report(tables, gals, Args(), mode, mode)
+        out = capsys.readouterr().out
+        found = re.search(r"alpha = ([+-][0-9.]+) \+/- ([0-9.]+)", out)
+        assert found and abs(float(found.group(1)) - alpha) < 1e-4, out
+        assert f"({e_psf[0]:+.4f}, {e_psf[1]:+.4f})" in out
