@@ -372,43 +372,42 @@ def main(argv=None):
                 what = f"{'+g' if sign > 0 else '-g'}{', twin' if twin < 0 else ''}"
                 if args.reuse and os.path.exists(out):
                     tables[(v, sign, twin)] = Table.read(out)
-                    if with_psf and wcs_mode not in args.psf_sky:
-                        args.psf_sky[wcs_mode] = exposure_psfs(d, args.n_exposures)
                     print(f"field {what} ({label[v]}): read from {out}", flush=True)
-                    continue
-                t0 = time.perf_counter()
-                run_settings = dict(settings[name])
-                if args.metacal:
-                    run_settings["calibration"] = "metacal"
-                    if twin < 0:
-                        run_settings["metacal_noise_sign"] = -1
-                cfgpath = make_field(d, sign, args, gals, psfs, sigma, stars=stars, with_psf=with_psf,
-                                     wcs_mode=wcs_mode, psf_settings=run_settings, noise_sign=twin)
-                t_sim = time.perf_counter() - t0
-                t0 = time.perf_counter()
-                rc = shearfit_main(["measure", cfgpath, "--out", out, "--quiet", "-j", str(args.processes)])
-                t_meas += time.perf_counter() - t0
-                n_meas += len(gals)
-                if rc != 0:
-                    raise SystemExit(f"shearfit measure failed ({rc})")
-                tables[(v, sign, twin)] = Table.read(out)
+                else:
+                    t0 = time.perf_counter()
+                    run_settings = dict(settings[name])
+                    if args.metacal:
+                        run_settings["calibration"] = "metacal"
+                        if twin < 0:
+                            run_settings["metacal_noise_sign"] = -1
+                    cfgpath = make_field(d, sign, args, gals, psfs, sigma, stars=stars, with_psf=with_psf,
+                                         wcs_mode=wcs_mode, psf_settings=run_settings, noise_sign=twin)
+                    t_sim = time.perf_counter() - t0
+                    t0 = time.perf_counter()
+                    rc = shearfit_main(["measure", cfgpath, "--out", out, "--quiet", "-j", str(args.processes)])
+                    t_meas += time.perf_counter() - t0
+                    n_meas += len(gals)
+                    if rc != 0:
+                        raise SystemExit(f"shearfit measure failed ({rc})")
+                    tables[(v, sign, twin)] = Table.read(out)
+                    print(f"field {what} ({label[v]}): simulated in {t_sim:.0f} s, measured in "
+                          f"{time.perf_counter() - t0:.0f} s", flush=True)
                 if with_psf and wcs_mode not in args.psf_sky:
                     # each WCS its own: rotated and distorted exposures carry the PSF to the sky differently
                     args.psf_sky[wcs_mode] = exposure_psfs(d, args.n_exposures)
-                print(f"field {what} ({label[v]}): simulated in {t_sim:.0f} s, measured in "
-                      f"{time.perf_counter() - t0:.0f} s", flush=True)
     if n_meas:
         print(f"\nshearfit measure: {n_meas / t_meas / args.processes:.2f} objects/s per process "
               f"({args.processes} processes, PSF fitting included where fitted)")
     results = {}
     for v in variants:
-        results[label[v]] = report({k[1:]: t for k, t in tables.items() if k[0] == v}, gals, args, label[v], v[0])
+        fields = {k[1:]: t for k, t in tables.items() if k[0] == v}
+        results[label[v]] = report(fields, gals, args, label[v], v[0])
         if args.table:
             path = args.table
             if len(variants) > 1:
                 root, ext = os.path.splitext(args.table)
                 path = f"{root}_{label[v].replace(' ', '').replace(',', '_')}{ext or '.fits'}"
-            ring_table({k[1:]: t for k, t in tables.items() if k[0] == v}, gals, args).write(path, overwrite=True)
+            ring_table(fields, gals, args).write(path, overwrite=True)
             print(f"  objects written to {path} (benchmarks/ring_split.py reads it)")
     if len(variants) > 1:
         # differences from the first variant, resampling the same rings for all
