@@ -15,7 +15,8 @@ Simulates (``shearfit simulate``) and measures (``shearfit measure``) three sets
   calibration carry to a survey of another seeing?
 
 ``--cal-extra-psf LO,HI`` adds ``--cal-extra-seeds`` more calibration seeds (from 1100) whose exposures' PSF FWHM
-is drawn from [LO, HI] arcsec, so that the table spans a wider range of seeing.
+is drawn from [LO, HI] arcsec, so that the table spans a wider range of seeing; repeated, each range its own
+seeds (the second from 1200, the third from 1300).
 
 Then ``shearfit calibrate`` is fitted on the calibration set, applied to the test set and to the
 second suite, and the script prints raw and calibrated m and c with bootstrap errors (over galaxies,
@@ -28,7 +29,8 @@ Everything already simulated or measured under ``--out`` is reused, so the scrip
     python benchmarks/calibration_closure.py --out /tmp/closure -j 2 --antithetic --test-seeds 12
     python benchmarks/calibration_closure.py --out /tmp/closure -j 2 --size scalelength --transfer-psf 0.85,1.05
     python benchmarks/calibration_closure.py --out /tmp/closure -j 2 --cal-extra-psf 0.85,1.05 --cal-extra-seeds 10 \
-        --seeing-bins 2 --transfer-psf 0.85,1.05 --transfer-psf 1.05,1.25     # the package's default table
+        --cal-extra-psf 1.05,1.25 --seeing-bins 3 --transfer-psf 0.85,1.05 --transfer-psf 1.05,1.25 \
+        --transfer-psf 1.25,1.45                                             # the package's default table
 
 ``--size`` is the calibration table's size axis (``shearfit calibrate --size``): ``resolution``, the scalelength
 over the catalogue's ``psf_fwhm`` (the default), or ``scalelength`` in arcsec.
@@ -159,9 +161,9 @@ def main(argv=None):
                     help="also measure the first --transfer-seeds test seeds with every exposure's PSF FWHM drawn "
                          "from [LO, HI] arcsec (the GREAT-like fields draw 0.55-0.85), and apply the calibration "
                          "(repeatable)")
-    ap.add_argument("--cal-extra-psf", default=None, metavar="LO,HI",
+    ap.add_argument("--cal-extra-psf", action="append", default=[], metavar="LO,HI",
                     help="add --cal-extra-seeds calibration seeds (1100, 1101, ...) with every exposure's PSF FWHM "
-                         "drawn from [LO, HI] arcsec")
+                         "drawn from [LO, HI] arcsec (repeatable: the k-th range's seeds from 1100 + 100 k)")
     ap.add_argument("--cal-extra-seeds", type=int, default=0)
     ap.add_argument("--seeing-bins", type=int, default=1,
                     help="also fit a table per range of the PSF's FWHM, this many ranges (shearfit calibrate "
@@ -179,7 +181,8 @@ def main(argv=None):
     tag = "".join("_" + "".join(ch if ch.isalnum() else "-" for ch in item) for item in args.set)
     # the catalogues (measured once per setting) do not depend on the size axis; the calibration's files do
     ctag = tag + ("_size-scalelength" if args.size == "scalelength" else "") + (
-        f"_cal-psf-{args.cal_extra_psf.replace(',', '-')}-x{args.cal_extra_seeds}" if args.cal_extra_psf else "") + (
+        "".join(f"_cal-psf-{item.replace(',', '-')}-x{args.cal_extra_seeds}" for item in args.cal_extra_psf)
+        if args.cal_extra_seeds > 0 else "") + (
         f"_seeing-{args.seeing_bins}" if args.seeing_bins > 1 else "")
     out = os.path.abspath(args.out)
     t0 = time.time()
@@ -192,10 +195,11 @@ def main(argv=None):
                 test=field_jobs(out, "test", great, range(2000, 2000 + args.test_seeds), args.test_g,
                                 twins=args.antithetic),
                 second=field_jobs(out, "second", second, range(3000, 3000 + args.second_seeds), args.test_g))
-    if args.cal_extra_psf and args.cal_extra_seeds > 0:
-        lo_hi = [float(v) for v in args.cal_extra_psf.split(",")]
+    for k, item in enumerate(args.cal_extra_psf if args.cal_extra_seeds > 0 else []):
+        lo_hi = [float(v) for v in item.split(",")]
+        first = 1100 + 100 * k
         sets["cal"] += field_jobs(out, f"cal-psf-{lo_hi[0]:g}-{lo_hi[1]:g}", dict(great, psf_fwhm_range=lo_hi),
-                                  range(1100, 1100 + args.cal_extra_seeds), args.cal_g)
+                                  range(first, first + args.cal_extra_seeds), args.cal_g)
     for item in args.transfer_psf:
         lo_hi = [float(v) for v in item.split(",")]
         tdir = f"transfer-psf-{lo_hi[0]:g}-{lo_hi[1]:g}"
@@ -310,7 +314,8 @@ def main(argv=None):
             "n_galaxies": int(d["n_galaxies"])} for name, d in rows if "binned" in name}
         record = default_calibration_record(
             result, f"{command} (shearfit {shearfit.__version__}; fields {args.cal_seeds} calibration"
-                    + (f" and {args.cal_extra_seeds} more with PSF FWHM {args.cal_extra_psf}" if args.cal_extra_psf else "")
+                    + "".join(f" and {args.cal_extra_seeds} more with PSF FWHM {item}" for item in args.cal_extra_psf
+                              if args.cal_extra_seeds > 0)
                     + ", "
                     f"{args.test_seeds} test, {args.second_seeds} second-suite seeds; PSF {args.psf}; settings "
                     f"{' '.join(args.set) or 'the defaults'})", closure)

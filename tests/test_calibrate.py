@@ -258,9 +258,14 @@ def test_the_default_calibration_is_the_packaged_binned_table():
 
     model = default_calibration()
     d, _ = _packaged_table(DEFAULT_CALIBRATION, model)
-    # a table in resolution (scalelength / psf_fwhm), closing on held-out fields of a seeing beyond its own too
-    assert model.size == "resolution" and d["size"] == "resolution"
-    beyond = [v for k, v in d["closure"].items() if k.startswith("transfer-psf-1.05-1.25 (")]
+    # a table in resolution (scalelength / psf_fwhm) per range of seeing, three ranges fitted on fields of PSF FWHM
+    # 0.55-0.85", 0.85-1.05" and 1.05-1.25": closing on held-out fields of each, and taking most of the bias away
+    # on fields of a seeing beyond its own (1.25-1.45")
+    assert model.size == "resolution" and d["size"] == "resolution" and len(d["seeing"]["tables"]) == 3
+    for lo_hi in ("0.85-1.05", "1.05-1.25"):
+        held = [v for k, v in d["closure"].items() if k.startswith(f"transfer-psf-{lo_hi} (")]
+        assert held and abs(held[0]["m_cal"]) < 3 * held[0]["m_cal_err"] < abs(held[0]["m_raw"])
+    beyond = [v for k, v in d["closure"].items() if k.startswith("transfer-psf-1.25-1.45 (")]
     assert beyond and abs(beyond[0]["m_cal"]) < 0.5 * abs(beyond[0]["m_raw"])
     # a faint small galaxy gets a larger correction than a bright large one
     faint, bright = model.m(np.array([9.0, 150.0]), np.array([0.15, 0.8]), np.array([0.75, 0.75]))
