@@ -91,6 +91,32 @@ def measure(d, processes, psf, settings=(), tag=""):
     return out, os.path.join(d, "truth.fits")
 
 
+def nearest_neighbour(tab, pairs):
+    """Each row's distance (arcsec) to the nearest other object of its field's input catalogue (the truth's
+    galaxies and the field's stars), from the ``field`` index of :func:`stack_matched` into ``pairs``."""
+    from scipy.spatial import cKDTree
+    from astropy.table import Table
+
+    out = np.full(len(tab), np.nan)
+    field = np.asarray(tab["field"])
+    for k, (_, truth) in enumerate(pairs):
+        rows = np.nonzero(field == k)[0]
+        if rows.size == 0:
+            continue
+        cats = [Table.read(truth)] + [Table.read(p) for p in [os.path.join(os.path.dirname(truth), "stars.fits")]
+                                      if os.path.exists(p)]
+        ra = np.concatenate([np.asarray(c["ra"], float) for c in cats])
+        dec = np.concatenate([np.asarray(c["dec"], float) for c in cats])
+        d0, r0 = np.radians(dec.mean()), np.radians(ra.mean())
+
+        def xy(r, d):
+            return np.c_[(np.radians(r) - r0) * np.cos(d0), np.radians(d) - d0] * 206264.806
+
+        dist, _ = cKDTree(xy(ra, dec)).query(xy(np.asarray(tab["ra"], float)[rows], np.asarray(tab["dec"], float)[rows]), k=2)
+        out[rows] = dist[:, 1]   # the first is the object itself
+    return out
+
+
 def fmt(d, k, scale=1.0):
     return f"{d[k] * scale:+.4f} +- {d[k + '_err'] * scale:.4f}"
 
@@ -263,6 +289,10 @@ def main(argv=None):
             *[(f"test seeds 2000-{1999 + args.transfer_seeds} at the test set's seeing, binned",
                calibrated_bias(test[np.asarray(test["group"]) // 10 ** 8 < 2000 + args.transfer_seeds], binned))
               for _ in [0] if transfer]]
+    # the second suite's galaxies lie at random positions: split by the distance to the nearest catalogued neighbour
+    nn = nearest_neighbour(second, pairs["second"])
+    rows += [(f"second suite, nearest neighbour {lo:g}-{hi:g}\", binned", calibrated_bias(second[sel], binned))
+             for lo, hi in ((0, 2), (2, np.inf)) for sel in [(nn >= lo) & (nn < hi)] if sel.sum() > 10]
     t_snr = quantity_bins(test, "snr", binned, n=6)
     t_size = quantity_bins(test, "scalelength", binned, n=6)
     extra = [("test set in bins of resolution (scalelength / psf_fwhm)", quantity_bins(test, "resolution", binned, n=6),

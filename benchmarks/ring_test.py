@@ -960,6 +960,9 @@ def build_parser():
     p.add_argument("--psf-fwhm", type=float, nargs=2, default=[0.5, 0.8], metavar=("MIN", "MAX"),
                    help="Moffat FWHM range, arcsec, uniform per exposure (the closure fields: 0.55 0.85)")
     p.add_argument("--psf-e-max", type=float, default=0.1, help="PSF |e| uniform up to this (fields: 0.08)")
+    p.add_argument("--psf-family", choices=["moffat", "kolmogorov"], default="moffat",
+                   help="the exposures' PSF profile: elliptical Moffat (default) or elliptical Kolmogorov of the "
+                        "same FWHM and ellipticity, a PSF outside the Moffat family")
     p.add_argument("--psf-e-fixed", type=float, nargs=2, default=None, metavar=("E1", "E2"),
                    help="every exposure's PSF ellipticity (e1, e2) instead of random ones: c is then the PSF "
                         "leakage, and alpha = c / e_psf is printed")
@@ -1404,6 +1407,7 @@ def main(argv=None):
         "ring_kwargs": dict(n_rotations=args.n_rotations, n_exposures=args.n_exposures,
                             snr_range=(args.snr_min, args.snr_max), mag_range=(args.mag_min, args.mag_max),
                             psf_fwhm_range=tuple(args.psf_fwhm), psf_e_max=args.psf_e_max,
+                            psf_family=args.psf_family,
                             psf_e_fixed=tuple(args.psf_e_fixed) if args.psf_e_fixed else None,
                             noise_sigma=args.noise_sigma,
                             stamp_size=args.stamp_size, psf_oversampling=args.psf_oversampling,

@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 
 import shearfit
-from shearfit.simulate import (draw_psf_image, draw_stamp, galaxy_profile, make_observations, moffat_psf,
-                               noise_for_snr, ring_set)
+from shearfit.simulate import (draw_psf_image, draw_stamp, galaxy_profile, kolmogorov_psf, make_observations,
+                               moffat_psf, noise_for_snr, ring_set)
 
 PIX = 0.187
 J_SQUARE = PIX * np.eye(2)
@@ -318,6 +318,23 @@ def test_ring_set_jacobian_jitter():
         assert 2e-4 < np.std(dev) < 3e-3
     plain = ring_set(2, (0.02, 0.0), np.random.default_rng(4), n_rotations=1, n_exposures=6, noise_seed=5)
     assert all(np.array_equal(o.jacobian, PIX * np.eye(2)) for o in plain[0][0])
+
+
+def test_ring_set_kolmogorov_psfs_change_only_the_psf():
+    """psf_family="kolmogorov": each exposure's PSF image is GalSim's Kolmogorov of the drawn FWHM and
+    ellipticity, not the Moffat's, and every other draw is the Moffat run's; an unknown family is refused."""
+    kw = dict(n_rotations=1, n_exposures=3, noise_seed=5)
+    mo = ring_set(1, (0.02, 0.0), np.random.default_rng(4), **kw)
+    ko = ring_set(1, (0.02, 0.0), np.random.default_rng(4), psf_family="kolmogorov", **kw)
+    (om, tm), (ok, tk) = mo[0], ko[0]
+    for key in ("scalelength", "e1_int", "e2_int", "psf_fwhm", "psf_e1", "psf_e2", "offsets"):
+        assert np.array_equal(np.asarray(tm[key]), np.asarray(tk[key])), key
+    for i, o in enumerate(ok):
+        want = draw_psf_image(kolmogorov_psf(tk["psf_fwhm"][i], tk["psf_e1"][i], tk["psf_e2"][i]), o.jacobian)
+        np.testing.assert_allclose(o.psf, want, atol=1e-12)
+        assert not np.allclose(o.psf, om[i].psf, atol=1e-4)
+    with pytest.raises(shearfit.ShearfitValueError, match="psf_family"):
+        ring_set(1, (0.02, 0.0), np.random.default_rng(4), psf_family="airy", **kw)
 
 
 @pytest.mark.parametrize("family", ["sersic", "bulge_disk", "knots"])

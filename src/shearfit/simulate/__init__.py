@@ -12,6 +12,7 @@ from .stamps import (  # noqa: F401
     draw_stamp,
     galaxy_profile,
     jacobian_wcs,
+    kolmogorov_psf,
     mag_to_flux,
     make_observations,
     moffat_psf,
@@ -19,5 +20,5 @@ from .stamps import (  # noqa: F401
     ring_set,
 )
 
-__all__ = ["ZERO_POINT", "draw_psf_image", "draw_stamp", "galaxy_profile", "jacobian_wcs", "mag_to_flux",
-           "make_observations", "moffat_psf", "noise_for_snr", "ring_set"]
+__all__ = ["ZERO_POINT", "draw_psf_image", "draw_stamp", "galaxy_profile", "jacobian_wcs", "kolmogorov_psf",
+           "mag_to_flux", "make_observations", "moffat_psf", "noise_for_snr", "ring_set"]

@@ -33,6 +33,7 @@ __all__ = [
     "galaxy_profile",
     "intrinsic_shape",
     "moffat_psf",
+    "kolmogorov_psf",
     "jacobian_wcs",
     "draw_stamp",
     "draw_psf_image",
@@ -155,6 +156,18 @@ def moffat_psf(fwhm, beta, e1=0.0, e2=0.0, gsparams=None) -> galsim.GSObject:
         Ellipticity as reduced shear, (a - b)/(a + b).
     """
     psf = galsim.Moffat(beta=float(beta), fwhm=float(fwhm), gsparams=gsparams)
+    if e1 != 0.0 or e2 != 0.0:
+        psf = psf.shear(g1=float(e1), g2=float(e2))
+    return psf
+
+
+def kolmogorov_psf(fwhm, e1=0.0, e2=0.0, gsparams=None) -> galsim.GSObject:
+    """An elliptical Kolmogorov PSF (long-exposure atmospheric seeing) in world units (arcsec), unit flux: a
+    PSF outside the Moffat family, with wings falling as r^(-11/3).
+
+    Parameters as :func:`moffat_psf`, less the Moffat index.
+    """
+    psf = galsim.Kolmogorov(fwhm=float(fwhm), gsparams=gsparams)
     if e1 != 0.0 or e2 != 0.0:
         psf = psf.shear(g1=float(e1), g2=float(e2))
     return psf
@@ -427,7 +440,7 @@ def ring_set(n_galaxies, shear, rng, n_rotations=4, n_exposures=7, snr_range=(10
              stamp_size=48, psf_oversampling=1, max_dither=0.5, cfg=None, noise_seed=None,
              rotate_exposures=False, gsparams=None, population=None, add_noise=True, noise_sign=1,
              jacobian_jitter=0.0, profile=None, noise_sigma=None, psf_e_fixed=None, antithetic=False,
-             draw_cache=None):
+             draw_cache=None, psf_family="moffat"):
     """Ring sets of GalSim-simulated galaxies, all with one applied shear.
 
     Every galaxy is drawn from the paper's population at a magnitude uniform in
@@ -459,6 +472,10 @@ def ring_set(n_galaxies, shear, rng, n_rotations=4, n_exposures=7, snr_range=(10
         Moffat FWHM (arcsec) and beta, uniform per exposure.
     psf_e_max : float
         PSF |e| is uniform in [0, psf_e_max], at a uniform random angle.
+    psf_family : {"moffat", "kolmogorov"}
+        The exposures' PSF profile: the elliptical Moffat, or an elliptical Kolmogorov of the same FWHM and
+        ellipticity (:func:`kolmogorov_psf`; the Moffat index is drawn all the same and not used, so that every
+        other draw is the same).
     psf_e_fixed : (float, float), optional
         Every exposure's PSF ellipticity (e1, e2) instead (the random ones are still drawn, so every
         other draw is the same): with one PSF direction for all galaxies, the additive bias c of a ring
@@ -542,7 +559,10 @@ def ring_set(n_galaxies, shear, rng, n_rotations=4, n_exposures=7, snr_range=(10
         if psf_e_fixed is not None:
             gal["psf_e1"] = np.full(n_exposures, float(psf_e_fixed[0]))
             gal["psf_e2"] = np.full(n_exposures, float(psf_e_fixed[1]))
-        psfs = [moffat_psf(f, b, pe1, pe2, gsparams=gsparams)
+        if psf_family not in ("moffat", "kolmogorov"):
+            raise ShearfitValueError(f"psf_family: {psf_family!r} is not 'moffat' or 'kolmogorov'")
+        psfs = [moffat_psf(f, b, pe1, pe2, gsparams=gsparams) if psf_family == "moffat" else
+                kolmogorov_psf(f, pe1, pe2, gsparams=gsparams)
                 for f, b, pe1, pe2 in zip(gal["psf_fwhm"], gal["psf_beta"], gal["psf_e1"], gal["psf_e2"])]
         Js = [pixel_scale * _rotation(a) for a in gal["jacobian_angles"]]
         if jacobian_jitter > 0:
