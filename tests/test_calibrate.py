@@ -282,7 +282,7 @@ def test_self_calibrated_fits_have_their_own_packaged_calibration():
     plain = np.asarray(yaml.safe_load(open(DEFAULT_CALIBRATION))["binned"]["m"], float)
     assert m.shape != plain.shape or not np.allclose(m, plain)
     # in resolution with a table per seeing range, as the plain fit's
-    assert d["size"] == "resolution" and len(d["seeing"]["tables"]) == 2
+    assert d["size"] == "resolution" and len(d["seeing"]["tables"]) == 3
 
 
 def test_a_resolution_table_carries_to_another_seeing(tmp_path):
