@@ -103,8 +103,8 @@ def nearest_neighbour(tab, pairs):
         rows = np.nonzero(field == k)[0]
         if rows.size == 0:
             continue
-        cats = [Table.read(truth)] + [Table.read(p) for p in [os.path.join(os.path.dirname(truth), "stars.fits")]
-                                      if os.path.exists(p)]
+        stars = os.path.join(os.path.dirname(truth), "stars.fits")
+        cats = [Table.read(truth)] + ([Table.read(stars)] if os.path.exists(stars) else [])
         ra = np.concatenate([np.asarray(c["ra"], float) for c in cats])
         dec = np.concatenate([np.asarray(c["dec"], float) for c in cats])
         d0, r0 = np.radians(dec.mean()), np.radians(ra.mean())
@@ -291,8 +291,10 @@ def main(argv=None):
               for _ in [0] if transfer]]
     # the second suite's galaxies lie at random positions: split by the distance to the nearest catalogued neighbour
     nn = nearest_neighbour(second, pairs["second"])
-    rows += [(f"second suite, nearest neighbour {lo:g}-{hi:g}\", binned", calibrated_bias(second[sel], binned))
-             for lo, hi in ((0, 2), (2, np.inf)) for sel in [(nn >= lo) & (nn < hi)] if sel.sum() > 10]
+    for lo, hi in ((0, 2), (2, np.inf)):
+        sel = (nn >= lo) & (nn < hi)
+        if sel.sum() > 10:
+            rows.append((f"second suite, nearest neighbour {lo:g}-{hi:g}\", binned", calibrated_bias(second[sel], binned)))
     t_snr = quantity_bins(test, "snr", binned, n=6)
     t_size = quantity_bins(test, "scalelength", binned, n=6)
     extra = [("test set in bins of resolution (scalelength / psf_fwhm)", quantity_bins(test, "resolution", binned, n=6),

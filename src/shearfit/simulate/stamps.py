@@ -155,10 +155,7 @@ def moffat_psf(fwhm, beta, e1=0.0, e2=0.0, gsparams=None) -> galsim.GSObject:
     e1, e2 : float
         Ellipticity as reduced shear, (a - b)/(a + b).
     """
-    psf = galsim.Moffat(beta=float(beta), fwhm=float(fwhm), gsparams=gsparams)
-    if e1 != 0.0 or e2 != 0.0:
-        psf = psf.shear(g1=float(e1), g2=float(e2))
-    return psf
+    return _sheared(galsim.Moffat(beta=float(beta), fwhm=float(fwhm), gsparams=gsparams), e1, e2)
 
 
 def kolmogorov_psf(fwhm, e1=0.0, e2=0.0, gsparams=None) -> galsim.GSObject:
@@ -167,10 +164,12 @@ def kolmogorov_psf(fwhm, e1=0.0, e2=0.0, gsparams=None) -> galsim.GSObject:
 
     Parameters as :func:`moffat_psf`, less the Moffat index.
     """
-    psf = galsim.Kolmogorov(fwhm=float(fwhm), gsparams=gsparams)
-    if e1 != 0.0 or e2 != 0.0:
-        psf = psf.shear(g1=float(e1), g2=float(e2))
-    return psf
+    return _sheared(galsim.Kolmogorov(fwhm=float(fwhm), gsparams=gsparams), e1, e2)
+
+
+def _sheared(psf, e1, e2):
+    """``psf`` given the ellipticity (e1, e2) as reduced shear (area-preserving); unchanged where it is 0."""
+    return psf.shear(g1=float(e1), g2=float(e2)) if e1 != 0.0 or e2 != 0.0 else psf
 
 
 def jacobian_wcs(jacobian) -> galsim.JacobianWCS:
@@ -551,6 +550,8 @@ def ring_set(n_galaxies, shear, rng, n_rotations=4, n_exposures=7, snr_range=(10
     truncation = float(getattr(cfg, "truncation", 4.5))
     bulge_ratio = float(getattr(cfg, "bulge_size_ratio", 1.0))
     seed_prefix = None if noise_seed is None else list(np.atleast_1d(noise_seed).astype(np.int64))
+    if psf_family not in ("moffat", "kolmogorov"):
+        raise ShearfitValueError(f"psf_family: {psf_family!r} is not 'moffat' or 'kolmogorov'")
 
     out = []
     for i in range(int(n_galaxies)):
@@ -559,8 +560,6 @@ def ring_set(n_galaxies, shear, rng, n_rotations=4, n_exposures=7, snr_range=(10
         if psf_e_fixed is not None:
             gal["psf_e1"] = np.full(n_exposures, float(psf_e_fixed[0]))
             gal["psf_e2"] = np.full(n_exposures, float(psf_e_fixed[1]))
-        if psf_family not in ("moffat", "kolmogorov"):
-            raise ShearfitValueError(f"psf_family: {psf_family!r} is not 'moffat' or 'kolmogorov'")
         psfs = [moffat_psf(f, b, pe1, pe2, gsparams=gsparams) if psf_family == "moffat" else
                 kolmogorov_psf(f, pe1, pe2, gsparams=gsparams)
                 for f, b, pe1, pe2 in zip(gal["psf_fwhm"], gal["psf_beta"], gal["psf_e1"], gal["psf_e2"])]
