@@ -32,6 +32,15 @@ Everything already simulated or measured under ``--out`` is reused, so the scrip
         --cal-extra-psf 1.05,1.25 --seeing-bins 3 --transfer-psf 0.85,1.05 --transfer-psf 1.05,1.25 \
         --transfer-psf 1.25,1.45                                             # the package's default table
 
+``--held-out-only`` simulates and measures only the held-out sets (test, second suite, transfer) and reports them
+under the package's default calibration and the ``--compare`` files, whole and by the nearest catalogued neighbour,
+with the galaxies' fitclass counts: how a pipeline change (``--set KEY=VALUE``) moves the shipped calibration's
+closure, without refitting it::
+
+    python benchmarks/calibration_closure.py --out /tmp/closure -j 2 --held-out-only --test-seeds 2
+    python benchmarks/calibration_closure.py --out /tmp/closure -j 2 --held-out-only --test-seeds 2 \
+        --set catalogue_blends=false
+
 ``--size`` is the calibration table's size axis (``shearfit calibrate --size``): ``resolution``, the scalelength
 over the catalogue's ``psf_fwhm`` (the default), or ``scalelength`` in arcsec.
 """
@@ -115,6 +124,43 @@ def nearest_neighbour(tab, pairs):
         dist, _ = cKDTree(xy(ra, dec)).query(xy(np.asarray(tab["ra"], float)[rows], np.asarray(tab["dec"], float)[rows]), k=2)
         out[rows] = dist[:, 1]   # the first is the object itself
     return out
+
+
+def held_out_report(role, pairs, calibrations, tag):
+    """A held-out set alone under the given calibrations (the package's default, other files): m whole and split by
+    the nearest catalogued neighbour, and how the pipeline classed the galaxies (+g fields) with and without a
+    neighbour within 2"."""
+    from astropy.table import Table, join
+
+    tab = stack_matched(pairs)
+    nn = nearest_neighbour(tab, pairs)
+    print(f"\n{role} ({len(pairs) // 2} seeds, +g and -g; settings{tag.replace('_', ' ') or ' the defaults'})")
+    print(f"{'':52s} {'n':>6s}  {'raw m':>18s}  {'calibrated m':>18s}")
+    for cal in calibrations:
+        name = os.path.basename(cal) if isinstance(cal, str) else "the package's default"
+        for lo, hi in ((0, np.inf), (0, 2), (2, np.inf)):
+            sel = (nn >= lo) & (nn < hi)
+            if sel.sum() < 10:
+                continue
+            d = calibrated_bias(tab[sel], cal)
+            print(f"{name[:32]:32s} neighbour {lo:g}-{hi:g}\" {d['n_galaxies']:6d}  {fmt(d, 'm_raw')}  "
+                  f"{fmt(d, 'm_cal')}")
+    counts = {}
+    for k, (measured, truth) in enumerate(pairs):
+        if not os.path.basename(os.path.dirname(measured)).endswith("p"):
+            continue
+        t = Table.read(truth)
+        t = join(t[~np.asarray(t["is_star"], bool)]["id", "ra", "dec"], Table.read(measured)["id", "fitclass"], keys="id")
+        t["field"] = k
+        near = nearest_neighbour(t, pairs) < 2
+        for close in (True, False):
+            fc = np.asarray(t["fitclass"])[near == close]
+            got = counts.setdefault(close, {})
+            for code in np.unique(fc):
+                got[int(code)] = got.get(int(code), 0) + int(np.sum(fc == code))
+    for close, got in counts.items():
+        print(f"galaxies {'with' if close else 'without'} a catalogued neighbour within 2\" (+g fields), by fitclass: "
+              + ", ".join(f"{code}: {n}" for code, n in sorted(got.items())))
 
 
 def fmt(d, k, scale=1.0):
@@ -203,6 +249,10 @@ def main(argv=None):
                     help="also write the calibration set's binned calibration, with this run's closure on the test "
                          "set and the second suite, as the package's default (src/shearfit/calib/"
                          "default_calibration.yaml)")
+    ap.add_argument("--held-out-only", action="store_true",
+                    help="simulate and measure only the test set, the second suite and the --transfer-psf sets, and "
+                         "report them under the package's default calibration and the --compare files, by nearest "
+                         "catalogued neighbour and fitclass (a pipeline change against the shipped calibration)")
     args = ap.parse_args(argv)
     tag = "".join("_" + "".join(ch if ch.isalnum() else "-" for ch in item) for item in args.set)
     # the catalogues (measured once per setting) do not depend on the size axis; the calibration's files do
@@ -231,6 +281,8 @@ def main(argv=None):
         tdir = f"transfer-psf-{lo_hi[0]:g}-{lo_hi[1]:g}"
         sets[tdir] = field_jobs(out, tdir, dict(great, psf_fwhm_range=lo_hi), range(2000, 2000 + args.transfer_seeds),
                                 args.test_g)
+    if args.held_out_only:
+        del sets["cal"]
     jobs = [j for v in sets.values() for j in v]
     with ProcessPoolExecutor(args.processes) as pool:
         list(pool.map(simulate_missing, jobs))
@@ -243,6 +295,14 @@ def main(argv=None):
             pairs[role].append(measure(d, args.processes, args.psf, args.set, tag))
             print(f"  measured {d} in {time.time() - ts:.0f} s", flush=True)
     t_meas = time.time() - t0
+    if args.held_out_only:
+        selfcal = any(k.strip() == "self_calibration" and yaml.safe_load(v) is True
+                      for k, v in (item.split("=", 1) for item in args.set))
+        for role, ps in pairs.items():
+            if ps:
+                held_out_report(role, ps, [default_calibration(self_calibration=selfcal), *args.compare], tag)
+        print(f"\n{time.time() - t0:.0f} s in all ({t_meas:.0f} s simulating and measuring)")
+        return 0
 
     result, bins, cal_tab = calibrate(pairs["cal"], n_snr=args.n_snr, n_size=args.n_size, size=args.size,
                                       seeing_bins=args.seeing_bins)

@@ -480,3 +480,90 @@ def test_rotated_and_flipped_exposures_get_the_neighbour_masked_too(seed):
         assert not masked[N // 2 - 2:N // 2 + 3, N // 2 - 2:N // 2 + 3].any(), k
         # most of the neighbour's light on this exposure falls on masked pixels
         assert light[masked].sum() > 0.9 * light.sum(), k
+
+
+def _rotated_cuts(rng, objects, angles_flips, snr=40.0):
+    """Noisy stamps of ``objects`` ((profile, (u, v) arcsec from the target)) on exposures rotated and flipped
+    by ``angles_flips``, as the pipeline cuts them: each with its Jacobian, sub-pixel offset, CCD position
+    (x, y) and the objects' positions on its own pixels (``at``: offsets from the target, pixels)."""
+    psf = moffat()
+    cuts = []
+    for k, (angle, flip) in enumerate(angles_flips):
+        c, s = math.cos(math.radians(angle)), math.sin(math.radians(angle))
+        J = PIX * np.array([[-c, s], [s, c]]) @ np.diag([flip, 1.0])
+        wcs = galsim.JacobianWCS(J[0, 0], J[0, 1], J[1, 0], J[1, 1])
+        off = rng.uniform(-0.5, 0.5, 2)
+        at = [np.linalg.solve(J, np.asarray(uv, float)) for _, uv in objects]
+        img = sum(galsim.Convolve(prof, psf).drawImage(nx=N, ny=N, wcs=wcs, use_true_center=False,
+                                                       offset=tuple(off + p), dtype=np.float64).array
+                  for (prof, _), p in zip(objects, at))
+        cuts.append(dict(e=k, c=0, x=500.0 + off[0], y=700.0 + off[1], image=img, weight=np.ones((N, N)),
+                         offset=tuple(off), J=J, k=1, moments=(PSF_FWHM / PIX / 2.3548,), at=at))
+    sigma = math.sqrt(sum(float(np.sum(c["image"] ** 2)) for c in cuts)) / snr
+    for c in cuts:
+        c["image"] = c["image"] + rng.normal(0.0, sigma, (N, N))
+        c["weight"] = np.full((N, N), sigma ** -2)
+    return cuts
+
+
+_TURNS = ((0.0, 1.0), (50.0, 1.0), (0.0, -1.0), (130.0, -1.0))
+
+
+@pytest.mark.parametrize("seed", [3, 4, 5])
+def test_a_catalogued_neighbour_inside_the_isophote_flags_a_blend(seed):
+    """A pair 0.6" apart (3 pixels) under a 0.7" PSF shows one maximum: the deblender keeps it as one galaxy, and
+    the catalogue's second object inside the isophote makes it blended (-3) on rotated and flipped exposures,
+    wherever the neighbour is listed (here only on the last, rotated and flipped, exposure's CCD). A neighbour
+    masked outside the isophote, or none, leaves it a galaxy."""
+    from shearfit.io.fieldconfig import PipelineConfig
+    from shearfit.pipeline.driver import _isophote_analysis
+
+    rng = np.random.default_rng(seed)
+    pc = PipelineConfig()
+    close = 0.6 * random_direction(rng)
+    objs = [(exp_gal(0.3, 0.1, -0.2), (0.0, 0.0)), (exp_gal(0.2, flux=0.6), tuple(close))]
+    cuts = _rotated_cuts(rng, objs, _TURNS)
+    near = [(7, c["e"], 0, c["x"] + c["at"][1][0], c["y"] + c["at"][1][1]) for c in cuts[-1:]]
+    assert _isophote_analysis([dict(c) for c in cuts], pc) == FITCLASS_GALAXY   # one maximum: not split
+    assert _isophote_analysis([dict(c) for c in cuts], pc, near) == FITCLASS_BLENDED
+    # the same neighbour listed on another CCD of that exposure is not on these stamps
+    assert _isophote_analysis([dict(c) for c in cuts], pc, [(7, near[0][1], 1) + near[0][3:]]) == FITCLASS_GALAXY
+    far = 20.0 * PIX * random_direction(rng)
+    cuts = _rotated_cuts(rng, [objs[0], (galsim.Gaussian(sigma=0.2, flux=0.5), tuple(far))], _TURNS)
+    near = [(7, c["e"], 0, c["x"] + c["at"][1][0], c["y"] + c["at"][1][1]) for c in cuts]
+    assert _isophote_analysis(cuts, pc, near) == FITCLASS_GALAXY
+    at = np.asarray(cuts[0]["offset"]) + cuts[0]["at"][1]
+    assert cuts[0]["weight"][N // 2 + int(round(at[1])), N // 2 + int(round(at[0]))] == 0   # masked instead
+
+
+def test_neighbour_positions_reach_the_reference_grid_through_the_jacobians():
+    """On an isophote of one pixel, the neighbour listed on each rotated or flipped exposure in turn must land on
+    exactly that pixel of the first exposure's grid, and on no other: where that exposure's object lands on the
+    grid (the co-add's nearest-pixel carry), plus the neighbour's sky offset in the first exposure's pixels."""
+    from shearfit.pipeline.driver import _neighbour_inside
+
+    rng = np.random.default_rng(11)
+    sky = np.array([1.3, -0.9])                           # arcsec from the target
+    cuts = _rotated_cuts(rng, [(exp_gal(0.3), (0.0, 0.0)), (exp_gal(0.3), tuple(sky))], _TURNS)
+    offsets = [np.linalg.solve(cuts[0]["J"], c["J"] @ np.asarray(c["offset"])) for c in cuts]
+    for c, off in zip(cuts, offsets):
+        p0 = off + cuts[0]["at"][1]
+        row, col = N // 2 + int(round(p0[1])), N // 2 + int(round(p0[0]))
+        near = [(7, c["e"], 0, c["x"] + c["at"][1][0], c["y"] + c["at"][1][1])]
+        for dr, dc in ((0, 0), (1, 0), (0, 1), (-1, 0), (0, -1)):
+            iso = np.zeros((N, N), bool)
+            iso[row + dr, col + dc] = True
+            assert _neighbour_inside(cuts, near, iso, offsets, cuts[0]["J"]) == (dr == dc == 0), (c["e"], dr, dc)
+
+
+def test_catalogue_neighbours_are_the_objects_within_the_radius_on_a_shared_ccd():
+    """Objects 0-1 are 10 pixels apart on CCD 0, 2 is 40 pixels from 1; 3 lies near 0 on CCD 1 only (another
+    exposure); 4 is a duplicate row of 2."""
+    from shearfit.io.stamps import Locations
+    from shearfit.pipeline.driver import catalogue_neighbours
+
+    hits = Locations(object=np.array([0, 0, 1, 2, 3, 4]), ccd=np.array([0, 1, 0, 0, 1, 0]),
+                     x=np.array([100.0, 300.0, 110.0, 150.0, 305.0, 150.0]),
+                     y=np.array([50.0, 60.0, 50.0, 50.0, 60.0, 50.0]))
+    ptr, idx = catalogue_neighbours(hits, 6, 20.0)
+    assert [idx[ptr[i]:ptr[i + 1]].tolist() for i in range(6)] == [[1, 3], [0], [4], [0], [2], []]

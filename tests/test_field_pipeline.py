@@ -138,6 +138,8 @@ def crowded(tmp_path_factory):
         "neighbour": (-50 + 22, 40 + 6, 0.2, 0.3, 0.0, 0.0, False),   # 23 px away, faint: separate isophote
         "bad_column_near": (40, 40, 0.3, 0.1, 0.1, 400.0, True),
         "bad_column_far": (0, 0, 0.3, -0.2, 0.0, 400.0, True),
+        "close_a": (0, 72, 0.2, 0.1, 0.0, 400.0, True),
+        "close_b": (2, 73.5, 0.2, -0.1, 0.1, 300.0, True),      # 2.5 px away: one maximum, two catalogue rows
     }
     specs = []
     for x, shift in enumerate([(0.0, 0.0), (1.4, -0.8)]):
@@ -180,6 +182,8 @@ def test_blends_neighbours_and_masks(crowded):
     t = Table.read(out)
     row = {k: t[i] for i, k in enumerate(names)}
     assert row["blend_a"]["fitclass"] == -3
+    # a pair under the PSF is one maximum; each is inside the other's isophote, listed in the catalogue
+    assert row["close_a"]["fitclass"] == -3 and row["close_b"]["fitclass"] == -3
     for k in ("isolated", "bad_column_far"):
         assert row[k]["fitclass"] == 0 and row[k]["n_exposures_used"] == 2, k
     # the bad column through its isophote drops that exposure; the object is still measured
@@ -189,6 +193,23 @@ def test_blends_neighbours_and_masks(crowded):
         _, _, r, e1, e2, _, _ = objs[k]
         sd = np.sqrt(row[k]["e_var"])
         assert abs(row[k]["e1"] - e1) < 4 * sd + 0.01 and abs(row[k]["e2"] - e2) < 4 * sd + 0.01, k
+
+
+def test_catalogue_blends_reach_across_chunks(crowded):
+    """The close pair measured one object per chunk: each chunk still knows the other's catalogue position, while
+    without catalogue_blends the deblender, seeing one maximum, fits the pair as a galaxy."""
+    d, names, objs = crowded
+    got = {}
+    for flag in ("true", "false"):
+        out = d / f"shear_chunks_{flag}.fits"
+        assert main(["measure", str(d / "field.yaml"), "chunk_size=1", f"catalogue_blends={flag}", "--out", str(out),
+                     "--quiet"]) == 0
+        t = Table.read(out)
+        got[flag] = {k: int(t["fitclass"][i]) for i, k in enumerate(names)}
+    assert got["true"]["close_a"] == got["true"]["close_b"] == -3
+    assert 0 in (got["false"]["close_a"], got["false"]["close_b"])
+    assert {k: v for k, v in got["true"].items() if not k.startswith("close")} == \
+        {k: v for k, v in got["false"].items() if not k.startswith("close")}
 
 
 def test_measure_applies_a_given_calibration(field):

@@ -77,6 +77,11 @@ class PipelineConfig:
     deblend_min_pixels: int = setting(
         8, "regions of the smoothed isophote map with fewer pixels are merged into a touching neighbour "
         "before an object is called complex", "sec. 3.6, footnote")
+    catalogue_blends: bool = setting(
+        True, "also flag an object blended (fitclass -3) when the position of another input-catalogue object "
+        "lies inside its isophote: a pair closer than the PSF, which the deblender sees as one maximum, is "
+        "otherwise fitted as one galaxy (false: the deblender's maxima alone, as in the paper)",
+        "sec. 3.6 (the input catalogue's blends); implementation")
     drop_masked_exposures: bool = setting(
         True, "leave out an exposure whose masked pixels (weight 0) fall inside the target's isophote; "
         "masked pixels outside it only get zero weight", "sec. 3.6")

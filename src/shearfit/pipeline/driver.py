@@ -18,8 +18,9 @@ first exposure's pixel grid; an exposure rotated, flipped or distorted against i
 carried onto that grid, and the masks back, to the nearest pixel through the local
 Jacobians), neighbours whose 2-sigma isophotes do not touch the object's are masked (set to
 background); several significant maxima inside the isophote flag the object
-blended or complex (-3); an isophote centroid more than 4 pixels from the input
-position flags it (-5); an exposure with a bad pixel inside the isophote is
+blended or complex (-3), as does another input-catalogue object inside the isophote
+(``catalogue_blends``: a pair closer than the PSF, which shows one maximum); an isophote
+centroid more than 4 pixels from the input position flags it (-5); an exposure with a bad pixel inside the isophote is
 dropped, bad pixels elsewhere are background.
 """
 
@@ -42,8 +43,8 @@ from astropy.table import Table
 from ..version import __version__
 from ..workers import process_pool, single_threaded
 from ..files import atomic_path
-from ..errors import (FITCLASS_BAD_INPUT, FITCLASS_FEW_EXPOSURES, FITCLASS_FIT_FAILED, FITCLASS_GALAXY, FITCLASS_MEMORY,
-                      FITCLASS_OFF_EXPOSURES, FITCLASS_TOO_LARGE, ShearfitIOError, ShearfitValueError)
+from ..errors import (FITCLASS_BAD_INPUT, FITCLASS_BLENDED, FITCLASS_FEW_EXPOSURES, FITCLASS_FIT_FAILED, FITCLASS_GALAXY,
+                      FITCLASS_MEMORY, FITCLASS_OFF_EXPOSURES, FITCLASS_TOO_LARGE, ShearfitIOError, ShearfitValueError)
 from ..calib.calibrate import calibration_m, default_calibration, load_calibration
 from ..calib.weights import isotropic_bins, isotropic_weights
 from ..engine.measure import measure_object
@@ -395,7 +396,7 @@ def _carry(a, m):
     return a if m is None else np.where(m[1], a.ravel()[m[0]], 0)
 
 
-def _isophote_analysis(cuts, pc) -> int:
+def _isophote_analysis(cuts, pc, near=()) -> int:
     """Sec. 3.6 on the co-added, smoothed stamp: neighbour masks, dropped exposures, blend/centroid flags.
 
     The co-add is built on the first exposure's pixel grid, every other stamp carried onto it to
@@ -405,6 +406,11 @@ def _isophote_analysis(cuts, pc) -> int:
     pixel nearest to the same sky position; where the exposure has none, weight 0). Neighbour
     masks and the isophote go back to each exposure the same way, so every exposure gets its
     neighbours masked and its bad pixels judged against the same isophote.
+
+    ``near`` holds the other catalogue objects around this one, ``(index, exposure, CCD, x, y)`` for
+    each CCD they lie on (:func:`catalogue_neighbours`): one whose position, carried onto the
+    reference grid from the first of the object's stamps it lies on, falls inside the isophote makes
+    the object blended (-3), where the deblender found a single maximum.
     """
     J0 = cuts[0]["J"]
     shape = cuts[0]["image"].shape
@@ -420,6 +426,8 @@ def _isophote_analysis(cuts, pc) -> int:
                          [_carry(c["weight"], m) for c, m in zip(cuts, to_ref)], offsets, fwhm,
                          nsigma=pc.isophote_nsigma, min_region_pixels=pc.deblend_min_pixels,
                          centroid_max_shift=pc.isophote_centroid_max_shift, neighbour_mask=pc.neighbour_mask)
+    if res.flag == 0 and len(near) and res.isophote.any() and _neighbour_inside(cuts, near, res.isophote, offsets, J0):
+        return FITCLASS_BLENDED
     for c, mask, keep, m in zip(cuts, res.masks, res.keep_exposure, from_ref):
         if m is not None and res.isophote.any():
             # a bad pixel of this exposure's own stamp inside the isophote drops it (reference pixels
@@ -431,6 +439,58 @@ def _isophote_analysis(cuts, pc) -> int:
         if pc.drop_masked_exposures and not keep:
             c["keep"] = False
     return int(res.flag)
+
+
+def _neighbour_inside(cuts, near, isophote, offsets, J0) -> bool:
+    """Whether a catalogue neighbour's position lands on a pixel of ``isophote`` (the reference grid of
+    :func:`_isophote_analysis`): its offset from the object on the first stamp's CCD it shares, carried onto the
+    reference grid through the two exposures' local Jacobians and rounded to the nearest pixel."""
+    ny, nx = isophote.shape
+    seen = set()
+    for c, off in zip(cuts, offsets):
+        B = inv2(J0) @ c["J"]                    # this exposure's pixel offsets -> the reference grid's
+        for j, e, ccd, x, y in near:
+            if j in seen or e != c["e"] or ccd != c["c"]:
+                continue
+            seen.add(j)
+            px, py = B @ np.array([x - c["x"], y - c["y"]]) + off
+            ix, iy = int(np.rint(px)) + nx // 2, int(np.rint(py)) + ny // 2
+            if 0 <= ix < nx and 0 <= iy < ny and isophote[iy, ix]:
+                return True
+    return False
+
+
+def catalogue_neighbours(hits, n_objects, radius):
+    """Each object's catalogue neighbours: the objects within ``radius`` pixels of it on a CCD they share.
+
+    ``hits`` are :func:`shearfit.io.stamps.locate_all`'s locations of the whole catalogue (not one chunk's, so
+    that a neighbour measured in another chunk counts). Returns ``(ptr, idx)``: object ``i``'s neighbours are
+    ``idx[ptr[i]:ptr[i + 1]]`` (sorted, each once), from one k-d tree per CCD."""
+    from scipy.spatial import cKDTree
+
+    pairs = [np.empty((0, 2), np.int64)]
+    obj = np.asarray(hits.object, np.int64)
+    ccd = np.asarray(hits.ccd)
+    for k in np.unique(ccd):
+        sel = np.flatnonzero(ccd == k)
+        if sel.size < 2:
+            continue
+        got = cKDTree(np.c_[hits.x[sel], hits.y[sel]]).query_pairs(radius, output_type="ndarray")
+        pairs.append(obj[sel][got])
+    pairs = np.concatenate(pairs)
+    pairs = np.unique(np.concatenate([pairs, pairs[:, ::-1]]), axis=0)
+    pairs = pairs[pairs[:, 0] != pairs[:, 1]]          # a duplicate catalogue row is another object
+    ptr = np.searchsorted(pairs[:, 0], np.arange(n_objects + 1))
+    return ptr, pairs[:, 1].copy()
+
+
+def _near_hits(near, tasks, idx):
+    """For each object of ``idx``: its catalogue neighbours' ``(index, exposure, CCD, x, y)`` on every CCD they
+    lie on (empty without ``near``)."""
+    if near is None:
+        return [()] * len(idx)
+    ptr, nb = near
+    return [[(int(j),) + t for j in nb[ptr[i]:ptr[i + 1]] for t in tasks[j]] for i in idx]
 
 
 def measure_field(cfg: FieldConfig, out_path=None, progress=False, processes=1, restart=False, scheduler=None,
@@ -492,6 +552,10 @@ def _measure_field(cfg, out_path, progress, processes, restart, scheduler, execu
     for obj, k, x, y in zip(hits.object, hits.ccd, hits.x, hits.y):
         tasks[obj].append((flat[k][0], flat[k][1], float(x), float(y)))
     mags = np.asarray(cat["mag"], float)
+    near = None
+    if cfg.pipeline.catalogue_blends:
+        # an isophote lies within its stamp: neighbours beyond the largest stamp's half-diagonal cannot be inside
+        near = catalogue_neighbours(hits, len(cat), max(stamp_ladder(cfg.pipeline)) / np.sqrt(2.0) + 1.0)
     # the bad rows are in no chunk: they are not measured
     chunks = [good[c] for c in sky_chunks(cat[good], cfg.pipeline.chunk_size)]
     ckpt = Checkpoint(out_path, cfg, cat, len(chunks), restart=restart)
@@ -502,12 +566,12 @@ def _measure_field(cfg, out_path, progress, processes, restart, scheduler, execu
         log.info("resuming: %d of %d chunks already measured (%s)", len(chunks) - len(todo), len(chunks), ckpt.dir)
     global _STATE
     ids = np.asarray(cat["id"])
-    _STATE = (tasks, exposures, mags, cfg, chunks, ids)
+    _STATE = (tasks, exposures, mags, cfg, chunks, ids, near)
     bar = _progress_bar(sum(len(chunks[k]) for k in todo), progress)
     try:
         if todo and (scheduler is not None or (processes and processes > 1 and executor == "dask")):
             _run_dask(cfg, exposures, tasks, mags, ids, chunks, todo, table, ckpt, bar, processes, scheduler,
-                      memory_limit)
+                      memory_limit, near)
         elif processes and processes > 1 and len(todo) > 1:
             # the workers get the field's state once (inherited with fork, pickled with spawn); each returns
             # one chunk's rows, which the parent writes to the checkpoint as they come (a kill loses at most
@@ -662,16 +726,18 @@ def _attached(exposures):
     return out
 
 
-def _measure_objects(exposures, hits, mags, ids, cfg):
+def _measure_objects(exposures, hits, mags, ids, cfg, near=None):
     """One chunk's objects: the exposures' memory maps opened once, the pages the objects read released every
     :data:`RELEASE_EVERY` objects and at the end (an object touches about 5 MB of pages on 7 exposures; kept, a
-    chunk's would add up; released after every object, the next one, often on the same rows, reads them again)."""
+    chunk's would add up; released after every object, the next one, often on the same rows, reads them again).
+    ``near``: each object's catalogue neighbours (:func:`_near_hits`), or None."""
     hits = list(hits)
+    near = [()] * len(hits) if near is None else near
     opened = _attached(exposures)
     geometry = _chunk_geometry(opened, hits, cfg.pipeline.psf_moment_grid)
     rows = []
     for n, (h, m, i) in enumerate(zip(hits, mags, ids)):
-        rows.append(_measure_one(h, opened, m, cfg, cfg.pipeline, i, geometry))
+        rows.append(_measure_one(h, opened, m, cfg, cfg.pipeline, i, geometry, near[n]))
         if (n + 1) % RELEASE_EVERY == 0 or n + 1 == len(hits):
             for ccds, _ in opened:
                 release_pages(ccds)
@@ -719,19 +785,20 @@ def _set_state(state):
 
 
 def _measure_chunk(k):
-    tasks, exposures, mags, cfg, chunks, ids = _STATE
+    tasks, exposures, mags, cfg, chunks, ids, near = _STATE
     idx = chunks[k]
-    return k, _measure_objects(exposures, [tasks[i] for i in idx], mags[idx], ids[idx], cfg)
+    return k, _measure_objects(exposures, [tasks[i] for i in idx], mags[idx], ids[idx], cfg,
+                               _near_hits(near, tasks, idx))
 
 
-def _dask_chunk(run, k, hits, mags, ids):
+def _dask_chunk(run, k, hits, mags, ids, near=None):
     """One chunk on a Dask worker: its objects' pixels read through memory maps opened for this chunk."""
     cfg, exposures = run
-    return k, _measure_objects(exposures, hits, mags, ids, cfg)
+    return k, _measure_objects(exposures, hits, mags, ids, cfg, near)
 
 
 def _run_dask(cfg, exposures, tasks, mags, ids, chunks, todo, table, ckpt, bar, processes, scheduler,
-              memory_limit="auto"):
+              memory_limit="auto", near=None):
     """Submit the chunks to Dask and checkpoint each as it completes."""
     from dask.distributed import Client, LocalCluster, as_completed
 
@@ -756,7 +823,7 @@ def _run_dask(cfg, exposures, tasks, mags, ids, chunks, todo, table, ckpt, bar, 
         portable = [(ccds, replace(p, _frame=None, _moffat={}, _moment_splines={})) for ccds, p in exposures]
         [run] = client.scatter([(cfg, portable)], broadcast=True)
         futures = [client.submit(_dask_chunk, run, k, [tasks[i] for i in chunks[k]], mags[chunks[k]], ids[chunks[k]],
-                                 pure=False) for k in todo]
+                                 _near_hits(near, tasks, chunks[k]), pure=False) for k in todo]
         for fut in as_completed(futures):
             k, rows = fut.result()
             _store_chunk(table, chunks[k], rows, ckpt, k, bar)
@@ -863,15 +930,16 @@ def stamp_ladder(pc) -> list:
     return [pc.stamp_size] + [s for s in LARGER_STAMPS if pc.stamp_size < s <= pc.max_stamp_size]
 
 
-def _measure_one(hits, exposures, mag, cfg, pc, obj_id=0, geometry=None) -> dict:
+def _measure_one(hits, exposures, mag, cfg, pc, obj_id=0, geometry=None, near=()) -> dict:
     """One object's catalogue row: measured on stamps of ``stamp_size``, and again on larger ones while its
     truncated model does not fit (sec. 3.6: a Fourier model wraps around a stamp smaller than it). A size
     whose fit would need more than ``max_object_memory_mb`` is not measured: the object gets fitclass -8
-    there (also where a smaller stamp was too small), with ``stamp_size`` that size."""
+    there (also where a smaller stamp was too small), with ``stamp_size`` that size. ``near``: the catalogue
+    neighbours' locations (:func:`_isophote_analysis`)."""
     if not hits:
         return {"fitclass": FITCLASS_OFF_EXPOSURES}
     for size in stamp_ladder(pc):
-        row = _measure_on_stamps(hits, exposures, mag, cfg, pc, obj_id, size, geometry)
+        row = _measure_on_stamps(hits, exposures, mag, cfg, pc, obj_id, size, geometry, near)
         if row.get("fitclass") != FITCLASS_TOO_LARGE:
             break
     row.setdefault("stamp_size", size)
@@ -889,7 +957,7 @@ def object_memory_bytes(cuts, size, cfg) -> float:
                             metacal=cfg.calibration == "metacal")
 
 
-def _measure_on_stamps(hits, exposures, mag, cfg, pc, obj_id, size, geometry=None) -> dict:
+def _measure_on_stamps(hits, exposures, mag, cfg, pc, obj_id, size, geometry=None, near=()) -> dict:
     # one stamp per exposure: where dithers put an object on two CCDs of one exposure, the CCD
     # where it lies furthest from the edge
     best = {}
@@ -915,7 +983,7 @@ def _measure_on_stamps(hits, exposures, mag, cfg, pc, obj_id, size, geometry=Non
         st = cut_stamp(ccd.image, ccd.pixel_weight, x + dx, y + dy, size)
         if st is None:
             continue
-        cuts.append(dict(e=e, ccd=ccd, image=np.array(st.image, float), weight=np.array(st.weight, float),
+        cuts.append(dict(e=e, c=c, x=x, y=y, ccd=ccd, image=np.array(st.image, float), weight=np.array(st.weight, float),
                          offset=st.offset, J=local_jacobian(ccd.wcs, x, y) if J is None else J, psf=psf, k=k,
                          moments=mom if mom is not None else epsf.moments_at(c, ccd.image.shape, x, y, psf,
                                                                                pc.psf_moment_grid),
@@ -929,7 +997,7 @@ def _measure_on_stamps(hits, exposures, mag, cfg, pc, obj_id, size, geometry=Non
                      "max_object_memory_mb=%g; not measured (fitclass %d)", obj_id, size, len(cuts), need / _MIB,
                      pc.max_object_memory_mb, FITCLASS_MEMORY)
             return {"fitclass": FITCLASS_MEMORY, "n_exposures_used": 0, "weight": 0.0}
-    flag = _isophote_analysis(cuts, pc)
+    flag = _isophote_analysis(cuts, pc, near)
     if flag != 0:
         return {"fitclass": flag, "n_exposures_used": 0}
     obs, psf_stats = [], []   # per exposure used: the PSF's ellipticity (e1, e2) and FWHM at the object
