@@ -181,3 +181,24 @@ def test_truth_galaxies(tiny, tmp_path):
     Table({"id": [1]}).write(tmp_path / "x.fits")
     with pytest.raises(ShearfitValueError, match="x.fits: no column mag"):
         truth_galaxies([tmp_path / "x.fits"])
+
+
+def test_an_interrupted_field_has_no_truth_and_is_simulated_again(tmp_path, monkeypatch):
+    """truth.fits is written last: simulate_missing (resumable suites) takes a field with one as whole."""
+    from shearfit.simulate import field as field_mod
+
+    write = field_mod._write_text
+
+    def killed(path, text):
+        if str(path).endswith("simulation.yaml"):
+            raise KeyboardInterrupt
+        write(path, text)
+
+    monkeypatch.setattr(field_mod, "_write_text", killed)
+    mapping = {"preset": "tiny", "seed": 7}
+    with pytest.raises(KeyboardInterrupt):
+        field_mod.simulate_missing((str(tmp_path / "f"), mapping))
+    assert (tmp_path / "f" / "field.yaml").exists() and not (tmp_path / "f" / "truth.fits").exists()
+    monkeypatch.setattr(field_mod, "_write_text", write)
+    field_mod.simulate_missing((str(tmp_path / "f"), mapping))
+    assert (tmp_path / "f" / "truth.fits").exists() and (tmp_path / "f" / "simulation.yaml").exists()

@@ -79,8 +79,9 @@ class PipelineConfig:
         "before an object is called complex", "sec. 3.6, footnote")
     catalogue_blends: bool = setting(
         True, "also flag an object blended (fitclass -3) when the position of another input-catalogue object "
-        "lies inside its isophote: a pair closer than the PSF, which the deblender sees as one maximum, is "
-        "otherwise fitted as one galaxy (false: the deblender's maxima alone, as in the paper)",
+        "on its first stamp (stamp_size) lies inside its isophote: a pair closer than the PSF, which the "
+        "deblender sees as one maximum, is otherwise fitted as one galaxy (false: the deblender's maxima "
+        "alone, as in the paper)",
         "sec. 3.6 (the input catalogue's blends); implementation")
     drop_masked_exposures: bool = setting(
         True, "leave out an exposure whose masked pixels (weight 0) fall inside the target's isophote; "

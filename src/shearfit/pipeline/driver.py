@@ -554,8 +554,9 @@ def _measure_field(cfg, out_path, progress, processes, restart, scheduler, execu
     mags = np.asarray(cat["mag"], float)
     near = None
     if cfg.pipeline.catalogue_blends:
-        # an isophote lies within its stamp: neighbours beyond the largest stamp's half-diagonal cannot be inside
-        near = catalogue_neighbours(hits, len(cat), max(stamp_ladder(cfg.pipeline)) / np.sqrt(2.0) + 1.0)
+        # the neighbours on the first stamp (within its half-diagonal): a pair the deblender cannot split lies a
+        # few pixels apart; one further away inside a larger object's isophote shows its own maximum
+        near = catalogue_neighbours(hits, len(cat), cfg.pipeline.stamp_size / np.sqrt(2.0) + 1.0)
     # the bad rows are in no chunk: they are not measured
     chunks = [good[c] for c in sky_chunks(cat[good], cfg.pipeline.chunk_size)]
     ckpt = Checkpoint(out_path, cfg, cat, len(chunks), restart=restart)

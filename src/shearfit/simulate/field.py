@@ -422,7 +422,6 @@ def simulate_field(sc: SimulationConfig, out_dir, fit_cfg: FitConfig | None = No
     truth.meta["SUITE"] = sc.suite
     truth.meta["SIGMA"] = sigma
     truth.meta["NOISESGN"] = sc.noise_sign
-    _write_table(truth, os.path.join(out_dir, "truth.fits"))
     # the measurement's catalogue: every object (a detection catalogue holds the stars too)
     _write_table(Table({"id": ids, "ra": ra, "dec": dec, "mag": mag}), os.path.join(out_dir, "objects.fits"))
     _write_table(Table({"id": ids[is_star], "ra": sra, "dec": sdec, "mag": mag[is_star]}),
@@ -437,6 +436,8 @@ def simulate_field(sc: SimulationConfig, out_dir, fit_cfg: FitConfig | None = No
         _write_text(os.path.join(out_dir, "field_truepsf.yaml"), yaml.safe_dump(conf_true, sort_keys=False))
     record = {k: (list(v) if isinstance(v, tuple) else v) for k, v in sc.__dict__.items()}
     _write_text(os.path.join(out_dir, "simulation.yaml"), yaml.safe_dump(record, sort_keys=False))
+    # the truth last: a field with one is whole (simulate_missing resumes on it)
+    _write_table(truth, os.path.join(out_dir, "truth.fits"))
     return dict(n_galaxies=n_gal, n_stars=n_star, sigma=sigma, config=os.path.join(out_dir, "field.yaml"),
                 truth=os.path.join(out_dir, "truth.fits"), shear=(float(np.mean(g1)), float(np.mean(g2))))
 
