@@ -470,11 +470,12 @@ def catalogue_neighbours(hits, n_objects, radius):
 
     pairs = [np.empty((0, 2), np.int64)]
     obj = np.asarray(hits.object, np.int64)
-    ccd = np.asarray(hits.ccd)
-    for k in np.unique(ccd):
-        sel = np.flatnonzero(ccd == k)
-        if sel.size < 2:
+    order = np.argsort(hits.ccd, kind="stable")
+    starts = np.flatnonzero(np.r_[True, np.diff(np.asarray(hits.ccd)[order]) != 0, True])
+    for a, b in zip(starts[:-1], starts[1:]):   # the hits of one CCD: order[a:b]
+        if b - a < 2:
             continue
+        sel = order[a:b]
         got = cKDTree(np.c_[hits.x[sel], hits.y[sel]]).query_pairs(radius, output_type="ndarray")
         pairs.append(obj[sel][got])
     pairs = np.concatenate(pairs)
