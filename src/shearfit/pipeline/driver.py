@@ -20,8 +20,8 @@ Jacobians), neighbours whose 2-sigma isophotes do not touch the object's are mas
 background); several significant maxima inside the isophote flag the object
 blended or complex (-3), as does another input-catalogue object inside the isophote
 (``catalogue_blends``: a pair closer than the PSF, which shows one maximum); an isophote
-centroid more than 4 pixels from the input position flags it (-5); an exposure with a bad pixel inside the isophote is
-dropped, bad pixels elsewhere are background.
+centroid more than 4 pixels from the input position flags it (-5); an exposure with a
+bad pixel inside the isophote is dropped, bad pixels elsewhere are background.
 """
 
 from __future__ import annotations
@@ -446,9 +446,10 @@ def _neighbour_inside(cuts, near, isophote, offsets, J0) -> bool:
     :func:`_isophote_analysis`): its offset from the object on the first stamp's CCD it shares, carried onto the
     reference grid through the two exposures' local Jacobians and rounded to the nearest pixel."""
     ny, nx = isophote.shape
+    J0inv = inv2(J0)
     seen = set()
     for c, off in zip(cuts, offsets):
-        B = inv2(J0) @ c["J"]                    # this exposure's pixel offsets -> the reference grid's
+        B = J0inv @ c["J"]                       # this exposure's pixel offsets -> the reference grid's
         for j, e, ccd, x, y in near:
             if j in seen or e != c["e"] or ccd != c["c"]:
                 continue
