@@ -295,12 +295,14 @@ def main(argv=None):
             pairs[role].append(measure(d, args.processes, args.psf, args.set, tag))
             print(f"  measured {d} in {time.time() - ts:.0f} s", flush=True)
     t_meas = time.time() - t0
+    # the package's default for these settings (its self-calibration table where the settings ask for it)
+    selfcal = any(k.strip() == "self_calibration" and yaml.safe_load(v) is True
+                  for k, v in (item.split("=", 1) for item in args.set))
+    package_default = default_calibration(self_calibration=selfcal)
     if args.held_out_only:
-        selfcal = any(k.strip() == "self_calibration" and yaml.safe_load(v) is True
-                      for k, v in (item.split("=", 1) for item in args.set))
         for role, ps in pairs.items():
             if ps:
-                held_out_report(role, ps, [default_calibration(self_calibration=selfcal), *args.compare], tag)
+                held_out_report(role, ps, [package_default, *args.compare], tag)
         print(f"\n{time.time() - t0:.0f} s in all ({t_meas:.0f} s simulating and measuring)")
         return 0
 
@@ -314,12 +316,7 @@ def main(argv=None):
     plot_calibration(bins, result, os.path.join(out, f"calibration{ctag}.png"), weight_bins=weight_bins(cal_tab, binned))
     test = stack_matched(pairs["test"])
     second = stack_matched(pairs["second"])
-    # the package's default for these settings (its self-calibration table where the settings ask for it); a table
-    # in resolution needs the catalogues' psf_fwhm, which those measured before 2026-11-26 lack
-    selfcal = any(k.strip() == "self_calibration" and yaml.safe_load(v) is True
-                  for k, v in (item.split("=", 1) for item in args.set))
-    package_default = default_calibration(self_calibration=selfcal)
-
+    # a table in resolution needs the catalogues' psf_fwhm, which those measured before 2026-11-26 lack
     def defaults(tab):
         return [] if package_default.size == "resolution" and "psf_fwhm" not in tab.colnames else [package_default]
 
