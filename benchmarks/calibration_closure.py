@@ -41,6 +41,12 @@ closure, without refitting it::
     python benchmarks/calibration_closure.py --out /tmp/closure -j 2 --held-out-only --test-seeds 2 \
         --set catalogue_blends=false
 
+``--cross-validate`` fits the table again on the calibration set's even seeds and on its odd seeds (each seeing
+range split alike) and applies each half's table to the other half's fields, whole and in bins of SNR: fields the
+table was not fitted on but simulated exactly as it was, so that what the held-out sets leave can be told from the
+table's own seed noise; and it prints how far the two halves' tables differ on the held-out sets, bin by bin (the
+whole set's table carries about half of that).
+
 ``--size`` is the calibration table's size axis (``shearfit calibrate --size``): ``resolution``, the scalelength
 over the catalogue's ``psf_fwhm`` (the default), or ``scalelength`` in arcsec.
 """
@@ -163,6 +169,46 @@ def held_out_report(role, pairs, calibrations, tag):
               + ", ".join(f"{code}: {n}" for code, n in sorted(got.items())))
 
 
+def seed_of(path):
+    """The seed of a field's directory (``s1000p``, ``s2003mr``: 1000, 2003)."""
+    return int(os.path.basename(os.path.dirname(path))[1:].rstrip("pmr"))
+
+
+def cross_validation(cal_jobs, cal_pairs, held_out, args, n_bins=8):
+    """The calibration fitted on the even and on the odd calibration seeds, each applied to the other half's
+    fields (per seeing range, whole and in ``n_bins`` bins of SNR), and the two halves' tables on the held-out
+    sets (``held_out``: {name: matched table}): their mean m per SNR bin and its difference."""
+    halves = {}
+    for parity, name in ((0, "even"), (1, "odd")):
+        sel = [p for p in cal_pairs if seed_of(p[0]) % 2 == parity]
+        res, _, _ = calibrate(sel, n_snr=args.n_snr, n_size=args.n_size, size=args.size, seeing_bins=args.seeing_bins,
+                              n_boot=4)
+        halves[name] = (CalibrationModel(res["alpha"], res["beta"], "binned", res["binned"], size=args.size,
+                                         seeing=res.get("seeing")), parity)
+    roles = {}
+    for (d, _), p in zip(cal_jobs, cal_pairs):
+        roles.setdefault(os.path.basename(os.path.dirname(d)), []).append(p)
+    print(f"\ncross-validation: the table fitted on the calibration set's even seeds applied to its odd seeds, and the "
+          f"odd seeds' to the even ones; calibrated m whole and in {n_bins} bins of SNR (bootstrap over galaxies)")
+    for name, (model, parity) in halves.items():
+        for role, ps in roles.items():
+            other = [p for p in ps if seed_of(p[0]) % 2 != parity]
+            if not other:
+                continue
+            tab = stack_matched(other)
+            d = calibrated_bias(tab, model, n_boot=100)
+            q = quantity_bins(tab, "snr", model, n=n_bins)
+            print(f"  {name} -> other, {role:22s} {d['n_galaxies']:6d}  m {fmt(d, 'm_cal')};  SNR "
+                  + " ".join(f"{r['x']:.0f}: {r['m_cal']:+.3f}" for r in q)
+                  + f"  (faintest +- {q['m_cal_err'][0]:.3f})")
+    print("  the halves' tables on the held-out sets, per bin of SNR: SNR, mean m (even), mean m (odd), difference")
+    for role, tab in held_out.items():
+        qe = quantity_bins(tab, "snr", halves["even"][0], n=n_bins, n_boot=2)
+        qo = quantity_bins(tab, "snr", halves["odd"][0], n=n_bins, n_boot=2)
+        print(f"  {role:24s} " + "  ".join(f"{a['x']:.0f}: {a['m_pred']:+.3f} {b['m_pred']:+.3f} "
+                                           f"({a['m_pred'] - b['m_pred']:+.3f})" for a, b in zip(qe, qo)))
+
+
 def fmt(d, k, scale=1.0):
     return f"{d[k] * scale:+.4f} +- {d[k + '_err'] * scale:.4f}"
 
@@ -249,6 +295,9 @@ def main(argv=None):
                     help="also write the calibration set's binned calibration, with this run's closure on the test "
                          "set and the second suite, as the package's default (src/shearfit/calib/"
                          "default_calibration.yaml)")
+    ap.add_argument("--cross-validate", action="store_true",
+                    help="also fit the table on the calibration set's even and odd seeds and apply each to the other "
+                         "half (the table's own seed noise, against which the held-out residuals are read)")
     ap.add_argument("--held-out-only", action="store_true",
                     help="simulate and measure only the test set, the second suite and the --transfer-psf sets, and "
                          "report them under the package's default calibration and the --compare files, by nearest "
@@ -397,6 +446,8 @@ def main(argv=None):
                    measure_wall_s=t_meas, total_wall_s=time.time() - t0, processes=args.processes, psf=args.psf)
     with open(os.path.join(out, f"closure{ctag}.json"), "w") as f:
         json.dump(summary, f, indent=1)
+    if args.cross_validate:
+        cross_validation(sets["cal"], pairs["cal"], {"test set": test, **transfer}, args)
     if args.write_default:
         command = "python benchmarks/calibration_closure.py " + " ".join(sys.argv[1:] if argv is None else argv)
         closure = {name: {k: float(d[k]) for k in ("m_raw", "m_raw_err", "m_cal", "m_cal_err")} | {
