@@ -169,6 +169,16 @@ def held_out_report(role, pairs, calibrations, tag):
               + ", ".join(f"{code}: {n}" for code, n in sorted(got.items())))
 
 
+def both_bins(tab, column, calibration, n):
+    """:func:`quantity_bins` with bootstrap errors over galaxies, and those over seeds beside them (``m_err_seeds``,
+    ``m_cal_err_seeds``): each seed's fields have their own PSFs, whose scatter the galaxies' bootstrap misses."""
+    out = quantity_bins(tab, column, calibration, n=n)
+    by_seed = quantity_bins(tab, column, calibration, n=n, resample="seeds")
+    out["m_err_seeds"] = by_seed["m_err"]
+    out["m_cal_err_seeds"] = by_seed["m_cal_err"]
+    return out
+
+
 def seed_of(path):
     """The seed of a field's directory (``s1000p``, ``s2003mr``: 1000, 2003)."""
     return int(os.path.basename(os.path.dirname(path))[1:].rstrip("pmr"))
@@ -189,7 +199,8 @@ def cross_validation(cal_jobs, cal_pairs, held_out, args, n_bins=8):
     for (d, _), p in zip(cal_jobs, cal_pairs):
         roles.setdefault(os.path.basename(os.path.dirname(d)), []).append(p)
     print(f"\ncross-validation: the table fitted on the calibration set's even seeds applied to its odd seeds, and the "
-          f"odd seeds' to the even ones; calibrated m whole and in {n_bins} bins of SNR (bootstrap over galaxies)")
+          f"odd seeds' to the even ones; calibrated m whole and in {n_bins} bins of SNR (bootstrap over galaxies, "
+          "[over seeds])")
     for name, (model, parity) in halves.items():
         for role, ps in roles.items():
             other = [p for p in ps if seed_of(p[0]) % 2 != parity]
@@ -197,10 +208,11 @@ def cross_validation(cal_jobs, cal_pairs, held_out, args, n_bins=8):
                 continue
             tab = stack_matched(other)
             d = calibrated_bias(tab, model, n_boot=100)
-            q = quantity_bins(tab, "snr", model, n=n_bins)
-            print(f"  {name} -> other, {role:22s} {d['n_galaxies']:6d}  m {fmt(d, 'm_cal')};  SNR "
-                  + " ".join(f"{r['x']:.0f}: {r['m_cal']:+.3f}" for r in q)
-                  + f"  (faintest +- {q['m_cal_err'][0]:.3f})")
+            ds = calibrated_bias(tab, model, n_boot=100, resample="seeds")
+            q = both_bins(tab, "snr", model, n_bins)
+            print(f"  {name} -> other, {role:22s} {d['n_galaxies']:6d}  m {fmt(d, 'm_cal')} [{ds['m_cal_err']:.4f}];  "
+                  "SNR " + " ".join(f"{r['x']:.0f}: {r['m_cal']:+.3f}" for r in q)
+                  + f"  (faintest +- {q['m_cal_err'][0]:.3f} [{q['m_cal_err_seeds'][0]:.3f}])")
     print("  the halves' tables on the held-out sets, per bin of SNR: SNR, mean m (even), mean m (odd), difference")
     for role, tab in held_out.items():
         qe = quantity_bins(tab, "snr", halves["even"][0], n=n_bins, n_boot=2)
@@ -401,15 +413,15 @@ def main(argv=None):
         sel = (nn >= lo) & (nn < hi)
         if sel.sum() > 10:
             rows.append((f"second suite, nearest neighbour {lo:g}-{hi:g}\", binned", calibrated_bias(second[sel], binned)))
-    t_snr = quantity_bins(test, "snr", binned, n=6)
-    t_size = quantity_bins(test, "scalelength", binned, n=6)
-    extra = [("test set in bins of resolution (scalelength / psf_fwhm)", quantity_bins(test, "resolution", binned, n=6),
+    t_snr = both_bins(test, "snr", binned, 6)
+    t_size = both_bins(test, "scalelength", binned, 6)
+    extra = [("test set in bins of resolution (scalelength / psf_fwhm)", both_bins(test, "resolution", binned, 6),
               "x", "7.3f")] if "resolution" in test.colnames else []
     for role, tab in transfer.items():
-        extra += [(f"{role} in bins of resolution", quantity_bins(tab, "resolution", binned, n=6), "x", "7.3f"),
-                  (f"{role} in bins of SNR", quantity_bins(tab, "snr", binned, n=6), "snr", "7.1f")]
+        extra += [(f"{role} in bins of resolution", both_bins(tab, "resolution", binned, 6), "x", "7.3f"),
+                  (f"{role} in bins of SNR", both_bins(tab, "snr", binned, 6), "snr", "7.1f")]
     t_w = weight_bins(test, binned, n=8)
-    s_snr = quantity_bins(second, "snr", binned, n=4)
+    s_snr = both_bins(second, "snr", binned, 4)
     plot(os.path.join(out, f"closure{ctag}.png"), result, bins, t_snr, t_size, t_w, s_snr)
 
     print()
@@ -437,10 +449,13 @@ def main(argv=None):
                               ("test set in bins of scalelength", t_size, "r", "7.3f"),
                               ("test set in bins of weight", t_w, "weight", "7.2f"),
                               ("second suite in bins of SNR", s_snr, "snr", "7.1f"), *extra):
-        print(f"\n{title}: {key}, raw m, <m(nu,r)>, calibrated m")
+        seeds = "m_cal_err_seeds" in tb.colnames
+        print(f"\n{title}: {key}, raw m, <m(nu,r)>, calibrated m (errors: bootstrap over galaxies"
+              + (", [over seeds])" if seeds else ")"))
         for r in tb:
-            print(f"  {r[key]:{f}}  {r['m']:+.4f} +- {r['m_err']:.4f}  {r['m_pred']:+.4f}  "
-                  f"{r['m_cal']:+.4f} +- {r['m_cal_err']:.4f}")
+            print(f"  {r[key]:{f}}  {r['m']:+.4f} +- {r['m_err']:.4f}" + (f" [{r['m_err_seeds']:.4f}]" if seeds else "")
+                  + f"  {r['m_pred']:+.4f}  {r['m_cal']:+.4f} +- {r['m_cal_err']:.4f}"
+                  + (f" [{r['m_cal_err_seeds']:.4f}]" if seeds else ""))
     summary = dict(alpha=a, beta=b, alpha_err=result["alpha_err"], beta_err=result["beta_err"],
                    chi2=result["chi2"], dof=result["dof"], rows={name: d for name, d in rows},
                    measure_wall_s=t_meas, total_wall_s=time.time() - t0, processes=args.processes, psf=args.psf)

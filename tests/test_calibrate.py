@@ -8,7 +8,7 @@ from astropy.table import Table
 from shearfit.calib.calibrate import _fit_mc, _group_codes, _residuals
 from shearfit.calib.calibrate import (PAPER_ALPHA, CalibrationModel, bin_indices, calibrate, calibrated_bias,
                                       calibration_m, load_calibration, matched_galaxies, read_calibration,
-                                      sheared_ellipticity, stack_matched, write_calibration)
+                                      quantity_bins, sheared_ellipticity, stack_matched, write_calibration)
 from shearfit.app.cli import main
 from shearfit.errors import ShearfitIOError, ShearfitValueError
 
@@ -97,16 +97,17 @@ def test_bad_inputs_name_the_file(tmp_path):
         read_calibration(tmp_path / "c.yaml")
 
 
-def _paired_fields(tmp_path, n=6000, seed=3, shared=True, psf_range=None):
+def _paired_fields(tmp_path, n=6000, seed=3, shared=True, psf_range=None, m_offset=0.0):
     """Two fields of the same galaxies and noise (truth header SEED), shears +g and -g. With ``psf_range``
     (arcsec), each galaxy has a PSF FWHM drawn from it (column psf_fwhm) and its m depends on the resolution
-    r / psf_fwhm (as m(nu, r) at r = 0.7 r / psf_fwhm): a larger PSF, a more negative m at the same r."""
+    r / psf_fwhm (as m(nu, r) at r = 0.7 r / psf_fwhm): a larger PSF, a more negative m at the same r.
+    ``m_offset`` is added to every galaxy's m (a seed's fields with PSFs of their own)."""
     rng = np.random.default_rng(seed)
     snr = np.exp(rng.uniform(np.log(7), np.log(80), n))
     r = np.exp(rng.uniform(np.log(0.1), np.log(1.0), n))
     eint = rng.normal(0, 0.25, (n, 2))
     psf = None if psf_range is None else rng.uniform(*psf_range, n)
-    m = calibration_m(snr, r if psf is None else 0.7 * r / psf, ALPHA, BETA)
+    m = calibration_m(snr, r if psf is None else 0.7 * r / psf, ALPHA, BETA) + m_offset
     noise = rng.normal(0, 1, (n, 2)) * (2.0 / snr)[:, None]
     pairs = []
     for tag, sign in (("p", 1.0), ("m", -1.0)):
@@ -122,7 +123,7 @@ def _paired_fields(tmp_path, n=6000, seed=3, shared=True, psf_range=None):
         truth = Table({"id": ids, "g1": np.full(n, g[0]), "g2": np.full(n, g[1]), "e1_int": eint[:, 0],
                        "e2_int": eint[:, 1], "is_star": np.zeros(n, bool)})
         truth.meta["SEED"] = seed
-        name = f"{tag}{int(shared)}" + ("" if psf is None else f"_{psf_range[0]:g}_{seed}")
+        name = f"{tag}{int(shared)}" + ("" if psf is None else f"_{psf_range[0]:g}") + f"_{seed}"
         mp, tp = tmp_path / f"pm{name}.fits", tmp_path / f"pt{name}.fits"
         meas.write(mp)
         truth.write(tp)
@@ -355,3 +356,30 @@ def test_tables_per_seeing_range(tmp_path):
     back = load_calibration(tmp_path / "seeing.yaml")
     np.testing.assert_array_equal(back.m_of(large), split.m_of(large))
     assert len(back.draws(2, np.random.default_rng(0))[0].seeing["tables"]) == 2
+
+
+def test_a_bootstrap_over_seeds_sees_the_fields_own_scatter(tmp_path):
+    """Each seed's fields have PSFs of their own, which move m from field to field by more than the galaxies'
+    noise: here every seed's galaxies have an m offset of their own (rms 0.03). The bootstrap over galaxies does
+    not see it; the one over seeds gives about the offsets' scatter over the root of their number, whole and in
+    bins, and a single seed has no such error."""
+    offsets = np.random.default_rng(11).normal(0.0, 0.03, 10)
+    pairs = [p for k, off in enumerate(offsets) for p in _paired_fields(tmp_path, n=800, seed=100 + k, m_offset=off)]
+    tab = stack_matched(pairs)
+    cal = (ALPHA, BETA)
+    gal = calibrated_bias(tab, cal, n_boot=300)
+    by_seed = calibrated_bias(tab, cal, n_boot=300, resample="seeds")
+    expected = np.std(offsets, ddof=1) / np.sqrt(offsets.size)
+    assert gal["m_cal_err"] < 0.3 * expected
+    assert 0.6 * expected < by_seed["m_cal_err"] < 1.5 * expected
+    # the same estimate either way: only the errors differ
+    assert by_seed["m_cal"] == gal["m_cal"]
+    assert abs(gal["m_cal"] - np.mean(offsets)) < 3 * expected
+    qg = quantity_bins(tab, "snr", cal, n=3, n_boot=200)
+    qs = quantity_bins(tab, "snr", cal, n=3, n_boot=200, resample="seeds")
+    assert np.all(np.asarray(qs["m_cal_err"]) > 2 * np.asarray(qg["m_cal_err"]))
+    assert np.allclose(qs["m_cal"], qg["m_cal"])
+    one = stack_matched(pairs[:2])
+    assert np.isnan(calibrated_bias(one, cal, n_boot=20, resample="seeds")["m_cal_err"])
+    with pytest.raises(ShearfitValueError, match="resample"):
+        calibrated_bias(one, cal, resample="fields")

@@ -242,6 +242,24 @@ def _fit_mc(y1, y2, g1, g2, w):
     return sol
 
 
+#: what a bootstrap draws: a galaxy with all its rows (its +g and -g copies), or a seed's fields with all their rows
+RESAMPLE_UNITS = ("galaxies", "seeds")
+
+
+def _resample_labels(tab, resample):
+    """Per row, the unit the bootstrap draws (``resample``: ``galaxies`` or ``seeds``). A seed's fields share
+    their PSFs and dithers, which move m from field to field by more than the galaxies' noise (about 0.02 on
+    the closure's fields), so that only the seeds' bootstrap sees that scatter; rows without a seed are their
+    own seed."""
+    if resample not in RESAMPLE_UNITS:
+        raise ShearfitValueError(f"resample {resample!r} is not one of {', '.join(RESAMPLE_UNITS)}")
+    groups = _group_codes(tab)
+    if resample == "galaxies":
+        return groups
+    seeds = _pair_codes(tab)
+    return np.where(seeds >= 0, seeds, -1 - groups)
+
+
 def _pair_codes(tab):
     """Per row, the seed whose fields it pairs within (``group`` // 10^8), or -1 for a group without a seed."""
     if "group" not in tab.colnames:
@@ -345,15 +363,16 @@ class _Bias:
                          self.groups[s], self.seeds[s], self.means)
 
 
-def bin_bias(tab: Table, idx, n_bins, n_boot=100, rng=None, m_pred=None):
+def bin_bias(tab: Table, idx, n_bins, n_boot=100, rng=None, m_pred=None, resample="galaxies"):
     """Per bin: weighted mean SNR and size, m, c1, c2 with bootstrap errors (and the mean prediction).
 
-    The bootstrap draws groups (see :func:`matched_galaxies`) with all their rows.
+    The bootstrap draws groups (see :func:`matched_galaxies`) with all their rows, or with ``resample="seeds"``
+    the seeds present in the bin with all their rows (:func:`_resample_labels`).
     """
     rng = np.random.default_rng(0) if rng is None else rng
     fit = _Bias(tab)
     w = fit.w
-    groups = _group_codes(tab)
+    groups = _resample_labels(tab, resample)
     snr, r = np.asarray(tab["snr"], float), np.asarray(tab["scalelength"], float)
     rows = []
     for b in range(n_bins):
@@ -362,7 +381,8 @@ def bin_bias(tab: Table, idx, n_bins, n_boot=100, rng=None, m_pred=None):
             continue
         est = fit(sel)
         boot = np.array([fit(s) for s in group_resamples(sel, groups, n_boot, rng)])
-        err = boot.std(axis=0)
+        # one unit (a single seed) has no scatter to resample: no error
+        err = boot.std(axis=0) if np.unique(groups[sel]).size > 1 else np.full(boot.shape[1], np.nan)
         ws = w[sel] / w[sel].sum()
         row = dict(bin=b, n=int(sel.size), snr=float(np.sum(ws * snr[sel])), r=float(np.sum(ws * r[sel])),
                    weight=float(np.mean(w[sel])), m=float(est[0]), m_err=float(err[0]), c1=float(est[1]),
@@ -750,14 +770,15 @@ def calibration_samples(path, n, rng):
     return _grid_samples(*_checked_grid(path, d), n, rng)
 
 
-def calibrated_bias(tab: Table, calibration, n_boot=200, seed=0):
+def calibrated_bias(tab: Table, calibration, n_boot=200, seed=0, resample="galaxies"):
     """Overall m, c1, c2 of a matched table before and after a calibration, with errors.
 
     ``calibration``: a :class:`CalibrationModel`, an (alpha, beta) pair or a calibration file.
 
     The calibration divides the weighted shear estimate by 1 + the weighted mean m of the
     galaxies (the paper's ensemble correction), so the calibrated m is (1 + m_raw) / (1 + <m>) - 1.
-    Errors (``*_err``) from a bootstrap over groups (see :func:`matched_galaxies`).
+    Errors (``*_err``) from a bootstrap over groups (see :func:`matched_galaxies`), or with
+    ``resample="seeds"`` over the seeds (:func:`_resample_labels`).
     """
     fit = _Bias(tab)
     w = fit.w
@@ -771,9 +792,10 @@ def calibrated_bias(tab: Table, calibration, n_boot=200, seed=0):
 
     rows = np.arange(len(tab))
     full = est(rows)
-    boot = np.array([est(s) for s in group_resamples(rows, _group_codes(tab), n_boot,
-                                                       np.random.default_rng(seed))])
-    err = boot.std(axis=0)
+    labels = _resample_labels(tab, resample)
+    boot = np.array([est(s) for s in group_resamples(rows, labels, n_boot, np.random.default_rng(seed))])
+    # one unit (a single seed) has no scatter to resample: no error
+    err = boot.std(axis=0) if np.unique(labels).size > 1 else np.full(boot.shape[1], np.nan)
     names = ("m_raw", "c1", "c2", "m_mean", "m_cal")
     out = {k: float(v) for k, v in zip(names, full)}
     out.update({f"{k}_err": float(v) for k, v in zip(names, err)})
@@ -829,10 +851,11 @@ def weight_bins(tab: Table, calibration, n=10, n_boot=100, seed=0):
     return quantity_bins(tab, "weight", calibration, n=n, n_boot=n_boot, seed=seed)
 
 
-def quantity_bins(tab: Table, column, calibration, n=6, n_boot=100, seed=0):
+def quantity_bins(tab: Table, column, calibration, n=6, n_boot=100, seed=0, resample="galaxies"):
     """Raw and calibrated m (and c) in equal-number bins of one column (``snr``, ``scalelength``, ...).
 
-    Groups are binned by their mean value, so the copies of a galaxy stay together.
+    Groups are binned by their mean value, so the copies of a galaxy stay together. ``resample``: the
+    bootstrap's unit, ``galaxies`` or ``seeds`` (:func:`bin_bias`).
     """
     codes = _group_codes(tab)
     gx = _group_mean(codes, tab[column])
@@ -842,7 +865,7 @@ def quantity_bins(tab: Table, column, calibration, n=6, n_boot=100, seed=0):
     pred = as_model(calibration).m_of(tab)
     pred = np.where(np.isfinite(pred), pred, 0.0)
     idx = gidx[codes]
-    out = bin_bias(tab, idx, n, n_boot, np.random.default_rng(seed), m_pred=pred)
+    out = bin_bias(tab, idx, n, n_boot, np.random.default_rng(seed), m_pred=pred, resample=resample)
     # the weighted mean of the binned quantity itself, per bin (column x)
     w, x = np.asarray(tab["weight"], float), np.asarray(tab[column], float)
     out["x"] = [float(np.sum(w[idx == b] * x[idx == b]) / np.sum(w[idx == b])) for b in out["bin"]]
