@@ -317,6 +317,17 @@ def sized_population(mags, rng, cfg, size_range):
     return pop
 
 
+def e_ranged_population(mags, rng, cfg, base, e_range):
+    """``base``'s galaxies (the paper's population where None) with intrinsic |e| drawn uniformly over ``e_range``
+    after the rest of the galaxy, their position angles kept: rings of one range of ellipticities (the high-|e|
+    tail)."""
+    pop = (base or _paper_population)(mags, rng, cfg)
+    phi = np.arctan2(np.asarray(pop["e2"], float), np.asarray(pop["e1"], float))
+    a = rng.uniform(e_range[0], e_range[1], len(mags))
+    pop["e1"], pop["e2"] = a * np.cos(phi), a * np.sin(phi)
+    return pop
+
+
 def replayed_population(mags, rng, cfg, galaxies):
     """The galaxies of simulated fields (:func:`shearfit.simulate.field.truth_galaxies`), one drawn at random
     with its magnitude (so in the fields' proportions): a ring of a field's galaxy, to compare rings and fields
@@ -1010,6 +1021,9 @@ def build_parser():
                    help="with the paper's population: scalelengths log-uniform from RMIN to RMAX arcsec instead "
                         "of the size prior's (benchmarks/ring_split.py --r-bins splits the result); with the "
                         "outside population: half-light radii log-uniform from RMIN to RMAX instead of 0.1-2\"")
+    p.add_argument("--e-range", type=float, nargs=2, metavar=("EMIN", "EMAX"),
+                   help="with the paper's population: intrinsic |e| uniform from EMIN to EMAX (position angles kept) "
+                        "instead of the prior's: rings of the high-|e| tail")
     p.add_argument("--calibration", default=None,
                    help="calibration YAML for the calibrated m line (default: the paper's alpha, beta)")
     p.add_argument("--antithetic", action="store_true",
@@ -1100,6 +1114,9 @@ def parse_args(argv=None):
     if args.size_range is not None and (args.population not in ("paper", "outside")
                                         or not 0 < args.size_range[0] < args.size_range[1]):
         p.error("--size-range needs 0 < RMIN < RMAX and the paper's or the outside population")
+    if args.e_range is not None and (args.population != "paper" or args.population_from
+                                     or not 0 <= args.e_range[0] < args.e_range[1] < 1):
+        p.error("--e-range needs 0 <= EMIN < EMAX < 1 and the paper's population")
     if args.metacal_fresh and not args.metacal:
         p.error("--metacal-fresh needs --metacal")
     if args.metacal_own_position and not (args.metacal and not args.metacal_fresh):
@@ -1419,7 +1436,11 @@ def main(argv=None):
                                         functools.partial(replayed_population, galaxies=truth_galaxies(
                                             args.population_from, (args.mag_min, args.mag_max)))
                                         if args.population_from else
-                                        {"odd": odd_population, "outside": outside_population}.get(args.population)),
+                                        {"odd": odd_population, "outside": outside_population}.get(args.population))
+                            if args.e_range is None else functools.partial(
+                                e_ranged_population, e_range=tuple(args.e_range),
+                                base=functools.partial(sized_population, size_range=tuple(args.size_range))
+                                if args.size_range else None),
                             profile=outside_profile if args.population == "outside" else None),
     }
     seeds = np.random.SeedSequence(args.seed).spawn(args.n_galaxies)

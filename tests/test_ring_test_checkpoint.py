@@ -409,3 +409,23 @@ def test_paired_below_moves_the_faint_galaxies_and_scales_a_sample_of_them(ring_
     assert f"({picked.size} measured here, their move scaled by 1.000-" in out
     assert abs(_line_value(out, "metacal of these tables' setting", "m1 =") - m_all[0]) < 2e-5
     assert abs(_line_value(out, "metacal of these tables' setting", "m2 =") - m_all[1]) < 2e-5
+
+
+def test_e_range_redraws_only_the_ellipticities(ring_test):
+    """--e-range: the paper's galaxies with |e| uniform over the range, their position angles and everything else
+    as drawn without it (the rings of the high-|e| tail)."""
+    from shearfit.config import FitConfig
+
+    cfg = FitConfig()
+    mags = np.linspace(21.0, 24.0, 400)
+    base = ring_test._paper_population(mags, np.random.default_rng(5), cfg)
+    got = ring_test.e_ranged_population(mags, np.random.default_rng(5), cfg, None, (0.7, 0.8))
+    a = np.hypot(got["e1"], got["e2"])
+    assert np.all((a >= 0.7) & (a < 0.8)) and a.std() > 0.02
+    assert np.allclose(np.arctan2(got["e2"], got["e1"]), np.arctan2(base["e2"], base["e1"]))
+    for name in ("scalelength", "bulge_fraction", "mag"):
+        assert np.array_equal(got[name], base[name])
+    with pytest.raises(SystemExit):
+        ring_test.parse_args(["--e-range", "0.7", "0.8", "--population", "odd"])
+    with pytest.raises(SystemExit):
+        ring_test.parse_args(["--e-range", "0.8", "0.7"])
