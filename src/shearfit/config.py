@@ -199,7 +199,9 @@ class FitConfig:
         "rings; session 59) and, with self_calibration_steps 4, +0.007 +- 0.002 / -0.000 +- 0.003 over 2200 plain "
         "and rotated rings (m1 from the broad likelihoods, where the extrapolation leaves its fourth-order term), "
         "where the default leaves -0.007 / -0.011 on the 800 it was run on (benchmarks/README.md, sessions 60-61; "
-        "benchmarks/selfcal_response.py). The default calibration tables were fitted with 0.5",
+        "benchmarks/selfcal_response.py). At |e| 0.7-0.8 (0.1-0.125\", SNR 100-200) 0.1 removes the noise-free bias "
+        "that 0.25 leaves (-0.032 -> -0.002, 240 rings) but not the noisy one, -0.067 either way with "
+        "noise_bias_correction (session 68). The default calibration tables were fitted with 0.5",
         "sec. 3.4 (extension)")
     noise_bias_correction: bool = setting(
         False, "noise-bias extrapolation: measure the object twice more, with a noise field n drawn from its "
