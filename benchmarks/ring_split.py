@@ -33,6 +33,10 @@ two pairs, S those and B's; a two-pair run's own one-pair estimates are in it. U
 error it lowers where B adds galaxies: the difference of the two corrections on the same objects scatters less than
 either (the objects' own responses cancel in it). The bootstrap resamples S, S2 with it.
 
+``--radial``: the estimates split along and across each object's true sheared ellipticity, in bins of its |e|: the
+radial part's mean and scatter and the slope of its mean against |e| (1 without bias along |e|), with a
+self-calibrated run's radial responses (``sc_rrad``) and steps.
+
 ``--keep-stars``: the objects classified as stars (fitclass 1) counted as galaxies, at the weight of their e_var
 (unit weight with ``--unweighted``). The star/galaxy classification selects on shape (an elongated small galaxy
 beats a point source by more), so it responds to the shear; an object classified at +g and not at -g also leaves
@@ -213,8 +217,42 @@ def control_main(paths, controls, r_bins=(0, 0.15, 0.3, 10), unweighted=False, p
     _splits(sub, columns, r_bins, e_bins)
 
 
+def radial_report(t, edges=(0.0, 0.3, 0.5, 0.6, 0.7, 0.76, 0.82, 1.0)):
+    """The galaxies' estimates split along and across their true sheared ellipticity e_s (each object's shear applied
+    to its intrinsic shape): per bin of |e_s| the mean and scatter of the radial part, the scatter of the tangential
+    part, and the slope of the radial part's mean against |e_s| over all of them (1 for an estimator without bias
+    along |e|); with a self-calibrated run, the radial responses its solve found (``sc_rrad``) and its steps."""
+    t = t[(np.asarray(t["fitclass"]) == 0) & np.isfinite(np.asarray(t["e1"], float))]
+    if len(t) < 2:
+        return
+    ei = np.asarray(t["e1_int"], float) + 1j * np.asarray(t["e2_int"], float)
+    g = np.asarray(t["g1"], float) + 1j * np.asarray(t["g2"], float)
+    es = (ei + g) / (1 + np.conj(g) * ei)
+    a = np.abs(es)
+    u = np.where(a > 0, es / np.where(a > 0, a, 1.0), 1.0)
+    z = (np.asarray(t["e1"], float) + 1j * np.asarray(t["e2"], float)) * np.conj(u)
+    rad, tan = z.real, z.imag
+    slope = np.polyfit(a, rad, 1)[0] if np.ptp(a) > 0 else np.nan
+    print(f"estimates along and across the true sheared e ({len(t)} objects): slope of the radial part's mean against "
+          f"|e_s| {slope:.3f}")
+    k = np.digitize(a, edges) - 1
+    for b in range(len(edges) - 1):
+        sel = k == b
+        if sel.sum() >= 2:
+            print(f"  |e_s| {edges[b]:.2f}-{edges[b + 1]:.2f}  n={sel.sum():5d}  mean |e_s| {a[sel].mean():.4f}  radial "
+                  f"{rad[sel].mean():.4f} (rms {rad[sel].std():.3f})  tangential rms {tan[sel].std():.3f}")
+    if "sc_rrad" in t.colnames:
+        r = np.asarray(t["sc_rrad"], float)
+        r = r[np.isfinite(r)]
+        if r.size:
+            q = np.percentile(r, [10, 50, 90])
+            print(f"  self-calibration: radial response found, 10/50/90 %: {q[0]:.3f} {q[1]:.3f} {q[2]:.3f}; below "
+                  f"0.25: {np.mean(r < 0.25):.2f}, below 0.1: {np.mean(r < 0.1):.2f}; mean steps "
+                  f"{np.nanmean(np.asarray(t['sc_steps'], float)):.2f}")
+
+
 def main(paths, r_bins=(0, 0.15, 0.3, 10), unweighted=False, paired=False, isotropic=False, uncorrected=False,
-         paired_with=None, e_bins=None, one_pair=False, keep_stars=False):
+         paired_with=None, e_bins=None, one_pair=False, keep_stars=False, radial=False):
     if paired_with and (len(paths) != 1 or len(paired_with) != 1):
         # several tables are renumbered as one, and two runs' numbers would then not pair
         raise SystemExit("ring_split.py: --paired-with compares one table with one other")
@@ -230,6 +268,8 @@ def main(paths, r_bins=(0, 0.15, 0.3, 10), unweighted=False, paired=False, isotr
         t = _one_pair(t)
     if keep_stars:
         t = stars_kept(t)
+    if radial:
+        radial_report(t)
     other = None
     if paired_with:
         other = Table.read(paired_with[0])
@@ -290,6 +330,9 @@ if __name__ == "__main__":
     ap.add_argument("--paired-with", metavar="TABLE", default=None,
                     help="another run of the same galaxies: its m and c, and the first run's less its, object by "
                          "object with the galaxies resampled together")
+    ap.add_argument("--radial", action="store_true",
+                    help="also the estimates along and across the true sheared ellipticity, in bins of its |e|, and "
+                         "a self-calibrated run's radial responses")
     ap.add_argument("--control", action="append", default=[], metavar="[A=]B",
                     help="a one-pair run B (A=B: of table A's seed) as a control variate for the two-pair tables given")
     a = ap.parse_args()
@@ -305,4 +348,4 @@ if __name__ == "__main__":
                      a.isotropic_weights, e_edges)
         sys.exit(0)
     main(a.table, [float(x) for x in a.r_bins.split(",")], a.unweighted, a.paired_weights, a.isotropic_weights,
-         a.uncorrected, [a.paired_with] if a.paired_with else None, e_edges, a.one_pair, a.keep_stars)
+         a.uncorrected, [a.paired_with] if a.paired_with else None, e_edges, a.one_pair, a.keep_stars, a.radial)

@@ -93,3 +93,20 @@ def test_control_is_the_two_pairs_m_with_the_one_pairs_galaxies_added(tmp_path, 
     lines = _control_lines(capsys.readouterr().out)
     assert lines["one pair, all"][0] == 80
     assert np.allclose(lines["two pairs, one-pair control"][1], 0.004 + 0.005, atol=1e-4)
+
+
+def test_radial_report_measures_the_response_along_e(capsys):
+    """--radial: an estimator that returns the true sheared ellipticity has a radial slope of 1 and no tangential
+    part; one that shrinks |e| by a factor 0.7 has a slope of 0.7."""
+    t = _run(0.0, twins=False)
+    ei = np.asarray(t["e1_int"]) + 1j * np.asarray(t["e2_int"])
+    g = np.asarray(t["g1"]) + 1j * np.asarray(t["g2"])
+    es = (ei + g) / (1 + np.conj(g) * ei)
+    for factor in (1.0, 0.7):
+        t["e1"], t["e2"] = factor * es.real, factor * es.imag
+        ring_split.radial_report(t)
+        out = capsys.readouterr().out
+        slope = float(re.search(r"\|e_s\| ([0-9.]+)$", out.splitlines()[0]).group(1))
+        assert abs(slope - factor) < 1e-3
+        tangential = re.findall(r"tangential rms ([0-9.]+)", out)
+        assert tangential and all(float(x) == 0.0 for x in tangential)
