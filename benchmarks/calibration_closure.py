@@ -179,6 +179,12 @@ def both_bins(tab, column, calibration, n):
     return out
 
 
+def binned_model(result, size):
+    """The binned calibration (with its seeing tables) of a :func:`calibrate` result, as the package applies it."""
+    return CalibrationModel(result["alpha"], result["beta"], "binned", result["binned"], size=size,
+                            seeing=result.get("seeing"))
+
+
 def seed_of(path):
     """The seed of a field's directory (``s1000p``, ``s2003mr``: 1000, 2003)."""
     return int(os.path.basename(os.path.dirname(path))[1:].rstrip("pmr"))
@@ -193,8 +199,7 @@ def cross_validation(cal_jobs, cal_pairs, held_out, args, n_bins=8):
         sel = [p for p in cal_pairs if seed_of(p[0]) % 2 == parity]
         res, _, _ = calibrate(sel, n_snr=args.n_snr, n_size=args.n_size, size=args.size, seeing_bins=args.seeing_bins,
                               n_boot=4)
-        halves[name] = (CalibrationModel(res["alpha"], res["beta"], "binned", res["binned"], size=args.size,
-                                         seeing=res.get("seeing")), parity)
+        halves[name] = (binned_model(res, args.size), parity)
     roles = {}
     for (d, _), p in zip(cal_jobs, cal_pairs):
         roles.setdefault(os.path.basename(os.path.dirname(d)), []).append(p)
@@ -371,7 +376,7 @@ def main(argv=None):
                                       seeing_bins=args.seeing_bins)
     write_calibration(result, os.path.join(out, f"calibration{ctag}.yaml"))
     a, b = result["alpha"], result["beta"]
-    binned = CalibrationModel(a, b, "binned", result["binned"], size=args.size, seeing=result.get("seeing"))
+    binned = binned_model(result, args.size)
     fitted = CalibrationModel(a, b)
     paper = CalibrationModel(PAPER_ALPHA, PAPER_BETA)
     plot_calibration(bins, result, os.path.join(out, f"calibration{ctag}.png"), weight_bins=weight_bins(cal_tab, binned))

@@ -56,6 +56,7 @@ import numpy as np
 from astropy.table import Table
 
 from shearfit.calib.bias import bias_from_sums, bootstrap_counts, paired_weights, ring_sums, shear_bias
+from shearfit.calib.calibrate import sheared_ellipticity
 from shearfit.calib.weights import isotropic_weights
 
 # benchmarks/ring_test.py, beside this script: several runs' tables read as one
@@ -227,7 +228,7 @@ def radial_report(t, edges=(0.0, 0.3, 0.5, 0.6, 0.7, 0.76, 0.82, 1.0)):
         return
     ei = np.asarray(t["e1_int"], float) + 1j * np.asarray(t["e2_int"], float)
     g = np.asarray(t["g1"], float) + 1j * np.asarray(t["g2"], float)
-    es = (ei + g) / (1 + np.conj(g) * ei)
+    es = sheared_ellipticity(ei, g)
     a = np.abs(es)
     u = np.where(a > 0, es / np.where(a > 0, a, 1.0), 1.0)
     z = (np.asarray(t["e1"], float) + 1j * np.asarray(t["e2"], float)) * np.conj(u)
