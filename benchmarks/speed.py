@@ -23,6 +23,7 @@ one), a profile grouped by stage and the process's peak memory.
     python benchmarks/speed.py --isa-ab baseline   # the loops in use against the portable ones, interleaved
     python benchmarks/speed.py --moffat-ab         # the compiled App. A Moffat fits against the numpy ones
     python benchmarks/speed.py --setting-ab pair_chi2_tolerance=0   # a setting's cost, interleaved
+    python benchmarks/speed.py --census            # where the ellipticity samples lie against the posterior cut
     python benchmarks/speed.py --check             # how far the speed settings (and the mode cut) move the estimates
     python benchmarks/speed.py --check --check-each   # and each setting's own effect
 """
@@ -462,6 +463,42 @@ def kernel_times_report(objs, cfg):
     print(f"    {'the rest (Python, numpy)':24s} {1e3 * (dt - total) / n:7.3f}  {100 * (dt - total) / dt:5.1f} %")
 
 
+def census_report(objs, cfg):
+    """Where a fit's ellipticity samples lie: per galaxy, by the lattice cell each stands for (its step; 0: a sample
+    that stands for none, such as a coarse point inside a finer region) and by its posterior against the maximum:
+    above the posterior cut (the estimator's samples), within ``e_grid_prepass_margin`` below it, or beyond."""
+    cut = float(np.log(cfg.posterior_cut))
+    margin = float(cfg.e_grid_prepass_margin)
+    rows = {}
+    n = 0
+    for o, t in objs:
+        r = shearfit.measure_object(o, mag=t["mag"], config=cfg, return_samples=True)
+        s = getattr(r, "samples", None)
+        if s is None or len(s) == 0:
+            continue
+        n += 1
+        lp = np.asarray(s["logpost"], float)
+        lp = lp - np.max(lp[np.isfinite(lp)])
+        step = np.rint(np.sqrt(np.asarray(s["area"], float)) / cfg.e_grid_min).astype(int)
+        for k in np.unique(step):
+            m = step == k
+            c = rows.setdefault(int(k), np.zeros(3))
+            c += [np.sum(lp[m] > cut), np.sum((lp[m] <= cut) & (lp[m] > cut - margin)), np.sum(~(lp[m] > cut - margin))]
+    if not n:
+        return
+    print(f"\n  ellipticity samples per galaxy ({n} galaxies), by the cell each stands for and by its posterior "
+          f"against the maximum (cut: {cut:.2f} nats; margin below it: {margin:g}):")
+    print(f"    {'cell (lattice steps of ' + format(cfg.e_grid_min, 'g') + ')':28s} {'above cut':>10s} "
+          f"{'within margin':>14s} {'beyond':>8s}")
+    tot = np.zeros(3)
+    for k in sorted(rows, reverse=True):
+        c = rows[k] / n
+        tot += c
+        label = f"{k} ({k * cfg.e_grid_min:g})" if k else "0 (stands for no cell)"
+        print(f"    {label:28s} {c[0]:10.1f} {c[1]:14.1f} {c[2]:8.1f}")
+    print(f"    {'all':28s} {tot[0]:10.1f} {tot[1]:14.1f} {tot[2]:8.1f}")
+
+
 def check_report(objs, cfg, res, seed, each=False):
     """The speed settings against the exact ones (EXACT), on the timed galaxies and on faint ones:
     how far the estimates move, in e and in units of their own error. ``each``: also every setting of EXACT
@@ -542,6 +579,9 @@ def main(argv=None):
     ap.add_argument("--metacal-own-samples", action="store_true",
                     help="with --metacal: the sheared versions run the adaptive ellipticity grid on their own "
                          "likelihoods (measure_metacal's own_samples=True)")
+    ap.add_argument("--census", action="store_true",
+                    help="also count where each galaxy's ellipticity samples lie: by the lattice cell each stands for "
+                         "and by its posterior against the cut (what the adaptive grid spends its fits on)")
     ap.add_argument("--check-each", action="store_true",
                     help="with --check, also each speed setting alone at its exact value (its own effect)")
     ap.add_argument("--check", action="store_true",
@@ -610,6 +650,8 @@ def main(argv=None):
         metacal_report(objs, cfg, args.passes, args.metacal_psf, args.metacal_own_position,
                        args.metacal_own_samples)
         metacal_image_profile(objs)
+    if args.census:
+        census_report(objs, cfg)
     if args.check:
         check_report(objs, cfg, res, args.seed, each=args.check_each)
     if args.isa_ab:

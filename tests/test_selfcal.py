@@ -244,3 +244,26 @@ def test_min_response_bounds_the_radial_correction(monkeypatch):
     for bad in (0, -0.1, 1.2):
         with pytest.raises(shearfit.errors.ShearfitValueError, match="self_calibration_min_response"):
             as_config({"self_calibration_min_response": bad})
+
+
+def test_corrected_e_limit_lets_the_estimate_go_on_beyond_the_models(monkeypatch):
+    """corrected_e_limit: an estimator of slope 0.85 along |e| (f(0.98) = 0.833) and a data estimate of 0.9, whose
+    solution (1.059) lies beyond the models' limit model_e_limit = 0.98. By default the estimate stops on the limit;
+    with corrected_e_limit = 2 it goes on beyond it along the measured response,
+    while every noise-free fit stays within the limit (the step from the limit, along f's last secant, damped as every
+    further step is by how little the last one contracted the residual), and a lower corrected_e_limit is kept."""
+    def linear(e):
+        return 0.85 * e
+
+    e_hat = np.array([0.9 * np.cos(0.4), 0.9 * np.sin(0.4)])
+    res, seen = _fake_solve(monkeypatch, linear, e_hat, 4)
+    assert np.hypot(res.e1, res.e2) == pytest.approx(0.98, abs=1e-12)
+    res, seen = _fake_solve(monkeypatch, linear, e_hat, 4, corrected_e_limit=2.0)
+    a = np.hypot(res.e1, res.e2)
+    assert 0.99 < a <= 0.9 / 0.85 + 1e-9
+    assert np.arctan2(res.e2, res.e1) == pytest.approx(0.4, abs=1e-9)   # radial only: f turns with the galaxy
+    assert max(np.hypot(*e) for e in seen) <= 0.98 + 1e-12
+    res, _ = _fake_solve(monkeypatch, linear, e_hat, 4, corrected_e_limit=1.0)
+    assert np.hypot(res.e1, res.e2) == pytest.approx(1.0, abs=1e-12)
+    with pytest.raises(shearfit.errors.ShearfitValueError, match="corrected_e_limit"):
+        as_config({"corrected_e_limit": 0.0})

@@ -436,7 +436,9 @@ def _self_calibrate(obs, mag, cfg, res, plan, margin=10.0):
     s_rad = float(np.clip(r_rad, lo, hi))
     s_tan = float(np.clip(r_tan, lo, hi)) if a > abs(h) else s_rad
     b = f0 - e_hat
-    e_out = _within(e_hat - (np.dot(b, u) / s_rad) * u - (np.dot(b, v) / s_tan) * v, cfg.model_e_limit)
+    # the models stay within model_e_limit; the estimate may go on beyond it to corrected_e_limit
+    out_limit = max(float(cfg.corrected_e_limit), float(cfg.model_e_limit))
+    e_out = _within(e_hat - (np.dot(b, u) / s_rad) * u - (np.dot(b, v) / s_tan) * v, out_limit)
     # more steps of the same Newton solve (self_calibration_steps), radially with the secant over the last step,
     # each damped by how well the last contracted the residual |f(e) - e_hat| (SELFCAL_DAMPING): the result moves
     # smoothly with the pixels, and an estimate f cannot reach is not carried towards the model's limit
@@ -445,7 +447,10 @@ def _self_calibrate(obs, mag, cfg, res, plan, margin=10.0):
     w = 1.0
     e_prev, f_prev = e_hat, f0
     for _ in range(int(cfg.self_calibration_steps) - 1):
-        f1 = f(e_out)
+        # beyond the models' limit (corrected_e_limit above model_e_limit) f is measured on the limit, and the
+        # step from there goes on along f's last secant, damped as every further step
+        e_eval = _within(e_out, cfg.model_e_limit)
+        f1 = f(e_eval)
         if not np.all(np.isfinite(f1)):
             break
         b = f1 - e_hat
@@ -454,12 +459,12 @@ def _self_calibrate(obs, mag, cfg, res, plan, margin=10.0):
         w *= float(np.clip((SELFCAL_DAMPING[1] - q) / (SELFCAL_DAMPING[1] - SELFCAL_DAMPING[0]), 0.0, 1.0))
         if w <= 0.0:
             break
-        de = float(np.dot(e_out - e_prev, u))
+        de = float(np.dot(e_eval - e_prev, u))
         if abs(de) > 1e-6:   # the radial response: the secant over the last step, bounded as the first
             s_rad = float(np.clip(np.dot(f1 - f_prev, u) / de, lo, hi))
-        e_prev, f_prev = e_out, f1
+        e_prev, f_prev = e_eval, f1
         resid = r1
-        e_out = _within(e_out - w * ((np.dot(b, u) / s_rad) * u + (np.dot(b, v) / s_tan) * v), cfg.model_e_limit)
+        e_out = _within(e_eval - w * ((np.dot(b, u) / s_rad) * u + (np.dot(b, v) / s_tan) * v), out_limit)
         steps += 1
     res.selfcal_steps = steps
     res.selfcal_de = (float(e_hat[0] - e_out[0]), float(e_hat[1] - e_out[1]))
@@ -532,10 +537,11 @@ def _correct_noise_bias(obs, mag, cfg, res, seed):
     b = d[0]
     if a > 0:
         b = d[0] - 2.0 * (d[1] - d[0]) / (a * a - 1.0)
-    e_out = _within(e - b, cfg.model_e_limit)
+    limit = max(float(cfg.corrected_e_limit), float(cfg.model_e_limit))
+    e_out = _within(e - b, limit)
     # what was subtracted, the limit's scaling included, so that e + noise_bias_de is the uncorrected estimate
     res.noise_bias_de = tuple(float(x) for x in e - e_out)
-    res.noise_bias_de_one_pair = tuple(float(x) for x in e - _within(e - d[0], cfg.model_e_limit))
+    res.noise_bias_de_one_pair = tuple(float(x) for x in e - _within(e - d[0], limit))
     res.e1, res.e2 = float(e_out[0]), float(e_out[1])
 
 
