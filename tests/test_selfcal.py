@@ -249,9 +249,9 @@ def test_min_response_bounds_the_radial_correction(monkeypatch):
 def test_corrected_e_limit_lets_the_estimate_go_on_beyond_the_models(monkeypatch):
     """corrected_e_limit: an estimator of slope 0.85 along |e| (f(0.98) = 0.833) and a data estimate of 0.9, whose
     solution (1.059) lies beyond the models' limit model_e_limit = 0.98. By default the estimate stops on the limit;
-    with corrected_e_limit = 2 it goes on beyond it along the measured response,
-    while every noise-free fit stays within the limit (the step from the limit, along f's last secant, damped as every
-    further step is by how little the last one contracted the residual), and a lower corrected_e_limit is kept."""
+    with corrected_e_limit = 2 it goes on beyond it along the measured response (the step from the limit, along f's
+    last secant, damped as every further step is), while every noise-free fit stays within the limit; a lower
+    corrected_e_limit is kept."""
     def linear(e):
         return 0.85 * e
 

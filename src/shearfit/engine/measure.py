@@ -437,7 +437,7 @@ def _self_calibrate(obs, mag, cfg, res, plan, margin=10.0):
     s_tan = float(np.clip(r_tan, lo, hi)) if a > abs(h) else s_rad
     b = f0 - e_hat
     # the models stay within model_e_limit; the estimate may go on beyond it to corrected_e_limit
-    out_limit = max(float(cfg.corrected_e_limit), float(cfg.model_e_limit))
+    out_limit = _corrected_limit(cfg)
     e_out = _within(e_hat - (np.dot(b, u) / s_rad) * u - (np.dot(b, v) / s_tan) * v, out_limit)
     # more steps of the same Newton solve (self_calibration_steps), radially with the secant over the last step,
     # each damped by how well the last contracted the residual |f(e) - e_hat| (SELFCAL_DAMPING): the result moves
@@ -470,6 +470,11 @@ def _self_calibrate(obs, mag, cfg, res, plan, margin=10.0):
     res.selfcal_de = (float(e_hat[0] - e_out[0]), float(e_hat[1] - e_out[1]))
     res.selfcal_response = (r_rad, r_tan)
     res.e1, res.e2 = float(e_out[0]), float(e_out[1])
+
+
+def _corrected_limit(cfg):
+    """The largest |e| of a corrected estimate: corrected_e_limit, and never below model_e_limit."""
+    return max(float(cfg.corrected_e_limit), float(cfg.model_e_limit))
 
 
 def _within(e, limit):
@@ -537,7 +542,7 @@ def _correct_noise_bias(obs, mag, cfg, res, seed):
     b = d[0]
     if a > 0:
         b = d[0] - 2.0 * (d[1] - d[0]) / (a * a - 1.0)
-    limit = max(float(cfg.corrected_e_limit), float(cfg.model_e_limit))
+    limit = _corrected_limit(cfg)
     e_out = _within(e - b, limit)
     # what was subtracted, the limit's scaling included, so that e + noise_bias_de is the uncorrected estimate
     res.noise_bias_de = tuple(float(x) for x in e - e_out)
