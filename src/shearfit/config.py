@@ -233,7 +233,7 @@ class FitConfig:
         "either. With noise, 18 % of the corrected estimates of 0.1-0.125\" galaxies at |e| 0.7-0.8 (SNR 100-200) stop "
         "on the limit, and that is part of their bias: 3 takes their m1 from -0.078 +- 0.010 to -0.046 +- 0.017 "
         "(480 rings, paired +0.031 +- 0.014). The estimates are then heavier-tailed: on such galaxies drawn from the "
-        "prior the errors on m grow by 15-60 % and m moves by -0.004 +- 0.004 (480 rings; benchmarks/README.md, "
+        "prior the errors on m grow by 15-62 % and m moves by -0.004 +- 0.004 (480 rings; benchmarks/README.md, "
         "session 69). Estimates of |e| >= 1 occur (1.2 % of those, 11 % of the tail's); they are terms of an unbiased "
         "mean, not shapes",
         "sec. 3.4 (extension)")
