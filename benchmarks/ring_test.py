@@ -180,8 +180,8 @@ def _work(task):
         # with them, in one call); the twins are measured after the first members, as when each had its own call
         rng = np.random.default_rng(seed)
         t0 = time.perf_counter()
-        rings = ring_set(1, tuple(sign * g), rng, cfg=cfg, antithetic=bool(opts.get("antithetic")),
-                         draw_cache=draw_cache, **opts["ring_kwargs"])
+        rings = ring_set(1, tuple(sign * g), rng, cfg=opts.get("population_config", cfg),
+                         antithetic=bool(opts.get("antithetic")), draw_cache=draw_cache, **opts["ring_kwargs"])
         t_sim += time.perf_counter() - t0
         below = opts.get("measure_snr_below")
         if below is not None and not rings[0][1]["snr"] < below:
@@ -993,6 +993,10 @@ def build_parser():
     p.add_argument("--unweighted", action="store_true", help="unit weights for fitclass 0 instead of lensfit's")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="engine setting (FitConfig field), repeatable; also used for the population")
+    p.add_argument("--population-set", action="append", default=[], metavar="KEY=VALUE",
+                   help="a setting for drawing the population only, in place of --set's (repeatable): e.g. "
+                        "--set disk_e_max=0.95 --population-set disk_e_max=0.804 fits with a prior of its own "
+                        "the galaxies that the paper's prior draws")
     p.add_argument("--out", help="per-object results, .fits or .csv (and, while the run lasts, its checkpoint: "
                                  "see --resume)")
     p.add_argument("--resume", action="store_true",
@@ -1399,6 +1403,7 @@ def main(argv=None):
     args = parse_args(argv)
     try:
         cfg = _config(args.set)
+        pop_cfg = _config(args.set + args.population_set) if args.population_set else cfg
     except (ValueError, KeyError) as exc:
         print(f"ring_test.py: error: {exc}", file=sys.stderr)
         return 2
@@ -1415,6 +1420,7 @@ def main(argv=None):
         return 2
     opts = {
         "shear": tuple(args.shear), "dry_run": args.dry_run, "config": cfg, "metacal": args.metacal,
+        "population_config": pop_cfg,
         "measure_snr_below": args.measure_snr_below,
         "metacal_psf": args.metacal_psf, "metacal_fresh": args.metacal_fresh,
         "metacal_own_position": args.metacal_own_position, "metacal_own_samples": args.metacal_own_samples,

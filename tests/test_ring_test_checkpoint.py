@@ -429,3 +429,22 @@ def test_e_range_redraws_only_the_ellipticities(ring_test):
         ring_test.parse_args(["--e-range", "0.7", "0.8", "--population", "odd"])
     with pytest.raises(SystemExit):
         ring_test.parse_args(["--e-range", "0.8", "0.7"])
+
+
+def test_population_set_draws_the_population_without_the_fits_setting(ring_test, tmp_path):
+    """--population-set: the galaxies are drawn with its settings in place of --set's, so that a fit with a prior of
+    its own (here a disk_e_max of 0.3) meets the galaxies the paper's prior draws."""
+    def drawn(*extra):
+        out = tmp_path / f"t{len(list(tmp_path.iterdir()))}.fits"
+        args = ["--n-galaxies", "40", "--n-exposures", "1", "--n-rotations", "2", "--stamp-size", "32",
+                "--processes", "1", "--seed", "4", "--quiet", "--dry-run", "--out", str(out)]
+        assert ring_test.main(args + list(extra)) == 0
+        t = Table.read(out)
+        disk = ~np.asarray(t["is_bulge"], bool)   # the bulges' prior has no disk_e_max
+        return np.hypot(np.asarray(t["e1_int"]), np.asarray(t["e2_int"]))[disk]
+
+    paper = drawn()
+    own = drawn("--set", "disk_e_max=0.3")
+    apart = drawn("--set", "disk_e_max=0.3", "--population-set", "disk_e_max=0.804")
+    assert paper.size > 20 and paper.max() > 0.45 and own.max() <= 0.3 + 1e-12
+    assert np.array_equal(apart, paper)
