@@ -3,7 +3,7 @@
 
     python benchmarks/ring_split.py ring.fits [ring2.fits ...] [--r-bins 0,0.15,0.3,10] [--unweighted |
                                               --paired-weights | --isotropic-weights] [--uncorrected | --one-pair]
-                                              [--e-bins 0,0.3,0.5,0.6,0.7,1] [--paired-with B.fits] [--keep-stars]
+                                              [--e-bins 0,0.3,0.5,0.6,0.7,1] [--paired-with B.fits ...] [--keep-stars]
                                               [--control [A.fits=]B.fits ...]
 
 Several tables (runs of the same shear) are read as one, their galaxies numbered on.
@@ -23,7 +23,8 @@ and population; another setting, or ``--noise-free``), and the first run less it
 resampled together: only objects both runs have, measured as galaxies in both, enter either. A run without
 ``--antithetic`` (a noise-free one, whose twins would be copies) stands for the twins too. The weight options apply
 to both runs, ``--uncorrected`` to the first only: ``A --uncorrected --paired-with NF`` (NF the same galaxies without
-noise) is the noise bias that ``noise_bias_correction`` removes, ``A --paired-with NF`` what it leaves.
+noise) is the noise bias that ``noise_bias_correction`` removes, ``A --paired-with NF`` what it leaves. Several runs
+pair table by table: ``A1 A2 --paired-with B1 B2`` (A1 with B1, A2 with B2; each pair's galaxies numbered on alike).
 
 ``--control [A=]B``: the tables given are runs with ``noise_bias_second_amplitude`` (two pairs), B a run with the one
 pair (any run of the same shear and population; a two-pair run's estimates are read as ``--one-pair``'s), ``A=B``
@@ -53,7 +54,7 @@ import os
 import sys
 
 import numpy as np
-from astropy.table import Table
+from astropy.table import Table, vstack
 
 from shearfit.calib.bias import bias_from_sums, bootstrap_counts, paired_weights, ring_sums, shear_bias
 from shearfit.calib.calibrate import sheared_ellipticity
@@ -252,13 +253,9 @@ def radial_report(t, edges=(0.0, 0.3, 0.5, 0.6, 0.7, 0.76, 0.82, 1.0)):
                   f"{np.nanmean(np.asarray(t['sc_steps'], float)):.2f}")
 
 
-def main(paths, r_bins=(0, 0.15, 0.3, 10), unweighted=False, paired=False, isotropic=False, uncorrected=False,
-         paired_with=None, e_bins=None, one_pair=False, keep_stars=False, radial=False):
-    if paired_with and (len(paths) != 1 or len(paired_with) != 1):
-        # several tables are renumbered as one, and two runs' numbers would then not pair
-        raise SystemExit("ring_split.py: --paired-with compares one table with one other")
-    # a paired run is read as written: its galaxy numbers are the seed's (a stopped run's table may lack some)
-    t = Table.read(paths[0]) if paired_with else Table(read_tables(paths)[0])
+def _prepared(t, uncorrected, one_pair, keep_stars):
+    """The first run's table as the options read it: the noise bias added back, the one pair's estimates, the
+    objects classified as stars counted as galaxies."""
     if uncorrected:
         if "nb_de1" not in t.colnames:
             raise SystemExit("ring_split.py: --uncorrected needs a run with noise_bias_correction (columns nb_de1, "
@@ -269,14 +266,52 @@ def main(paths, r_bins=(0, 0.15, 0.3, 10), unweighted=False, paired=False, isotr
         t = _one_pair(t)
     if keep_stars:
         t = stars_kept(t)
-    if radial:
-        radial_report(t)
+    return t
+
+
+def _paired_tables(paths, paired_with, uncorrected, one_pair, keep_stars):
+    """The first runs (``paths``) and the paired ones (``paired_with``, one per first run, in the same order)
+    matched table by table, then each side read as one with the galaxies of every pair numbered on alike; and
+    the first runs before the matching (for ``--radial``)."""
+    if len(paths) != len(paired_with):
+        raise SystemExit(f"ring_split.py: --paired-with: {len(paired_with)} table(s) for {len(paths)}: give one paired "
+                         "run per table, in the same order")
+    firsts, seconds, whole = [], [], []
+    off = 0
+    for pa, pb in zip(paths, paired_with):
+        # a paired run is read as written: its galaxy numbers are the seed's (a stopped run's table may lack some)
+        ta = _prepared(Table.read(pa), uncorrected, one_pair, keep_stars)
+        whole.append(ta)
+        tb = Table.read(pb)
+        # before the matching, which counts an object that is not a galaxy in either run as failed in both
+        ta, tb = _matched(ta, stars_kept(tb) if keep_stars else tb)
+        if len(ta) == 0:
+            raise SystemExit(f"ring_split.py: --paired-with: {pb} has no object (galaxy, rotation, sign) of {pa}")
+        n_here = int(np.max(ta["galaxy"])) + 1
+        ta["galaxy"] = np.asarray(ta["galaxy"]) + off
+        tb["galaxy"] = np.asarray(tb["galaxy"]) + off
+        off += n_here
+        firsts.append(ta)
+        seconds.append(tb)
+
+    def one(ts):
+        return ts[0] if len(ts) == 1 else vstack(ts, join_type="inner", metadata_conflicts="silent")
+
+    return one(firsts), one(seconds), one(whole)
+
+
+def main(paths, r_bins=(0, 0.15, 0.3, 10), unweighted=False, paired=False, isotropic=False, uncorrected=False,
+         paired_with=None, e_bins=None, one_pair=False, keep_stars=False, radial=False):
     other = None
     if paired_with:
-        other = Table.read(paired_with[0])
-        # before the matching, which counts an object that is not a galaxy in either run as failed in both
-        t, other = _matched(t, stars_kept(other) if keep_stars else other)
+        t, other, whole = _paired_tables(paths, paired_with, uncorrected, one_pair, keep_stars)
+        if radial:
+            radial_report(whole)
         other = _weighted(other, unweighted, paired, isotropic)
+    else:
+        t = _prepared(Table(read_tables(paths)[0]), uncorrected, one_pair, keep_stars)
+        if radial:
+            radial_report(t)
     t = _weighted(t, unweighted, paired, isotropic)
     plus = t[t["sign"] > 0]
     g = np.array([plus["g1"][0], plus["g2"][0]])   # the shear of the +g set
@@ -328,9 +363,9 @@ if __name__ == "__main__":
                          "selection's response to the shear")
     ap.add_argument("--e-bins", default=None,
                     help="edges of bins of the galaxies' intrinsic |e| (e.g. 0,0.3,0.5,0.6,0.7,1), each split too")
-    ap.add_argument("--paired-with", metavar="TABLE", default=None,
-                    help="another run of the same galaxies: its m and c, and the first run's less its, object by "
-                         "object with the galaxies resampled together")
+    ap.add_argument("--paired-with", metavar="TABLE", nargs="+", default=None,
+                    help="another run of the same galaxies for each table given (in the same order): its m and c, "
+                         "and the first runs' less its, object by object with the galaxies resampled together")
     ap.add_argument("--radial", action="store_true",
                     help="also the estimates along and across the true sheared ellipticity, in bins of its |e|, and "
                          "a self-calibrated run's radial responses")
@@ -349,4 +384,4 @@ if __name__ == "__main__":
                      a.isotropic_weights, e_edges)
         sys.exit(0)
     main(a.table, [float(x) for x in a.r_bins.split(",")], a.unweighted, a.paired_weights, a.isotropic_weights,
-         a.uncorrected, [a.paired_with] if a.paired_with else None, e_edges, a.one_pair, a.keep_stars, a.radial)
+         a.uncorrected, a.paired_with, e_edges, a.one_pair, a.keep_stars, a.radial)

@@ -53,6 +53,29 @@ def test_paired_with_is_the_difference_object_by_object(tmp_path, capsys):
     assert np.allclose(diff, 0.006, atol=1e-4)
 
 
+def test_paired_with_pairs_several_tables_table_by_table(tmp_path, capsys):
+    """A1 A2 --paired-with B1 B2: A1 with B1 and A2 with B2, both runs numbered on alike (the two seeds' galaxy
+    numbers overlap, 0-39 and 0-29): 39 + 30 rings, and m the rings' mean (each ring responds by its run's 1 + m)."""
+    a1, b1, a2, b2 = (tmp_path / f"{n}.fits" for n in ("a1", "b1", "a2", "b2"))
+    _run(0.004).write(a1)
+    _run(-0.002, twins=False, drop=(3,)).write(b1)
+    _run(0.010, n_gal=30, seed=7).write(a2)
+    _run(0.002, n_gal=30, seed=7).write(b2)
+    ring_split.main([str(a1), str(a2)], r_bins=(0.1, 0.125), unweighted=True, paired_with=[str(b1), str(b2)])
+    (first, other, diff), lines = _pairs(capsys.readouterr().out)
+    assert all("rings=  69" in ln for ln in lines)
+    assert np.allclose(first, (39 * 0.004 + 30 * 0.010) / 69, atol=1e-4)
+    assert np.allclose(other, (39 * -0.002 + 30 * 0.002) / 69, atol=1e-4)
+    assert np.allclose(diff, (39 * 0.006 + 30 * 0.008) / 69, atol=1e-4)
+    # one paired run for two tables is refused, with what to give
+    try:
+        ring_split.main([str(a1), str(a2)], unweighted=True, paired_with=[str(b1)])
+    except SystemExit as exc:
+        assert "1 table(s) for 2" in str(exc)
+    else:
+        raise AssertionError("--paired-with with fewer tables than runs was accepted")
+
+
 def _two_pair(m_two, m_one, **kw):
     """A two-pair run's table: estimates responding by 1 + m_two, and the one-pair correction (nb1_de) such that
     the one pair alone would have left 1 + m_one (nb_de, the correction applied, is 0)."""
