@@ -267,3 +267,26 @@ def test_corrected_e_limit_lets_the_estimate_go_on_beyond_the_models(monkeypatch
     assert np.hypot(res.e1, res.e2) == pytest.approx(1.0, abs=1e-12)
     with pytest.raises(shearfit.errors.ShearfitValueError, match="corrected_e_limit"):
         as_config({"corrected_e_limit": 0.0})
+
+
+def test_a_step_that_overshoots_a_solution_brackets_it(monkeypatch):
+    """An estimator that flattens beyond its knee (f = 0.63 tanh(|e| / 0.25) along |e|, turning with the galaxy: a
+    broad likelihood's), whose data estimate lies beyond the knee, f(0.39) = 0.577: the first step, by the
+    response found there (0.11 at e_hat), overshoots the solution to |e| 0.24, where the residual is larger and of the
+    other sign. The damping alone stops the solve there; the iterates on the two sides bracket the solution, and the
+    further steps (SELFCAL_BRACKETS) solve it within the bracket."""
+    a_true, angle = 0.39, 0.7
+    u = np.array([np.cos(angle), np.sin(angle)])
+
+    def knee(e):
+        a = np.hypot(*e)
+        return e / a * 0.63 * np.tanh(a / 0.25)
+
+    e_hat = knee(a_true * u)
+    res, seen = _fake_solve(monkeypatch, knee, e_hat, 6, sigma_e=0.18, self_calibration_min_response=0.1)
+    assert np.hypot(res.e1, res.e2) == pytest.approx(a_true, abs=2e-3)
+    assert np.arctan2(res.e2, res.e1) == pytest.approx(angle, abs=1e-9)
+    assert max(np.hypot(*e) for e in seen) <= np.hypot(*e_hat) + 1e-12   # every iterate within the bracket
+    monkeypatch.setattr(M, "SELFCAL_BRACKETS", False)
+    stopped, _ = _fake_solve(monkeypatch, knee, e_hat, 6, sigma_e=0.18, self_calibration_min_response=0.1)
+    assert np.hypot(stopped.e1, stopped.e2) < 0.3 and stopped.selfcal_steps == 1

@@ -392,6 +392,12 @@ SELFCAL_MAX_RESPONSE = 1.5
 #: a step halves the residual, else keep the iterate of the smallest) stopped the two members of 36 % of the +g / -g
 #: pairs of a ring at different steps, and their unconverged residuals became scatter in m (session 60).
 SELFCAL_DAMPING = (0.3, 0.7)
+#: Once an iterate of the self-calibration's solve lies on the other side of the solution along |e| than the last
+#: (the radial residual (f(e) - e_hat) . u changed sign), the two bracket it: the next step is the secant between
+#: the last iterate and the latest one on the other side (false position), taken whole, which stays between them.
+#: Without it a first step that overshot a solution where f flattens (a broad likelihood, |e_hat| beyond the knee
+#: of f) had its residual grow, the damping stopped the solve there, and the estimate kept the overshoot.
+SELFCAL_BRACKETS = True
 
 
 def _self_calibrate(obs, mag, cfg, res, plan, margin=10.0):
@@ -446,6 +452,9 @@ def _self_calibrate(obs, mag, cfg, res, plan, margin=10.0):
     resid = float(np.hypot(*b))
     w = 1.0
     e_prev, f_prev = e_hat, f0
+    # the last iterate (e, f(e)) on each side of the solution along u: its radial residual (f(e) - e_hat) . u
+    # positive, and negative (SELFCAL_BRACKETS)
+    sides = {float(np.sign(np.dot(b, u))): (e_hat, f0)}
     for _ in range(int(cfg.self_calibration_steps) - 1):
         # beyond the models' limit (corrected_e_limit above model_e_limit) f is measured on the limit, and the
         # step from there goes on along f's last secant, damped as every further step
@@ -455,21 +464,47 @@ def _self_calibrate(obs, mag, cfg, res, plan, margin=10.0):
             break
         b = f1 - e_hat
         r1 = float(np.hypot(*b))
-        q = r1 / resid if resid > 0 else np.inf
-        w *= float(np.clip((SELFCAL_DAMPING[1] - q) / (SELFCAL_DAMPING[1] - SELFCAL_DAMPING[0]), 0.0, 1.0))
-        if w <= 0.0:
-            break
-        de = float(np.dot(e_eval - e_prev, u))
-        if abs(de) > 1e-6:   # the radial response: the secant over the last step, bounded as the first
-            s_rad = float(np.clip(np.dot(f1 - f_prev, u) / de, lo, hi))
+        side = float(np.sign(np.dot(b, u)))
+        other = sides.get(-side) if SELFCAL_BRACKETS and side != 0.0 else None
+        if other is None:   # no iterate on the other side of the solution: damped by the contraction
+            q = r1 / resid if resid > 0 else np.inf
+            w *= float(np.clip((SELFCAL_DAMPING[1] - q) / (SELFCAL_DAMPING[1] - SELFCAL_DAMPING[0]), 0.0, 1.0))
+            if w <= 0.0:
+                break
+        s_last = _secant(e_eval, f1, e_prev, f_prev, u, s_rad, lo, hi)
+        radial = np.dot(b, u)
+        if other is None:
+            s_rad, step = s_last, w
+        else:
+            # bracketed: the secant over the last step where it lands between the two sides, else the secant to
+            # the other side (false position), else halfway; taken whole
+            a0, a1 = float(np.dot(other[0], u)), float(np.dot(e_eval, u))
+
+            def inside(x):
+                return min(a0, a1) < x < max(a0, a1)
+
+            land = a1 - radial / s_last
+            if not inside(land):
+                land = a1 - radial / _secant(e_eval, f1, other[0], other[1], u, s_rad, lo, hi)
+            if not inside(land):   # f falls between them (no slope within the bounds crosses)
+                land = 0.5 * (a0 + a1)
+            s_rad, step = radial / (a1 - land), 1.0
         e_prev, f_prev = e_eval, f1
+        sides[side] = (e_eval, f1)
         resid = r1
-        e_out = _within(e_eval - w * ((np.dot(b, u) / s_rad) * u + (np.dot(b, v) / s_tan) * v), out_limit)
+        e_out = _within(e_eval - step * ((radial / s_rad) * u + (np.dot(b, v) / s_tan) * v), out_limit)
         steps += 1
     res.selfcal_steps = steps
     res.selfcal_de = (float(e_hat[0] - e_out[0]), float(e_hat[1] - e_out[1]))
     res.selfcal_response = (r_rad, r_tan)
     res.e1, res.e2 = float(e_out[0]), float(e_out[1])
+
+
+def _secant(e1, f1, e0, f0, u, default, lo, hi):
+    """f's radial response between e0 and e1 (their secant along u), bounded to [lo, hi]; ``default`` where
+    the two lie within 1e-6 of each other along u."""
+    de = float(np.dot(e1 - e0, u))
+    return float(np.clip(np.dot(f1 - f0, u) / de, lo, hi)) if abs(de) > 1e-6 else default
 
 
 def _corrected_limit(cfg):
