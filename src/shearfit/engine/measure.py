@@ -392,9 +392,10 @@ SELFCAL_MAX_RESPONSE = 1.5
 #: a step halves the residual, else keep the iterate of the smallest) stopped the two members of 36 % of the +g / -g
 #: pairs of a ring at different steps, and their unconverged residuals became scatter in m (session 60).
 SELFCAL_DAMPING = (0.3, 0.7)
-#: Once an iterate of the self-calibration's solve lies on the other side of the solution along |e| than the last
-#: (the radial residual (f(e) - e_hat) . u changed sign), the two bracket it: the next step is the secant between
-#: the last iterate and the latest one on the other side (false position), taken whole, which stays between them.
+#: Once an iterate of the self-calibration's solve lies on the other side of the solution along |e| than an earlier
+#: one (the radial residual (f(e) - e_hat) . u changed sign), the latest iterates on the two sides bracket it: each
+#: further step is the secant over the last step where it lands between them, else the secant to the other side
+#: (false position), else the midpoint, and is taken whole.
 #: Without it a first step that overshot a solution where f flattens (a broad likelihood, |e_hat| beyond the knee
 #: of f) had its residual grow, the damping stopped the solve there, and the estimate kept the overshoot.
 SELFCAL_BRACKETS = True
