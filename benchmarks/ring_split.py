@@ -2,7 +2,8 @@
 """m and c of a ring-test table (benchmarks/ring_test.py --out) split by true scalelength and by sigma_e.
 
     python benchmarks/ring_split.py ring.fits [ring2.fits ...] [--r-bins 0,0.15,0.3,10] [--unweighted |
-                                              --paired-weights | --isotropic-weights] [--uncorrected | --one-pair]
+                                              --paired-weights | --isotropic-weights] [--uncorrected | --one-pair
+                                              | --noise-level V]
                                               [--e-bins 0,0.3,0.5,0.6,0.7,1] [--paired-with B.fits ...] [--keep-stars]
                                               [--control [A.fits=]B.fits ...]
 
@@ -11,7 +12,10 @@ Several tables (runs of the same shear) are read as one, their galaxies numbered
 ``--uncorrected``: for a run with ``--set noise_bias_correction=true``, each estimate with the noise bias it had
 subtracted added back (its ``nb_de1``, ``nb_de2``): the same fits without the correction. ``--one-pair``: for a
 run with ``noise_bias_second_amplitude`` as well, each estimate as the one pair at the full amplitude alone would
-have corrected it (``nb1_de1``, ``nb1_de2``): the same fits with the one-pair extrapolation.
+have corrected it (``nb1_de1``, ``nb1_de2``): the same fits with the one-pair extrapolation. ``--noise-level V``:
+for such a run, each estimate as the fits at V times the data's noise variance made it: 1 the data's (as
+``--uncorrected``), 2 the first pair's mean, 1 + a^2 the second pair's (4 for a = sqrt(3)). m against V is the
+noise bias the extrapolation fits with a polynomial in V.
 
 ``--paired-weights``: each object's weight replaced by the mean over its pair (the same galaxy, orientation and
 noise at +g and at -g; ``shearfit.calib.bias.paired_weights``), so that no weight responds to the shear while
@@ -146,6 +150,27 @@ def _one_pair(t):
     return t
 
 
+def _at_noise_level(t, level):
+    """A two-pair run's table with each estimate as the fits at ``level`` times the data's noise variance made it
+    (``--noise-level``): 1 the data's own (``--uncorrected``), 2 the first pair's mean e(y; 2) = e(y) + D(1), and
+    1 + a^2 the second pair's, e(y) + a^2 D(a), with D(a) = D(1) + (D(1) - b) (a^2 - 1) / 2 from the correction b
+    subtracted (``nb_de``) and the one pair's D(1) (``nb1_de``). Exact where the corrected estimate was not scaled
+    back onto corrected_e_limit."""
+    if "nb1_de1" not in t.colnames:
+        raise SystemExit("ring_split.py: --noise-level needs runs with noise_bias_second_amplitude (columns nb1_de1, "
+                         "nb1_de2)")
+    a2 = level - 1.0
+    t = t.copy()
+    for i in (1, 2):
+        b = np.nan_to_num(np.asarray(t[f"nb_de{i}"]))
+        d1 = np.nan_to_num(np.asarray(t[f"nb1_de{i}"]))
+        e = np.asarray(t[f"e{i}"]) + b
+        if level != 1.0:
+            e = e + (d1 if level == 2.0 else a2 * (d1 + (d1 - b) * (a2 - 1.0) / 2.0))
+        t[f"e{i}"] = e
+    return t
+
+
 def _plus_shear(t):
     plus = t[t["sign"] > 0]
     return np.array([plus["g1"][0], plus["g2"][0]])
@@ -253,7 +278,7 @@ def radial_report(t, edges=(0.0, 0.3, 0.5, 0.6, 0.7, 0.76, 0.82, 1.0)):
                   f"{np.nanmean(np.asarray(t['sc_steps'], float)):.2f}")
 
 
-def _prepared(t, uncorrected, one_pair, keep_stars):
+def _prepared(t, uncorrected, one_pair, keep_stars, noise_level=None):
     """The first run's table as the options read it: the noise bias added back, the one pair's estimates, the
     objects classified as stars counted as galaxies."""
     if uncorrected:
@@ -264,12 +289,14 @@ def _prepared(t, uncorrected, one_pair, keep_stars):
             t[f"e{i}"] = np.asarray(t[f"e{i}"]) + np.nan_to_num(np.asarray(t[f"nb_de{i}"]))
     if one_pair:
         t = _one_pair(t)
+    if noise_level is not None:
+        t = _at_noise_level(t, noise_level)
     if keep_stars:
         t = stars_kept(t)
     return t
 
 
-def _paired_tables(paths, paired_with, uncorrected, one_pair, keep_stars):
+def _paired_tables(paths, paired_with, uncorrected, one_pair, keep_stars, noise_level=None):
     """The first runs (``paths``) and the paired ones (``paired_with``, one per first run, in the same order)
     matched table by table, then each side read as one with the galaxies of every pair numbered on alike; and
     the first runs before the matching (for ``--radial``)."""
@@ -280,7 +307,7 @@ def _paired_tables(paths, paired_with, uncorrected, one_pair, keep_stars):
     off = 0
     for pa, pb in zip(paths, paired_with):
         # a paired run is read as written: its galaxy numbers are the seed's (a stopped run's table may lack some)
-        ta = _prepared(Table.read(pa), uncorrected, one_pair, keep_stars)
+        ta = _prepared(Table.read(pa), uncorrected, one_pair, keep_stars, noise_level)
         whole.append(ta)
         tb = Table.read(pb)
         # before the matching, which counts an object that is not a galaxy in either run as failed in both
@@ -301,15 +328,15 @@ def _paired_tables(paths, paired_with, uncorrected, one_pair, keep_stars):
 
 
 def main(paths, r_bins=(0, 0.15, 0.3, 10), unweighted=False, paired=False, isotropic=False, uncorrected=False,
-         paired_with=None, e_bins=None, one_pair=False, keep_stars=False, radial=False):
+         paired_with=None, e_bins=None, one_pair=False, keep_stars=False, radial=False, noise_level=None):
     other = None
     if paired_with:
-        t, other, whole = _paired_tables(paths, paired_with, uncorrected, one_pair, keep_stars)
+        t, other, whole = _paired_tables(paths, paired_with, uncorrected, one_pair, keep_stars, noise_level)
         if radial:
             radial_report(whole)
         other = _weighted(other, unweighted, paired, isotropic)
     else:
-        t = _prepared(Table(read_tables(paths)[0]), uncorrected, one_pair, keep_stars)
+        t = _prepared(Table(read_tables(paths)[0]), uncorrected, one_pair, keep_stars, noise_level)
         if radial:
             radial_report(t)
     t = _weighted(t, unweighted, paired, isotropic)
@@ -358,6 +385,10 @@ if __name__ == "__main__":
     ap.add_argument("--one-pair", action="store_true",
                     help="the estimates as the one-pair extrapolation corrected them (runs with "
                          "noise_bias_second_amplitude)")
+    ap.add_argument("--noise-level", type=float, default=None, metavar="V",
+                    help="the estimates of the fits at V times the data's noise variance, taken from a two-pair "
+                         "run's corrections: 1 (as --uncorrected), 2 (the first pair) or 1 + a^2 (the second pair, "
+                         "a its noise_bias_second_amplitude: 4 for sqrt(3))")
     ap.add_argument("--keep-stars", action="store_true",
                     help="count the objects classified as stars (fitclass 1) as galaxies: m without the star/galaxy "
                          "selection's response to the shear")
@@ -372,16 +403,21 @@ if __name__ == "__main__":
     ap.add_argument("--control", action="append", default=[], metavar="[A=]B",
                     help="a one-pair run B (A=B: of table A's seed) as a control variate for the two-pair tables given")
     a = ap.parse_args()
-    if a.uncorrected and a.one_pair:
-        ap.error("--uncorrected and --one-pair exclude each other")
+    if a.uncorrected + a.one_pair + (a.noise_level is not None) > 1:
+        ap.error("--uncorrected, --one-pair and --noise-level exclude each other")
+    if a.noise_level is not None and not a.noise_level >= 1:
+        ap.error("--noise-level V needs V >= 1")
     if a.unweighted + a.paired_weights + a.isotropic_weights > 1:
         ap.error("--unweighted, --paired-weights and --isotropic-weights exclude each other")
     e_edges = [float(x) for x in a.e_bins.split(",")] if a.e_bins else None
+    for path in [*a.table, *(a.paired_with or []), *(x for c in a.control for x in c.split("=", 1))]:
+        if not os.path.isfile(path):
+            ap.error(f"{path}: no such table")
     if a.control:
-        if a.uncorrected or a.one_pair or a.paired_with or a.keep_stars:
-            ap.error("--control excludes --uncorrected, --one-pair, --paired-with and --keep-stars")
+        if a.uncorrected or a.one_pair or a.paired_with or a.keep_stars or a.noise_level is not None:
+            ap.error("--control excludes --uncorrected, --one-pair, --noise-level, --paired-with and --keep-stars")
         control_main(a.table, a.control, [float(x) for x in a.r_bins.split(",")], a.unweighted, a.paired_weights,
                      a.isotropic_weights, e_edges)
         sys.exit(0)
     main(a.table, [float(x) for x in a.r_bins.split(",")], a.unweighted, a.paired_weights, a.isotropic_weights,
-         a.uncorrected, a.paired_with, e_edges, a.one_pair, a.keep_stars, a.radial)
+         a.uncorrected, a.paired_with, e_edges, a.one_pair, a.keep_stars, a.radial, a.noise_level)

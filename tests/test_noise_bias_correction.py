@@ -135,7 +135,31 @@ def test_a_failed_noisier_fit_fails_the_object(monkeypatch):
     assert "noise-bias correction" in res.message
 
 
-def _bias(r, e, n_pairs, snr=150.0):
+def test_on_model_the_bias_is_that_of_the_models_image_with_the_noise():
+    """With noise_bias_on_model, b = (e(m + n) + e(m - n)) / 2 - e(m), m the noise-free image of the fitted model
+    at the self-calibrated estimate (model_observations on the fit's plan), each e a full fit; the estimate is the
+    self-calibrated one less b."""
+    setup = _setup(n=3)
+    obs, _ = _obs(0.15, complex(0.3, -0.1), (0.0, 0.0), *setup, snr=60.0)
+    cfg = shearfit.fit_config_from_mapping({**CORRECTED, "noise_bias_on_model": True})
+    res = shearfit.measure_object(obs, mag=24.0, config=cfg, noise_seed=11)
+    sub = shearfit.fit_config_from_mapping(SELFCAL)
+    fit, plan = M._measure(obs, 24.0, sub, False)
+    M._self_calibrate(obs, 24.0, sub, fit, plan)
+    models = M.model_observations(obs, plan, (fit.e1, fit.e2, fit.scalelength, fit.bulge_fraction, fit.model_flux),
+                                  sub)
+    n = M.noise_bias_noise(obs, 11)
+    e0, eu, ed = (np.array([r.e1, r.e2]) for r in (
+        shearfit.measure_object([m.with_image(m.image + s * d) for m, d in zip(models, n)], mag=24.0, config=sub)
+        for s in (0.0, 1.0, -1.0)))
+    b = 0.5 * (eu + ed) - e0
+    assert np.abs(b).max() > 1e-4
+    np.testing.assert_allclose(res.noise_bias_de, b, rtol=0, atol=1e-12)
+    np.testing.assert_allclose([res.e1, res.e2], [fit.e1 - b[0], fit.e2 - b[1]], rtol=0, atol=1e-12)
+    assert res.noise_bias_de_one_pair == res.noise_bias_de and res.weight == fit.weight
+
+
+def _bias(r, e, n_pairs, snr=150.0, **settings):
     """The radial noise bias of the self-calibrated estimate of one galaxy (7 exposures), without and with the
     correction: the mean over antithetic pairs of data noise of (e(mu + n0) + e(mu - n0)) / 2 less the estimate
     on the noise-free image mu, and its standard error. The first-order effect of n0 cancels in each pair."""
@@ -149,7 +173,7 @@ def _bias(r, e, n_pairs, snr=150.0):
         pr, pc = [], []
         for s in (1, -1):
             res = shearfit.measure_object([o.with_image(o.image + s * d) for o, d in zip(obs, n0)], mag=24.0,
-                                          config=CORRECTED, noise_seed=[5, k, s > 0])
+                                          config={**CORRECTED, **settings}, noise_seed=[5, k, s > 0])
             pc.append(res.e1)
             pr.append(res.e1 + res.noise_bias_de[0])
         raw.append(np.mean(pr) - e0)
@@ -174,4 +198,13 @@ def test_the_noise_bias_of_small_galaxies_is_removed_slow(r):
     written)."""
     raw, raw_err, cor, cor_err = _bias(r, 0.3, 100)
     assert raw > 4 * raw_err
+    assert abs(cor) < 3 * cor_err and abs(cor) < 0.5 * raw
+
+
+def test_on_model_the_noise_bias_of_a_small_galaxy_is_removed():
+    """As above with noise_bias_on_model (the bias found on the fitted model's image at the data's noise): on the
+    same 32 pairs, +0.0084 +- 0.0015 uncorrected, -0.0034 +- 0.0024 corrected (the one-pair extrapolation's:
+    -0.0030 +- 0.0025) when written."""
+    raw, raw_err, cor, cor_err = _bias(0.1, 0.3, 32, noise_bias_on_model=True)
+    assert raw > 3 * raw_err
     assert abs(cor) < 3 * cor_err and abs(cor) < 0.5 * raw

@@ -118,6 +118,34 @@ def test_control_is_the_two_pairs_m_with_the_one_pairs_galaxies_added(tmp_path, 
     assert np.allclose(lines["two pairs, one-pair control"][1], 0.004 + 0.005, atol=1e-4)
 
 
+def test_noise_level_reads_the_fits_of_each_pair_back(tmp_path, capsys):
+    """--noise-level V: a two-pair run (a = sqrt(3)) whose fits at V times the data's noise variance respond by
+    1 + m(V), m(V) = m0 + B V + C V^2: the table holds the extrapolated e(0) and the corrections nb_de = e(1) - e(0)
+    and nb1_de = D(1) = e(2) - e(1), from which V = 1, 2 and 4 give m(1), m(2) and m(4) back, and the table itself
+    m0 (the extrapolation is exact on a quadratic)."""
+    m0, B, C = 0.002, 0.02, -0.003
+
+    def m(v):
+        return m0 + B * v + C * v * v
+
+    t = _run(m(1.0))
+    sign = np.asarray(t["sign"], float)
+    for i, g in ((1, G[0]), (2, G[1])):
+        e1 = np.asarray(t[f"e{i}"])                              # the data's fit, e(1)
+        e2, e4 = e1 + (m(2.0) - m(1.0)) * g * sign, e1 + (m(4.0) - m(1.0)) * g * sign
+        d1, da = e2 - e1, (e4 - e1) / 3.0
+        b = d1 - 2.0 * (da - d1) / 2.0
+        t[f"e{i}"] = e1 - b
+        t[f"nb_de{i}"] = b
+        t[f"nb1_de{i}"] = d1
+    path = tmp_path / "t.fits"
+    t.write(path)
+    for v in (None, 1.0, 2.0, 4.0):
+        ring_split.main([str(path)], r_bins=(0.1, 0.125), unweighted=True, noise_level=v)
+        (first,), _ = _pairs(capsys.readouterr().out)
+        assert np.allclose(first, m0 if v is None else m(v), atol=1e-6), (v, first)
+
+
 def test_radial_report_measures_the_response_along_e(capsys):
     """--radial: an estimator that returns the true sheared ellipticity has a radial slope of 1 and no tangential
     part; one that shrinks |e| by a factor 0.7 has a slope of 0.7."""

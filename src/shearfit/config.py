@@ -228,6 +228,25 @@ class FitConfig:
         "sqrt(3) (8/3 e(y) - 2 e(2) + e(4) / 3) gave errors 15-21 % smaller than sqrt(2) on the same 300 rings, m the "
         "same within -0.0014 +- 0.0022 / -0.0012 +- 0.0040 (session 62). 0: the one pair",
         "sec. 3.4 (extension)")
+    noise_bias_on_model: bool = setting(
+        False, "with noise_bias_correction: measure the noise bias on the fit's own model instead of extrapolating "
+        "it from the data: the noise-free image of the model the estimate describes (its corrected ellipticity, "
+        "posterior-mean size, bulge fraction and flux, at its position, as self_calibration renders it) is "
+        "measured once as it is and once each with the noise field n added and "
+        "subtracted, n drawn from the weights at the data's own variance, and b = (e(m + n) + e(m - n)) / 2 - e(m) "
+        "is subtracted from the estimate. Each of the three is a full fit with every other setting as given. The "
+        "bias is found at the data's noise level, not extrapolated to it from twice and four times the variance, so "
+        "it holds where the noise bias is not a low polynomial in the variance (galaxies near the prior's end in "
+        "|e|, whose bias is set up below the data's noise and then levels off); it is found at the fitted model "
+        "rather than at the truth, which the data stand for in the extrapolation. Three fits per object instead of "
+        "the extrapolation's two or four; noise_bias_second_amplitude is not used. On 1440 plain rings of "
+        "0.1-0.125\" galaxies at SNR 100-200 (disk_e_max 0.95, 4 self-calibration steps, the same galaxies and "
+        "noise) its errors on m have half the variance of the two-pair extrapolation's (sqrt(3)) at 0.82 of its "
+        "cost, but m is higher by +0.0034 +- 0.0010 / +0.0024 +- 0.0014 (+0.0017 +- 0.0015 / +0.0019 +- 0.0019 "
+        "against -0.0017 +- 0.0020 / -0.0005 +- 0.0027), all of it from galaxies of |e| >= 0.3, whose "
+        "fitted models carry less noise bias than the galaxies (at |e| 0.3-0.5, 0.035 of m against 0.048; "
+        "benchmarks/README.md, session 73)",
+        "sec. 3.4 (extension)")
     corrected_e_limit: float = setting(
         0.98, "largest |e| of an estimate that self_calibration or noise_bias_correction corrected (taken as at least "
         "model_e_limit, the largest |e| of a model, within which the self-calibration's noise-free fits stay). Above "

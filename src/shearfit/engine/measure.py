@@ -132,7 +132,7 @@ def measure_object(observations: Sequence[Observation], mag: float, config=None,
             if cfg.self_calibration and plan is not None and res.fitclass >= FITCLASS_GALAXY:
                 _self_calibrate(obs, float(mag), cfg, res, plan)
             if cfg.noise_bias_correction and plan is not None and res.fitclass >= FITCLASS_GALAXY:
-                _correct_noise_bias(obs, float(mag), cfg, res, noise_seed)
+                _correct_noise_bias(obs, float(mag), cfg, res, noise_seed, plan)
         return res
     except (np.linalg.LinAlgError, FloatingPointError, ZeroDivisionError, ValueError) as exc:
         if isinstance(exc, ShearfitValueError):
@@ -539,7 +539,29 @@ def noise_bias_noise(observations: Sequence[Observation], seed=None) -> list:
     return out
 
 
-def _correct_noise_bias(obs, mag, cfg, res, seed):
+def _noise_bias_on_model(obs, mag, cfg, res, noise, plan):
+    """``noise_bias_on_model``: the noise bias b = (e(m + n) + e(m - n)) / 2 - e(m) of the fit's own model m
+    (:func:`model_observations` of the estimate ``res``: its ellipticity within model_e_limit, its size, bulge
+    fraction and flux, at its position), each e a full fit with ``cfg`` less noise_bias_correction; None where
+    one of them failed (``res`` then says so)."""
+    e = _within(np.array([res.e1, res.e2]), cfg.model_e_limit)
+    models = model_observations(obs, plan, (e[0], e[1], res.scalelength, res.bulge_fraction, res.model_flux), cfg)
+    sub = replace(cfg, noise_bias_correction=False)
+    out = []
+    for sign in (0.0, 1.0, -1.0):
+        r = measure_object([m.with_image(m.image + sign * n) if sign else m for m, n in zip(models, noise)], mag,
+                           sub)
+        if r.fitclass < FITCLASS_GALAXY or not (np.isfinite(r.e1) and np.isfinite(r.e2)):
+            res.fitclass = FITCLASS_FIT_FAILED
+            res.weight = 0.0
+            res.message = (f"noise-bias correction: the fit of the model's image{' with noise' if sign else ''} "
+                           f"failed ({r.message or r.fitclass})")
+            return None
+        out.append(np.array([r.e1, r.e2]))
+    return 0.5 * (out[1] + out[2]) - out[0]
+
+
+def _correct_noise_bias(obs, mag, cfg, res, seed, plan=None):
     """Noise-bias extrapolation (``noise_bias_correction``): ``res``'s estimate e(y) less
     b = (e(y + n) + e(y - n)) / 2 - e(y), the fits of y +- n made with every other setting as ``res``'s.
 
@@ -558,6 +580,15 @@ def _correct_noise_bias(obs, mag, cfg, res, seed):
     e0 = 3 e(y) - 3 e(2) + e(3) in the variance's multiples, Richardson's extrapolation).
     """
     noise = noise_bias_noise(obs, seed)
+    if cfg.noise_bias_on_model:
+        b = _noise_bias_on_model(obs, mag, cfg, res, noise, plan)
+        if b is None:
+            return
+        e = np.array([res.e1, res.e2])
+        e_out = _within(e - b, _corrected_limit(cfg))
+        res.noise_bias_de = res.noise_bias_de_one_pair = tuple(float(x) for x in e - e_out)
+        res.e1, res.e2 = float(e_out[0]), float(e_out[1])
+        return
     sub = replace(cfg, noise_bias_correction=False)
     a = float(cfg.noise_bias_second_amplitude)
     levels = (1.0, a) if a > 0 else (1.0,)
