@@ -338,6 +338,14 @@ def test_noise_bias_corrected_fits_carry_no_simulation_calibration(field, monkey
     hdr = fits.getheader(d / "shear_nbc0.fits", 1)
     assert hdr["CALMODE"] == "noise-bias extrapolation"
     assert "CALALPHA" not in hdr
+    # the bias measured on the fit's model instead: the header says so
+    conf["noise_bias_on_model"] = True
+    (d / "field_nbm.yaml").write_text(yaml.safe_dump(conf))
+    assert main(["measure", str(d / "field_nbm.yaml"), "--out", str(d / "shear_nbm.fits"), "--quiet"]) == 0
+    hdr_m = fits.getheader(d / "shear_nbm.fits", 1)
+    assert hdr_m["CALMODE"] == "noise bias on the model" and "CALALPHA" not in hdr_m
+    tm = Table.read(d / "shear_nbm.fits")
+    assert np.all(tm["fitclass"] == t["fitclass"]) and np.all(tm["m"][good] == 0.0)
     assert json.loads(hdr["SFCONFIG"])["noise_bias_correction"] is True
     seeds = []
     real = driver.measure_object

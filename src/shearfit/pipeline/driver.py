@@ -610,7 +610,8 @@ def _measure_field(cfg, out_path, progress, processes, restart, scheduler, execu
     elif calibration is None and cfg.fit.noise_bias_correction:
         # the estimates are corrected for their noise bias by extrapolation: no simulation table was fitted so
         table["m"] = np.where(measured, 0.0, np.nan)
-        cards += [("CALMODE", "noise-bias extrapolation", "e corrected by noise_bias_correction; m 0")]
+        mode = "noise bias on the model" if cfg.fit.noise_bias_on_model else "noise-bias extrapolation"
+        cards += [("CALMODE", mode, "e corrected by noise_bias_correction; m 0")]
     else:
         if calibration is not None:
             src = os.path.basename(cfg.calibration)
