@@ -164,10 +164,8 @@ def _at_noise_level(t, level):
     for i in (1, 2):
         b = np.nan_to_num(np.asarray(t[f"nb_de{i}"]))
         d1 = np.nan_to_num(np.asarray(t[f"nb1_de{i}"]))
-        e = np.asarray(t[f"e{i}"]) + b
-        if level != 1.0:
-            e = e + (d1 if level == 2.0 else a2 * (d1 + (d1 - b) * (a2 - 1.0) / 2.0))
-        t[f"e{i}"] = e
+        # e(y) + a^2 D(a): at a^2 = 0 the data's fit, at a^2 = 1 the first pair's
+        t[f"e{i}"] = np.asarray(t[f"e{i}"]) + b + a2 * (d1 + (d1 - b) * (a2 - 1.0) / 2.0)
     return t
 
 
