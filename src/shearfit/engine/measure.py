@@ -582,13 +582,23 @@ def _correct_noise_bias(obs, mag, cfg, res, seed, plan=None):
     noise = noise_bias_noise(obs, seed)
     if cfg.noise_bias_on_model:
         b = _noise_bias_on_model(obs, mag, cfg, res, noise, plan)
-        if b is None:
-            return
-        e = np.array([res.e1, res.e2])
-        e_out = _within(e - b, _corrected_limit(cfg))
-        res.noise_bias_de = res.noise_bias_de_one_pair = tuple(float(x) for x in e - e_out)
-        res.e1, res.e2 = float(e_out[0]), float(e_out[1])
+        b_one = b
+    else:
+        b, b_one = _extrapolated_noise_bias(obs, mag, cfg, res, noise)
+    if b is None:
         return
+    e = np.array([res.e1, res.e2])
+    limit = _corrected_limit(cfg)
+    e_out = _within(e - b, limit)
+    # what was subtracted, the limit's scaling included, so that e + noise_bias_de is the uncorrected estimate
+    res.noise_bias_de = tuple(float(x) for x in e - e_out)
+    res.noise_bias_de_one_pair = tuple(float(x) for x in e - _within(e - b_one, limit))
+    res.e1, res.e2 = float(e_out[0]), float(e_out[1])
+
+
+def _extrapolated_noise_bias(obs, mag, cfg, res, noise):
+    """The extrapolation's bias b and the one pair's D(1) (:func:`_correct_noise_bias`); (None, None) where a
+    fit with the added noise failed (``res`` then says so)."""
     sub = replace(cfg, noise_bias_correction=False)
     a = float(cfg.noise_bias_second_amplitude)
     levels = (1.0, a) if a > 0 else (1.0,)
@@ -603,18 +613,13 @@ def _correct_noise_bias(obs, mag, cfg, res, seed, plan=None):
                 res.weight = 0.0
                 res.message = (f"noise-bias correction: the fit with added noise (amplitude {amp:g}) failed "
                                f"({r.message or r.fitclass})")
-                return
+                return None, None
             pair.append((r.e1, r.e2))
         d.append((0.5 * (np.array(pair[0]) + np.array(pair[1])) - e) / amp ** 2)
     b = d[0]
     if a > 0:
         b = d[0] - 2.0 * (d[1] - d[0]) / (a * a - 1.0)
-    limit = _corrected_limit(cfg)
-    e_out = _within(e - b, limit)
-    # what was subtracted, the limit's scaling included, so that e + noise_bias_de is the uncorrected estimate
-    res.noise_bias_de = tuple(float(x) for x in e - e_out)
-    res.noise_bias_de_one_pair = tuple(float(x) for x in e - _within(e - d[0], limit))
-    res.e1, res.e2 = float(e_out[0]), float(e_out[1])
+    return b, d[0]
 
 
 def measure_versions(versions: Sequence[Sequence[Observation]], mag: float, config=None,
