@@ -1002,6 +1002,9 @@ def build_parser():
     p.add_argument("--resume", action="store_true",
                    help="with --out: continue a stopped run from its checkpoint (the same options), measuring only "
                         "the galaxies it does not hold")
+    p.add_argument("--galaxies", type=int, nargs="+", metavar="I",
+                   help="measure only these galaxies of the seed (numbered from 0), drawn as in the whole run: "
+                        "a look at a few objects of a finished run, e.g. with another setting")
     p.add_argument("--checkpoint-seconds", type=float, default=60.0,
                    help="with --out: write the checkpoint at most this often (seconds)")
     p.add_argument("--noise-free", action="store_true",
@@ -1464,7 +1467,15 @@ def main(argv=None):
             print(f"ring_test.py: error: {exc}", file=sys.stderr)
             return 2
     done = {int(r["galaxy"]) for r in records}
-    tasks = [(i, seeds[i], opts) for i in range(args.n_galaxies) if i not in done]
+    wanted = range(args.n_galaxies)
+    if args.galaxies:
+        bad = [i for i in args.galaxies if not 0 <= i < args.n_galaxies]
+        if bad:
+            print(f"ring_test.py: error: --galaxies {bad[0]} is not a galaxy of the run (0 to {args.n_galaxies - 1})",
+                  file=sys.stderr)
+            return 2
+        wanted = sorted(set(args.galaxies))
+    tasks = [(i, seeds[i], opts) for i in wanted if i not in done]
     n_proc = max(min(args.processes, len(tasks)), 1)
     print(f"ring test: {args.n_galaxies} galaxies x {args.n_rotations} orientations x 2 shears "
           f"(g = {args.shear[0]:+.4f}, {args.shear[1]:+.4f}), {args.n_exposures} exposures, "

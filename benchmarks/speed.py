@@ -524,10 +524,15 @@ def check_report(objs, cfg, res, seed, each=False):
             rel = np.abs(de).max(axis=1) / err
             dw = np.array([abs(a.weight - b.weight) / a.weight for a, b in ok if a.weight > 0])
             same = sum(a.fitclass == b.fitclass for a, b in zip(ref, fast))
+            move = np.abs(de).max(axis=1)
+            order = np.argsort(move)[::-1]
+            worst = ok[order[0]][0]
             print(f"  {label}: {len(ok)} galaxies; max |de| {np.max(np.abs(de)):.1e} (rms "
                   f"{np.sqrt(np.mean(de ** 2)):.1e}), at most {np.max(rel):.1e} of the error on e (rms "
                   f"{np.sqrt(np.mean((de / err[:, None]) ** 2)):.1e}); weights within {np.max(dw):.1e}; fitclass the "
-                  f"same for {same} of {len(ref)}")
+                  f"same for {same} of {len(ref)}; the largest move at measured SNR {worst.snr:.1f}, e ("
+                  f"{worst.e1:+.2f}, {worst.e2:+.2f}), {rel[order[0]]:.1e} of its error; the next "
+                  f"{move[order[1]] if move.size > 1 else np.nan:.1e}")
 
 
 def main(argv=None):

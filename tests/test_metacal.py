@@ -426,8 +426,11 @@ def test_a_replayed_fit_of_the_same_stamps_is_the_fit_itself(sampling):
 
 def test_replayed_versions_follow_a_small_shear_linearly():
     """A galaxy drawn by GalSim at shears +-d with the same noise, the unsheared version the reference:
-    the replayed estimates respond to the shear, and (e1(+d) - e1(-d)) / 2d is the same for d = 0.01 and
-    0.005 to second order in d (a jump of one sample's weight would differ by far more between them)."""
+    the replayed estimates respond to the shear, and (e1(+d) - e1(-d)) / 2d is nearly the same for d = 0.01
+    and 0.005. Not to second order in d: a sample crossing the posterior cut moves the estimate by a step
+    (seed 1's e1 in steps of 0.0025 in g rises 1.1 per unit g in most steps and 1.4-1.7 in three of eight,
+    session 74), so that the two differ by up to 0.11 at SNR 15; a replay that lost the samples' weights
+    would not respond near 1 at all."""
     from shearfit.engine.measure import measure_versions
 
     for seed in range(3):
@@ -438,13 +441,14 @@ def test_replayed_versions_follow_a_small_shear_linearly():
             assert all(r.fitclass == FITCLASS_GALAXY for r in res)
             R.append((res[1].e1 - res[2].e1) / (2 * d))
         assert 0.2 < R[0] < 2.0
-        assert abs(R[0] - R[1]) < 0.08, (seed, R)
+        assert abs(R[0] - R[1]) < 0.15, (seed, R)
 
 
 def test_replays_that_evaluate_near_the_cut_first_give_the_same_estimates():
     """With a first margin, a replay evaluates the samples within 1 nat of the posterior cut first and the rest
-    only where its posterior moved enough: the estimates are those of the full 10-nat margin, to the bit, for
-    metacal's sheared versions of galaxies at SNR 15 to 300, with fewer samples evaluated."""
+    only where its posterior moved enough: the estimates are those of the full 10-nat margin, to rounding (the
+    compiled marginalisation's vector exponentials may differ in the last place with an element's position in a
+    batch), for metacal's sheared versions of galaxies at SNR 15 to 300, with fewer samples evaluated."""
     from shearfit.calib.metacal import VERSIONS
     from shearfit.engine.measure import measure_versions
 
@@ -456,7 +460,7 @@ def test_replays_that_evaluate_near_the_cut_first_give_the_same_estimates():
         full = measure_versions(versions, 23.0, margin=10.0)
         first = measure_versions(versions, 23.0, margin=10.0, first_margin=1.0)
         for a, b in zip(full, first):
-            assert _fields(a) == _fields(b)
+            np.testing.assert_allclose(_fields(a), _fields(b), rtol=1e-12, atol=0)
             fewer += b.n_samples < a.n_samples
     assert fewer >= 8
 

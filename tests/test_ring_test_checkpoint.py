@@ -336,6 +336,23 @@ def test_measuring_only_the_faint_galaxies_keeps_the_others_draws(ring_test, tmp
         assert np.array_equal(np.asarray(sub[name]), np.asarray(got[name]), equal_nan=True), name
 
 
+def test_galaxies_measures_those_of_the_whole_run(ring_test, tmp_path, capsys):
+    """--galaxies measures only the galaxies named, each drawn and measured as in the whole run; a galaxy the run
+    does not have is refused in one line."""
+    whole, some = tmp_path / "whole.fits", tmp_path / "some.fits"
+    assert ring_test.main(_args(whole, seed=6)) == 0
+    ref = Table.read(whole)
+    assert ring_test.main(_args(some, seed=6) + ["--galaxies", "2", "0"]) == 0
+    got = Table.read(some)
+    assert sorted(set(int(g) for g in got["galaxy"])) == [0, 2]
+    sub = ref[np.isin(ref["galaxy"], [0, 2])]
+    for name in ("e1", "e2", "weight", "snr_target", "e1_int"):
+        assert np.array_equal(np.asarray(sub[name]), np.asarray(got[name]), equal_nan=True), name
+    assert ring_test.main(_args(tmp_path / "bad.fits", seed=6) + ["--galaxies", "3"]) == 2
+    err = capsys.readouterr().err
+    assert "--galaxies 3" in err and len(err.strip().splitlines()) == 1
+
+
 def test_paired_below_moves_the_faint_galaxies_and_scales_a_sample_of_them(ring_test, tmp_path, capsys):
     """--paired-below: a run that measured only galaxies below an SNR (--measure-snr-below) gives its setting's m on
     the other campaign's whole population, those galaxies moved to it and the others kept. With every faint galaxy

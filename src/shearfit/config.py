@@ -101,7 +101,7 @@ class FitConfig:
                        "% of its error at target SNR 7-10, at most 0.97 of it; 21 by 0.8 %, at 1.3 times the cost; "
                        "7 against 21 at SNR 20-40: 1.2 %, benchmarks/README.md session 50)", "sec. 3.2")
     tail_skip: float = setting(
-        40.0, "a sample whose first size-locating pass peaks this far (nats) below the highest so far is far "
+        40.0, "a sample whose last size-locating pass peaks this far (nats) below the highest so far is far "
         "beyond the posterior cut (-4.6): its size integral is that pass's 5 nodes' instead of its size nodes' spline "
         "(0: evaluate every sample fully)", "implementation")
     size_reuse_distance: float = setting(

@@ -32,7 +32,8 @@ _NPAR_STAR = 3
 
 
 def _size_range(jm, cfg, mag, fast):
-    """Where the round model's size posterior lies in ln r: its median and its 0.1 % and 99.9 % points.
+    """Where the round model's size posterior lies in ln r: its median and its 0.1 % and 99.9 % points, and the
+    median of the disk population's alone.
 
     Quantiles of the posterior on a fine grid move continuously with the data
     (nodes that jumped with a small change of the data would make the
@@ -52,13 +53,20 @@ def _size_range(jm, cfg, mag, fast):
     lp = logl + priors.log_size_prior_per_lnr(x, mag, cfg)
     if not np.any(np.isfinite(lp)):
         return None
+    lo, med, hi = _quantiles(lp, x, [1e-3, 0.5, 1 - 1e-3])
+    lp_disk = mg.logl_disk + priors.log_size_prior_per_lnr(x, mag, cfg)
+    med_disk = _quantiles(lp_disk, x, [0.5])[0] if np.any(np.isfinite(lp_disk)) else med
+    return float(med), float(lo), float(hi), float(med_disk)
+
+
+def _quantiles(lp, x, q):
+    """Quantiles ``q`` in x of the density exp(lp) on the grid x: the cumulative distribution, linear between
+    grid points, inverted."""
     w = np.exp(lp - np.nanmax(lp))
     w = np.where(np.isfinite(w), w, 0.0)
-    # cumulative distribution, linear between grid points, inverted at the quantiles
     c = np.concatenate([[0.0], np.cumsum(0.5 * (w[1:] + w[:-1]) * np.diff(x))])
     c /= c[-1]
-    lo, med, hi = np.interp([1e-3, 0.5, 1 - 1e-3], c, x)
-    return float(med), float(lo), float(hi)
+    return np.interp(q, c, x)
 
 
 def _size_likelihood(jm, cfg, mag, fast, rng):
@@ -69,12 +77,21 @@ def _size_likelihood(jm, cfg, mag, fast, rng):
     each ellipticity by the predicted growth of the best size with e; where that range is narrower than the
     +-15 % uncertainty of the prediction, passes of 5 nodes over +-0.6 and then +-0.15 first locate the peak at
     each ellipticity.
+
+    The passes start halfway (in ln r) between the sizes predicted from the round model's median and from its
+    disk population's. Where the pure-bulge population wins the round fit, its size is 1.5-1.8 times the disk
+    population's, and the elliptical models' best size may follow either: a pure bulge's the first, an elongated
+    disk's the second (which the round fit of a disk at |e| 0.7-0.85 can put below the bulge's, depending on its
+    orientation). Started from the round model's alone, the passes could not reach an elongated disk's size at
+    |e| above about 0.7 (r 0.4", SNR 170: the likelihood there 10-180 nats low, e 0.03-0.08 low in |e|; session
+    74). Where the disk population wins, the two medians agree and so do the starts.
     """
-    med, lo, hi = rng
+    med, lo, hi, med_disk = rng
     margin_x = 0.1
     x = np.linspace(lo - med - margin_x, hi - med + margin_x, cfg.n_size)
     locate = (0.6, 0.15) if (hi - lo) < 1.2 else None
-    return EllipticityLikelihood(jm, cfg, mag, fast, x, float(np.exp(med)), locate_widths=locate)
+    return EllipticityLikelihood(jm, cfg, mag, fast, x, float(np.exp(med)), locate_widths=locate,
+                                 locate_from=float(np.exp(0.5 * (med + med_disk))))
 
 
 @contextlib.contextmanager

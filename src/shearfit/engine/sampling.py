@@ -79,6 +79,10 @@ class EPoint:
     mean_flux: np.ndarray
 
 
+#: The largest growth of the predicted best size over the round model's (:meth:`EllipticityLikelihood.centre`).
+CENTRE_GROWTH_MAX = 2.0
+
+
 class EllipticityLikelihood:
     """log L(e1, e2) of one object, marginalised over everything else."""
 
@@ -86,7 +90,8 @@ class EllipticityLikelihood:
     _SEG_U = np.linspace(0.0, 1.0, 9)   # u = (r / r_min)^2 of the segment from r = 0 to the first node
     _SEG_HALF_LOG_U = 0.5 * np.log(np.maximum(_SEG_U, 1e-300))   # ln(r / r_min) there
 
-    def __init__(self, jm, cfg: FitConfig, mag, fast, size_grid_x, r_center, chunk=256, locate_widths=None):
+    def __init__(self, jm, cfg: FitConfig, mag, fast, size_grid_x, r_center, chunk=256, locate_widths=None,
+                 locate_from=None):
         self.jm = jm
         self.cfg = cfg
         self.mag = mag
@@ -95,10 +100,12 @@ class EllipticityLikelihood:
         self.r_center = float(r_center)
         # half-widths (ln r) of the passes that locate, per ellipticity, the peak in ln r (None: not needed)
         self.locate_widths = locate_widths
+        # the round size the locating passes start from, carried to each e as r_center is (None: r_center)
+        self.locate_ratio = 1.0 if locate_from is None else float(locate_from) / self.r_center
         # located size peaks so far, as ln(peak / centre(e)), for neighbours to reuse
         self._loc_e = np.zeros((0, 2))
         self._loc_x = np.zeros(0)
-        self._peak_max = -np.inf   # the highest first-pass peak so far (see _located_centres)
+        self._peak_max = -np.inf   # the highest last-pass peak so far (see _located_centres)
         self.lin = linear_vectors(jm)
         # ellipticities evaluated together (their bins made in one call, their models' sums in one): 256 took 3 %
         # less time than 64 on benchmarks/speed.py's galaxies, the same estimates to the bit (benchmarks/README.md)
@@ -136,10 +143,14 @@ class EllipticityLikelihood:
         second-moment trace undershoots by 15 %; q^(-1/3) is within +-15 %
         of the best size over the cases measured (noise-free GalSim galaxies,
         r = 0.12-1 arcsec, |e| = 0.47-0.74). ``locate_widths`` make up the rest.
+        Above |e| 0.78 the growth is held at CENTRE_GROWTH_MAX: the best size
+        levels off there (1.5-1.7 times the round disk's at |e| 0.8-0.95 for
+        r = 0.1-0.4", 2.7-2.9 for pure bulges), and q^(-1/3) (3.4 at 0.95) put
+        it beyond the passes' reach, 9-56 nats low (session 74).
         """
         e = np.hypot(e1, e2)
         q = (1 - e) / (1 + e)
-        return self.r_center * q ** (-1.0 / 3.0)
+        return self.r_center * np.minimum(q ** (-1.0 / 3.0), CENTRE_GROWTH_MAX)
 
     def replayed_centres(self, e1, e2, keys):
         """The size centres of ``fixed_centres`` at (e1, e2) (their ``keys``). An ellipticity the replayed fit
@@ -167,11 +178,15 @@ class EllipticityLikelihood:
 
         Returns the centres, which samples are far in the tail, and their
         crude values (an EPoint over them in order, or None): a sample that runs every
-        pass and whose first pass peaks more than ``FitConfig.tail_skip`` below
-        the highest first-pass peak so far gets the first pass's size integral
-        (``_locate``, ``detail``) instead of its size nodes'. It is still
-        located by every pass, so that the samples that reuse its size peak
-        are the same with and without the shortcut.
+        pass and whose last pass peaks more than ``FitConfig.tail_skip`` below
+        the highest last-pass peak so far gets that pass's size integral
+        (``_locate``, ``detail``) instead of its size nodes'. It is located by
+        every pass, so that the samples that reuse its size peak are the same
+        with and without the shortcut. (The first pass's peak, which decided
+        this before session 74, is a parabola through nodes 0.3 apart in ln r:
+        where the size posterior is narrower than that, at high SNR, it fell
+        tens of nats short of the peak, and samples at the posterior's peak
+        were taken for the tail.)
         """
         x = np.zeros(e1.size)
         near = np.zeros(e1.size, bool)
@@ -180,19 +195,21 @@ class EllipticityLikelihood:
             nn = np.argmin(d2, axis=1)
             near = d2[np.arange(e1.size), nn] <= self.cfg.size_reuse_distance ** 2
             x[near] = self._loc_x[nn[near]]
-        r = rc * np.exp(x)
+        r = rc * np.where(near, np.exp(x), self.locate_ratio)
         tail = np.zeros(e1.size, bool)
         tail_point = None
         widths = list(self.locate_widths)
         for k, width in enumerate(widths):
-            sel = np.ones(e1.size, bool) if k == len(widths) - 1 else ~near
+            last = k == len(widths) - 1
+            sel = np.ones(e1.size, bool) if last else ~near
             if not np.any(sel):
                 continue
-            if k == 0 and self.cfg.tail_skip > 0:
+            if last and self.cfg.tail_skip > 0:
                 r[sel], peak, point = self._locate(e1[sel], e2[sel], r[sel], width, bins, np.nonzero(sel)[0],
                                                    detail=True)
                 self._peak_max = max(self._peak_max, float(np.max(peak)))
-                far = peak < self._peak_max - self.cfg.tail_skip
+                # only samples that ran every pass (a reused neighbour's peak is not checked)
+                far = (peak < self._peak_max - self.cfg.tail_skip) & ~near[sel]
                 if np.any(far):
                     tail[np.nonzero(sel)[0][far]] = True
                     tail_point = EPoint(*[getattr(point, f)[far] for f in EPoint.__dataclass_fields__])
