@@ -403,10 +403,11 @@ def _fields(r):
 
 @pytest.mark.parametrize("sampling", ["adaptive", "two-pass"])
 def test_a_replayed_fit_of_the_same_stamps_is_the_fit_itself(sampling):
-    """measure_versions replays the first version's choices; on identical stamps it must give exactly what
-    measure_object gives when every reference sample is evaluated again, and the same to rounding when only
-    those near the cut are (they are then evaluated in other batches, and a few samples' posterior means can
-    differ by one unit in the last place with their position in a batch: 3 of 304 on this object)."""
+    """measure_versions replays the first version's choices; on identical stamps it must give what measure_object
+    gives, to rounding, when every reference sample is evaluated again and when only those near the cut are (they
+    are then evaluated in other batches, and a few samples' posterior means can differ by one unit in the last
+    place with their position in a batch: 3 of 304 on this object; the fit evaluates the size nodes of the
+    samples it does not take for the tail together, the replay those of all, so that their batches differ too)."""
     from shearfit.engine.measure import measure_versions
 
     obs = _obs(0.3, (0.2, 0.1), snr=20, seed=4)
@@ -415,11 +416,10 @@ def test_a_replayed_fit_of_the_same_stamps_is_the_fit_itself(sampling):
     for margin in (np.inf, 10.0):
         first, again = measure_versions([obs, obs], 23.0, cfg, margin=margin)
         assert _fields(first) == _fields(plain)
-        if margin == np.inf:
-            assert _fields(again) == _fields(plain)
-        else:
-            assert np.allclose(_fields(again), _fields(plain), rtol=1e-13, atol=0)
-            assert again.fitclass == plain.fitclass and again.n_samples < plain.n_samples
+        assert np.allclose(_fields(again), _fields(plain), rtol=1e-13, atol=0)
+        assert again.fitclass == plain.fitclass
+        if margin < np.inf:
+            assert again.n_samples < plain.n_samples
     # the replay evaluates fewer models than a fit of its own (no size-locating passes, no far samples)
     assert again.n_models < first.n_models
 

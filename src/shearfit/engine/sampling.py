@@ -225,7 +225,13 @@ class EllipticityLikelihood:
                           bins_per_octave=self.cfg.mode_bins_per_octave, bins=bins, bin_index=index)
 
     def _locate(self, e1, e2, rc, half_width, bins=None, index=None, detail=False):
-        """Peak of the size posterior at each e: 5 nodes and a parabola through the best three.
+        """Peak of the size posterior at each e: 5 nodes and, for each population (disk, pure bulge), a parabola
+        through its best three; the peak is that of the population whose parabola peaks higher.
+
+        The two populations' size peaks lie apart (a pure bulge's 1.5-2.3 times a disk's of the same image), and
+        a parabola through the mixture's best three nodes could straddle both and land on the one that does not
+        count: a 0.2" pure bulge at |e| 0.5, SNR 200, had samples at its posterior's peak 6-7 nats low with the
+        passes started between the two (session 74).
 
         With ``detail``: also the parabola's peak value (log L + log p(r) r, populations mixed) and an
         EPoint of the crude size integral over the 5 nodes."""
@@ -238,26 +244,35 @@ class EllipticityLikelihood:
         self.n_models += R.size
         mg = flux_position_marginal(sums, cfg, self.jm.pixel_scale)
         ld0, lb0 = log_population_weights(cfg)
-        y = np.logaddexp(ld0 + mg.logl_disk, lb0 + mg.logl_bulge).reshape(R.shape)
         shift = _prior_axis_shift(e1, e2, cfg)
         lpr = priors.log_size_prior_per_lnr(np.log(R) + (0.0 if shift is None else shift[:, None]), self.mag, cfg,
                                             ln_a=self.ln_a)
-        y = y + lpr
-        y = np.where(np.isfinite(y), y, -1e300)
-        k = np.clip(np.argmax(y, axis=1), 1, n - 2)
-        rows = np.arange(y.shape[0])
-        ym, y0, yp = y[rows, k - 1], y[rows, k], y[rows, k + 1]
         h = xs[1] - xs[0]
-        den = ym - 2 * y0 + yp
-        with np.errstate(invalid="ignore", divide="ignore"):
-            d = np.where(den < 0, 0.5 * h * (ym - yp) / den, 0.0)
-        d = np.clip(np.nan_to_num(d), -h, h)
-        r_peak = rc * np.exp(xs[k] + d)
+        rows = np.arange(R.shape[0])
+        best = None
+        for w0, logl in ((ld0, mg.logl_disk), (lb0, mg.logl_bulge)):
+            yp_ = np.where(np.isfinite(logl), w0 + logl, -1e300).reshape(R.shape) + lpr
+            k = np.clip(np.argmax(yp_, axis=1), 1, n - 2)
+            ym, y0, yp = yp_[rows, k - 1], yp_[rows, k], yp_[rows, k + 1]
+            den = ym - 2 * y0 + yp
+            with np.errstate(invalid="ignore", divide="ignore"):
+                d = np.where(den < 0, 0.5 * h * (ym - yp) / den, 0.0)
+            d = np.clip(np.nan_to_num(d), -h, h)
+            # the parabola's value at its peak
+            top = np.maximum(y0, y0 + 0.5 * (yp - ym) / h * d + 0.5 * den / h ** 2 * d * d)
+            if best is None:
+                best = (top, xs[k] + d)
+            else:
+                other = top > best[0]
+                best = (np.where(other, top, best[0]), np.where(other, xs[k] + d, best[1]))
+        peak, xpk = best
+        r_peak = rc * np.exp(xpk)
         if not detail:
             return r_peak
-        # the parabola's value at the peak, and a crude size integral over the 5 nodes (trapezoid in ln r)
-        # with posterior means over them, for samples far below the others (see _located_centres)
-        peak = np.maximum(y0, y0 + 0.5 * (yp - ym) / h * d + 0.5 * den / h ** 2 * d * d)
+        # a crude size integral over the 5 nodes (trapezoid in ln r) with posterior means over them, for samples
+        # far below the others (see _located_centres)
+        y = np.logaddexp(ld0 + mg.logl_disk, lb0 + mg.logl_bulge).reshape(R.shape) + lpr
+        y = np.where(np.isfinite(y), y, -1e300)
         ld = np.where(np.isfinite(mg.logl_disk), mg.logl_disk, -1e300).reshape(R.shape) + lpr + np.log(h)
         lb = np.where(np.isfinite(mg.logl_bulge), mg.logl_bulge, -1e300).reshape(R.shape) + lpr + np.log(h)
         w = np.exp(y - np.max(y, axis=1, keepdims=True))
