@@ -50,11 +50,12 @@ def _size_range(jm, cfg, mag, fast):
     logl = np.logaddexp(ld0 + mg.logl_disk, lb0 + mg.logl_bulge)
     # posterior density in ln r: likelihood x prior x r
     x = np.log(r)
-    lp = logl + priors.log_size_prior_per_lnr(x, mag, cfg)
+    lpr = priors.log_size_prior_per_lnr(x, mag, cfg)
+    lp = logl + lpr
     if not np.any(np.isfinite(lp)):
         return None
     lo, med, hi = _quantiles(lp, x, [1e-3, 0.5, 1 - 1e-3])
-    lp_disk = mg.logl_disk + priors.log_size_prior_per_lnr(x, mag, cfg)
+    lp_disk = mg.logl_disk + lpr
     med_disk = _quantiles(lp_disk, x, [0.5])[0] if np.any(np.isfinite(lp_disk)) else med
     return float(med), float(lo), float(hi), float(med_disk)
 

@@ -233,8 +233,8 @@ class EllipticityLikelihood:
         count: a 0.2" pure bulge at |e| 0.5, SNR 200, had samples at its posterior's peak 6-7 nats low with the
         passes started between the two (session 74).
 
-        With ``detail``: also the parabola's peak value (log L + log p(r) r, populations mixed) and an
-        EPoint of the crude size integral over the 5 nodes."""
+        With ``detail``: also that parabola's peak value (log L + log p(r) r of the population, with its weight)
+        and an EPoint of the crude size integral over the 5 nodes (the populations mixed)."""
         cfg = self.cfg
         xs = _locate_nodes(float(half_width))
         R = rc[:, None] * np.exp(xs)[None, :]
