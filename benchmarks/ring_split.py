@@ -24,7 +24,9 @@ paired weights is the part of m that comes from the weights' response to shear.
 
 ``--paired-with B``: the same split for another run of the same galaxies (the same ``--seed``, ``--n-galaxies``
 and population; another setting, or ``--noise-free``), and the first run less it object by object, the galaxies
-resampled together: only objects both runs have, measured as galaxies in both, enter either. A run without
+resampled together: only objects both runs have enter either, and a galaxy of which an object failed (was not
+measured as a galaxy) in one run and not in the other is left out of both, whole (its ring would not cancel in
+the run where it was measured; the number left out is printed). A run without
 ``--antithetic`` (a noise-free one, whose twins would be copies) stands for the twins too. The weight options apply
 to both runs, ``--uncorrected`` to the first only: ``A --uncorrected --paired-with NF`` (NF the same galaxies without
 noise) is the noise bias that ``noise_bias_correction`` removes, ``A --paired-with NF`` what it leaves. Several runs
@@ -80,8 +82,9 @@ def _weighted(t, unweighted, paired, isotropic):
 
 
 def _matched(t, other):
-    """``t`` and ``other`` on their common objects (galaxy, rotation, sign) in one order, an object that failed in
-    either failed in both; ``other`` without twins (rotations 4-7) standing for them where ``t`` has them."""
+    """``t`` and ``other`` on their common objects (galaxy, rotation, sign) in one order, without the galaxies
+    (whole rings) of which an object failed in one run and not in the other, and how many galaxies that left out;
+    ``other`` without twins (rotations 4-7) standing for them where ``t`` has them."""
     if np.max(other["rotation"]) < 4 <= np.max(t["rotation"]):
         twins = other.copy()
         twins["rotation"] = twins["rotation"] + 4
@@ -97,10 +100,12 @@ def _matched(t, other):
     t = t[np.isin(ka, common)]
     other = other[np.isin(kb, common)]
     t, other = t[np.argsort(key(t))], other[np.argsort(key(other))]
-    bad = (np.asarray(t["fitclass"]) != 0) | (np.asarray(other["fitclass"]) != 0)
-    t["fitclass"] = np.where(bad, -1, t["fitclass"])
-    other["fitclass"] = np.where(bad, -1, other["fitclass"])
-    return t, other
+    # a galaxy with an object that failed in one run only is left out of both: marking the object failed in the
+    # other run too would break that run's ring (its intrinsic shapes no longer cancel), a bias of its own
+    fa, fb = np.asarray(t["fitclass"]) != 0, np.asarray(other["fitclass"]) != 0
+    split = np.isin(np.asarray(t["galaxy"]), np.unique(np.asarray(t["galaxy"])[fa != fb]))
+    n_split = np.unique(np.asarray(t["galaxy"])[split]).size
+    return t[~split], other[~split], n_split
 
 
 def _galaxy_columns(t, n):
@@ -309,9 +314,11 @@ def _paired_tables(paths, paired_with, uncorrected, one_pair, keep_stars, noise_
         whole.append(ta)
         tb = Table.read(pb)
         # before the matching, which counts an object that is not a galaxy in either run as failed in both
-        ta, tb = _matched(ta, stars_kept(tb) if keep_stars else tb)
+        ta, tb, n_split = _matched(ta, stars_kept(tb) if keep_stars else tb)
         if len(ta) == 0:
             raise SystemExit(f"ring_split.py: --paired-with: {pb} has no object (galaxy, rotation, sign) of {pa}")
+        if n_split:
+            print(f"{pa} with {pb}: {n_split} galaxies left out of both (an object failed in one run only)")
         n_here = int(np.max(ta["galaxy"])) + 1
         ta["galaxy"] = np.asarray(ta["galaxy"]) + off
         tb["galaxy"] = np.asarray(tb["galaxy"]) + off

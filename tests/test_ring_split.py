@@ -53,6 +53,32 @@ def test_paired_with_is_the_difference_object_by_object(tmp_path, capsys):
     assert np.allclose(diff, 0.006, atol=1e-4)
 
 
+def test_paired_with_leaves_out_a_ring_that_failed_in_one_run_only(tmp_path, capsys):
+    """An object that failed in one run only: its whole galaxy is left out of both runs. Counted as failed in
+    the other run too, it would break that run's ring there (its intrinsic shapes no longer cancel)."""
+    a, b = tmp_path / "a.fits", tmp_path / "b.fits"
+    ta, tb = _run(0.004), _run(-0.002)
+    # galaxy 5 fails at rotation 1, +g, in the second run only; galaxy 9 at rotation 2, -g, in both
+    tb["fitclass"][(tb["galaxy"] == 5) & (tb["rotation"] == 1) & (tb["sign"] > 0)] = -1
+    for t in (ta, tb):
+        t["fitclass"][(t["galaxy"] == 9) & (t["rotation"] == 2) & (t["sign"] < 0)] = -1
+    ta.write(a)
+    tb.write(b)
+    ring_split.main([str(a)], r_bins=(0.1, 0.125), unweighted=True, paired_with=[str(b)])
+    out = capsys.readouterr().out
+    assert "1 galaxies left out of both" in out
+    (first, other, diff), lines = _pairs(out)
+    assert all("rings=  39" in ln for ln in lines)
+    # galaxy 9's ring is broken alike in both runs: it moves each run's m, and cancels in the difference
+    assert np.allclose(diff, 0.006, atol=1e-4)
+    # the first run read as the pairing does (galaxy 5 left out) against the same run without the pairing
+    ta.remove_rows(np.flatnonzero(ta["galaxy"] == 5))
+    ta.write(a, overwrite=True)
+    ring_split.main([str(a)], r_bins=(0.1, 0.125), unweighted=True)
+    (alone,), _ = _pairs(capsys.readouterr().out)
+    assert np.allclose(first, alone, atol=1e-4)
+
+
 def test_paired_with_pairs_several_tables_table_by_table(tmp_path, capsys):
     """A1 A2 --paired-with B1 B2: A1 with B1 and A2 with B2, both runs numbered on alike (the two seeds' galaxy
     numbers overlap, 0-39 and 0-29): 39 + 30 rings, and m the rings' mean (each ring responds by its run's 1 + m)."""
