@@ -5,6 +5,7 @@
                                               --paired-weights | --isotropic-weights] [--uncorrected | --one-pair
                                               | --noise-level V]
                                               [--e-bins 0,0.3,0.5,0.6,0.7,1] [--paired-with B.fits ...] [--keep-stars]
+                                              [--whole-rings]
                                               [--control [A.fits=]B.fits ...]
 
 Several tables (runs of the same shear) are read as one, their galaxies numbered on.
@@ -31,6 +32,12 @@ the run where it was measured; the number left out is printed). A run without
 to both runs, ``--uncorrected`` to the first only: ``A --uncorrected --paired-with NF`` (NF the same galaxies without
 noise) is the noise bias that ``noise_bias_correction`` removes, ``A --paired-with NF`` what it leaves. Several runs
 pair table by table: ``A1 A2 --paired-with B1 B2`` (A1 with B1, A2 with B2; each pair's galaxies numbered on alike).
+
+``--whole-rings``: a galaxy of which any object was not measured as a galaxy (a failure, a flag, a star unless
+``--keep-stars``) is left out whole, in both runs where paired. Counted with zero weight, as a catalogue would, such
+an object breaks its ring: the intrinsic shapes of the others no longer cancel, and one flagged object of a 0.3"
+galaxy can move m by a few 1e-3. The line printed says how many were left out, and how many of their objects
+were lost at +g and at -g (a shear-dependent selection would show there, and is not in m with this option).
 
 ``--control [A=]B``: the tables given are runs with ``noise_bias_second_amplitude`` (two pairs), B a run with the one
 pair (any run of the same shear and population; a two-pair run's estimates are read as ``--one-pair``'s), ``A=B``
@@ -313,7 +320,7 @@ def _paired_tables(paths, paired_with, uncorrected, one_pair, keep_stars, noise_
         ta = _prepared(Table.read(pa), uncorrected, one_pair, keep_stars, noise_level)
         whole.append(ta)
         tb = Table.read(pb)
-        # before the matching, which counts an object that is not a galaxy in either run as failed in both
+        # stars counted as galaxies before the matching, which compares the two runs' failures object by object
         ta, tb, n_split = _matched(ta, stars_kept(tb) if keep_stars else tb)
         if len(ta) == 0:
             raise SystemExit(f"ring_split.py: --paired-with: {pb} has no object (galaxy, rotation, sign) of {pa}")
@@ -332,8 +339,23 @@ def _paired_tables(paths, paired_with, uncorrected, one_pair, keep_stars, noise_
     return one(firsts), one(seconds), one(whole)
 
 
+def _whole_rings(t, other=None):
+    """``t`` (and ``other``, paired with it object by object) without the galaxies of which an object was not
+    measured as a galaxy in either; prints how many were left out and their lost objects at +g and at -g."""
+    lost = np.asarray(t["fitclass"]) != 0
+    if other is not None:
+        lost |= np.asarray(other["fitclass"]) != 0
+    gal = np.asarray(t["galaxy"])
+    out = np.isin(gal, np.unique(gal[lost]))
+    sign = np.asarray(t["sign"])
+    print(f"--whole-rings: {np.unique(gal[lost]).size} of {np.unique(gal).size} galaxies left out (objects not "
+          f"measured as galaxies: {int(np.sum(lost & (sign > 0)))} at +g, {int(np.sum(lost & (sign < 0)))} at -g)")
+    return t[~out], (None if other is None else other[~out])
+
+
 def main(paths, r_bins=(0, 0.15, 0.3, 10), unweighted=False, paired=False, isotropic=False, uncorrected=False,
-         paired_with=None, e_bins=None, one_pair=False, keep_stars=False, radial=False, noise_level=None):
+         paired_with=None, e_bins=None, one_pair=False, keep_stars=False, radial=False, noise_level=None,
+         whole_rings=False):
     other = None
     if paired_with:
         t, other, whole = _paired_tables(paths, paired_with, uncorrected, one_pair, keep_stars, noise_level)
@@ -344,6 +366,8 @@ def main(paths, r_bins=(0, 0.15, 0.3, 10), unweighted=False, paired=False, isotr
         t = _prepared(Table(read_tables(paths)[0]), uncorrected, one_pair, keep_stars, noise_level)
         if radial:
             radial_report(t)
+    if whole_rings:
+        t, other = _whole_rings(t, other)
     t = _weighted(t, unweighted, paired, isotropic)
     plus = t[t["sign"] > 0]
     g = np.array([plus["g1"][0], plus["g2"][0]])   # the shear of the +g set
@@ -405,6 +429,9 @@ if __name__ == "__main__":
     ap.add_argument("--radial", action="store_true",
                     help="also the estimates along and across the true sheared ellipticity, in bins of its |e|, and "
                          "a self-calibrated run's radial responses")
+    ap.add_argument("--whole-rings", action="store_true",
+                    help="leave out, whole, every galaxy of which an object was not measured as a galaxy (in either "
+                         "run where paired)")
     ap.add_argument("--control", action="append", default=[], metavar="[A=]B",
                     help="a one-pair run B (A=B: of table A's seed) as a control variate for the two-pair tables given")
     a = ap.parse_args()
@@ -419,10 +446,11 @@ if __name__ == "__main__":
         if not os.path.isfile(path):
             ap.error(f"{path}: no such table")
     if a.control:
-        if a.uncorrected or a.one_pair or a.paired_with or a.keep_stars or a.noise_level is not None:
-            ap.error("--control excludes --uncorrected, --one-pair, --noise-level, --paired-with and --keep-stars")
+        if a.uncorrected or a.one_pair or a.paired_with or a.keep_stars or a.whole_rings or a.noise_level is not None:
+            ap.error("--control excludes --uncorrected, --one-pair, --noise-level, --paired-with, --keep-stars and "
+                     "--whole-rings")
         control_main(a.table, a.control, [float(x) for x in a.r_bins.split(",")], a.unweighted, a.paired_weights,
                      a.isotropic_weights, e_edges)
         sys.exit(0)
     main(a.table, [float(x) for x in a.r_bins.split(",")], a.unweighted, a.paired_weights, a.isotropic_weights,
-         a.uncorrected, a.paired_with, e_edges, a.one_pair, a.keep_stars, a.radial, a.noise_level)
+         a.uncorrected, a.paired_with, e_edges, a.one_pair, a.keep_stars, a.radial, a.noise_level, a.whole_rings)

@@ -79,6 +79,24 @@ def test_paired_with_leaves_out_a_ring_that_failed_in_one_run_only(tmp_path, cap
     assert np.allclose(first, alone, atol=1e-4)
 
 
+def test_whole_rings_leaves_out_the_galaxies_of_flagged_objects(tmp_path, capsys):
+    """One flagged object breaks its ring (the other objects' intrinsic shapes no longer cancel): m moves by
+    several 1e-3 on 40 rings. --whole-rings leaves that galaxy out and says what it lost at +g and at -g."""
+    a = tmp_path / "a.fits"
+    t = _run(0.004)
+    t["fitclass"][(t["galaxy"] == 5) & (t["rotation"] == 1) & (t["sign"] > 0)] = -3
+    t.write(a)
+    ring_split.main([str(a)], r_bins=(0.1, 0.125), unweighted=True)
+    (broken,), _ = _pairs(capsys.readouterr().out)
+    assert np.max(np.abs(np.subtract(broken, 0.004))) > 2e-3
+    ring_split.main([str(a)], r_bins=(0.1, 0.125), unweighted=True, whole_rings=True)
+    out = capsys.readouterr().out
+    assert "1 of 40 galaxies left out (objects not measured as galaxies: 1 at +g, 0 at -g)" in out
+    (whole,), lines = _pairs(out)
+    assert "rings=  39" in lines[0]
+    assert np.allclose(whole, 0.004, atol=1e-4)
+
+
 def test_paired_with_pairs_several_tables_table_by_table(tmp_path, capsys):
     """A1 A2 --paired-with B1 B2: A1 with B1 and A2 with B2, both runs numbered on alike (the two seeds' galaxy
     numbers overlap, 0-39 and 0-29): 39 + 30 rings, and m the rings' mean (each ring responds by its run's 1 + m)."""
