@@ -556,6 +556,18 @@ def report(tables, gals, args, name, wcs_mode):
         print(f"  calibrated by the catalogue's m (weighted mean {mbar:+.4f}): m1 = {cal[0]:+.5f} +/- "
               f"{cal_err[0]:.5f}, m2 = {cal[1]:+.5f} +/- {cal_err[1]:.5f}")
     print("  fitclass: " + ", ".join(f"{int((fc == v).sum())} x {v}" for v in np.unique(fc)))
+    lost = (fc != 0) & (fc != 1)
+    if np.any(lost):
+        # a flagged or failed object counts with zero weight, as in a catalogue, and so breaks its ring (the
+        # others' intrinsic shapes no longer cancel): m on the other rings, and where the lost objects were
+        out = np.unique(tab["galaxy"][lost])
+        whole = np.setdiff1d(np.arange(args.n_galaxies), out)
+        e_w, r_w = shear_bias(ring_sums(tab, args.n_galaxies)[:, whole], np.array(args.shear), args.n_bootstrap,
+                              np.random.default_rng(0))
+        sign = tab["sign"]
+        print(f"  whole rings only ({out.size} rings with a flagged or failed object left out; those objects "
+              f"{int(np.sum(lost & (sign > 0)))} at +g, {int(np.sum(lost & (sign < 0)))} at -g): "
+              f"m1 = {e_w[0]:+.5f} +/- {r_w[0]:.5f}, m2 = {e_w[1]:+.5f} +/- {r_w[1]:.5f}")
     if np.any(fc == 1):
         # the star/galaxy test selects on shape (an elongated small galaxy beats a point source by more), and
         # so on the shear: the same objects with those classified as stars kept, at the weight of their e_var

@@ -98,3 +98,24 @@ def test_each_wcs_variant_reports_the_leakage_along_its_own_sky_psf(capsys):
         found = re.search(r"alpha = ([+-][0-9.]+) \+/- ([0-9.]+)", out)
         assert found and abs(float(found.group(1)) - alpha) < 1e-4, out
         assert f"({e_psf[0]:+.4f}, {e_psf[1]:+.4f})" in out
+
+
+def test_report_gives_m_on_whole_rings_where_an_object_was_flagged(capsys):
+    """One flagged object (fitclass -3) breaks its ring in the catalogue's m; the report's whole-rings line leaves
+    that ring out, gives back the m the estimates were made with, and says where the flagged object was."""
+    class Args:
+        shear, n_galaxies, n_bootstrap, n_exposures, n_ccd = G, 30, 50, 2, 1
+        antithetic, noise_free, noise_sigma, metacal = True, False, None, False
+        snr_min, snr_max, min_size, size_split = 100.0, 200.0, 0.1, None
+    tables, gals = _field(0.004, Args.n_galaxies, 6)
+    for t in tables.values():
+        t["weight"] = 7.0
+    tables[(-1, 1)]["fitclass"][9] = -3   # ring 2, at -g
+    field_test.report(tables, gals, Args(), "given", "plain")
+    out = capsys.readouterr().out
+    whole = re.search(r"whole rings only \(1 rings .* 0 at \+g, 1 at -g\): m1 = ([+-][0-9.]+) .* m2 = ([+-][0-9.]+)",
+                      out)
+    assert whole, out
+    assert np.allclose([float(whole.group(1)), float(whole.group(2))], 0.004, atol=1e-4)
+    broken = [float(x) for x in re.findall(r"^  m[12] = ([+-][0-9.]+)", out, re.M)]
+    assert np.max(np.abs(np.subtract(broken, 0.004))) > 1e-3
