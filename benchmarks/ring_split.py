@@ -88,6 +88,15 @@ def _weighted(t, unweighted, paired, isotropic):
     return t
 
 
+def _without_galaxies_of(objects, t, other=None):
+    """``t`` and ``other`` (matched with it row by row, or None) without every galaxy (whole ring) of which an object
+    of ``objects`` (a mask over the rows) is, and how many galaxies that left out."""
+    gal = np.asarray(t["galaxy"])
+    out = np.unique(gal[objects])
+    keep = ~np.isin(gal, out)
+    return t[keep], (None if other is None else other[keep]), out.size
+
+
 def _matched(t, other):
     """``t`` and ``other`` on their common objects (galaxy, rotation, sign) in one order, without the galaxies
     (whole rings) of which an object failed in one run and not in the other, and how many galaxies that left out;
@@ -110,9 +119,7 @@ def _matched(t, other):
     # a galaxy with an object that failed in one run only is left out of both: marking the object failed in the
     # other run too would break that run's ring (its intrinsic shapes no longer cancel), a bias of its own
     fa, fb = np.asarray(t["fitclass"]) != 0, np.asarray(other["fitclass"]) != 0
-    split = np.isin(np.asarray(t["galaxy"]), np.unique(np.asarray(t["galaxy"])[fa != fb]))
-    n_split = np.unique(np.asarray(t["galaxy"])[split]).size
-    return t[~split], other[~split], n_split
+    return _without_galaxies_of(fa != fb, t, other)
 
 
 def _galaxy_columns(t, n):
@@ -345,12 +352,12 @@ def _whole_rings(t, other=None):
     lost = np.asarray(t["fitclass"]) != 0
     if other is not None:
         lost |= np.asarray(other["fitclass"]) != 0
-    gal = np.asarray(t["galaxy"])
-    out = np.isin(gal, np.unique(gal[lost]))
     sign = np.asarray(t["sign"])
-    print(f"--whole-rings: {np.unique(gal[lost]).size} of {np.unique(gal).size} galaxies left out (objects not "
-          f"measured as galaxies: {int(np.sum(lost & (sign > 0)))} at +g, {int(np.sum(lost & (sign < 0)))} at -g)")
-    return t[~out], (None if other is None else other[~out])
+    n_all = np.unique(np.asarray(t["galaxy"])).size
+    t, other, n_out = _without_galaxies_of(lost, t, other)
+    print(f"--whole-rings: {n_out} of {n_all} galaxies left out (objects not measured as galaxies: "
+          f"{int(np.sum(lost & (sign > 0)))} at +g, {int(np.sum(lost & (sign < 0)))} at -g)")
+    return t, other
 
 
 def main(paths, r_bins=(0, 0.15, 0.3, 10), unweighted=False, paired=False, isotropic=False, uncorrected=False,
