@@ -91,9 +91,9 @@ def kernel_ab(objs, other, rounds):
     calls = []
     orig = sampling.mode_bins
 
-    def capture(jm, e1, e2, bpo):
+    def capture(jm, e1, e2, bpo, **kw):
         calls.append((jm, np.array(e1, float), np.array(e2, float), int(bpo)))
-        return orig(jm, e1, e2, bpo)
+        return orig(jm, e1, e2, bpo, **kw)
 
     sampling.mode_bins = capture
     try:

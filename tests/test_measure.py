@@ -505,6 +505,62 @@ def test_binned_modes_match_every_mode():
     assert abs(binned.e2 - plain.e2) < 1e-3 * np.sqrt(plain.e_var)
 
 
+def test_polar_grid_bins_match_every_mode():
+    """The ellipticities binned from the polar grid (mode_polar_angles: the modes spread once onto nodes in
+    log |K|^2 and in the direction of K) give the sums of every mode: for |e| up to the grid's limit 0.85,
+    the quadratic sums within 5e-6 of their largest, the linear ones within 2e-5 but for the position
+    gradient (a sum near zero at the centre: 5e-4 of its largest); coarser in angle, farther (the direction's
+    interpolation is the error at high |e|). Above the limit, the bins are make_bins' own, byte for byte.
+    The grid's nodes hold the modes' weights in total (its interpolation weights sum to one) and the DC
+    mode's apart."""
+    from shearfit.engine import likelihood
+    from shearfit.engine.likelihood import _packed_bins, join_exposures, mode_bins, model_sums, polar_grid
+    from shearfit.engine.model import prepare_exposure
+    from shearfit.engine.profiles import FastRadial, de_vaucouleurs, exponential_disk, fast_pair
+
+    if not likelihood.USE_KERNEL:
+        pytest.skip("compiled kernel not built")
+    cfg = shearfit.FitConfig()
+    assert (cfg.mode_polar_angles, cfg.mode_polar_e_max) == (80, 0.95)
+    obs = _observations(0.3, (0.2, 0.1), noise=True, snr=60)
+    jm = join_exposures([prepare_exposure(o, cfg) for o in obs])
+    rng = np.random.default_rng(2)
+    e = rng.uniform(0, 0.85, 25) * np.exp(2j * np.pi * rng.uniform(size=25))
+    e1, e2 = e.real, e.imag
+    r = np.concatenate([[0.0], np.geomspace(0.02, 2.0, 9)])
+    E1, E2, R = np.repeat(e1, r.size), np.repeat(e2, r.size), np.tile(r, e1.size)
+    idx = np.repeat(np.arange(e1.size), r.size)
+    fine = FastRadial([exponential_disk(cfg.truncation), de_vaucouleurs(cfg.truncation)], du=0.0002)
+    truth = model_sums(jm, E1, E2, R, fine, 0.8)
+    fields = ("hf", "hg", "grad_f", "hess_g", "ff", "gg", "fg")
+    err = {}
+    for n in (48, 80):
+        b = model_sums(jm, E1, E2, R, fast_pair(), 0.8, bins=mode_bins(jm, e1, e2, 16, polar=(n, 0.85)),
+                       bin_index=idx)
+        err[n] = {f: np.max(np.abs(getattr(b, f) - getattr(truth, f))) / np.max(np.abs(getattr(truth, f)))
+                  for f in fields}
+    assert max(err[80][f] for f in ("ff", "gg", "fg")) < 5e-6, err[80]
+    assert max(err[80][f] for f in ("hf", "hg", "hess_g")) < 2e-5, err[80]
+    assert err[80]["grad_f"] < 5e-4, err[80]
+    assert all(err[48][f] > 3 * err[80][f] for f in ("hf", "ff", "gg", "grad_f")), err
+    # above the limit: the bins of every mode
+    high = 0.9 * np.exp(2j * np.pi * rng.uniform(size=5))
+    a = mode_bins(jm, high.real, high.imag, 16, polar=(80, 0.85))
+    b = mode_bins(jm, high.real, high.imag, 16)
+    assert (a.lo, a.offsets, a.columns, a.dc) == (b.lo, b.offsets, b.columns, b.dc)
+    # the grid's nodes hold every mode's weights (float32 sums), the DC mode's in its own row
+    u0, n_u, grid, dc, rows = polar_grid(jm, 16, 80)
+    g = np.frombuffer(grid, np.float32).reshape(80, n_u, 8).astype(float)
+    b3, c8 = _packed_bins(jm)[:2]
+    is_dc = (b3[:, 0] + b3[:, 2]) == 0
+    assert is_dc.sum() == 1
+    np.testing.assert_allclose(np.frombuffer(dc)[:7], c8[is_dc][0, :7], rtol=1e-6)
+    total = c8[~is_dc].astype(float).sum(axis=0)
+    np.testing.assert_allclose(g.sum(axis=(0, 1))[:7], total[:7], rtol=0, atol=2e-5 * np.abs(c8).sum(axis=0).max())
+    rows = np.frombuffer(rows, np.int32).reshape(80, 2)
+    assert np.all(rows[:, 0] >= 3) and np.all(rows[:, 1] <= n_u - 4)
+
+
 def _distorted_observations(n_exp, seed, snr):
     """A noisy galaxy on exposures whose Jacobians differ by a camera's distortion (1e-3), and the generator."""
     rng = np.random.default_rng(seed)
@@ -588,7 +644,8 @@ def test_mode_bins_are_each_ellipticitys_own_whatever_the_batch():
     assert empty[2] == b"" and np.frombuffer(empty[1], np.int64).tolist() == [0]
 
 
-def test_mode_bins_of_versions_are_each_versions_own():
+@pytest.mark.parametrize("polar", [None, (80, 0.85)])
+def test_mode_bins_of_versions_are_each_versions_own(polar):
     """mode_bins_versions bins versions of one object on the same modes (JointModes.with_data: metacal's) at
     once: entry i * V + v is version v's bins at ellipticity i, byte for byte mode_bins' of that version, and
     models summed from them are that version's. make_bins refuses weights that are not V sets of the modes'."""
@@ -612,14 +669,16 @@ def test_mode_bins_of_versions_are_each_versions_own():
     assert shares_bins_geometry(jms) and jm0.multi.size > 0
     assert not np.array_equal(_packed_bins(jms[1])[1], _packed_bins(jm0)[1])
     e1, e2 = rng.uniform(-0.7, 0.7, (2, 11))
-    together = mode_bins_versions(jms, e1, e2, 16)
+    if polar is not None:
+        e1[0], e2[0] = 0.8, 0.5   # one above the polar grid's limit: binned mode by mode
+    together = mode_bins_versions(jms, e1, e2, 16, polar=polar)
     nv = len(jms)
     lo, off = np.frombuffer(together.lo, np.int64), np.frombuffer(together.offsets, np.int64)
     cols, dc = np.frombuffer(together.columns), np.frombuffer(together.dc)
     assert lo.size == e1.size * nv and together.shape.shape == (e1.size * nv, 3)
     r = np.geomspace(0.05, 1.5, 4)
     for v, jm in enumerate(jms):
-        own = mode_bins(jm, e1, e2, 16)
+        own = mode_bins(jm, e1, e2, 16, polar=polar)
         olo, ooff = np.frombuffer(own.lo, np.int64), np.frombuffer(own.offsets, np.int64)
         ocols, odc = np.frombuffer(own.columns), np.frombuffer(own.dc)
         for i in range(e1.size):

@@ -135,6 +135,18 @@ class FitConfig:
         "bins by cubic interpolation, so errors scale as the inverse fourth power: 16 gives sums within 1e-5 of "
         "every mode's, benchmarks/speed.py --check); 0 evaluates "
         "every mode (also what the numpy path without the compiled kernel does)", "DESIGN: speed")
+    mode_polar_angles: int = setting(
+        80, "the modes of a fit are first spread onto a grid in log |K|^2 (a node every second bin of "
+        "mode_bins_per_octave) and in the direction of K (this many nodes over 180 deg), by interpolation of six "
+        "points in each; an ellipticity's bins are then made from the grid's nodes instead of every mode (their "
+        "K^T C K is |K|^2 times a factor of the direction only), at a cost that does not grow with the number of "
+        "modes. 80 puts the log-likelihood as close to every mode's as the bins of every mode are (1.5e-4 nats at "
+        "SNR 25, benchmarks/README.md session 77); 0 bins every mode for every ellipticity", "DESIGN: speed")
+    mode_polar_e_max: float = setting(
+        0.95, "ellipticities up to this |e| are binned from the grid of mode_polar_angles, those above it mode by "
+        "mode (a model of high |e| varies with the direction of K over an angle of order its axis ratio q; at "
+        "|e| 0.95, q = 0.026, the grid's log-likelihoods are still as close to every mode's as at |e| 0.3, "
+        "benchmarks/README.md session 77)", "DESIGN: speed")
     alias_correction: str = setting(
         "moffat",
         "high frequencies of a native-sampled PSF: 'moffat' models them with a circular Moffat fitted to the PSF "
@@ -316,6 +328,11 @@ class FitConfig:
                                      "1")
         if not 0 <= self.mode_bins_per_octave <= 4096:
             raise ShearfitValueError(f"setting mode_bins_per_octave={self.mode_bins_per_octave!r} must lie in [0, 4096]")
+        if not (self.mode_polar_angles == 0 or 12 <= self.mode_polar_angles <= 4096):
+            raise ShearfitValueError(f"setting mode_polar_angles={self.mode_polar_angles!r} must be 0 or lie in "
+                                     "[12, 4096]")
+        if not 0 <= self.mode_polar_e_max < 1:
+            raise ShearfitValueError(f"setting mode_polar_e_max={self.mode_polar_e_max!r} must lie in [0, 1)")
 
     def replace(self, **changes) -> "FitConfig":
         return fit_config_from_mapping({**self.to_dict(), **changes})

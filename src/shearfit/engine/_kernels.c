@@ -531,6 +531,201 @@ static void bin_scatter(const float *C8, Py_ssize_t n_single, const int *idx, co
 #define BPAD 8     /* bins per ellipticity padded to a multiple of this (one vector), with zero weights */
 
 /*
+ * The polar grid (issue 27): the modes spread once per object onto a grid uniform in u = nb log2 |K|^2 (a node
+ * every POLAR_HU bins) and in psi = 2 phi (phi the direction of K; npsi nodes over 2 pi, periodic), by
+ * Lagrange interpolation of six points in u and in psi. A model's K^T C K is |K|^2 A(psi), so a
+ * node of the grid lies at u + nb log2 A(psi) on the bins' axis: every node of one psi column is moved by the
+ * same amount, and the column is shared among the bins by the cubic sharing of make_bins with weights common to
+ * the column. The modes' sums (any function of log K^T C K smooth on the nodes' scale) are then right to sixth
+ * order in the nodes' spacing in u and in psi (and to the bins' fourth), and each ellipticity costs the grid's nodes (a few
+ * thousand, whatever the number of exposures) instead of every mode, with no per-node position or weight.
+ * The grid cannot follow a model of high |e|, whose A(psi) varies over an angle of order its axis ratio q:
+ * make_bins bins such ellipticities mode by mode.
+ */
+#define POLAR_HU 2
+#define POLAR_TU 6       /* points of the interpolation in u (nodes -2 .. 3 around a mode) */
+#define POLAR_TPSI 6     /* and in psi */
+#define POLAR_MARGIN 3   /* empty node rows below and above the modes' (the cubic sharing reaches one beyond) */
+
+/* the weights of Lagrange interpolation at y in [0, 1) over the nodes -2 .. 3 */
+static inline void lagrange6(double y, double *w)
+{
+    const double ym2 = y + 2.0, ym1 = y + 1.0, y1 = y - 1.0, y2 = y - 2.0, y3 = y - 3.0;
+    w[0] = -ym1 * y * y1 * y2 * y3 / 120.0;
+    w[1] = ym2 * y * y1 * y2 * y3 / 24.0;
+    w[2] = -ym2 * ym1 * y1 * y2 * y3 / 12.0;
+    w[3] = ym2 * ym1 * y * y2 * y3 / 12.0;
+    w[4] = -ym2 * ym1 * y * y1 * y3 / 24.0;
+    w[5] = ym2 * ym1 * y * y1 * y2 / 120.0;
+}
+
+/*
+ * polar_grid(basis32, channels32, bins_per_octave, npsi[, versions]) -> (u0, n_u, grid, dc, rows): the modes
+ * (basis32 and channels32 as make_bins') spread onto the grid; u0 the first node row's u (an integer), grid
+ * float32 (versions, npsi, n_u, 8), dc float64 (versions, 8): the weights of the DC mode (K = 0), which the grid
+ * leaves out, rows int32 (npsi, 2): each column's first and last row that a mode reached (first > last: none).
+ */
+static PyObject *polar_grid(PyObject *self, PyObject *args)
+{
+    Py_buffer b3, c8;
+    int nb, npsi, nv = 1;
+    if (!PyArg_ParseTuple(args, "y*y*ii|i", &b3, &c8, &nb, &npsi, &nv)) return NULL;
+    const Py_ssize_t n = b3.len / (4 * (Py_ssize_t)sizeof(float));
+    if (nv < 1 || c8.len != (Py_ssize_t)nv * 8 * n * (Py_ssize_t)sizeof(float) || nb < 1 || nb > 4096 ||
+        npsi < POLAR_TPSI || npsi > 4096) {
+        RELEASE(&b3, &c8);
+        PyErr_SetString(PyExc_ValueError, "polar_grid: inconsistent buffers");
+        return NULL;
+    }
+    const float *B = (const float *)b3.buf;
+    const float *C = (const float *)c8.buf;
+    Py_ssize_t ns = n > 0 ? n : 1;
+    double *u = (double *)malloc(ns * sizeof(double)), *ps = (double *)malloc(ns * sizeof(double));
+    double *dc = (double *)calloc(8 * (Py_ssize_t)nv, sizeof(double));
+    int *rows = (int *)malloc(2 * (Py_ssize_t)npsi * sizeof(int));
+    float *G = NULL;
+    int nomem = u == NULL || ps == NULL || dc == NULL || rows == NULL;
+    double umin = INFINITY, umax = -INFINITY;
+    long long u0 = 0, n_u = 2 * POLAR_MARGIN + 4;
+    Py_ssize_t colsz = 0, vsz = 0;
+    Py_BEGIN_ALLOW_THREADS
+    for (Py_ssize_t j = 0; !nomem && j < n; j++) {
+        const double a = B[4 * j], b = B[4 * j + 1], c = B[4 * j + 2], k2 = a + c;
+        if (!(k2 > 0.0)) { u[j] = NAN; continue; }   /* the DC mode */
+        u[j] = nb * log2(k2);
+        ps[j] = atan2(b, a - c);   /* 2 phi: K^T C K = |K|^2 (mean + half (c2 cos psi + s2 sin psi)) */
+        umin = u[j] < umin ? u[j] : umin;
+        umax = u[j] > umax ? u[j] : umax;
+    }
+    if (!nomem && umin <= umax) {
+        u0 = (long long)floor(umin) - POLAR_HU * (POLAR_MARGIN + 2);
+        n_u = (long long)floor((umax - (double)u0) / POLAR_HU) + POLAR_MARGIN + 5;
+    }
+    colsz = 8 * (Py_ssize_t)n_u;
+    vsz = colsz * npsi;
+    if (!nomem) {
+        G = (float *)calloc((size_t)(vsz * nv), sizeof(float));
+        nomem = G == NULL;
+    }
+    for (int t = 0; t < npsi; t++) { rows[2 * t] = INT_MAX; rows[2 * t + 1] = INT_MIN; }
+    for (Py_ssize_t j = 0; !nomem && j < n; j++) {
+        if (u[j] != u[j]) {
+            for (int v = 0; v < nv; v++)
+                for (int t = 0; t < 8; t++) dc[8 * v + t] += C[((Py_ssize_t)v * n + j) * 8 + t];
+            continue;
+        }
+        const double tu = (u[j] - (double)u0) / POLAR_HU, fu = floor(tu);
+        double wd[POLAR_TU], wp[POLAR_TPSI];
+        lagrange6(tu - fu, wd);
+        float wu[POLAR_TU];
+        for (int r = 0; r < POLAR_TU; r++) wu[r] = (float)wd[r];
+        const int iu = (int)fu - 2;
+        const double tp = ps[j] / (2.0 * M_PI) * npsi;
+        const double fp = floor(tp);
+        lagrange6(tp - fp, wp);
+        int col = ((int)fp - 2) % npsi;
+        col = col < 0 ? col + npsi : col;
+        for (int a = 0; a < POLAR_TPSI; a++, col = col + 1 == npsi ? 0 : col + 1) {
+            rows[2 * col] = iu < rows[2 * col] ? iu : rows[2 * col];
+            rows[2 * col + 1] = iu + POLAR_TU - 1 > rows[2 * col + 1] ? iu + POLAR_TU - 1 : rows[2 * col + 1];
+            const float wa = (float)wp[a];
+            for (int v = 0; v < nv; v++) {
+                const v8fu cv = *(const v8fu *)(C + ((Py_ssize_t)v * n + j) * 8) * wa;
+                v8fu *g = (v8fu *)(G + v * vsz + col * colsz + 8 * (Py_ssize_t)iu);
+                for (int r = 0; r < POLAR_TU; r++) g[r] += wu[r] * cv;
+            }
+        }
+    }
+    Py_END_ALLOW_THREADS
+    PyObject *res = NULL;
+    if (!nomem) {
+        PyObject *g = PyBytes_FromStringAndSize((const char *)G, vsz * nv * (Py_ssize_t)sizeof(float));
+        PyObject *d = PyBytes_FromStringAndSize((const char *)dc, 8 * (Py_ssize_t)nv * sizeof(double));
+        PyObject *r = PyBytes_FromStringAndSize((const char *)rows, 2 * (Py_ssize_t)npsi * sizeof(int));
+        if (g && d && r) res = Py_BuildValue("LLOOO", u0, n_u, g, d, r);
+        Py_XDECREF(g);
+        Py_XDECREF(d);
+        Py_XDECREF(r);
+    }
+    free(u); free(ps); free(dc); free(rows); free(G);
+    RELEASE(&b3, &c8);
+    if (nomem) return PyErr_NoMemory();
+    return res;
+}
+
+/* one ellipticity's placement of the polar grid's columns: per column its base (the bin of node row 0's
+   floor) and four weights; returns the lowest and highest bin reached (LLONG_MAX, LLONG_MIN: none) */
+static void polar_place(double a0, double a1, double a2, int nb, long long u0, int npsi, const int *rows,
+                        const double *cs, long long *base, float *w4, long long *lo_out, long long *hi_out)
+{
+    long long lo = LLONG_MAX, hi = LLONG_MIN;
+    const double mean = 0.5 * (a0 + a2), hc = 0.5 * (a0 - a2);
+    for (int j = 0; j < npsi; j++) {
+        const double A = mean + hc * cs[2 * j] + a1 * cs[2 * j + 1];   /* cos, sin of psi_j = 2 pi j / npsi */
+        const double s = nb * fast_log2(A), fs = floor(s), t = s - fs;
+        const double tp = t + 1.0, tm = t - 1.0, tm2 = t - 2.0;
+        w4[4 * j] = (float)(-t * tm * tm2 / 6.0);
+        w4[4 * j + 1] = (float)(tp * tm * tm2 / 2.0);
+        w4[4 * j + 2] = (float)(-tp * t * tm2 / 2.0);
+        w4[4 * j + 3] = (float)(tp * t * tm / 6.0);
+        base[j] = u0 + (long long)fs;
+        if (rows[2 * j] > rows[2 * j + 1]) continue;
+        const long long a = base[j] + POLAR_HU * (long long)(rows[2 * j] - 1);
+        const long long b = base[j] + POLAR_HU * (long long)(rows[2 * j + 1] + 1) + 1;
+        lo = a < lo ? a : lo;
+        hi = b > hi ? b : hi;
+    }
+    *lo_out = lo;
+    *hi_out = hi;
+}
+
+/* the polar grid of one version (G: npsi columns of n_u rows of 8 floats) into the rows A (nbin + 1, zero; the
+   DC mode's weights into row nbin). Node m of a column sits at bin base + 2 m (+ the column's fraction) and
+   shares itself among bins base + 2m - 1 .. base + 2m + 2 (weights w0 .. w3), so bin base + 2m takes w1 G[m] +
+   w3 G[m - 1] and bin base + 2m + 1 takes w2 G[m] + w0 G[m + 1]: two rows written per node, none twice in a
+   row */
+static void polar_fill(const float *G, long long n_u, int npsi, const int *rows, const long long *base,
+                       const float *w4, const double *dcw, long long lo, Py_ssize_t nbin, float *A)
+{
+    const Py_ssize_t colsz = 8 * (Py_ssize_t)n_u;
+    for (int j = 0; j < npsi; j++) {
+        if (rows[2 * j] > rows[2 * j + 1]) continue;
+        const v8f *g = (const v8f *)(G + j * colsz);
+        const float w0 = w4[4 * j], w1 = w4[4 * j + 1], w2 = w4[4 * j + 2], w3 = w4[4 * j + 3];
+        const long long mlo = rows[2 * j] - 1, mhi = rows[2 * j + 1] + 1;
+        v8f *out = (v8f *)(A + 8 * (Py_ssize_t)(base[j] + POLAR_HU * mlo - lo));
+        for (long long m = mlo; m <= mhi; m++, out += 2) {
+            const v8f gm = g[m], gl = g[m - 1], gh = g[m + 1];
+            out[0] += w1 * gm + w3 * gl;
+            out[1] += w2 * gm + w0 * gh;
+        }
+    }
+    for (int t = 0; t < 8; t++) A[8 * nbin + t] += (float)dcw[t];
+}
+
+/* the rows of 8 floats (bins 0 .. nbin - 1; A 64-byte aligned) as NCH columns of npad doubles, zero from nbin:
+   eight bins at a time, each channel's eight values gathered from the eight rows in registers (a loop per
+   channel over the rows read each row seven times, one float at a time) */
+typedef double v8du __attribute__((vector_size(8 * sizeof(double)), aligned(sizeof(double))));
+static void rows_to_columns(const float *A, Py_ssize_t nbin, Py_ssize_t npad, double *blk)
+{
+    Py_ssize_t b = 0;
+    for (; b + 8 <= nbin; b += 8) {
+        const v8f *r = (const v8f *)(A + 8 * b);
+        const v8f r0 = r[0], r1 = r[1], r2 = r[2], r3 = r[3], r4 = r[4], r5 = r[5], r6 = r[6], r7 = r[7];
+        for (int t = 0; t < NCH; t++) {
+            const v8f c = {r0[t], r1[t], r2[t], r3[t], r4[t], r5[t], r6[t], r7[t]};
+            *(v8du *)(blk + t * npad + b) = __builtin_convertvector(c, v8du);
+        }
+    }
+    for (int t = 0; t < NCH; t++) {
+        double *ch = blk + t * npad;
+        for (Py_ssize_t k = b; k < nbin; k++) ch[k] = A[8 * k + t];
+        for (Py_ssize_t k = nbin; k < npad; k++) ch[k] = 0.0;
+    }
+}
+
+/*
  * make_bins(shape, basis32, channels32, bins_per_octave[, versions]) -> (lo, offsets, columns, dc): for
  * each ellipticity e (its shape coefficients c11, c12, c22), its bins lo[e] .. lo[e] + n - 1 (kappa_b =
  * 2^(b / nb)), every bin from the lowest to the highest a mode reached, padded with empty bins to a
@@ -543,19 +738,41 @@ static void bin_scatter(const float *C8, Py_ssize_t n_single, const int *idx, co
  */
 static PyObject *make_bins(PyObject *self, PyObject *args)
 {
-    Py_buffer shape, b3, c8;
-    int nb, nv = 1;
-    if (!PyArg_ParseTuple(args, "y*y*y*i|i", &shape, &b3, &c8, &nb, &nv)) return NULL;
+    Py_buffer shape, b3, c8, pg = {0}, pdc = {0}, prw = {0};
+    int nb, nv = 1, npsi = 0;
+    long long pu0 = 0, pnu = 0;
+    double q2min = 2.0;   /* the polar grid for ellipticities whose q^2 is at least this (2: none) */
+    if (!PyArg_ParseTuple(args, "y*y*y*i|i(LLy*y*y*id)", &shape, &b3, &c8, &nb, &nv, &pu0, &pnu, &pg, &pdc, &prw,
+                          &npsi, &q2min)) return NULL;
     Py_ssize_t n_e = shape.len / (3 * (Py_ssize_t)sizeof(double));
     Py_ssize_t n_single = b3.len / (4 * (Py_ssize_t)sizeof(float));
-    if (nv < 1 || c8.len != (Py_ssize_t)nv * 8 * n_single * (Py_ssize_t)sizeof(float) || nb < 1 || nb > 4096) {
-        RELEASE(&shape, &b3, &c8);
+    const int polar = npsi > 0;
+    if (nv < 1 || c8.len != (Py_ssize_t)nv * 8 * n_single * (Py_ssize_t)sizeof(float) || nb < 1 || nb > 4096 ||
+        (polar && (pnu < 2 * POLAR_MARGIN + 4 || pg.len != (Py_ssize_t)nv * npsi * pnu * 8 * (Py_ssize_t)sizeof(float)
+                   || pdc.len != (Py_ssize_t)nv * 8 * (Py_ssize_t)sizeof(double)
+                   || prw.len != 2 * (Py_ssize_t)npsi * (Py_ssize_t)sizeof(int)))) {
+        RELEASE(&shape, &b3, &c8, &pg, &pdc, &prw);
         PyErr_SetString(PyExc_ValueError, "make_bins: inconsistent buffers");
         return NULL;
     }
     const double *S = (const double *)shape.buf;
     Py_ssize_t ns = n_single > 0 ? n_single : 1;
     int *idx = (int *)malloc(ns * sizeof(int));
+    long long *pbase = (long long *)malloc((npsi > 0 ? npsi : 1) * sizeof(long long));
+    float *pw4 = (float *)malloc(4 * (npsi > 0 ? npsi : 1) * sizeof(float));
+    double *pcs = (double *)malloc(2 * (npsi > 0 ? npsi : 1) * sizeof(double));
+    /* the grid copied to 64-byte boundaries: a bytes object's data lie 16 bytes off, and half its rows' loads then
+       straddled two cache lines */
+    float *pga = NULL;
+    if (polar) {
+        void *pa = NULL;
+        pga = posix_memalign(&pa, 64, pg.len > 0 ? pg.len : 64) == 0 ? (float *)pa : NULL;
+        if (pga != NULL) memcpy(pga, pg.buf, pg.len);
+    }
+    for (int j = 0; pcs != NULL && j < npsi; j++) {
+        pcs[2 * j] = cos(2.0 * M_PI * j / npsi);
+        pcs[2 * j + 1] = sin(2.0 * M_PI * j / npsi);
+    }
     double *frac = (double *)malloc(ns * sizeof(double));   /* scratch: each mode's K^T C K or position */
     float *w4 = (float *)malloc(4 * ns * sizeof(float));      /* its four weights */
     const Py_ssize_t n_out = n_e * nv;   /* entries: ellipticity e, version v at e nv + v */
@@ -565,7 +782,8 @@ static PyObject *make_bins(PyObject *self, PyObject *args)
     float *A = NULL;
     double *cols = NULL;
     Py_ssize_t capA = 0, capC = 0, ncol = 0;
-    int nomem = (idx == NULL || frac == NULL || w4 == NULL || off == NULL || los == NULL || dc == NULL);
+    int nomem = (idx == NULL || frac == NULL || w4 == NULL || off == NULL || los == NULL || dc == NULL ||
+                 pbase == NULL || pw4 == NULL || pcs == NULL || (polar && pga == NULL));
     int own_cols = 0;   /* cols is memory of their own (malloc), not colobj's */
 
     /* the columns are written straight into the bytes returned, sized from above and shrunk at the end (a
@@ -587,7 +805,9 @@ static PyObject *make_bins(PyObject *self, PyObject *args)
         for (Py_ssize_t e = 0; bounded && e < n_e; e++) {
             const double a0 = S[3 * e], a1 = S[3 * e + 1], a2 = S[3 * e + 2];
             const double hm = 0.5 * (a0 + a2), hd = sqrt(0.25 * (a0 - a2) * (a0 - a2) + a1 * a1);
-            const double span = nb * (log2((hm + hd) * k2max) - log2((hm - hd) * k2min));
+            /* (the polar grid's columns reach a few node rows beyond the modes) */
+            const double span = nb * (log2((hm + hd) * k2max) - log2((hm - hd) * k2min)) +
+                                (polar ? 2 * POLAR_HU * (POLAR_MARGIN + 3) : 0);
             bounded = hm - hd > 0.0 && isfinite(span) && span < 1e6;
             total += (double)((((Py_ssize_t)ceil(span) + 8 + BPAD - 1) / BPAD) * BPAD) * nv;
         }
@@ -610,7 +830,13 @@ static PyObject *make_bins(PyObject *self, PyObject *args)
     for (Py_ssize_t e = 0; !nomem && e < n_e; e++) {
         const double a0 = S[3 * e], a1 = S[3 * e + 1], a2 = S[3 * e + 2];
         long long lo, hi;
-        bin_index_f32(P, n_single, a0, a1, a2, nb, frac, idx, w4, &lo, &hi);
+        const double hm = 0.5 * (a0 + a2), hd = sqrt(0.25 * (a0 - a2) * (a0 - a2) + a1 * a1);
+        /* q^2: the ratio of the shape matrix's eigenvalues */
+        const int use_polar = polar && hm - hd >= q2min * (hm + hd);
+        if (use_polar)
+            polar_place(a0, a1, a2, nb, pu0, npsi, (const int *)prw.buf, pcs, pbase, pw4, &lo, &hi);
+        else
+            bin_index_f32(P, n_single, a0, a1, a2, nb, frac, idx, w4, &lo, &hi);
         Py_ssize_t nbin = hi >= lo ? (Py_ssize_t)(hi - lo) + 1 : 0;
         Py_ssize_t npad = (nbin + BPAD - 1) / BPAD * BPAD;
         if (NACC * (nbin + 1) > capA) {
@@ -623,8 +849,12 @@ static PyObject *make_bins(PyObject *self, PyObject *args)
         }
         for (int v = 0; v < nv; v++) {
             const Py_ssize_t ev = e * nv + v;
-            memset(A, 0, NACC * (nbin + 1) * 8 * sizeof(float));
-            bin_scatter((const float *)c8.buf + (Py_ssize_t)v * 8 * n_single, n_single, idx, w4, lo, nbin, A);
+            memset(A, 0, (use_polar ? 1 : NACC) * (nbin + 1) * 8 * sizeof(float));
+            if (use_polar)
+                polar_fill(pga + (Py_ssize_t)v * npsi * pnu * 8, pnu, npsi, (const int *)prw.buf,
+                           pbase, pw4, (const double *)pdc.buf + 8 * v, lo, nbin, A);
+            else
+                bin_scatter((const float *)c8.buf + (Py_ssize_t)v * 8 * n_single, n_single, idx, w4, lo, nbin, A);
             if (NCH * (ncol + npad) > capC) {
                 capC = 2 * NCH * (ncol + npad);
                 double *r;
@@ -640,11 +870,7 @@ static PyObject *make_bins(PyObject *self, PyObject *args)
             off[ev] = ncol;
             los[ev] = nbin > 0 ? lo : 0;
             double *blk = cols + NCH * ncol;
-            for (int t = 0; t < NCH; t++) {
-                double *ch = blk + t * npad;
-                for (Py_ssize_t b = 0; b < nbin; b++) ch[b] = A[8 * b + t];
-                for (Py_ssize_t b = nbin; b < npad; b++) ch[b] = 0.0;
-            }
+            rows_to_columns(A, nbin, npad, blk);
             for (int t = 0; t < NCH; t++) dc[8 * ev + t] = A[8 * nbin + t];
             ncol += npad;
         }
@@ -670,10 +896,10 @@ static PyObject *make_bins(PyObject *self, PyObject *args)
         Py_XDECREF(c);
         Py_XDECREF(d);
     }
-    free(P); free(idx); free(frac); free(w4); free(off); free(los); free(dc); free(A);
+    free(P); free(idx); free(frac); free(w4); free(off); free(los); free(dc); free(A); free(pbase); free(pw4); free(pcs); free(pga);
     if (own_cols) free(cols);
     Py_XDECREF(colobj);
-    RELEASE(&shape, &b3, &c8);
+    RELEASE(&shape, &b3, &c8, &pg, &pdc, &prw);
     if (nomem) return PyErr_NoMemory();
     return res;
 }
@@ -2258,7 +2484,10 @@ static PyMethodDef methods[] = {
     {"size_marginal", size_marginal, METH_VARARGS,
      "size_marginal(ld, lb, fd, fb, bd, logprior, lsegprior, spline, interp, xf, u, rf, l0, logmix, out)"},
     {"make_bins", make_bins, METH_VARARGS,
-     "make_bins(shape, basis32, channels32, bins_per_octave[, versions]) -> (lo, offsets, columns, dc)"},
+     "make_bins(shape, basis32, channels32, bins_per_octave[, versions[, (u0, n_u, grid, dc, rows, npsi, q2min)]]) "
+     "-> (lo, offsets, columns, dc)"},
+    {"polar_grid", polar_grid, METH_VARARGS,
+     "polar_grid(basis32, channels32, bins_per_octave, npsi[, versions]) -> (u0, n_u, grid, dc, rows)"},
     {"table_interp", table_interp, METH_VARARGS,
      "table_interp(x, xp, fp, index, base, shift, right, out): np.interp(x, xp, fp, right=right), bucketed search"},
     {"find_peak", find_peak, METH_VARARGS,

@@ -204,9 +204,18 @@ def _packed_bins(jm):
     cache = getattr(jm, "_bins32", None)
     if cache is None:
         order, b3, qcol, pair_basis, pa, pb, ph = _bins_geometry(jm)
-        c8 = np.zeros((order.size, 8), np.float32)
-        c8[:, :6] = linear_vectors(jm)[:, order].T
+        # linear_vectors' rows in the modes' order, each made straight into its column
+        z, kx, ky = jm.z[order], jm.kx[order], jm.ky[order]
+        zr, zi = z.real, z.imag
+        c8 = np.empty((order.size, 8), np.float32)
+        c8[:, 0] = zr
+        c8[:, 1] = kx * zi
+        c8[:, 2] = ky * zi
+        c8[:, 3] = -kx * kx * zr
+        c8[:, 4] = -kx * ky * zr
+        c8[:, 5] = -ky * ky * zr
         c8[:, 6] = qcol
+        c8[:, 7] = 0.0
         cache = jm._bins32 = (b3, c8, pair_basis, pa, pb, ph)
     return cache
 
@@ -619,16 +628,50 @@ class ModeBins:
     dc: bytes              # float64 (n_e, 8): the DC mode's weights
 
 
-def mode_bins(jm: JointModes, e1, e2, bins_per_octave) -> ModeBins:
+def polar_setting(cfg):
+    """(angles, e_max) of a FitConfig's polar grid (:func:`mode_bins`), or None where it is off."""
+    n = int(cfg.mode_polar_angles)
+    return (n, float(cfg.mode_polar_e_max)) if n > 0 else None
+
+
+def _polar_args(grid, polar):
+    """make_bins' polar argument: the grid (KERNEL.polar_grid's), its angles and the least q^2 binned from it."""
+    n, e_max = polar
+    q = (1.0 - e_max) / (1.0 + e_max)
+    return grid + (n, q * q)
+
+
+def polar_grid(jm: JointModes, bins_per_octave, angles):
+    """The object's modes spread onto the polar grid of :func:`mode_bins` (cached per bins and angles)."""
+    key = (int(bins_per_octave), int(angles))
+    cache = getattr(jm, "_polar", None)
+    if cache is None or cache[0] != key:
+        b3, c8 = _packed_bins(jm)[:2]
+        cache = jm._polar = (key, KERNEL.polar_grid(b3, c8, key[0], key[1]))
+    return cache[1]
+
+
+def mode_bins(jm: JointModes, e1, e2, bins_per_octave, polar=None) -> ModeBins:
     """Bin the modes for each ellipticity (e1[i], e2[i]), in K^T C K, ``bins_per_octave`` bins per factor of
     2, uniform in log K^T C K (each mode shared among four bins by cubic interpolation). Models of any size
     at one of these ellipticities then cost one evaluation per bin instead of per mode (:func:`model_sums`,
     ``bins``); the fold groups' cross terms, one product per pair of modes, with the modes' transforms
-    interpolated from the bins' (see :func:`_packed_bins`)."""
+    interpolated from the bins' (see :func:`_packed_bins`).
+
+    ``polar``: (angles, e_max) (:func:`polar_setting`). The modes are then spread once onto a grid uniform in
+    log |K|^2 (a node every second bin) and in the direction of K (``angles`` nodes over 180 deg), and the
+    ellipticities up to ``e_max`` are binned from its nodes: K^T C K = |K|^2 A(direction), so every node of one
+    direction moves along the bins' axis by the same log A, and a whole column of nodes is shared among the bins
+    with one set of weights (``_kernels.c``, polar_grid). The cost no longer grows with the number of modes
+    (exposures); the sums are right to fourth order in the nodes' spacing in log |K|^2 and to sixth in angle."""
     shape = np.ascontiguousarray(np.stack(shape_matrix(np.atleast_1d(np.asarray(e1, float)),
                                                        np.atleast_1d(np.asarray(e2, float))), axis=1))
     b3, c8 = _packed_bins(jm)[:2]
-    lo, offsets, columns, dc = KERNEL.make_bins(shape, b3, c8, int(bins_per_octave))
+    if polar is not None:
+        extra = (1, _polar_args(polar_grid(jm, bins_per_octave, polar[0]), polar))
+    else:
+        extra = ()
+    lo, offsets, columns, dc = KERNEL.make_bins(shape, b3, c8, int(bins_per_octave), *extra)
     return ModeBins(shape=shape, bins_per_octave=int(bins_per_octave), lo=lo, offsets=offsets, columns=columns,
                     dc=dc)
 
@@ -648,18 +691,32 @@ def versions_channels(jms) -> np.ndarray:
     return np.concatenate([_packed_bins(j)[1] for j in jms])
 
 
-def mode_bins_versions(jms, e1, e2, bins_per_octave, channels=None) -> ModeBins:
+def versions_polar_grid(jms, channels, bins_per_octave, angles):
+    """The polar grid (:func:`mode_bins`) of versions of one object (their :func:`versions_channels`), for
+    :func:`mode_bins_versions`: each version's grid is the one its own :func:`polar_grid` makes."""
+    b3 = _packed_bins(jms[0])[0]
+    return KERNEL.polar_grid(b3, channels, int(bins_per_octave), int(angles), len(jms))
+
+
+def mode_bins_versions(jms, e1, e2, bins_per_octave, channels=None, polar=None, grid=None) -> ModeBins:
     """:func:`mode_bins` of several versions of one object at once (JointModes on the same modes, with other
     data: :func:`shares_bins_geometry`): entry ``i * V + v`` of the result is version v's bins at
     ellipticity i, the same numbers as ``mode_bins(jms[v], ...)``'s entry i. Each ellipticity's bin
     positions and interpolation weights are found once for the V versions. ``channels``:
-    :func:`versions_channels` of ``jms``, made once for many calls."""
+    :func:`versions_channels` of ``jms``, made once for many calls; ``polar`` as :func:`mode_bins`'s, with
+    ``grid`` :func:`versions_polar_grid`'s (made here if None)."""
     nv = len(jms)
     c8 = versions_channels(jms) if channels is None else channels
     shape = np.ascontiguousarray(np.stack(shape_matrix(np.atleast_1d(np.asarray(e1, float)),
                                                        np.atleast_1d(np.asarray(e2, float))), axis=1))
     b3 = _packed_bins(jms[0])[0]
-    lo, offsets, columns, dc = KERNEL.make_bins(shape, b3, c8, int(bins_per_octave), nv)
+    if polar is not None:
+        if grid is None:
+            grid = versions_polar_grid(jms, c8, bins_per_octave, polar[0])
+        extra = (_polar_args(grid, polar),)
+    else:
+        extra = ()
+    lo, offsets, columns, dc = KERNEL.make_bins(shape, b3, c8, int(bins_per_octave), nv, *extra)
     return ModeBins(shape=np.ascontiguousarray(np.repeat(shape, nv, axis=0)), bins_per_octave=int(bins_per_octave),
                     lo=lo, offsets=offsets, columns=columns, dc=dc)
 

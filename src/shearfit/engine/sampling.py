@@ -28,7 +28,8 @@ from . import priors
 from ..config import FitConfig
 from .kernel import KERNEL, USE_KERNEL
 from .likelihood import (Marginal, linear_vectors, flux_position_marginal, mode_bins,
-                         mode_bins_versions, model_sums, node_matrices, shares_bins_geometry, versions_channels)
+                         mode_bins_versions, model_sums, node_matrices, polar_setting, shares_bins_geometry,
+                         versions_channels, versions_polar_grid)
 
 __all__ = ["EllipticityLikelihood", "VersionLikelihoods", "Samples", "adaptive_samples", "two_pass_samples",
            "replay_samples", "replay_versions", "adaptive_versions",
@@ -295,7 +296,7 @@ class EllipticityLikelihood:
         ne = e1.size
         keys = e_key(e1, e2)
         # the chunk's modes binned once per ellipticity, for the size-locating passes and the nodes
-        bins = mode_bins(self.jm, e1, e2, cfg.mode_bins_per_octave) if (
+        bins = mode_bins(self.jm, e1, e2, cfg.mode_bins_per_octave, polar=polar_setting(cfg)) if (
             USE_KERNEL and cfg.mode_bins_per_octave > 0) else None
         tail, tail_point = np.zeros(ne, bool), None
         if self.fixed_centres is not None:
@@ -435,6 +436,8 @@ class VersionLikelihoods:
                               for lk in self.likes[1:])
                       and shares_bins_geometry([lk.jm for lk in self.likes]))
         self.channels = versions_channels([lk.jm for lk in self.likes]) if self.joint else None
+        self.polar = polar_setting(l0.cfg) if self.joint else None
+        self.grid = None   # the versions' polar grid, made at the first call
 
     def __call__(self, e1, e2, versions=None) -> list:
         """``[like(e1, e2) for like in likes]``, over the likelihoods ``versions`` (indices; None: all)."""
@@ -454,8 +457,11 @@ class VersionLikelihoods:
         l0 = likes[0]
         nv, ne, nr = len(likes), e1.size, l0.x.size
         keys = e_key(e1, e2)
-        bins = mode_bins_versions([lk.jm for lk in likes], e1, e2, l0.cfg.mode_bins_per_octave,
-                                  channels=self.channels)
+        jms = [lk.jm for lk in likes]
+        if self.polar is not None and self.grid is None:
+            self.grid = versions_polar_grid(jms, self.channels, l0.cfg.mode_bins_per_octave, self.polar[0])
+        bins = mode_bins_versions(jms, e1, e2, l0.cfg.mode_bins_per_octave, channels=self.channels,
+                                  polar=self.polar, grid=self.grid)
         rc = l0.replayed_centres(e1, e2, keys)
         for lk in likes:
             lk.centres.update(zip(keys, rc.tolist()))
