@@ -514,7 +514,8 @@ def test_polar_grid_bins_match_every_mode():
     The grid's nodes hold the modes' weights in total (its interpolation weights sum to one) and the DC
     mode's apart."""
     from shearfit.engine import likelihood
-    from shearfit.engine.likelihood import _packed_bins, join_exposures, mode_bins, model_sums, polar_grid
+    from shearfit.engine.likelihood import (_packed_bins, join_exposures, mode_bins, model_sums, polar_grid,
+                                            polar_pays)
     from shearfit.engine.model import prepare_exposure
     from shearfit.engine.profiles import FastRadial, de_vaucouleurs, exponential_disk, fast_pair
 
@@ -524,6 +525,7 @@ def test_polar_grid_bins_match_every_mode():
     assert (cfg.mode_polar_angles, cfg.mode_polar_e_max) == (80, 0.95)
     obs = _observations(0.3, (0.2, 0.1), noise=True, snr=60)
     jm = join_exposures([prepare_exposure(o, cfg) for o in obs])
+    assert polar_pays(jm, 16, 48) and polar_pays(jm, 16, 80)
     rng = np.random.default_rng(2)
     e = rng.uniform(0, 0.85, 25) * np.exp(2j * np.pi * rng.uniform(size=25))
     e1, e2 = e.real, e.imag
@@ -559,6 +561,33 @@ def test_polar_grid_bins_match_every_mode():
     np.testing.assert_allclose(g.sum(axis=(0, 1))[:7], total[:7], rtol=0, atol=2e-5 * np.abs(c8).sum(axis=0).max())
     rows = np.frombuffer(rows, np.int32).reshape(80, 2)
     assert np.all(rows[:, 0] >= 3) and np.all(rows[:, 1] <= n_u - 4)
+
+
+def test_polar_grid_only_where_it_pays():
+    """Exposures that share a Jacobian merge their modes (dithers only change phases): a thousand modes cost
+    less binned one by one than the polar grid's nodes, and mode_bins then bins every mode, byte for byte as
+    without the grid; the same galaxy on exposures of their own rotations keeps five times the modes and is
+    binned from the grid."""
+    from shearfit.engine import likelihood
+    from shearfit.engine.likelihood import join_exposures, mode_bins, polar_pays
+    from shearfit.engine.model import prepare_exposures
+
+    if not likelihood.USE_KERNEL:
+        pytest.skip("compiled kernel not built")
+    cfg = shearfit.FitConfig()
+    one = _observations(0.3, (0.2, 0.1), n_exp=7, noise=True, snr=40)
+    rng = np.random.default_rng(3)
+    jac = [PIX * np.array([[np.cos(t), -np.sin(t)], [np.sin(t), np.cos(t)]]) for t in rng.uniform(-0.1, 0.1, 7)]
+    own = _observations(0.3, (0.2, 0.1), n_exp=7, jacobians=jac, noise=True, snr=40)
+    jm1 = join_exposures(prepare_exposures(one, cfg), cfg.mode_chi2_tolerance)
+    jm7 = join_exposures(prepare_exposures(own, cfg), cfg.mode_chi2_tolerance)
+    assert jm7.n_modes > 4 * jm1.n_modes
+    assert not polar_pays(jm1, 16, 80) and polar_pays(jm7, 16, 80)
+    e1, e2 = rng.uniform(-0.5, 0.5, (2, 6))
+    a, b = mode_bins(jm1, e1, e2, 16, polar=(80, 0.95)), mode_bins(jm1, e1, e2, 16)
+    assert (a.lo, a.offsets, a.columns, a.dc) == (b.lo, b.offsets, b.columns, b.dc)
+    a, b = mode_bins(jm7, e1, e2, 16, polar=(80, 0.95)), mode_bins(jm7, e1, e2, 16)
+    assert a.columns != b.columns
 
 
 def _distorted_observations(n_exp, seed, snr):
@@ -667,6 +696,7 @@ def test_mode_bins_of_versions_are_each_versions_own(polar):
         other = [o.with_image(o.image + rng.normal(0, 0.3, o.image.shape) / np.sqrt(o.weight)) for o in obs]
         jms.append(jm0.with_data(prepare_exposures(other, cfg, likes=ex0)))
     assert shares_bins_geometry(jms) and jm0.multi.size > 0
+    assert polar is None or likelihood.polar_pays(jm0, 16, polar[0])
     assert not np.array_equal(_packed_bins(jms[1])[1], _packed_bins(jm0)[1])
     e1, e2 = rng.uniform(-0.7, 0.7, (2, 11))
     if polar is not None:

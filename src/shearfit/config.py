@@ -141,7 +141,9 @@ class FitConfig:
         "points in each; an ellipticity's bins are then made from the grid's nodes instead of every mode (their "
         "K^T C K is |K|^2 times a factor of the direction only), at a cost that does not grow with the number of "
         "modes. 80 puts the log-likelihood as close to every mode's as the bins of every mode are (1.5e-4 nats at "
-        "SNR 25, benchmarks/README.md session 77); 0 bins every mode for every ellipticity", "DESIGN: speed")
+        "SNR 25, benchmarks/README.md session 77). Used where it costs less than binning every mode: exposures that "
+        "share a Jacobian merge their modes, and a thousand modes are binned one by one (likelihood.polar_pays). 0 bins "
+        "every mode for every ellipticity", "DESIGN: speed")
     mode_polar_e_max: float = setting(
         0.95, "ellipticities up to this |e| are binned from the grid of mode_polar_angles, those above it mode by "
         "mode (a model of high |e| varies with the direction of K over an angle of order its axis ratio q; at "

@@ -641,6 +641,30 @@ def _polar_args(grid, polar):
     return grid + (n, q * q)
 
 
+#: the polar grid's cost model (:func:`polar_pays`), ns per ellipticity on an AMD EPYC Zen 4 with the AVX2 loops
+#: (benchmarks/README.md, session 77): binning mode by mode POLAR_DIRECT_NS + POLAR_MODE_NS per mode; from the grid
+#: POLAR_NODE_NS per node, plus the grid's making (70 ns per mode an object) over about 260 ellipticities
+POLAR_DIRECT_NS, POLAR_MODE_NS, POLAR_NODE_NS, POLAR_SPREAD_NS = 1460.0, 3.62, 1.3, 0.27
+
+
+def polar_pays(jm: JointModes, bins_per_octave, angles) -> bool:
+    """Whether binning from the polar grid (:func:`mode_bins`) costs less than binning every mode, for these
+    modes: their number against the grid's nodes (``angles`` columns over the modes' range of log |K|^2, a node every
+    second bin). Exposures that share a Jacobian merge their modes (dithers only change phases), and a thousand
+    modes cost less mode by mode than the grid's nodes (cached; the modes alone decide it, not the machine)."""
+    key = (int(bins_per_octave), int(angles))
+    cache = getattr(jm, "_polar_pays", None)
+    if cache is None or cache[0] != key:
+        b3 = _packed_bins(jm)[0]
+        k2 = b3[:, 0].astype(float) + b3[:, 2]
+        k2 = k2[k2 > 0]
+        n = k2.size
+        nodes = key[1] * (0.5 * key[0] * np.log2(k2.max() / k2.min()) + 3.0) if n else 0.0
+        pays = n > 0 and POLAR_NODE_NS * nodes + POLAR_SPREAD_NS * n < POLAR_DIRECT_NS + POLAR_MODE_NS * n
+        cache = jm._polar_pays = (key, bool(pays))
+    return cache[1]
+
+
 def polar_grid(jm: JointModes, bins_per_octave, angles):
     """The object's modes spread onto the polar grid of :func:`mode_bins` (cached per bins and angles)."""
     key = (int(bins_per_octave), int(angles))
@@ -663,11 +687,13 @@ def mode_bins(jm: JointModes, e1, e2, bins_per_octave, polar=None) -> ModeBins:
     ellipticities up to ``e_max`` are binned from its nodes: K^T C K = |K|^2 A(direction), so every node of one
     direction moves along the bins' axis by the same log A, and a whole column of nodes is shared among the bins
     with one set of weights (``_kernels.c``, polar_grid). The cost no longer grows with the number of modes
-    (exposures); the sums are right to fourth order in the nodes' spacing in log |K|^2 and to sixth in angle."""
+    (exposures); the sums are right to sixth order in the nodes' spacing in log |K|^2 and in angle. Where the
+    modes are fewer than the grid's nodes pay for (:func:`polar_pays`: exposures sharing a Jacobian), every
+    mode is binned as without ``polar``."""
     shape = np.ascontiguousarray(np.stack(shape_matrix(np.atleast_1d(np.asarray(e1, float)),
                                                        np.atleast_1d(np.asarray(e2, float))), axis=1))
     b3, c8 = _packed_bins(jm)[:2]
-    if polar is not None:
+    if polar is not None and polar_pays(jm, bins_per_octave, polar[0]):
         extra = (1, _polar_args(polar_grid(jm, bins_per_octave, polar[0]), polar))
     else:
         extra = ()
@@ -703,14 +729,15 @@ def mode_bins_versions(jms, e1, e2, bins_per_octave, channels=None, polar=None, 
     data: :func:`shares_bins_geometry`): entry ``i * V + v`` of the result is version v's bins at
     ellipticity i, the same numbers as ``mode_bins(jms[v], ...)``'s entry i. Each ellipticity's bin
     positions and interpolation weights are found once for the V versions. ``channels``:
-    :func:`versions_channels` of ``jms``, made once for many calls; ``polar`` as :func:`mode_bins`'s, with
-    ``grid`` :func:`versions_polar_grid`'s (made here if None)."""
+    :func:`versions_channels` of ``jms``, made once for many calls; ``polar`` as :func:`mode_bins`'s (the
+    versions' shared modes decide whether it pays), with ``grid`` :func:`versions_polar_grid`'s (made here if
+    None)."""
     nv = len(jms)
     c8 = versions_channels(jms) if channels is None else channels
     shape = np.ascontiguousarray(np.stack(shape_matrix(np.atleast_1d(np.asarray(e1, float)),
                                                        np.atleast_1d(np.asarray(e2, float))), axis=1))
     b3 = _packed_bins(jms[0])[0]
-    if polar is not None:
+    if polar is not None and polar_pays(jms[0], bins_per_octave, polar[0]):
         if grid is None:
             grid = versions_polar_grid(jms, c8, bins_per_octave, polar[0])
         extra = (_polar_args(grid, polar),)

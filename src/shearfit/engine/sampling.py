@@ -28,8 +28,8 @@ from . import priors
 from ..config import FitConfig
 from .kernel import KERNEL, USE_KERNEL
 from .likelihood import (Marginal, linear_vectors, flux_position_marginal, mode_bins,
-                         mode_bins_versions, model_sums, node_matrices, polar_setting, shares_bins_geometry,
-                         versions_channels, versions_polar_grid)
+                         mode_bins_versions, model_sums, node_matrices, polar_pays, polar_setting,
+                         shares_bins_geometry, versions_channels, versions_polar_grid)
 
 __all__ = ["EllipticityLikelihood", "VersionLikelihoods", "Samples", "adaptive_samples", "two_pass_samples",
            "replay_samples", "replay_versions", "adaptive_versions",
@@ -459,7 +459,10 @@ class VersionLikelihoods:
         keys = e_key(e1, e2)
         jms = [lk.jm for lk in likes]
         if self.polar is not None and self.grid is None:
-            self.grid = versions_polar_grid(jms, self.channels, l0.cfg.mode_bins_per_octave, self.polar[0])
+            if polar_pays(jms[0], l0.cfg.mode_bins_per_octave, self.polar[0]):
+                self.grid = versions_polar_grid(jms, self.channels, l0.cfg.mode_bins_per_octave, self.polar[0])
+            else:
+                self.polar = None
         bins = mode_bins_versions(jms, e1, e2, l0.cfg.mode_bins_per_octave, channels=self.channels,
                                   polar=self.polar, grid=self.grid)
         rc = l0.replayed_centres(e1, e2, keys)
