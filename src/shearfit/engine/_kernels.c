@@ -761,13 +761,17 @@ static PyObject *make_bins(PyObject *self, PyObject *args)
     long long *pbase = (long long *)malloc((npsi > 0 ? npsi : 1) * sizeof(long long));
     float *pw4 = (float *)malloc(4 * (npsi > 0 ? npsi : 1) * sizeof(float));
     double *pcs = (double *)malloc(2 * (npsi > 0 ? npsi : 1) * sizeof(double));
-    /* the grid copied to 64-byte boundaries: a bytes object's data lie 16 bytes off, and half its rows' loads then
-       straddled two cache lines */
-    float *pga = NULL;
+    /* the grid on 64-byte boundaries (likelihood.polar_grid keeps it so), else copied there: a bytes object's
+       data lie 16 bytes off, and half its rows' loads then straddled two cache lines */
+    float *pga = NULL, *pgown = NULL;
     if (polar) {
-        void *pa = NULL;
-        pga = posix_memalign(&pa, 64, pg.len > 0 ? pg.len : 64) == 0 ? (float *)pa : NULL;
-        if (pga != NULL) memcpy(pga, pg.buf, pg.len);
+        if (((uintptr_t)pg.buf & 63) == 0)
+            pga = (float *)pg.buf;
+        else {
+            void *pa = NULL;
+            pga = pgown = posix_memalign(&pa, 64, pg.len > 0 ? pg.len : 64) == 0 ? (float *)pa : NULL;
+            if (pga != NULL) memcpy(pga, pg.buf, pg.len);
+        }
     }
     for (int j = 0; pcs != NULL && j < npsi; j++) {
         pcs[2 * j] = cos(2.0 * M_PI * j / npsi);
@@ -896,7 +900,7 @@ static PyObject *make_bins(PyObject *self, PyObject *args)
         Py_XDECREF(c);
         Py_XDECREF(d);
     }
-    free(P); free(idx); free(frac); free(w4); free(off); free(los); free(dc); free(A); free(pbase); free(pw4); free(pcs); free(pga);
+    free(P); free(idx); free(frac); free(w4); free(off); free(los); free(dc); free(A); free(pbase); free(pw4); free(pcs); free(pgown);
     if (own_cols) free(cols);
     Py_XDECREF(colobj);
     RELEASE(&shape, &b3, &c8, &pg, &pdc, &prw);

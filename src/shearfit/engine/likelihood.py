@@ -205,15 +205,9 @@ def _packed_bins(jm):
     if cache is None:
         order, b3, qcol, pair_basis, pa, pb, ph = _bins_geometry(jm)
         # linear_vectors' rows in the modes' order, each made straight into its column
-        z, kx, ky = jm.z[order], jm.kx[order], jm.ky[order]
-        zr, zi = z.real, z.imag
         c8 = np.empty((order.size, 8), np.float32)
-        c8[:, 0] = zr
-        c8[:, 1] = kx * zi
-        c8[:, 2] = ky * zi
-        c8[:, 3] = -kx * kx * zr
-        c8[:, 4] = -kx * ky * zr
-        c8[:, 5] = -ky * ky * zr
+        for t, row in enumerate(_linear_rows(jm.z[order], jm.kx[order], jm.ky[order])):
+            c8[:, t] = row
         c8[:, 6] = qcol
         c8[:, 7] = 0.0
         cache = jm._bins32 = (b3, c8, pair_basis, pa, pb, ph)
@@ -601,11 +595,15 @@ class ModelSums:
         return np.ascontiguousarray(out, dtype=float)
 
 
+def _linear_rows(z, kx, ky):
+    """The six linear vectors of modes (z, kx, ky), one array each: h(x) = sum R Re(z exp(-i K.x)), its value,
+    gradient and Hessian at x = 0."""
+    zr, zi = z.real, z.imag
+    return zr, kx * zi, ky * zi, -kx * kx * zr, -kx * ky * zr, -ky * ky * zr
+
+
 def linear_vectors(jm: JointModes):
-    zr, zi = jm.z.real, jm.z.imag
-    kx, ky = jm.kx, jm.ky
-    # h(x) = sum R Re(z exp(-i K.x)): value, gradient and Hessian at x = 0
-    return np.stack([zr, kx * zi, ky * zi, -kx * kx * zr, -kx * ky * zr, -ky * ky * zr])
+    return np.stack(_linear_rows(jm.z, jm.kx, jm.ky))
 
 
 def _model_sums_kernel(jm, coef, fast, ratio):
@@ -665,13 +663,26 @@ def polar_pays(jm: JointModes, bins_per_octave, angles) -> bool:
     return cache[1]
 
 
+def _aligned_grid(grid):
+    """KERNEL.polar_grid's output with the grid's floats copied to 64-byte boundaries, as make_bins reads them
+    (it copies a grid that is not, at every call)."""
+    u0, n_u, g, dc, rows = grid
+    raw = np.frombuffer(g, np.uint8)
+    buf = np.empty(raw.size + 64, np.uint8)
+    off = -buf.ctypes.data % 64
+    out = buf[off:off + raw.size]
+    out[:] = raw
+    return u0, n_u, out, dc, rows
+
+
 def polar_grid(jm: JointModes, bins_per_octave, angles):
-    """The object's modes spread onto the polar grid of :func:`mode_bins` (cached per bins and angles)."""
+    """The object's modes spread onto the polar grid of :func:`mode_bins` (cached per bins and angles):
+    KERNEL.polar_grid's (u0, n_u, grid, dc, rows), the grid's float32 on 64-byte boundaries."""
     key = (int(bins_per_octave), int(angles))
     cache = getattr(jm, "_polar", None)
     if cache is None or cache[0] != key:
         b3, c8 = _packed_bins(jm)[:2]
-        cache = jm._polar = (key, KERNEL.polar_grid(b3, c8, key[0], key[1]))
+        cache = jm._polar = (key, _aligned_grid(KERNEL.polar_grid(b3, c8, key[0], key[1])))
     return cache[1]
 
 
@@ -721,7 +732,7 @@ def versions_polar_grid(jms, channels, bins_per_octave, angles):
     """The polar grid (:func:`mode_bins`) of versions of one object (their :func:`versions_channels`), for
     :func:`mode_bins_versions`: each version's grid is the one its own :func:`polar_grid` makes."""
     b3 = _packed_bins(jms[0])[0]
-    return KERNEL.polar_grid(b3, channels, int(bins_per_octave), int(angles), len(jms))
+    return _aligned_grid(KERNEL.polar_grid(b3, channels, int(bins_per_octave), int(angles), len(jms)))
 
 
 def mode_bins_versions(jms, e1, e2, bins_per_octave, channels=None, polar=None, grid=None) -> ModeBins:

@@ -459,11 +459,10 @@ class VersionLikelihoods:
         nv, ne, nr = len(likes), e1.size, l0.x.size
         keys = e_key(e1, e2)
         jms = [lk.jm for lk in likes]
-        if self.polar is not None and self.grid is None:
-            if polar_pays(jms[0], l0.cfg.mode_bins_per_octave, self.polar[0]):
-                self.grid = versions_polar_grid(jms, self.channels, l0.cfg.mode_bins_per_octave, self.polar[0])
-            else:
-                self.polar = None
+        # the versions' grid made once (mode_bins_versions bins every mode where it does not pay)
+        if self.grid is None and self.polar is not None and polar_pays(jms[0], l0.cfg.mode_bins_per_octave,
+                                                                       self.polar[0]):
+            self.grid = versions_polar_grid(jms, self.channels, l0.cfg.mode_bins_per_octave, self.polar[0])
         bins = mode_bins_versions(jms, e1, e2, l0.cfg.mode_bins_per_octave, channels=self.channels,
                                   polar=self.polar, grid=self.grid)
         rc = l0.replayed_centres(e1, e2, keys)
