@@ -32,6 +32,7 @@ import tempfile  # noqa: E402
 import time  # noqa: E402
 
 import numpy as np  # noqa: E402
+import yaml  # noqa: E402
 
 from shearfit.io.fieldconfig import load_field_config  # noqa: E402
 from shearfit.pipeline.driver import measure_field  # noqa: E402
@@ -299,6 +300,9 @@ def main(argv=None):
                     help="runs of each PSF mode, given and fitted alternately (a shared machine's speed drifts by "
                          "10-30 %% from minute to minute: the PSF stage is taken from each pair and from the medians)")
     ap.add_argument("--keep", default=None, help="keep the field in this directory")
+    ap.add_argument("--sim", action="append", default=[], metavar="KEY=VALUE",
+                    help="a simulation key of the field (e.g. exposure_rotation=0.5: every exposure its own "
+                         "rotation, so that no two share a Jacobian, as on a camera)")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="a setting of the engine or the pipeline for every run (e.g. psf_native_width=0)")
     ap.add_argument("--compare-with", default=None, metavar="DIR",
@@ -315,7 +319,11 @@ def main(argv=None):
     modes = ["true", "fitted"] if args.psf == "both" else [args.psf]
     with tempfile.TemporaryDirectory() as tmp:
         d = args.keep or tmp
-        sc = simulation_config({"preset": args.preset, "seed": args.seed})
+        sim = {"preset": args.preset, "seed": args.seed}
+        for kv in args.sim:
+            k, v = kv.split("=", 1)
+            sim[k.strip()] = yaml.safe_load(v)
+        sc = simulation_config(sim)
         t0 = time.perf_counter()
         simulate_field(sc, d)
         print(f"simulated preset {args.preset} in {time.perf_counter() - t0:.0f} s")

@@ -139,6 +139,32 @@ def test_coherent_psf_anisotropy_keeps_the_rest_of_the_field():
         simulation_config({"psf_e_fixed": [0.6, 0.0]})
 
 
+def test_exposure_rotation_turns_each_exposures_pixel_grid():
+    """exposure_rotation turns each exposure's pixel grid on the sky by a normal deviate of that rms (degrees),
+    the same for all its CCDs, keeping the pixel scale: no two exposures then share a Jacobian. 0 (the default)
+    leaves every exposure aligned, header for header as before the key existed."""
+    from shearfit.simulate.field import _ccd_header
+
+    plain = simulation_config({"seed": 4})
+    h0 = _ccd_header(plain, 1, 3)
+    assert (h0["CD1_2"], h0["CD2_1"]) == (0.0, 0.0) and h0["CD1_1"] == -h0["CD2_2"]
+    turned = simulation_config({"seed": 4, "exposure_rotation": 1.0})
+    angles = []
+    for k in range(400):
+        cds = [np.array([[h["CD1_1"], h["CD1_2"]], [h["CD2_1"], h["CD2_2"]]])
+               for h in (_ccd_header(turned, c, k) for c in range(2))]
+        assert np.array_equal(cds[0], cds[1])                       # one turn per exposure
+        r = cds[0] @ np.linalg.inv(np.array([[h0["CD1_1"], 0.0], [0.0, h0["CD2_2"]]]))
+        np.testing.assert_allclose(r @ r.T, np.eye(2), atol=1e-12)   # a rotation: the pixel scale kept
+        angles.append(np.degrees(np.arctan2(r[1, 0], r[0, 0])))
+    angles = np.array(angles)
+    assert np.unique(angles).size == angles.size
+    # rms 1 degree: 400 deviates put the sample rms within 0.1 of it (its error is 0.035)
+    assert abs(np.sqrt(np.mean(angles ** 2)) - 1.0) < 0.1 and abs(np.mean(angles)) < 0.15
+    with pytest.raises(ShearfitValueError, match="exposure_rotation"):
+        simulation_config({"exposure_rotation": 20})
+
+
 def test_antithetic_twin_reverses_only_the_noise(tmp_path):
     """noise_sign: -1 writes the same field with the pixel noise negated, everything else equal."""
     base = {"preset": "tiny", "seed": 11, "ccd_nx": 160, "ccd_ny": 160, "n_exposures": 1}

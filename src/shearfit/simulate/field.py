@@ -84,6 +84,9 @@ class SimulationConfig:
     ra: float = 35.0                     # field centre, degrees
     dec: float = -4.0
     dither: tuple = (7.3, -4.1)          # pixels per exposure, linear pattern
+    exposure_rotation: float = 0.0       # degrees rms: each exposure's pixel grid turned on the sky by a normal
+    #                                      deviate of this (a rotator's offsets), so that no two exposures share a
+    #                                      Jacobian (0: every exposure aligned, their Fourier modes merge)
     grid_spacing: float = 40.0           # pixels between galaxies (great suite)
     galaxy_density: float = 30.0         # per arcmin^2 (second suite: random positions)
     mag_range: tuple = (20.0, 24.7)
@@ -121,6 +124,9 @@ class SimulationConfig:
             raise ShearfitValueError(f"simulation key mag_range: {list(self.mag_range)} is empty")
         if self.noise_sign not in (1, 0, -1):
             raise ShearfitValueError(f"simulation key noise_sign: {self.noise_sign!r} is not 1, 0 or -1")
+        if not 0 <= float(self.exposure_rotation) <= 10:
+            raise ShearfitValueError(f"simulation key exposure_rotation: {self.exposure_rotation!r} degrees must lie "
+                                     "in [0, 10]")
         return self
 
 
@@ -176,6 +182,11 @@ def _ccd_header(sc: SimulationConfig, ccd, exposure):
     h["CRPIX1"] = sc.ccd_nx / 2 + 0.5 - off + dx
     h["CRPIX2"] = sc.ccd_ny / 2 + 0.5 + dy
     h["CD1_1"], h["CD1_2"], h["CD2_1"], h["CD2_2"] = -cd, 0.0, 0.0, cd
+    if sc.exposure_rotation > 0:
+        # the exposure's turn (the same for its CCDs), about the tangent point: CD -> R(t) CD
+        t = np.deg2rad(sc.exposure_rotation) * np.random.default_rng([sc.seed, 7919, exposure]).normal()
+        c, s = np.cos(t), np.sin(t)
+        h["CD1_1"], h["CD1_2"], h["CD2_1"], h["CD2_2"] = -c * cd, -s * cd, -s * cd, c * cd
     h["MAGZP"], h["GAIN"], h["SATURATE"] = ZERO_POINT, 1.0, 1e9
     h["CCDNUM"] = ccd + 1
     h["EXPNUM"] = exposure
