@@ -828,9 +828,8 @@ static PyObject *make_bins(PyObject *self, PyObject *args)
     /* the modes' basis as three arrays of doubles, for loops that vectorise */
     double *P = (double *)malloc(3 * ns * sizeof(double));
     nomem |= P == NULL;
+    int have_P = 0;   /* made at the first ellipticity binned mode by mode (none where the polar grid takes all) */
     Py_BEGIN_ALLOW_THREADS
-    for (Py_ssize_t j = 0; !nomem && j < n_single; j++)
-        for (int t = 0; t < 3; t++) P[t * n_single + j] = ((const float *)b3.buf)[4 * j + t];
     for (Py_ssize_t e = 0; !nomem && e < n_e; e++) {
         const double a0 = S[3 * e], a1 = S[3 * e + 1], a2 = S[3 * e + 2];
         long long lo, hi;
@@ -839,8 +838,14 @@ static PyObject *make_bins(PyObject *self, PyObject *args)
         const int use_polar = polar && hm - hd >= q2min * (hm + hd);
         if (use_polar)
             polar_place(a0, a1, a2, nb, pu0, npsi, (const int *)prw.buf, pcs, pbase, pw4, &lo, &hi);
-        else
+        else {
+            if (!have_P) {
+                for (Py_ssize_t j = 0; j < n_single; j++)
+                    for (int t = 0; t < 3; t++) P[t * n_single + j] = ((const float *)b3.buf)[4 * j + t];
+                have_P = 1;
+            }
             bin_index_f32(P, n_single, a0, a1, a2, nb, frac, idx, w4, &lo, &hi);
+        }
         Py_ssize_t nbin = hi >= lo ? (Py_ssize_t)(hi - lo) + 1 : 0;
         Py_ssize_t npad = (nbin + BPAD - 1) / BPAD * BPAD;
         if (NACC * (nbin + 1) > capA) {
