@@ -435,25 +435,59 @@ MODE_CUT = {"mode_chi2_tolerance": 0.0}
 
 
 class _TimedKernel:
-    """The compiled module with a clock around each call of its functions (their seconds summed by name)."""
+    """The compiled module with a clock around each call of its functions (their seconds summed by name, and by
+    the fit's stage under way, ``stage[0]``)."""
 
     def __init__(self, mod):
         self._mod = mod
         self.seconds = {}
+        self.by_stage = {}
+        self.stage = [None]
 
     def __getattr__(self, name):
         fn = getattr(self._mod, name)
         if not callable(fn):
             return fn
-        seconds = self.seconds
+        seconds, by_stage, stage = self.seconds, self.by_stage, self.stage
 
         def call(*a):
             t0 = time.perf_counter()
             try:
                 return fn(*a)
             finally:
-                seconds[name] = seconds.get(name, 0.0) + time.perf_counter() - t0
+                dt = time.perf_counter() - t0
+                seconds[name] = seconds.get(name, 0.0) + dt
+                by_stage[stage[0]] = by_stage.get(stage[0], 0.0) + dt
         return call
+
+
+#: the stages of one fit (shearfit.engine.measure._measure's calls, in its order), timed by --kernel-times
+FIT_STAGES = ("prepare_exposures", "join_exposures", "coarse_peak", "find_position", "shift_joint", "_size_range",
+              "_size_likelihood", "adaptive_samples", "_result")
+
+
+def _timed_stages(proxy, seconds):
+    """Replace the fit's stages in shearfit.engine.measure by clocked ones (their seconds into ``seconds``; the
+    compiled loops' seconds within each go to ``proxy.by_stage`` under its name); returns the originals."""
+    from shearfit.engine import measure
+
+    originals = {name: getattr(measure, name) for name in FIT_STAGES}
+
+    def clocked(name, fn):
+        def run(*a, **k):
+            outer = proxy.stage[0]
+            proxy.stage[0] = name
+            t0 = time.perf_counter()
+            try:
+                return fn(*a, **k)
+            finally:
+                seconds[name] = seconds.get(name, 0.0) + time.perf_counter() - t0
+                proxy.stage[0] = outer
+        return run
+
+    for name, fn in originals.items():
+        setattr(measure, name, clocked(name, fn))
+    return originals
 
 
 def kernel_times_report(objs, cfg):
@@ -466,14 +500,20 @@ def kernel_times_report(objs, cfg):
     if mod is None:
         print("\n  --kernel-times: the numpy loops run (no compiled module); nothing to time")
         return
+    from shearfit.engine import measure
+
     proxy = _TimedKernel(mod)
     for m in modules:
         m.KERNEL = proxy
+    stage_seconds = {}
+    originals = _timed_stages(proxy, stage_seconds)
     try:
         dt, _ = timed(objs, cfg)
     finally:
         for m in modules:
             m.KERNEL = mod
+        for name, fn in originals.items():
+            setattr(measure, name, fn)
     n = len(objs)
     total = sum(proxy.seconds.values())
     print(f"\n  the compiled loops, one pass of {n} galaxies timed call by call (ms per galaxy; {1e3 * dt / n:.1f} in "
@@ -483,6 +523,14 @@ def kernel_times_report(objs, cfg):
             print(f"    {name:24s} {1e3 * sec / n:7.3f}  {100 * sec / dt:5.1f} %")
     print(f"    {'all compiled loops':24s} {1e3 * total / n:7.3f}  {100 * total / dt:5.1f} %")
     print(f"    {'the rest (Python, numpy)':24s} {1e3 * (dt - total) / n:7.3f}  {100 * (dt - total) / dt:5.1f} %")
+    print("\n  the same pass by stage of the fit (ms per galaxy: the stage, its compiled loops, the rest; the rest's "
+          "share of the whole):")
+    for name in sorted(stage_seconds, key=lambda k: -stage_seconds[k]):
+        sec, comp = stage_seconds[name], proxy.by_stage.get(name, 0.0)
+        print(f"    {name:24s} {1e3 * sec / n:7.3f} {1e3 * comp / n:7.3f} {1e3 * (sec - comp) / n:7.3f}  "
+              f"{100 * (sec - comp) / dt:5.1f} %")
+    outside = dt - sum(stage_seconds.values())
+    print(f"    {'outside the stages':24s} {1e3 * outside / n:7.3f} {1e3 * proxy.by_stage.get(None, 0.0) / n:7.3f}")
 
 
 def census_report(objs, cfg):
@@ -582,7 +630,8 @@ def main(argv=None):
     ap.add_argument("--no-hsm", action="store_true", help="do not time GalSim's HSM on the same stamps")
     ap.add_argument("--kernel-times", action="store_true",
                     help="one more pass with a clock around every call of the compiled loops: the time in each, and "
-                         "the rest (Python and numpy), without a profiler's overhead")
+                         "the rest (Python and numpy), without a profiler's overhead; and the same by stage of the fit "
+                         "(the exposures' preparation, their join, the peak searches, the sampling, ...)")
     ap.add_argument("--isa-ab", metavar="LEVEL", default=None,
                     help="also time the loops in use against another level (avx512, avx2, baseline), galaxy by "
                          "galaxy in this process")

@@ -8,6 +8,6 @@ from .observation import Observation, FitResult  # noqa: E402
 __all__ = ["__version__", "FitConfig", "fit_config_from_mapping", "Observation", "FitResult",
            "ShearfitError", "ShearfitValueError", "ShearfitKeyError", "ShearfitIOError"]
 from .engine.measure import measure_object, measure_objects  # noqa: E402
-from .engine.model import render_object  # noqa: E402
+from .engine.model import psf_moffat, render_object  # noqa: E402
 
-__all__ += ["measure_object", "measure_objects", "render_object"]
+__all__ += ["measure_object", "measure_objects", "render_object", "psf_moffat"]

@@ -1717,6 +1717,81 @@ static PyObject *marginal(PyObject *self, PyObject *args)
 }
 
 /*
+ * locate_parabola(ld, lb, lpr, w, xs, top, xpk): sampling.EllipticityLikelihood._locate's peaks (its numpy lines stay
+ * as the reference; a test checks they agree to the bit). Per row i of n nodes (xs: n >= 3, uniform): for the disk
+ * (ld, weight w[0]) and the pure bulge (lb, w[1]), y = (w + log L, -1e300 where not finite) + lpr; the parabola
+ * through the best node k (first maximum, held within 1 .. n - 2) and its neighbours; its peak's offset d (0 where
+ * the parabola does not open downwards or is NaN, within +-h) and value. top[i], xpk[i]: the value and xs[k] + d of
+ * the population whose parabola peaks higher (the disk's on a tie). The same operations in the same order as the
+ * numpy lines, without contraction into fused multiply-adds, so the same numbers.
+ */
+#if defined(__clang__)
+#define NO_CONTRACT
+#elif defined(__GNUC__)
+#define NO_CONTRACT __attribute__((optimize("fp-contract=off")))
+#else
+#define NO_CONTRACT
+#endif
+static NO_CONTRACT void locate_rows(const double *LD, const double *LB, const double *LPR, const double *w,
+                                    const double *xs, Py_ssize_t nrow, Py_ssize_t n, double *top, double *xpk)
+{
+#if defined(__clang__)
+#pragma clang fp contract(off)
+#endif
+    const double h = xs[1] - xs[0], h2 = h * h, hh = 0.5 * h;
+    for (Py_ssize_t i = 0; i < nrow; i++) {
+        double best_top = 0.0, best_x = 0.0;
+        for (int pop = 0; pop < 2; pop++) {
+            const double *L = (pop == 0 ? LD : LB) + i * n, *P = LPR + i * n;
+            double y[64];
+            Py_ssize_t k = 0;
+            int nan_at = -1;
+            for (Py_ssize_t j = 0; j < n; j++) {
+                y[j] = (isfinite(L[j]) ? w[pop] + L[j] : -1e300) + P[j];
+                if (nan_at < 0 && y[j] != y[j]) nan_at = (int)j;
+                if (y[j] > y[k]) k = j;
+            }
+            if (nan_at >= 0) k = nan_at;   /* np.argmax: the first NaN */
+            k = k < 1 ? 1 : (k > n - 2 ? n - 2 : k);
+            const double ym = y[k - 1], y0 = y[k], yp = y[k + 1];
+            const double den = ym - 2 * y0 + yp;
+            double d = den < 0 ? hh * (ym - yp) / den : 0.0;
+            d = d == d ? d : 0.0;
+            d = d > -h ? d : -h;   /* np.maximum(d, -h): d is not NaN here */
+            d = d < h ? d : h;
+            const double a = 0.5 * (yp - ym) / h * d, b = 0.5 * den / h2 * d * d;
+            const double v = y0 + a + b;
+            /* np.maximum(y0, v): NaN propagates */
+            const double t = (y0 != y0 || v != v) ? (y0 != y0 ? y0 : v) : (v > y0 ? v : y0);
+            const double x = xs[k] + d;
+            if (pop == 0 || t > best_top) {
+                best_top = t;
+                best_x = x;
+            }
+        }
+        top[i] = best_top;
+        xpk[i] = best_x;
+    }
+}
+
+static PyObject *locate_parabola(PyObject *self, PyObject *args)
+{
+    Py_buffer db, bb, pb, wb, xb, tb, ob;
+    if (!PyArg_ParseTuple(args, "y*y*y*y*y*w*w*", &db, &bb, &pb, &wb, &xb, &tb, &ob)) return NULL;
+    const Py_ssize_t D = (Py_ssize_t)sizeof(double), n = xb.len / D, nrow = tb.len / D;
+    if (n < 3 || n > 64 || db.len != nrow * n * D || bb.len != db.len || pb.len != db.len || wb.len != 2 * D
+        || ob.len != tb.len) {
+        RELEASE(&db, &bb, &pb, &wb, &xb, &tb, &ob);
+        PyErr_SetString(PyExc_ValueError, "locate_parabola: inconsistent buffers");
+        return NULL;
+    }
+    locate_rows((const double *)db.buf, (const double *)bb.buf, (const double *)pb.buf, (const double *)wb.buf,
+                (const double *)xb.buf, nrow, n, (double *)tb.buf, (double *)ob.buf);
+    RELEASE(&db, &bb, &pb, &wb, &xb, &tb, &ob);
+    Py_RETURN_NONE;
+}
+
+/*
  * size_marginal(ld, lb, fd, fb, bd, logprior, lsegprior, spline, interp, xf, u, rf, l0, logmix, out): the size
  * integral of sampling.EllipticityLikelihood._size_marginal (which stays as the reference: a test checks they
  * agree). Per ellipticity e and population (disk, bulge): log L at the n_r nodes (ld, lb; floored 40 below
@@ -1963,24 +2038,27 @@ static PyObject *hermite_log_table(PyObject *self, PyObject *args)
 }
 
 /*
- * alias_sums(table, i0, w0, w1, kept, A, Gs): G = table[i0] w0 + table[i0 + 1] w1 at every alias of every mode
- * (i0, w0, w1: n_alias blocks of n modes, alias after alias), A[j] = the sum of G over the aliases of mode j
- * (in alias order), and Gs = G of the aliases listed in kept, block after block.
+ * alias_sums(table, i0, w0, w1, kept, A, Gs[, G2max]): G = table[i0] w0 + table[i0 + 1] w1 at every alias of every
+ * mode (i0, w0, w1: n_alias blocks of n modes, alias after alias), A[j] = the sum of G over the aliases of mode j
+ * (in alias order), and Gs = G of the aliases listed in kept, block after block; G2max[j], if given, the largest
+ * G^2 of mode j over the kept aliases.
  */
 static PyObject *alias_sums(PyObject *self, PyObject *args)
 {
-    Py_buffer tb, ib, w0b, w1b, kb, ab, gb;
-    if (!PyArg_ParseTuple(args, "y*y*y*y*y*w*w*", &tb, &ib, &w0b, &w1b, &kb, &ab, &gb)) return NULL;
+    Py_buffer tb, ib, w0b, w1b, kb, ab, gb, mb = {0};
+    if (!PyArg_ParseTuple(args, "y*y*y*y*y*w*w*|w*", &tb, &ib, &w0b, &w1b, &kb, &ab, &gb, &mb)) return NULL;
     const Py_ssize_t ntab = tb.len / (Py_ssize_t)sizeof(double), n = ab.len / (Py_ssize_t)sizeof(double);
     const Py_ssize_t total = ib.len / (Py_ssize_t)sizeof(int64_t), nk = kb.len / (Py_ssize_t)sizeof(int64_t);
     const Py_ssize_t na = n > 0 ? total / n : 0;
     const int64_t *I = (const int64_t *)ib.buf, *K = (const int64_t *)kb.buf;
     int bad = n < 1 || na * n != total || w0b.len != total * (Py_ssize_t)sizeof(double) || w1b.len != w0b.len
-              || gb.len != nk * n * (Py_ssize_t)sizeof(double);
+              || gb.len != nk * n * (Py_ssize_t)sizeof(double)
+              || (mb.buf != NULL && mb.len != n * (Py_ssize_t)sizeof(double));
     for (Py_ssize_t a = 0; !bad && a < nk; a++) bad = K[a] < 0 || K[a] >= na;
     for (Py_ssize_t e = 0; !bad && e < total; e++) bad = I[e] < 0 || I[e] + 1 >= ntab;
     if (bad) {
         RELEASE(&tb, &ib, &w0b, &w1b, &kb, &ab, &gb);
+        if (mb.buf != NULL) PyBuffer_Release(&mb);
         PyErr_SetString(PyExc_ValueError, "alias_sums: inconsistent buffers");
         return NULL;
     }
@@ -2008,8 +2086,21 @@ static PyObject *alias_sums(PyObject *self, PyObject *args)
             for (Py_ssize_t j = 0; j < n; j++) A[j] += T[Ia[j]] * Wa[j] + T[Ia[j] + 1] * Wb[j];
         }
     }
+    if (mb.buf != NULL) {
+        /* each mode's largest |G|^2 over the kept aliases (model.py's G2max: |G| squared is G squared) */
+        double *M = (double *)mb.buf;
+        for (Py_ssize_t j = 0; j < n; j++) M[j] = G[j] * G[j];
+        for (Py_ssize_t c = 1; c < nk; c++) {
+            const double *Gc = G + c * n;
+            for (Py_ssize_t j = 0; j < n; j++) {
+                const double v = Gc[j] * Gc[j];
+                M[j] = v > M[j] ? v : M[j];
+            }
+        }
+    }
     Py_END_ALLOW_THREADS
     RELEASE(&tb, &ib, &w0b, &w1b, &kb, &ab, &gb);
+    if (mb.buf != NULL) PyBuffer_Release(&mb);
     Py_RETURN_NONE;
 }
 
@@ -2509,7 +2600,8 @@ static PyMethodDef methods[] = {
     {"set_bessel", set_bessel, METH_VARARGS, "set_bessel(kv_capsule, gamma_capsule)"},
     {"moffat_lm", moffat_lm, METH_VARARGS, "moffat_lm(kr, VR, P, free0, free1, max_iter, ftol, xtol)"},
     {"moffat_table", moffat_table, METH_VARARGS, "moffat_table(k, rs, beta, x_exact, h0, grow, floor, out) -> nodes used"},
-    {"alias_sums", alias_sums, METH_VARARGS, "alias_sums(table, i0, w0, w1, kept, A, Gs)"},
+    {"alias_sums", alias_sums, METH_VARARGS, "alias_sums(table, i0, w0, w1, kept, A, Gs[, G2max])"},
+    {"locate_parabola", locate_parabola, METH_VARARGS, "locate_parabola(ld, lb, lpr, w, xs, top, xpk)"},
     {"fine_modes_select", fine_modes_select, METH_VARARGS,
      "fine_modes_select(Ps, A, ok, absG, Gs, absG2max, kyv, kxv, dx, dy, s, ny, nxh, tolerance, ky, kx, T, c) -> m"},
     {NULL, NULL, 0, NULL}};

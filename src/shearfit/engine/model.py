@@ -117,16 +117,23 @@ class ExposureModes:
 
 def inv2(J):
     """The inverse of a 2 x 2 matrix, by its adjugate (a tenth of np.linalg.inv's overhead)."""
-    (a, b), (c, d) = np.asarray(J, float)
+    (a, b), (c, d) = np.asarray(J, float).tolist()   # Python floats: the same arithmetic, less overhead
     det = a * d - b * c
-    return np.array([[d, -b], [-c, a]]) / det
+    if det == 0.0 or det != det:
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return np.array([[d, -b], [-c, a]]) / det   # numpy's infinities and NaNs, as before
+    return np.array([[d / det, -b / det], [-c / det, a / det]])
 
 
+@functools.lru_cache(maxsize=16)
 def _rfft_weights(ny, nx):
+    """Each rfft mode's weight in Parseval's sum over the full grid (2, or 1 for the columns that are their own
+    conjugates); read-only, made once per grid."""
     w = np.full((ny, nx // 2 + 1), 2.0)
     w[:, 0] = 1.0
     if nx % 2 == 0:
         w[:, -1] = 1.0
+    w.setflags(write=False)
     return w
 
 
@@ -245,7 +252,15 @@ def _fine_modes_from_psf_made(psf, s, ny, nx):
 
 
 def psf_moffat(psf):
-    """(rs, beta) of the circular Moffat that stands for a native PSF above Nyquist (see fit_moffat)."""
+    """(rs, beta), in pixels, of the circular Moffat that stands for a native PSF above Nyquist (App. A; see
+    :func:`shearfit.engine.moffat.fit_moffat`).
+
+    The paper fits one such Moffat near the field centre; ``shearfit measure`` fits one per CCD, to the PSF
+    model at the CCD's centre. A user of :func:`shearfit.measure_object` with many objects per exposure does
+    the same by fitting it once per CCD and passing it as ``Observation(..., psf_moffat=...)`` to each object
+    there: without it every object's every PSF is fitted, with its own alias tables (``benchmarks/speed.py
+    --moffat-per-exposure`` against the default: 1.87 against 2.23 times GalSim HSM's time, session 78).
+    """
     ny, nx = (n + n % 2 for n in psf.shape)
     return _fit_moffat_rfft(_centred_rfft2(_pad_center(psf, (ny, nx))), ny, nx)
 
@@ -413,28 +428,45 @@ def _moffat_aliases(rs, beta, ny, nx, s):
     # the Moffat's transform is radial: tabulate it once on |k| and interpolate linearly
     mtab = _moffat_table(ktab, rs, beta)
     if USE_KERNEL:
-        # the same sums in one pass, without the (5, 5, ny, nx/2 + 1) array G
+        # the same sums in one pass, without the (5, 5, ny, nx/2 + 1) array G, and each mode's largest |G|^2
         kept = _kept_aliases(ny, nx, s)
         A = np.empty(i0.shape[2:])
         Gs = np.empty(kept.size * A.size)
-        KERNEL.alias_sums(mtab, i0, w0, w1, kept, A, Gs)
+        G2max = np.empty(A.size)
+        KERNEL.alias_sums(mtab, i0, w0, w1, kept, A, Gs, G2max)
+        absG = None   # fine_modes_select squares G itself: |G|^2 = G^2
     else:
         G = mtab[i0] * w0 + mtab[i0 + 1] * w1
         A = G.sum(axis=(0, 1))
         Gs = G[sel, sel].ravel()
-    absG = np.abs(Gs)
+        absG = np.abs(Gs)
+        G2max = (absG.reshape(-1, A.size) ** 2).max(axis=0)   # each mode's largest |G|^2 (fine_modes_select)
     ok = np.abs(A) > 1e-12
     A = np.where(ok, A, 1.0)   # where not ok, the ratio P_s / A is set to 0
-    G2max = (absG.reshape(-1, A.size) ** 2).max(axis=0)   # each mode's largest |G|^2 (fine_modes_select)
     for arr in (A, ok, Gs, absG, G2max):
-        arr.setflags(write=False)
+        if arr is not None:
+            arr.setflags(write=False)
     return A, ok, Gs, absG, KYf, KXf, cs, G2max
 
 
 def _centred_rfft2(a):
     """rfft2 of arrays (the last two axes) whose centre pixel (n//2) is the origin (scipy's FFT: the
     same numbers as numpy's, with less overhead per call on stamps this small)."""
-    return sfft.rfft2(np.fft.ifftshift(a, axes=(-2, -1)))
+    return sfft.rfft2(_ifftshift2(a))
+
+
+def _ifftshift2(a):
+    """np.fft.ifftshift over the last two axes in one copy (the quadrants swapped; ifftshift rolls one axis at a
+    time, two copies): the same array."""
+    a = np.asarray(a)
+    ny, nx = a.shape[-2:]
+    hy, hx = ny // 2, nx // 2
+    out = np.empty_like(a)
+    out[..., :ny - hy, :nx - hx] = a[..., hy:, hx:]
+    out[..., :ny - hy, nx - hx:] = a[..., hy:, :hx]
+    out[..., ny - hy:, :nx - hx] = a[..., :hy, hx:]
+    out[..., ny - hy:, nx - hx:] = a[..., :hy, :hx]
+    return out
 
 
 def _fine_modes_moffat(psf, ny, nx, s, moffat=None, tolerance=0.0, Ps=None, offset=None):
@@ -464,9 +496,13 @@ def _fine_modes_moffat(psf, ny, nx, s, moffat=None, tolerance=0.0, Ps=None, offs
         dx, dy = (0.0, 0.0) if offset is None else (float(offset[0]), float(offset[1]))
         n = Gs.size
         ky, kx, T, c = np.empty(n), np.empty(n), np.empty(n, complex), np.empty(n, np.int64)
-        m = KERNEL.fine_modes_select(np.ascontiguousarray(Ps, complex).ravel(), A.ravel(), ok.ravel(), absG, Gs,
+        # (its absG argument is only squared: G itself serves where the tables were made without |G|)
+        m = KERNEL.fine_modes_select(np.ascontiguousarray(Ps, complex).ravel(), A.ravel(), ok.ravel(),
+                                     Gs if absG is None else absG, Gs,
                                      G2max, kyv, kxv, dx, dy, int(s), ny, nx // 2 + 1, float(tolerance), ky, kx, T, c)
         return ky[:m], kx[:m], T[:m], c[:m]
+    if absG is None:
+        absG = np.abs(Gs)
     ratio = np.where(ok, Ps / A, 0.0).ravel()
     # only the modes above ``tolerance`` of the largest |T| (G is real: |T| = |G| |ratio|)
     mag = (absG.reshape(-1, ratio.size) * np.abs(ratio)[None]).ravel()
@@ -484,6 +520,9 @@ def noise_variance(weight):
     w = weight[weight > 0]
     if w.size == 0:
         raise ShearfitValueError("stamp has no pixel with positive weight")
+    lo = w.min()
+    if lo == w.max():
+        return 1.0 / float(lo)   # one weight throughout (the usual stamp): the median is that value
     # np.median's value, from a partition alone
     h = w.size // 2
     if w.size % 2:

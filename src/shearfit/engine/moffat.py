@@ -73,18 +73,14 @@ def fit_moffats(psf_fts, ky, kx, max_iter=100, ftol=1e-10, xtol=1e-8):
     """:func:`fit_moffat` of several PSFs' transforms on one grid, as one batch (the Levenberg-Marquardt
     iterations of all of them in the same array operations: an object's exposures' PSFs cost little more than
     one). Every fit is the same, number for number, whatever the batch it is in. Returns [(rs, beta), ...]."""
-    kk = np.hypot(ky[:, None], kx[None, :])
-    pix = np.sinc(ky[:, None] / (2 * np.pi)) * np.sinc(kx[None, :] / (2 * np.pi))
-    sel = (kk > 0) & (kk < 0.7 * np.pi)
-    # azimuthal average in narrow rings keeps the fit cheap and makes it circular
-    edges = np.linspace(0, 0.7 * np.pi, 15)
-    ks = kk[sel]
-    idx = np.digitize(ks, edges)
-    count = np.bincount(idx, minlength=edges.size)[1:]
-    used = count > 0
-    kr = (np.bincount(idx, weights=ks, minlength=edges.size)[1:] / np.maximum(count, 1))[used]
-    VR = np.array([(np.bincount(idx, weights=np.abs(ft)[sel] / pix[sel], minlength=edges.size)[1:]
-                    / np.maximum(count, 1))[used] for ft in psf_fts]).reshape(len(psf_fts), kr.size)
+    sel, pix_sel, idx, nb, count, used, kr = _rings(np.asarray(ky, float), np.asarray(kx, float))
+    nf = len(psf_fts)
+    # every PSF's ring sums in one bincount (PSF f's rings at f nb + ring): each ring summed in the same order
+    # as one PSF at a time
+    vals = np.abs(np.asarray(psf_fts).reshape(nf, -1)[:, sel]) / pix_sel
+    sums = np.bincount((idx[None, :] + nb * np.arange(nf)[:, None]).ravel(), weights=vals.ravel(),
+                       minlength=nf * nb).reshape(nf, nb)
+    VR = (sums[:, 1:] / np.maximum(count, 1))[:, used]
     P = _levenberg_marquardt(kr, VR, np.array([_start(kr, vr) for vr in VR]).reshape(-1, 2), (True, True),
                              max_iter, ftol, xtol)
     out = []
@@ -97,6 +93,36 @@ def fit_moffats(psf_fts, ky, kx, max_iter=100, ftol=1e-10, xtol=1e-8):
         lrs = float(np.clip(p[0], np.log(0.05), np.log(50.0)))
         out.append((float(np.exp(lrs)), float(1.0 + np.exp(lb))))
     return out
+
+
+def _rings(ky, kx):
+    """The rings of :func:`fit_moffats` on a grid of wavevectors ky, kx (remembered per grid): the modes used
+    (a mask over the flattened grid), their pixel response, ring (np.digitize's index) and the number of
+    indices, each ring's count of modes and whether it has any, and the used rings' mean |k|."""
+    key = (ky.tobytes(), kx.tobytes())
+    got = _RINGS.get(key)
+    if got is None:
+        kk = np.hypot(ky[:, None], kx[None, :])
+        pix = np.sinc(ky[:, None] / (2 * np.pi)) * np.sinc(kx[None, :] / (2 * np.pi))
+        sel = (kk > 0) & (kk < 0.7 * np.pi)
+        # azimuthal average in narrow rings keeps the fit cheap and makes it circular
+        edges = np.linspace(0, 0.7 * np.pi, 15)
+        ks = kk[sel]
+        idx = np.digitize(ks, edges)
+        count = np.bincount(idx, minlength=edges.size)[1:]
+        used = count > 0
+        kr = (np.bincount(idx, weights=ks, minlength=edges.size)[1:] / np.maximum(count, 1))[used]
+        got = (sel.ravel(), pix[sel], idx, edges.size, count, used, kr)
+        for a in got:
+            if isinstance(a, np.ndarray):
+                a.setflags(write=False)
+        if len(_RINGS) > 16:
+            _RINGS.clear()
+        _RINGS[key] = got
+    return got
+
+
+_RINGS = {}
 
 
 @functools.lru_cache(maxsize=1)

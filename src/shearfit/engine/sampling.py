@@ -249,25 +249,7 @@ class EllipticityLikelihood:
         lpr = priors.log_size_prior_per_lnr(np.log(R) + (0.0 if shift is None else shift[:, None]), self.mag, cfg,
                                             ln_a=self.ln_a)
         h = xs[1] - xs[0]
-        rows = np.arange(R.shape[0])
-        best = None
-        for w0, logl in ((ld0, mg.logl_disk), (lb0, mg.logl_bulge)):
-            yp_ = np.where(np.isfinite(logl), w0 + logl, -1e300).reshape(R.shape) + lpr
-            # (np.minimum/np.maximum: np.clip's numbers, at a fifth of its overhead on arrays this small)
-            k = np.minimum(np.maximum(np.argmax(yp_, axis=1), 1), n - 2)
-            ym, y0, yp = yp_[rows, k - 1], yp_[rows, k], yp_[rows, k + 1]
-            den = ym - 2 * y0 + yp
-            with np.errstate(invalid="ignore", divide="ignore"):
-                d = np.where(den < 0, 0.5 * h * (ym - yp) / den, 0.0)
-            d = np.minimum(np.maximum(np.where(d == d, d, 0.0), -h), h)   # NaN -> 0, then within +-h
-            # the parabola's value at its peak
-            top = np.maximum(y0, y0 + 0.5 * (yp - ym) / h * d + 0.5 * den / h ** 2 * d * d)
-            if best is None:
-                best = (top, xs[k] + d)
-            else:
-                other = top > best[0]
-                best = (np.where(other, top, best[0]), np.where(other, xs[k] + d, best[1]))
-        peak, xpk = best
+        peak, xpk = self._parabola_peaks(mg, ld0, lb0, lpr, xs, R.shape)
         r_peak = rc * np.exp(xpk)
         if not detail:
             return r_peak
@@ -284,6 +266,40 @@ class EllipticityLikelihood:
                        mean_b=np.sum(w * np.nan_to_num(mg.mean_b_disk.reshape(R.shape)), axis=1),
                        mean_flux=np.sum(w * np.nan_to_num(mg.mean_flux_disk.reshape(R.shape)), axis=1))
         return r_peak, peak, point
+
+    @staticmethod
+    def _parabola_peaks(mg, ld0, lb0, lpr, xs, shape, use_kernel=True):
+        """The size peaks of :meth:`_locate`: per sample (a row of ``shape``, its nodes ``xs``), for each
+        population a parabola through its best three nodes (log L with the population's weight, plus ``lpr``);
+        (the higher parabola's peak value, its offset in ln r). The compiled kernel (``locate_parabola``) makes the
+        numpy lines' numbers to the bit."""
+        n = xs.size
+        if use_kernel and USE_KERNEL and 3 <= n <= 64:
+            top, xpk = np.empty(shape[0]), np.empty(shape[0])
+            c = np.ascontiguousarray
+            KERNEL.locate_parabola(c(mg.logl_disk, dtype=float), c(mg.logl_bulge, dtype=float), c(lpr, dtype=float),
+                                   np.array([ld0, lb0], float), c(xs, dtype=float), top, xpk)
+            return top, xpk
+        h = xs[1] - xs[0]
+        rows = np.arange(shape[0])
+        best = None
+        for w0, logl in ((ld0, mg.logl_disk), (lb0, mg.logl_bulge)):
+            yp_ = np.where(np.isfinite(logl), w0 + logl, -1e300).reshape(shape) + lpr
+            # (np.minimum/np.maximum: np.clip's numbers, at a fifth of its overhead on arrays this small)
+            k = np.minimum(np.maximum(np.argmax(yp_, axis=1), 1), n - 2)
+            ym, y0, yp = yp_[rows, k - 1], yp_[rows, k], yp_[rows, k + 1]
+            den = ym - 2 * y0 + yp
+            with np.errstate(invalid="ignore", divide="ignore"):
+                d = np.where(den < 0, 0.5 * h * (ym - yp) / den, 0.0)
+            d = np.minimum(np.maximum(np.where(d == d, d, 0.0), -h), h)   # NaN -> 0, then within +-h
+            # the parabola's value at its peak
+            top = np.maximum(y0, y0 + 0.5 * (yp - ym) / h * d + 0.5 * den / h ** 2 * d * d)
+            if best is None:
+                best = (top, xs[k] + d)
+            else:
+                other = top > best[0]
+                best = (np.where(other, top, best[0]), np.where(other, xs[k] + d, best[1]))
+        return best
 
     def __call__(self, e1, e2) -> EPoint:
         e1 = np.atleast_1d(np.asarray(e1, float))
@@ -562,7 +578,11 @@ class _Store:
         self.cfg = cfg
         self.unit = cfg.e_grid_min
         self.keys = {}
-        self.e1, self.e2, self.logl, self.logpost, self.points = [], [], [], [], []
+        self.points = []
+        # the samples' e1, e2, log L and log posterior, one array per add() (the properties below join them)
+        self._cols = ([], [], [], [])
+        self._joined = None
+        self.n = 0
         # the lattice's half-width: every |e| < 1, and the coarsest boxes' margins
         coarsest = int(round(max(cfg.e_grid_start, cfg.e_grid_prepass) / self.unit))
         self.half = int(np.ceil(1.0 / self.unit)) + 4 * coarsest + 2
@@ -584,14 +604,26 @@ class _Store:
             i, j = ij[:, 0] + self.half, ij[:, 1] + self.half
             lp = (pd[i, j], pb[i, j])
         logl, logpost = _mix(pt, arr[:, 0], arr[:, 1], self.cfg, log_priors=lp)
-        base = len(self.e1)
-        for n, k in enumerate(new):
-            self.keys[k] = base + n
-        self.e1.extend(arr[:, 0])
-        self.e2.extend(arr[:, 1])
-        self.logl.extend(logl)
-        self.logpost.extend(logpost)
+        self.keys.update(zip(new, range(self.n, self.n + len(new))))
+        self.n += len(new)
+        for col, v in zip(self._cols, (arr[:, 0], arr[:, 1], logl, logpost)):
+            col.append(np.array(v, float))
+        self._joined = None
         self.points.append(pt)
+
+    def _column(self, c):
+        """Column c (0: e1, 1: e2, 2: log L, 3: log posterior) of every sample so far, one array (read-only: made
+        once per add())."""
+        if self._joined is None:
+            self._joined = [np.concatenate(col) if col else np.zeros(0) for col in self._cols]
+            for a in self._joined:
+                a.setflags(write=False)
+        return self._joined[c]
+
+    e1 = property(lambda self: self._column(0))
+    e2 = property(lambda self: self._column(1))
+    logl = property(lambda self: self._column(2))
+    logpost = property(lambda self: self._column(3))
 
     def _points(self, step, i0, j0, mask):
         """The step's lattice points in the region (mask over the box from (i0, j0)) with |e| below the model
@@ -667,7 +699,7 @@ class _Store:
 
     def above_log(self, log_fraction):
         """Which samples have a posterior above exp(log_fraction) of the largest."""
-        lp = np.array(self.logpost)
+        lp = self.logpost
         if not np.any(np.isfinite(lp)):
             return np.zeros(lp.size, bool)
         return lp > np.max(lp) + log_fraction
@@ -700,8 +732,8 @@ def adaptive_samples(like: EllipticityLikelihood, cfg: FitConfig) -> Samples:
     st.add(st.lattice_box(pre, -n, n, -n, n))
     while pre > step:
         sel = st.above_log(np.log(cfg.posterior_cut) - cfg.e_grid_prepass_margin)
-        i = np.rint(np.array(st.e1)[sel] / cfg.e_grid_min).astype(int)
-        j = np.rint(np.array(st.e2)[sel] / cfg.e_grid_min).astype(int)
+        i = np.rint(st.e1[sel] / cfg.e_grid_min).astype(int)
+        j = np.rint(st.e2[sel] / cfg.e_grid_min).astype(int)
         new = max(pre // 2, step)
         st.add(st.lattice_around(new, i, j, pre))
         pre = new
@@ -713,8 +745,8 @@ def adaptive_samples(like: EllipticityLikelihood, cfg: FitConfig) -> Samples:
         # those above the counting threshold: otherwise high-likelihood, low-prior samples near
         # the cut keep coarse cells and the estimate jumps when the region's edge moves
         sel = st.above(min(cfg.posterior_cut, cfg.above_fraction))
-        e1 = np.array(st.e1)[sel]
-        e2 = np.array(st.e2)[sel]
+        e1 = st.e1[sel]
+        e2 = st.e2[sel]
         i = np.rint(e1 / cfg.e_grid_min).astype(int)
         j = np.rint(e2 / cfg.e_grid_min).astype(int)
         new = max(step // 2, 1)
