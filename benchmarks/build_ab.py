@@ -20,6 +20,10 @@ PSF, SNR 10-40) once and then
    ellipticity), with the largest difference between their bins;
 3. with ``--per-galaxy N``, times the two builds' compiled modules galaxy by galaxy in this process on N more
    galaxies, this checkout's Python around both (where only the compiled loops differ, the finer comparison).
+
+With ``--paired N`` it does none of these but runs the two builds in two long-lived processes, each of N new
+galaxies measured by one build and then the other (the order alternating), in CPU time: the comparison that a
+machine's drift does not swamp, for changes to the Python as well as to the compiled loops.
 """
 
 from __future__ import annotations
@@ -60,11 +64,70 @@ print(len(res) / dt)
 """
 
 
-def _child(pickled, out, other=None):
+#: a child of --paired: measures the galaxy whose index it reads on stdin and writes its CPU time and estimate
+_PAIRED_CHILD = """
+import pickle, sys, time
+import shearfit
+objs = pickle.load(open(sys.argv[1], "rb"))
+for o, t in objs[:2]:
+    shearfit.measure_object(o, mag=t["mag"])
+print("ready", flush=True)
+for line in sys.stdin:
+    o, t = objs[int(line)]
+    t0 = time.process_time()
+    r = shearfit.measure_object(o, mag=t["mag"])
+    print(repr(time.process_time() - t0), repr(r.e1), repr(r.e2), flush=True)
+"""
+
+
+def _env(other=None):
     env = dict(os.environ)
     if other:
         env["PYTHONPATH"] = other + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
-    got = subprocess.run([sys.executable, "-c", _CHILD, pickled, out], env=env, capture_output=True, text=True,
+    return env
+
+
+def paired_ab(pickled, n, other):
+    """The two builds in two long-lived child processes, galaxy by galaxy: each galaxy (a new one each time) is
+    measured by one build and then by the other, the order alternating, so both see the same moment of a machine
+    whose speed drifts (CPU seconds, measured inside each child). Prints the ratio of their summed times, the
+    median of the galaxies' ratios, the spread of the ratio over the halves and quarters of the galaxies, and
+    the largest difference of the estimates."""
+    procs = {name: subprocess.Popen([sys.executable, "-c", _PAIRED_CHILD, pickled], env=_env(o),
+                                    stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
+                                    cwd=tempfile.gettempdir())
+             for name, o in (("other", other), ("this", None))}
+    try:
+        for p in procs.values():
+            if p.stdout.readline().strip() != "ready":
+                raise SystemExit("build_ab.py: error: a --paired child did not start")
+        t = {"other": [], "this": []}
+        de = 0.0
+        for i in range(2, n):
+            order = ("other", "this") if i % 2 else ("this", "other")
+            got = {}
+            for name in order:
+                procs[name].stdin.write(f"{i}\n")
+                procs[name].stdin.flush()
+                got[name] = [float(v) for v in procs[name].stdout.readline().split()]
+                t[name].append(got[name][0])
+            d = np.abs(np.subtract(got["other"][1:], got["this"][1:]))
+            if np.all(np.isfinite(d)):
+                de = max(de, float(d.max()))
+    finally:
+        for p in procs.values():
+            p.stdin.close()
+            p.wait()
+    a, b = np.array(t["other"]), np.array(t["this"])
+    parts = [f"x{a[k].sum() / b[k].sum():.3f}" for m in (2, 4) for k in np.array_split(np.arange(a.size), m)]
+    print(f"\n{a.size} galaxies, each measured by both builds in turn (two long-lived processes, the order "
+          f"alternating; CPU time): other {1e3 * a.mean():.2f}, this {1e3 * b.mean():.2f} ms per galaxy, "
+          f"x{a.sum() / b.sum():.3f} (the galaxies' median ratio x{np.median(a / b):.3f}; halves and quarters "
+          f"{', '.join(parts)}); estimates differ by at most {de:.1e}")
+
+
+def _child(pickled, out, other=None):
+    got = subprocess.run([sys.executable, "-c", _CHILD, pickled, out], env=_env(other), capture_output=True, text=True,
                          check=True, cwd=tempfile.gettempdir())
     return float(got.stdout.strip().splitlines()[-1])
 
@@ -178,6 +241,9 @@ def main(argv=None):
     ap.add_argument("--n-galaxies", type=int, default=60)
     ap.add_argument("--rounds", type=int, default=4, help="alternations of the two builds")
     ap.add_argument("--seed", type=int, default=11)
+    ap.add_argument("--paired", type=int, default=0, metavar="N",
+                    help="instead of the rounds of child processes, N new galaxies each measured by both builds in "
+                         "turn in two long-lived processes (the finer comparison where the machine's speed drifts)")
     ap.add_argument("--per-galaxy", type=int, default=0, metavar="N",
                     help="also time the two builds' compiled loops galaxy by galaxy in this process on N more "
                          "galaxies (this checkout's Python around both; finer than the child processes where only "
@@ -192,6 +258,14 @@ def main(argv=None):
 
     info = kernel_info()
     print(f"CPU: {cpu_name()}; inner loops: {info['path']} ({info['isa']}); other build: {args.other}")
+    if args.paired:
+        objs = simulate(args.paired + 2, 7, 48, args.seed, rotate=True, jitter=0.01)
+        with tempfile.TemporaryDirectory() as tmp:
+            pickled = os.path.join(tmp, "galaxies.pkl")
+            with open(pickled, "wb") as f:
+                pickle.dump(objs, f)
+            paired_ab(pickled, len(objs), args.other)
+        return
     objs = simulate(args.n_galaxies, 7, 48, args.seed, rotate=True, jitter=0.01)
     with tempfile.TemporaryDirectory() as tmp:
         pickled = os.path.join(tmp, "galaxies.pkl")
