@@ -99,30 +99,27 @@ def _rings(ky, kx):
     """The rings of :func:`fit_moffats` on a grid of wavevectors ky, kx (remembered per grid): the modes used
     (a mask over the flattened grid), their pixel response, ring (np.digitize's index) and the number of
     indices, each ring's count of modes and whether it has any, and the used rings' mean |k|."""
-    key = (ky.tobytes(), kx.tobytes())
-    got = _RINGS.get(key)
-    if got is None:
-        kk = np.hypot(ky[:, None], kx[None, :])
-        pix = np.sinc(ky[:, None] / (2 * np.pi)) * np.sinc(kx[None, :] / (2 * np.pi))
-        sel = (kk > 0) & (kk < 0.7 * np.pi)
-        # azimuthal average in narrow rings keeps the fit cheap and makes it circular
-        edges = np.linspace(0, 0.7 * np.pi, 15)
-        ks = kk[sel]
-        idx = np.digitize(ks, edges)
-        count = np.bincount(idx, minlength=edges.size)[1:]
-        used = count > 0
-        kr = (np.bincount(idx, weights=ks, minlength=edges.size)[1:] / np.maximum(count, 1))[used]
-        got = (sel.ravel(), pix[sel], idx, edges.size, count, used, kr)
-        for a in got:
-            if isinstance(a, np.ndarray):
-                a.setflags(write=False)
-        if len(_RINGS) > 16:
-            _RINGS.clear()
-        _RINGS[key] = got
+    return _rings_of(ky.tobytes(), kx.tobytes())
+
+
+@functools.lru_cache(maxsize=16)
+def _rings_of(ky_bytes, kx_bytes):
+    ky, kx = np.frombuffer(ky_bytes), np.frombuffer(kx_bytes)
+    kk = np.hypot(ky[:, None], kx[None, :])
+    pix = np.sinc(ky[:, None] / (2 * np.pi)) * np.sinc(kx[None, :] / (2 * np.pi))
+    sel = (kk > 0) & (kk < 0.7 * np.pi)
+    # azimuthal average in narrow rings keeps the fit cheap and makes it circular
+    edges = np.linspace(0, 0.7 * np.pi, 15)
+    ks = kk[sel]
+    idx = np.digitize(ks, edges)
+    count = np.bincount(idx, minlength=edges.size)[1:]
+    used = count > 0
+    kr = (np.bincount(idx, weights=ks, minlength=edges.size)[1:] / np.maximum(count, 1))[used]
+    got = (sel.ravel(), pix[sel], idx, edges.size, count, used, kr)
+    for a in got:
+        if isinstance(a, np.ndarray):
+            a.setflags(write=False)
     return got
-
-
-_RINGS = {}
 
 
 @functools.lru_cache(maxsize=1)
