@@ -728,6 +728,16 @@ def test_mode_bins_of_versions_are_each_versions_own(polar):
         KERNEL.make_bins(together.shape[:3], b3, c8, 16, 2)
 
 
+def _turned_observations(seed, snr):
+    """Four noisy exposures of a 0.25" galaxy, each turned by its own angle with 1 % rms distortion and offset by up
+    to 1.5 pixels: (their Jacobians, the observations)."""
+    rng = np.random.default_rng(seed)
+    jac = [PIX * np.array([[np.cos(t), -np.sin(t)], [np.sin(t), np.cos(t)]]) @ (np.eye(2) + rng.normal(0, 0.01, (2, 2)))
+           for t in rng.uniform(0, 2 * np.pi, 4)]
+    return jac, _observations(0.25, (0.3, -0.1), n_exp=4, jacobians=jac, noise=True, snr=snr, seed=seed,
+                              offsets=rng.uniform(-1.5, 1.5, (4, 2)))
+
+
 def test_compiled_peak_search_takes_the_numpy_steps():
     """find_position's Newton steps in the compiled kernel (find_peak) reach the numpy lines' position to
     1e-12 arcsec, from the coarse peak and from a pixel away, on rotated and distorted exposures; with a
@@ -742,11 +752,7 @@ def test_compiled_peak_search_takes_the_numpy_steps():
     cfg = shearfit.FitConfig()
     disk = exponential_disk(cfg.truncation)
     for seed in range(3):
-        rng = np.random.default_rng(seed)
-        jac = [PIX * np.array([[np.cos(t), -np.sin(t)], [np.sin(t), np.cos(t)]]) @ (np.eye(2) + rng.normal(0, 0.01, (2, 2)))
-               for t in rng.uniform(0, 2 * np.pi, 4)]
-        obs = _observations(0.25, (0.3, -0.1), n_exp=4, jacobians=jac, noise=True, snr=25, seed=seed,
-                            offsets=rng.uniform(-1.5, 1.5, (4, 2)))
+        jac, obs = _turned_observations(seed, 25)
         ex = prepare_exposures(obs, cfg)
         jm = join_exposures(ex, cfg.mode_chi2_tolerance)
         start = coarse_peak(ex, jac, disk, 2 * PIX, 8 * PIX, PIX)
@@ -758,6 +764,60 @@ def test_compiled_peak_search_takes_the_numpy_steps():
             limit = 0.5 * np.hypot(a[0], a[1])
             assert not find_position(jm, disk, 2 * PIX, limit, start=s0)[2]
             assert not find_position(jm, disk, 2 * PIX, limit, start=s0, use_kernel=False)[2]
+
+
+def test_compiled_coarse_peak_is_the_numpy_lines():
+    """coarse_peak's compiled work per exposure (coarse_modes, coarse_gather) finds the numpy lines' peak, on
+    rotated and distorted exposures of two stamp sizes, with and without the noise-aware cut's masks: the
+    cross-correlation's transform equal to rounding (numpy's complex product may fuse its multiply-adds), its
+    sums on the grid of offsets to the bit; bad buffers raise."""
+    from shearfit.engine import likelihood, model, profiles
+
+    if not likelihood.USE_KERNEL:
+        pytest.skip("compiled kernel not built")
+    cfg = shearfit.FitConfig()
+    disk = profiles.exponential_disk(cfg.truncation)
+    coarse_peak = likelihood.coarse_peak
+    for seed in range(3):
+        jac, obs = _turned_observations(seed, 15)
+        if seed == 1:   # two stamp shapes among the exposures
+            obs[1:3] = [shearfit.Observation(image=o.image[4:-4, 4:-4], weight=o.weight[4:-4, 4:-4], psf=o.psf,
+                                             jacobian=o.jacobian, offset=o.offset) for o in obs[1:3]]
+        ex = model.prepare_exposures(obs, cfg)
+        keep = likelihood.join_exposures(ex, cfg.mode_chi2_tolerance).keep
+        assert keep is not None and any(not np.all(k) for k in keep)
+        for k in (None, keep):
+            for hw in (8 * PIX, 3.3 * PIX):
+                a = coarse_peak(ex, jac, disk, 2 * PIX, hw, PIX, keep=k)
+                b = coarse_peak(ex, jac, disk, 2 * PIX, hw, PIX, keep=k, use_kernel=False)
+                assert a == b, (a, b)
+        # the whole grid of sums, not only where it peaks: numpy's total against the kernel's
+        grid = np.arange(-8 * PIX, 8 * PIX + 0.5 * PIX, PIX)
+        ny, nx = ex[0].shape
+        out = np.empty((ny, nx // 2 + 1), complex)
+        likelihood.KERNEL.coarse_modes(ex[0].kx, ex[0].ky, ex[0].transfer, ex[0].coarse,
+                                       np.ascontiguousarray(keep[0], dtype=np.uint8), ex[0].data_ft,
+                                       disk.rho2_nodes, disk.ft_nodes, *disk._buckets(), (2 * PIX) ** 2, out)
+        e0 = likelihood._select(ex[0], keep[0])
+        R = disk.ft_rho2((2 * PIX) ** 2 * (e0.kx ** 2 + e0.ky ** 2))
+        ref = np.conj(np.conj(ex[0].data_ft) * likelihood.complex_bincount(e0.coarse, e0.transfer * R, out.size))
+        # numpy's complex product may fuse its multiply-adds (its SIMD loops, per CPU): equal to rounding
+        assert np.max(np.abs(out.ravel() - ref)) <= 1e-14 * np.max(np.abs(ref))
+        h = np.fft.irfft2(out, s=(ny, nx))
+        total = np.zeros((grid.size, grid.size))
+        likelihood.KERNEL.coarse_gather(h, nx, ex[0].sigma2, likelihood.inv2(jac[0]), grid, total)
+        GU, GV = np.meshgrid(grid, grid, indexing="ij")
+        Jinv = likelihood.inv2(jac[0])
+        sx = np.rint(Jinv[0, 0] * GU + Jinv[0, 1] * GV).astype(int) % nx
+        sy = np.rint(Jinv[1, 0] * GU + Jinv[1, 1] * GV).astype(int) % ny
+        assert np.array_equal(total, (h / ex[0].sigma2)[sy, sx])
+    with pytest.raises(ValueError, match="inconsistent"):
+        likelihood.KERNEL.coarse_gather(h, nx + 1, 1.0, likelihood.inv2(jac[0]), grid, total)
+    with pytest.raises(ValueError, match="finite"):
+        likelihood.KERNEL.coarse_gather(h, nx, 1.0, np.array([np.nan, 0, 0, 1.0]), grid, total)
+    with pytest.raises(ValueError, match="inconsistent"):
+        likelihood.KERNEL.coarse_modes(ex[0].kx, ex[0].ky, ex[0].transfer, ex[0].coarse + out.size, b"",
+                                       ex[0].data_ft, disk.rho2_nodes, disk.ft_nodes, *disk._buckets(), 1.0, out)
 
 
 def test_log_table_is_the_profiles_transform():

@@ -2516,6 +2516,40 @@ static PyObject *find_peak(PyObject *self, PyObject *args)
     return Py_BuildValue("ddi", x, y, status);
 }
 
+/* np.interp's value at x of the table xp, fp (m nodes; right beyond its end), its node found from x's bit pattern
+   (index: per bucket of 2^shift patterns from base, the last node at or below its start), not fused */
+static inline NO_CONTRACT double table_lookup(const double *XP, const double *FP, Py_ssize_t m, const int *IDX,
+                                              Py_ssize_t nidx, long long base, int shift, double right, double x)
+{
+#if defined(__clang__)
+#pragma clang fp contract(off)
+#endif
+    if (x != x) return x;
+    if (x < XP[0]) return FP[0];
+    if (x > XP[m - 1]) return right;
+    if (x == XP[m - 1]) return FP[m - 1];
+    Py_ssize_t j = 0;
+    if (x >= XP[1]) {
+        long long bits;
+        memcpy(&bits, &x, sizeof bits);
+        long long b = (bits - base) >> shift;
+        j = (Py_ssize_t)IDX[b < nidx ? b : nidx - 1];
+        if (j > m - 2) j = m - 2;
+        while (j < m - 2 && XP[j + 1] <= x) j++;
+    }
+    if (XP[j] == x) return FP[j];
+    const double slope = (FP[j + 1] - FP[j]) / (XP[j + 1] - XP[j]);
+    return slope * (x - XP[j]) + FP[j];
+}
+
+/* table_lookup of n values */
+static NO_CONTRACT void table_lookup_n(const double *XP, const double *FP, Py_ssize_t m, const int *IDX,
+                                       Py_ssize_t nidx, long long base, int shift, double right, const double *X,
+                                       Py_ssize_t n, double *O)
+{
+    for (Py_ssize_t i = 0; i < n; i++) O[i] = table_lookup(XP, FP, m, IDX, nidx, base, shift, right, X[i]);
+}
+
 /*
  * table_interp(x, xp, fp, index, base, shift, right, out): np.interp(x, xp, fp, right=right) (left = fp[0]),
  * the same numbers (the same slope and sum, not fused), for a table xp of non-negative, increasing nodes with
@@ -2523,7 +2557,6 @@ static PyObject *find_peak(PyObject *self, PyObject *args)
  * below x comes from the bucket of x's bit pattern (index[b], int32: the last node at or below the bucket's
  * start, buckets of 2^shift patterns from the pattern ``base`` of xp[1]), and a few steps forward find x's node.
  */
-__attribute__((optimize("fp-contract=off")))
 static PyObject *table_interp(PyObject *self, PyObject *args)
 {
     Py_buffer xb, xpb, fpb, ib, ob;
@@ -2549,27 +2582,136 @@ static PyObject *table_interp(PyObject *self, PyObject *args)
         }
     }
     Py_BEGIN_ALLOW_THREADS
-    for (Py_ssize_t i = 0; i < n; i++) {
-        const double x = X[i];
-        if (x != x) { O[i] = x; continue; }
-        if (x < XP[0]) { O[i] = FP[0]; continue; }
-        if (x > XP[m - 1]) { O[i] = right; continue; }
-        if (x == XP[m - 1]) { O[i] = FP[m - 1]; continue; }
-        Py_ssize_t j = 0;
-        if (x >= XP[1]) {
-            long long bits;
-            memcpy(&bits, &x, sizeof bits);
-            long long b = (bits - base) >> shift;
-            j = (Py_ssize_t)IDX[b < nidx ? b : nidx - 1];
-            if (j > m - 2) j = m - 2;
-            while (j < m - 2 && XP[j + 1] <= x) j++;
-        }
-        if (XP[j] == x) { O[i] = FP[j]; continue; }
-        const double slope = (FP[j + 1] - FP[j]) / (XP[j + 1] - XP[j]);
-        O[i] = slope * (x - XP[j]) + FP[j];
-    }
+    for (Py_ssize_t i = 0; i < n; i++) O[i] = table_lookup(XP, FP, m, IDX, nidx, base, shift, right, X[i]);
     Py_END_ALLOW_THREADS
     RELEASE(&xb, &xpb, &fpb, &ib, &ob);
+    Py_RETURN_NONE;
+}
+
+/*
+ * coarse_modes(kx, ky, transfer, coarse, keep, data_ft, xp, fp, index, base, shift, r2, out) and
+ * coarse_gather(h, nx, sigma2, jinv, grid, total): likelihood.coarse_peak's work per exposure, its numpy lines'
+ * arithmetic without fused multiply-adds (numpy's complex product may fuse its own, so the cross-correlation's
+ * transform agrees to rounding, and the sums gathered from one h to the bit: a test checks both).
+ * coarse_modes: per mode j (those keep marks: uint8, or every mode where keep is empty) the round model's
+ * transform R at rho^2 = r2 (kx^2 + ky^2) (table_interp's lookup in the table xp, fp), the products transfer R
+ * summed into the sampled modes coarse[j] (complex_bincount's order), and out = conj(conj(data_ft) S), the
+ * cross-correlation's transform (complex128 of the stamp's rfft grid, as data_ft).
+ * coarse_gather: the exposure's cross-correlation h (ny x nx, unnormalised) divided by sigma2, gathered at the
+ * nearest pixel of each sky offset (grid[a], grid[b]) through the inverse Jacobian (jinv: 4 doubles, row-major)
+ * and added to total (n x n, n = len(grid)).
+ */
+/* coarse_modes' arithmetic, without contraction into fused multiply-adds (the numpy lines' numbers); w: scratch
+   of 2 n + 2 ng doubles */
+static NO_CONTRACT void coarse_modes_loop(const double *KX, const double *KY, const double *T, const long long *CO,
+                                          const unsigned char *KEEP, Py_ssize_t n, const double *Y, Py_ssize_t ng,
+                                          const double *XP, const double *FP, Py_ssize_t m, const int *IDX,
+                                          Py_ssize_t nidx, long long base, int shift, double r2, double *w,
+                                          double *O)
+{
+#if defined(__clang__)
+#pragma clang fp contract(off)
+#endif
+    double *x = w, *R = w + n, *acc = w + 2 * n;
+    /* the dropped modes' transforms are not needed: rho^2 = 0 finds the table's first node at once */
+    for (Py_ssize_t j = 0; j < n; j++) x[j] = KEEP == NULL || KEEP[j] ? r2 * (KX[j] * KX[j] + KY[j] * KY[j]) : 0.0;
+    table_lookup_n(XP, FP, m, IDX, nidx, base, shift, 0.0, x, n, R);
+    for (Py_ssize_t g = 0; g < 2 * ng; g++) acc[g] = 0.0;
+    for (Py_ssize_t j = 0; j < n; j++) {
+        if (KEEP != NULL && !KEEP[j]) continue;
+        const Py_ssize_t c = (Py_ssize_t)CO[j];
+        acc[c] += T[2 * j] * R[j];
+        acc[ng + c] += T[2 * j + 1] * R[j];
+    }
+    for (Py_ssize_t g = 0; g < ng; g++) {
+        const double yr = Y[2 * g], yi = Y[2 * g + 1], sr = acc[g], si = acc[ng + g];
+        O[2 * g] = yr * sr - (-yi) * si;
+        O[2 * g + 1] = -(yr * si + (-yi) * sr);
+    }
+}
+
+static PyObject *coarse_modes(PyObject *self, PyObject *args)
+{
+    Py_buffer kxb, kyb, tb, cb, keb, yb, xpb, fpb, ib, ob;
+    long long base;
+    int shift;
+    double r2;
+    if (!PyArg_ParseTuple(args, "y*y*y*y*y*y*y*y*y*Lidw*", &kxb, &kyb, &tb, &cb, &keb, &yb, &xpb, &fpb, &ib, &base,
+                          &shift, &r2, &ob)) return NULL;
+#define CM_RELEASE RELEASE(&kxb, &kyb, &tb, &cb, &keb, &yb, &xpb, &fpb, &ib, &ob)
+    const Py_ssize_t D = (Py_ssize_t)sizeof(double);
+    const Py_ssize_t n = kxb.len / D, ng = yb.len / (2 * D), m = xpb.len / D, nidx = ib.len / (Py_ssize_t)sizeof(int);
+    int bad = kyb.len != kxb.len || tb.len != 2 * kxb.len || cb.len != n * (Py_ssize_t)sizeof(long long)
+              || (keb.len != 0 && keb.len != n) || ob.len != yb.len || fpb.len != xpb.len || m < 3 || nidx < 1
+              || shift < 0 || shift > 62 || base < 0;
+    const long long *CO = (const long long *)cb.buf;
+    for (Py_ssize_t j = 0; !bad && j < n; j++) bad = CO[j] < 0 || CO[j] >= ng;
+    const int *IDX = (const int *)ib.buf;
+    for (Py_ssize_t b = 0; !bad && b < nidx; b++) bad = IDX[b] < 0 || IDX[b] > m - 1;
+    if (bad) {
+        CM_RELEASE;
+        PyErr_SetString(PyExc_ValueError, "coarse_modes: inconsistent buffers");
+        return NULL;
+    }
+    double *acc = (double *)malloc((2 * n + 2 * ng + 1) * sizeof(double));
+    if (acc == NULL) {
+        CM_RELEASE;
+        return PyErr_NoMemory();
+    }
+    coarse_modes_loop((const double *)kxb.buf, (const double *)kyb.buf, (const double *)tb.buf, CO,
+                      keb.len ? (const unsigned char *)keb.buf : NULL, n, (const double *)yb.buf, ng,
+                      (const double *)xpb.buf, (const double *)fpb.buf, m, IDX, nidx, base, shift, r2, acc,
+                      (double *)ob.buf);
+    free(acc);
+    CM_RELEASE;
+#undef CM_RELEASE
+    Py_RETURN_NONE;
+}
+
+static NO_CONTRACT void coarse_gather_loop(const double *H, Py_ssize_t ny, Py_ssize_t nx, double sigma2,
+                                           const double *J, const double *grid, Py_ssize_t ng, double *total)
+{
+#if defined(__clang__)
+#pragma clang fp contract(off)
+#endif
+    for (Py_ssize_t a = 0; a < ng; a++) {
+        const double gu = grid[a];
+        for (Py_ssize_t b = 0; b < ng; b++) {
+            const double gv = grid[b];
+            long long sx = (long long)rint(J[0] * gu + J[1] * gv) % (long long)nx;
+            long long sy = (long long)rint(J[2] * gu + J[3] * gv) % (long long)ny;
+            sx += sx < 0 ? nx : 0;
+            sy += sy < 0 ? ny : 0;
+            total[a * ng + b] += H[sy * nx + sx] / sigma2;
+        }
+    }
+}
+
+static PyObject *coarse_gather(PyObject *self, PyObject *args)
+{
+    Py_buffer hb, jb, gb, tb;
+    Py_ssize_t nx;
+    double sigma2;
+    if (!PyArg_ParseTuple(args, "y*ndy*y*w*", &hb, &nx, &sigma2, &jb, &gb, &tb)) return NULL;
+    const Py_ssize_t D = (Py_ssize_t)sizeof(double), ng = gb.len / D;
+    const Py_ssize_t ny = nx > 0 ? hb.len / (D * nx) : 0;
+    if (nx < 1 || ny < 1 || hb.len != ny * nx * D || jb.len != 4 * D || tb.len != ng * ng * D) {
+        RELEASE(&hb, &jb, &gb, &tb);
+        PyErr_SetString(PyExc_ValueError, "coarse_gather: inconsistent buffers");
+        return NULL;
+    }
+    const double *J = (const double *)jb.buf;
+    const double *grid = (const double *)gb.buf;
+    int finite = 1;
+    for (int i = 0; i < 4; i++) finite &= isfinite(J[i]);
+    for (Py_ssize_t a = 0; a < ng; a++) finite &= isfinite(grid[a]);
+    if (!finite) {
+        RELEASE(&hb, &jb, &gb, &tb);
+        PyErr_SetString(PyExc_ValueError, "coarse_gather: the inverse Jacobian and the grid must be finite");
+        return NULL;
+    }
+    coarse_gather_loop((const double *)hb.buf, ny, nx, sigma2, J, grid, ng, (double *)tb.buf);
+    RELEASE(&hb, &jb, &gb, &tb);
     Py_RETURN_NONE;
 }
 
@@ -2588,6 +2730,9 @@ static PyMethodDef methods[] = {
      "-> (lo, offsets, columns, dc)"},
     {"polar_grid", polar_grid, METH_VARARGS,
      "polar_grid(basis32, channels32, bins_per_octave, npsi[, versions]) -> (u0, n_u, grid, dc, rows)"},
+    {"coarse_modes", coarse_modes, METH_VARARGS,
+     "coarse_modes(kx, ky, transfer, coarse, keep, data_ft, xp, fp, index, base, shift, r2, out)"},
+    {"coarse_gather", coarse_gather, METH_VARARGS, "coarse_gather(h, nx, sigma2, jinv, grid, total)"},
     {"table_interp", table_interp, METH_VARARGS,
      "table_interp(x, xp, fp, index, base, shift, right, out): np.interp(x, xp, fp, right=right), bucketed search"},
     {"find_peak", find_peak, METH_VARARGS,

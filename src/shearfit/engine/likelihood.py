@@ -1250,7 +1250,7 @@ def _marginal_numpy(sums, cfg, pixel_scale):
                     snr_disk=out["disk"][4], snr_bulge=out["bulge"][4])
 
 
-def coarse_peak(exposures, jacobians, disk, r_ref, half_width, step, keep=None):
+def coarse_peak(exposures, jacobians, disk, r_ref, half_width, step, keep=None, use_kernel=True):
     """Sky offset of the peak of the summed cross-correlation, to about a pixel.
 
     Each exposure's cross-correlation with a round model is one inverse FFT
@@ -1258,27 +1258,44 @@ def coarse_peak(exposures, jacobians, disk, r_ref, half_width, step, keep=None):
     offsets (spacing ``step`` arcsec, within +-``half_width``) by nearest
     pixel, which is all a starting point for ``find_position`` needs.
     ``keep``: per exposure, the modes to use (a mask, such as the noise-aware
-    cut's ``JointModes.keep``; None: all).
+    cut's ``JointModes.keep``; None: all). The compiled kernel
+    (``KERNEL.coarse_modes``, ``KERNEL.coarse_gather``) makes the numpy lines' sums to rounding (numpy's
+    complex product may fuse its multiply-adds) and their peak (``use_kernel=False``: the numpy lines, which
+    stay as the reference).
     """
     grid = np.arange(-half_width, half_width + 0.5 * step, step)
-    GU, GV = np.meshgrid(grid, grid, indexing="ij")
-    total = np.zeros(GU.shape)
+    kernel = USE_KERNEL and use_kernel and len(disk.rho2_nodes) >= 3
     # h(s) = sum_k conj(Y) M exp(-i k.s): the inverse DFT of conj(conj(Y) M), conjugated back; the
     # exposures of one stamp shape in one inverse FFT
     hs = [None] * len(exposures)
     for (ny, nx), idx in indices_by_shape(ex.shape for ex in exposures).items():
-        Cs = []
-        for i in idx:
+        Cs = np.empty((len(idx), ny, nx // 2 + 1), complex)
+        for slot, i in enumerate(idx):
             ex = exposures[i]
-            if keep is not None and keep[i] is not None:
-                ex = _select(ex, keep[i])
+            k = None if keep is None else keep[i]
+            if kernel:
+                KERNEL.coarse_modes(ex.kx, ex.ky, ex.transfer, ex.coarse,
+                                    b"" if k is None else np.ascontiguousarray(k, dtype=np.uint8),
+                                    np.ascontiguousarray(ex.data_ft, dtype=complex), disk.rho2_nodes, disk.ft_nodes,
+                                    *disk._buckets(), float(r_ref * r_ref), Cs[slot])
+                continue
+            if k is not None:
+                ex = _select(ex, k)
             R = disk.ft_rho2(r_ref * r_ref * (ex.kx ** 2 + ex.ky ** 2))
             C = np.conj(ex.data_ft) * complex_bincount(ex.coarse, ex.transfer * R, ny * (nx // 2 + 1))
-            Cs.append(np.conj(C.reshape(ny, nx // 2 + 1)))
-        for i, h in zip(idx, sfft.irfft2(np.stack(Cs), s=(ny, nx))):
-            hs[i] = h / exposures[i].sigma2
+            Cs[slot] = np.conj(C.reshape(ny, nx // 2 + 1))
+        for i, h in zip(idx, sfft.irfft2(Cs, s=(ny, nx))):
+            hs[i] = h
+    total = np.zeros((grid.size, grid.size))
+    if kernel:
+        for ex, J, h in zip(exposures, jacobians, hs):
+            KERNEL.coarse_gather(np.ascontiguousarray(h), ex.shape[1], float(ex.sigma2), inv2(J), grid, total)
+        i = divmod(int(np.argmax(total)), grid.size)
+        return float(grid[i[0]]), float(grid[i[1]])
+    GU, GV = np.meshgrid(grid, grid, indexing="ij")
     for ex, J, h in zip(exposures, jacobians, hs):
         ny, nx = ex.shape
+        h = h / ex.sigma2
         Jinv = inv2(J)
         sx = np.rint(Jinv[0, 0] * GU + Jinv[0, 1] * GV).astype(int) % nx
         sy = np.rint(Jinv[1, 0] * GU + Jinv[1, 1] * GV).astype(int) % ny
