@@ -958,6 +958,68 @@ def test_compiled_size_marginal_matches_numpy():
         assert np.allclose(x[fin], y[fin], rtol=1e-12, atol=1e-12), f
 
 
+@pytest.mark.parametrize("axis", ["major", "area"])
+def test_compiled_size_nodes_and_locating_passes_match_numpy(axis):
+    """The size nodes (KERNEL.size_nodes: binned sums, marginals and size integral in one call) and the size-locating
+    passes (KERNEL.locate_pass: with the parabolas, and with the crude integral of ``detail``) give the numpy lines'
+    numbers to rounding (their exp and log are the C library's): at ellipticities up to |e| 0.9, sizes from a tenth to
+    ten times the galaxy's, with the size prior on the semi-major axis and on the area's; the best single-component
+    chi^2 and its SNR, and the models counted, alike. Bad buffers raise."""
+    from shearfit.engine import likelihood
+    from shearfit.engine.likelihood import bins_context, join_exposures, marginal_context, mode_bins, polar_setting
+    from shearfit.engine.model import prepare_exposure
+    from shearfit.engine.profiles import fast_pair
+    from shearfit.engine.sampling import EllipticityLikelihood
+
+    if not likelihood.USE_KERNEL or marginal_context(shearfit.FitConfig(), PIX) is None:
+        pytest.skip("compiled kernel not built")
+    cfg = shearfit.FitConfig(size_prior_axis=axis)
+    obs = _observations(0.3, (0.2, 0.1), noise=True, snr=30)
+    jm = join_exposures([prepare_exposure(o, cfg) for o in obs], cfg.mode_chi2_tolerance)
+    rng = np.random.default_rng(5)
+    ne = 60
+    e = rng.uniform(0, 0.9, ne) * np.exp(2j * rng.uniform(0, np.pi, ne))
+    e1, e2 = e.real, e.imag
+    bins = mode_bins(jm, e1, e2, cfg.mode_bins_per_octave, polar=polar_setting(cfg))
+    index = rng.permutation(ne)[:45]
+    rc = 0.3 * np.exp(rng.uniform(-2.3, 2.3, index.size))
+    likes = [EllipticityLikelihood(jm, cfg, 22.0, fast_pair(), np.linspace(-1.2, 0.9, 7), 0.3) for _ in range(2)]
+    a = likes[0]._nodes(e1[index], e2[index], rc, bins, index)
+    b = likes[1]._nodes(e1[index], e2[index], rc, bins, index, use_kernel=False)
+    got, ref = [a], [b]
+    for detail in (False, True):
+        got.append(likes[0]._locate(e1[index], e2[index], rc, 0.6, bins, index, detail=detail))
+        ref.append(likes[1]._locate(e1[index], e2[index], rc, 0.6, bins, index, detail=detail, use_kernel=False))
+
+    def arrays(x):
+        if isinstance(x, tuple):
+            return [v for item in x for v in arrays(item)]
+        if isinstance(x, np.ndarray):
+            return [x]
+        return [getattr(x, f) for f in ("logl_disk", "logl_bulge", "mean_r", "mean_b", "mean_flux")]
+
+    checked = 0
+    for x, y in zip(arrays(tuple(got)), arrays(tuple(ref))):
+        assert x.shape == y.shape
+        assert np.array_equal(np.isfinite(x), np.isfinite(y))
+        fin = np.isfinite(y)
+        assert np.allclose(x[fin], y[fin], rtol=1e-12, atol=1e-12)
+        checked += 1
+    assert checked == 13   # the nodes' five fields; the peaks; the peaks, their values and the five fields
+    assert likes[0].n_models == likes[1].n_models == 1 + index.size * (7 + 5 + 5)
+    assert likes[0].best_chi2_gal == pytest.approx(likes[1].best_chi2_gal, rel=1e-12)
+    assert likes[0].best_snr == pytest.approx(likes[1].best_snr, rel=1e-12)
+    assert np.isfinite(likes[0].best_chi2_gal)
+    ctx, marg = bins_context(jm, bins, likes[0].fast, cfg.bulge_size_ratio), marginal_context(cfg, jm.pixel_scale)
+    with pytest.raises(ValueError, match="inconsistent"):
+        likelihood.KERNEL.locate_pass(ctx, marg, np.array([ne], np.int64), np.ones(1), np.ones(5), np.zeros(5),
+                                      np.zeros(3), b"", np.zeros(2), 0, np.empty(1), np.empty(1), np.empty(0))
+    with pytest.raises(ValueError, match="inconsistent"):
+        likelihood.KERNEL.size_nodes(ctx, marg, np.zeros(2, np.int64), np.ones(2), np.ones(7), 0.0, np.zeros(3),
+                                     np.zeros((7, 3)), np.zeros((7, 3)), np.zeros(9), np.zeros(9), np.zeros(2),
+                                     np.zeros(2), np.zeros(3), b"", np.empty((5, 3)), np.empty(2))
+
+
 def test_size_peak_reuse_saves_models_without_moving_the_estimate():
     # bright and compact: the size posterior is narrow, so every sample's size peak is located
     obs = _observations(0.25, (0.45, -0.3), snr=400)

@@ -29,6 +29,7 @@
 #include <string.h>
 #include <stdint.h>
 #include <limits.h>
+#include <float.h>
 
 #define NSTRIDE 12
 #define NOUT 15
@@ -1080,56 +1081,75 @@ static void pair_block(int nk, const Py_ssize_t *kept, Py_ssize_t n_g, Py_ssize_
     }
 }
 
-static PyObject *binned_sums(PyObject *self, PyObject *args)
-{
-    Py_buffer shape, r2b, eidx, lob, offb, colb, dcb, gfb, ggb, pbsb, pab, pbb, phb, out;
+/* what binned_sums needs besides the models: an object's bins at a set of ellipticities (make_bins'), the log
+   tables and the fold groups' pairs; checked once (bins_check) */
+typedef struct {
+    const double *S, *COLS, *DC, *GF, *GG, *PH;
+    const long long *OFF, *LO, *PA, *PB;
+    const float *PBS;
+    Py_ssize_t n_e, n_cols, n_pairs, n_g, M, J, maxpad;
     double start, per_oct, low_f, low_g, zero_f, zero_g, ratio2, pair_tol;
-    Py_ssize_t M, J;
     int nb;
-    if (!PyArg_ParseTuple(args, "y*y*y*y*y*y*y*iy*y*nndddddddy*y*y*y*dw*", &shape, &r2b, &eidx, &lob, &offb,
-                          &colb, &dcb, &nb, &gfb, &ggb, &M, &J, &start, &per_oct, &low_f, &low_g, &zero_f, &zero_g,
-                          &ratio2, &pbsb, &pab, &pbb, &phb, &pair_tol, &out))
-        return NULL;
-#define BS_RELEASE RELEASE(&shape, &r2b, &eidx, &lob, &offb, &colb, &dcb, &gfb, &ggb, &pbsb, &pab, &pbb, &phb, &out)
-    Py_ssize_t n_models = r2b.len / (Py_ssize_t)sizeof(double);
-    Py_ssize_t n_e = shape.len / (3 * (Py_ssize_t)sizeof(double));
-    Py_ssize_t n_cols = colb.len / (NCH * (Py_ssize_t)sizeof(double));
-    Py_ssize_t n_pairs = phb.len / (Py_ssize_t)sizeof(double);
-    Py_ssize_t n_g = pbsb.len / (4 * (Py_ssize_t)sizeof(float));
-    const long long *E = (const long long *)eidx.buf, *OFF = (const long long *)offb.buf;
-    const long long *LO = (const long long *)lob.buf;
-    const long long *PA = (const long long *)pab.buf, *PB = (const long long *)pbb.buf;
-    int bad = out.len < n_models * NOUT * (Py_ssize_t)sizeof(double) || nb < 1 || M < 1 || J < 1
-              || eidx.len != n_models * (Py_ssize_t)sizeof(long long)
-              || lob.len != n_e * (Py_ssize_t)sizeof(long long) || dcb.len != 8 * n_e * (Py_ssize_t)sizeof(double)
-              || gfb.len != (M + 1) * J * (Py_ssize_t)sizeof(double) || ggb.len != gfb.len
-              || offb.len != (n_e + 1) * (Py_ssize_t)sizeof(long long) || OFF[n_e] != n_cols
-              || per_oct != (double)(nb * M) || pbsb.len != 4 * n_g * (Py_ssize_t)sizeof(float)
-              || pab.len != n_pairs * (Py_ssize_t)sizeof(long long) || pbb.len != pab.len;
-    for (Py_ssize_t m = 0; !bad && m < n_models; m++)
-        bad = E[m] < 0 || E[m] >= n_e;
+} BinsCtx;
+
+/* the buffers of a BinsCtx (shape, lo, offsets, columns, dc, log_f, log_g, pair_basis, pair_a, pair_b, pair_h),
+   checked against each other: 0, or -1 with a ValueError set */
+static int bins_check(BinsCtx *c, const Py_buffer *shape, const Py_buffer *lob, const Py_buffer *offb,
+                      const Py_buffer *colb, const Py_buffer *dcb, const Py_buffer *gfb, const Py_buffer *ggb,
+                      const Py_buffer *pbsb, const Py_buffer *pab, const Py_buffer *pbb, const Py_buffer *phb)
+{
+    c->n_e = shape->len / (3 * (Py_ssize_t)sizeof(double));
+    c->n_cols = colb->len / (NCH * (Py_ssize_t)sizeof(double));
+    c->n_pairs = phb->len / (Py_ssize_t)sizeof(double);
+    c->n_g = pbsb->len / (4 * (Py_ssize_t)sizeof(float));
+    c->S = (const double *)shape->buf;
+    c->OFF = (const long long *)offb->buf;
+    c->LO = (const long long *)lob->buf;
+    c->PA = (const long long *)pab->buf;
+    c->PB = (const long long *)pbb->buf;
+    c->COLS = (const double *)colb->buf;
+    c->DC = (const double *)dcb->buf;
+    c->GF = (const double *)gfb->buf;
+    c->GG = (const double *)ggb->buf;
+    c->PH = (const double *)phb->buf;
+    c->PBS = (const float *)pbsb->buf;
+    const Py_ssize_t n_e = c->n_e;
+    int bad = c->nb < 1 || c->M < 1 || c->J < 1
+              || lob->len != n_e * (Py_ssize_t)sizeof(long long) || dcb->len != 8 * n_e * (Py_ssize_t)sizeof(double)
+              || gfb->len != (c->M + 1) * c->J * (Py_ssize_t)sizeof(double) || ggb->len != gfb->len
+              || offb->len != (n_e + 1) * (Py_ssize_t)sizeof(long long) || c->OFF[n_e] != c->n_cols
+              || c->per_oct != (double)(c->nb * c->M) || pbsb->len != 4 * c->n_g * (Py_ssize_t)sizeof(float)
+              || pab->len != c->n_pairs * (Py_ssize_t)sizeof(long long) || pbb->len != pab->len;
     for (Py_ssize_t e = 0; !bad && e < n_e; e++)
-        bad = OFF[e] < 0 || OFF[e] > OFF[e + 1] || (OFF[e + 1] - OFF[e]) % BPAD != 0;
-    for (Py_ssize_t k = 0; !bad && k < n_pairs; k++)
-        bad = PA[k] < 0 || PA[k] >= n_g || PB[k] < 0 || PB[k] >= n_g;
-    Py_ssize_t maxpad = 0;
+        bad = c->OFF[e] < 0 || c->OFF[e] > c->OFF[e + 1] || (c->OFF[e + 1] - c->OFF[e]) % BPAD != 0;
+    for (Py_ssize_t k = 0; !bad && k < c->n_pairs; k++)
+        bad = c->PA[k] < 0 || c->PA[k] >= c->n_g || c->PB[k] < 0 || c->PB[k] >= c->n_g;
+    c->maxpad = 0;
     for (Py_ssize_t e = 0; !bad && e < n_e; e++)
-        if (OFF[e + 1] - OFF[e] > maxpad) maxpad = (Py_ssize_t)(OFF[e + 1] - OFF[e]);
+        if (c->OFF[e + 1] - c->OFF[e] > c->maxpad) c->maxpad = (Py_ssize_t)(c->OFF[e + 1] - c->OFF[e]);
     if (bad) {
-        BS_RELEASE;
         PyErr_SetString(PyExc_ValueError, "binned_sums: inconsistent buffers");
-        return NULL;
+        return -1;
     }
+    return 0;
+}
+
+/* the sums of n_models models (R2: r^2, E: the ellipticity of each, checked within the context's) into O (rows of
+   NOUT); 0, or -1 where memory ran out. Runs without the GIL. */
+static __attribute__((noinline)) int binned_sums_run(const BinsCtx *c, Py_ssize_t n_models, const long long *E,
+                                                     const double *R2, double *O)
+{
+    const Py_ssize_t n_pairs = c->n_pairs, n_g = c->n_g, maxpad = c->maxpad, M = c->M, J = c->J;
+    const long long *OFF = c->OFF, *LO = c->LO, *PA = c->PA, *PB = c->PB;
+    const int nb = c->nb;
+    double pair_tol = c->pair_tol;
     void *rbuf = NULL, *tbuf = NULL;
     const Py_ssize_t ng1 = n_g > 0 ? n_g : 1;
     /* the pair terms of up to PLB models of one ellipticity at a time: their bins' transforms (rows of PLB, the
        bins and the four entries after them), so that the interpolation and the pairs' products run over the models
        in vectors (pair_block) */
     const Py_ssize_t trows = maxpad + BPAD + 4;
-    if (n_pairs > 0 && posix_memalign(&tbuf, 64, 2 * trows * PLB * sizeof(double)) != 0) {
-        BS_RELEASE;
-        return PyErr_NoMemory();
-    }
+    if (n_pairs > 0 && posix_memalign(&tbuf, 64, 2 * trows * PLB * sizeof(double)) != 0) return -1;
     double *RFT = NULL, *RGT = NULL;
     if (tbuf != NULL) {
         RFT = (double *)tbuf;
@@ -1141,22 +1161,18 @@ static PyObject *binned_sums(PyObject *self, PyObject *args)
     /* the bins' transforms; per pair mode its transforms, basis (3 arrays), position, bin and weights */
     if (posix_memalign(&rbuf, 64, (2 * (maxpad + BPAD) + 10 * ng1) * sizeof(double) + ng1 * sizeof(int)) != 0) {
         free(tbuf);
-        BS_RELEASE;
-        return PyErr_NoMemory();
+        return -1;
     }
     double *RF = (double *)rbuf, *RG = RF + maxpad + BPAD, *PF = RG + maxpad + BPAD, *PG = PF + ng1;
     double *PB3 = PG + ng1, *PX = PB3 + 3 * ng1, *PW = PX + ng1;
     int *PI = (int *)(PW + 4 * ng1);
     for (Py_ssize_t g = 0; g < n_g; g++)
-        for (int t = 0; t < 3; t++) PB3[t * n_g + g] = ((const float *)pbsb.buf)[4 * g + t];
-    const double *S = (const double *)shape.buf;
-    const double *R2 = (const double *)r2b.buf;
-    const double *COLS = (const double *)colb.buf, *DC = (const double *)dcb.buf;
-    const double *GF = (const double *)gfb.buf, *GG = (const double *)ggb.buf;
-    const double *PH = (const double *)phb.buf;
-    double *O = (double *)out.buf;
-    const int same = (ratio2 == 1.0);
-    const double shift_g = same ? 0.0 : log2(ratio2) * per_oct;
+        for (int t = 0; t < 3; t++) PB3[t * n_g + g] = c->PBS[4 * g + t];
+    const double *S = c->S, *COLS = c->COLS, *DC = c->DC, *GF = c->GF, *GG = c->GG, *PH = c->PH;
+    const double start = c->start, per_oct = c->per_oct, low_f = c->low_f, low_g = c->low_g;
+    const double zero_f = c->zero_f, zero_g = c->zero_g;
+    const int same = (c->ratio2 == 1.0);
+    const double shift_g = same ? 0.0 : log2(c->ratio2) * per_oct;
 
     long long cur_e = -1;
     Py_ssize_t lo_b = 0, hi_b = -1;
@@ -1174,7 +1190,6 @@ static PyObject *binned_sums(PyObject *self, PyObject *args)
             }
         }
     }
-    Py_BEGIN_ALLOW_THREADS
     for (Py_ssize_t m = 0; m < n_models; m++) {
         const long long e = E[m];
         const Py_ssize_t npad = (Py_ssize_t)(OFF[e + 1] - OFF[e]);
@@ -1274,13 +1289,44 @@ static PyObject *binned_sums(PyObject *self, PyObject *args)
         }
     }
     if (n_pairs > 0) pair_block(nk, kept, n_g, n_pairs, PI, PW, PA, PB, PH, RFT, RGT, O);
-    Py_END_ALLOW_THREADS
 
     free(rbuf);
     free(tbuf);
     free(CG);
+    return 0;
+}
+
+static PyObject *binned_sums(PyObject *self, PyObject *args)
+{
+    Py_buffer shape, r2b, eidx, lob, offb, colb, dcb, gfb, ggb, pbsb, pab, pbb, phb, out;
+    BinsCtx c;
+    if (!PyArg_ParseTuple(args, "y*y*y*y*y*y*y*iy*y*nndddddddy*y*y*y*dw*", &shape, &r2b, &eidx, &lob, &offb,
+                          &colb, &dcb, &c.nb, &gfb, &ggb, &c.M, &c.J, &c.start, &c.per_oct, &c.low_f, &c.low_g,
+                          &c.zero_f, &c.zero_g, &c.ratio2, &pbsb, &pab, &pbb, &phb, &c.pair_tol, &out))
+        return NULL;
+#define BS_RELEASE RELEASE(&shape, &r2b, &eidx, &lob, &offb, &colb, &dcb, &gfb, &ggb, &pbsb, &pab, &pbb, &phb, &out)
+    if (bins_check(&c, &shape, &lob, &offb, &colb, &dcb, &gfb, &ggb, &pbsb, &pab, &pbb, &phb) != 0) {
+        BS_RELEASE;
+        return NULL;
+    }
+    Py_ssize_t n_models = r2b.len / (Py_ssize_t)sizeof(double);
+    const long long *E = (const long long *)eidx.buf;
+    int bad = out.len < n_models * NOUT * (Py_ssize_t)sizeof(double)
+              || eidx.len != n_models * (Py_ssize_t)sizeof(long long);
+    for (Py_ssize_t m = 0; !bad && m < n_models; m++)
+        bad = E[m] < 0 || E[m] >= c.n_e;
+    if (bad) {
+        BS_RELEASE;
+        PyErr_SetString(PyExc_ValueError, "binned_sums: inconsistent buffers");
+        return NULL;
+    }
+    int rc;
+    Py_BEGIN_ALLOW_THREADS
+    rc = binned_sums_run(&c, n_models, E, (const double *)r2b.buf, (double *)out.buf);
+    Py_END_ALLOW_THREADS
     BS_RELEASE;
 #undef BS_RELEASE
+    if (rc != 0) return PyErr_NoMemory();
     Py_RETURN_NONE;
 }
 
@@ -1604,37 +1650,58 @@ static void spline_rows(const double *restrict v, const double *restrict M, Py_s
     }
 }
 
-static PyObject *marginal(PyObject *self, PyObject *args)
+/* what marginal needs besides the models' sums: the flux nodes u (nf), the fine grid uf (nfine), the spline and
+   interpolation matrices between them and the parameters (marg_check) */
+typedef struct {
+    const double *u, *uf, *SPL, *ITP;
+    Py_ssize_t nf, nfine;
+    MargPar P;
+} MargCtx;
+
+/* the buffers of a MargCtx (u, u_fine, spline, interp, params): 0, or -1 with a ValueError set */
+static int marg_check(MargCtx *c, const Py_buffer *ub, const Py_buffer *ufb, const Py_buffer *spl,
+                      const Py_buffer *itp, const Py_buffer *par)
 {
-    Py_buffer sums, ub, ufb, spl, itp, par, out;
-    if (!PyArg_ParseTuple(args, "y*y*y*y*y*y*w*", &sums, &ub, &ufb, &spl, &itp, &par, &out)) return NULL;
-    Py_ssize_t n = sums.len / (15 * (Py_ssize_t)sizeof(double));
-    Py_ssize_t nf = ub.len / (Py_ssize_t)sizeof(double), nfine = ufb.len / (Py_ssize_t)sizeof(double);
-    int bad = sp_erfcx == NULL || nf < 2 || nf > MAXF || nfine < 2 || nfine > 4 * MAXF
-              || spl.len != nf * nfine * (Py_ssize_t)sizeof(double) || itp.len != spl.len
-              || par.len != 10 * (Py_ssize_t)sizeof(double) || out.len < 9 * n * (Py_ssize_t)sizeof(double);
-    double *work = bad ? NULL : (double *)malloc(28 * MB_L * sizeof(double));
-    const double **xp = bad ? NULL : (const double **)malloc(MB_L * sizeof(double *));
-    if (bad || work == NULL || xp == NULL) {
-        free(work);
-        free(xp);
-        RELEASE(&sums, &ub, &ufb, &spl, &itp, &par, &out);
-        if (!bad) return PyErr_NoMemory();
+    c->nf = ub->len / (Py_ssize_t)sizeof(double);
+    c->nfine = ufb->len / (Py_ssize_t)sizeof(double);
+    const Py_ssize_t nf = c->nf, nfine = c->nfine;
+    if (sp_erfcx == NULL || nf < 2 || nf > MAXF || nfine < 2 || nfine > 4 * MAXF
+        || spl->len != nf * nfine * (Py_ssize_t)sizeof(double) || itp->len != spl->len
+        || par->len != 10 * (Py_ssize_t)sizeof(double)) {
         PyErr_SetString(PyExc_ValueError, sp_erfcx == NULL ? "marginal: set_special first"
                                                            : "marginal: inconsistent buffers");
-        return NULL;
+        return -1;
     }
-    const double *X = (const double *)sums.buf, *u = (const double *)ub.buf, *uf = (const double *)ufb.buf;
-    const double *SPL = (const double *)spl.buf, *ITP = (const double *)itp.buf, *pp = (const double *)par.buf;
-    double *O = (double *)out.buf;
+    const double *pp = (const double *)par->buf;
     MargPar P = {pp[0], pp[1], pp[2], pp[3], 0.0, pp[4], pp[5], pp[6], pp[7], pp[8] != 0.0};
+    c->P = P;
+    c->u = (const double *)ub->buf;
+    c->uf = (const double *)ufb->buf;
+    c->SPL = (const double *)spl->buf;
+    c->ITP = (const double *)itp->buf;
+    return 0;
+}
+
+/* the marginalisation of n models (X: their sums, rows of 15) into O (rows of 9: logl_d, logl_b, flux_d, flux_b,
+   meanb_d, chi2_d, chi2_b, snr_d, snr_b); 0, or -1 where memory ran out. Runs without the GIL. */
+static __attribute__((noinline)) int marginal_run(const MargCtx *c, Py_ssize_t n, const double *X, double *O)
+{
+    const Py_ssize_t nf = c->nf, nfine = c->nfine;
+    const double *u = c->u, *uf = c->uf, *SPL = c->SPL, *ITP = c->ITP;
+    MargPar P = c->P;
+    double *work = (double *)malloc(28 * MB_L * sizeof(double));
+    const double **xp = (const double **)malloc(MB_L * sizeof(double *));
+    if (work == NULL || xp == NULL) {
+        free(work);
+        free(xp);
+        return -1;
+    }
     /* per element: S, log S, log P, log P at h = 0, <B>, gradient and Hessian (5), log integral (val) */
     double *Sk = work, *logS = work + MB_L, *lp = work + 2 * MB_L, *lp0 = work + 3 * MB_L, *mbe = work + 4 * MB_L;
     double *g = work + 5 * MB_L, *val = work + 10 * MB_L, *scratch = work + 11 * MB_L;   /* scratch: 14 */
     /* per model of the batch: the flux range [lo, hi] and whether the model correlates with the data */
     double *lo_m = work + 25 * MB_L, *hi_m = work + 26 * MB_L, *good_m = work + 27 * MB_L;
     const Py_ssize_t per = MB_L / nf;   /* models per batch */
-    Py_BEGIN_ALLOW_THREADS
     P.log_ei_tcrit = log_ei(P.tcrit);
     for (Py_ssize_t i0 = 0; i0 < n; i0 += per) {
         const Py_ssize_t nm = i0 + per <= n ? per : n - i0, ne = nm * nf;
@@ -1709,10 +1776,28 @@ static PyObject *marginal(PyObject *self, PyObject *args)
             }
         }
     }
-    Py_END_ALLOW_THREADS
     free(work);
     free(xp);
+    return 0;
+}
+
+static PyObject *marginal(PyObject *self, PyObject *args)
+{
+    Py_buffer sums, ub, ufb, spl, itp, par, out;
+    if (!PyArg_ParseTuple(args, "y*y*y*y*y*y*w*", &sums, &ub, &ufb, &spl, &itp, &par, &out)) return NULL;
+    MargCtx c;
+    Py_ssize_t n = sums.len / (15 * (Py_ssize_t)sizeof(double));
+    if (marg_check(&c, &ub, &ufb, &spl, &itp, &par) != 0 || out.len < 9 * n * (Py_ssize_t)sizeof(double)) {
+        if (!PyErr_Occurred()) PyErr_SetString(PyExc_ValueError, "marginal: inconsistent buffers");
+        RELEASE(&sums, &ub, &ufb, &spl, &itp, &par, &out);
+        return NULL;
+    }
+    int rc;
+    Py_BEGIN_ALLOW_THREADS
+    rc = marginal_run(&c, n, (const double *)sums.buf, (double *)out.buf);
+    Py_END_ALLOW_THREADS
     RELEASE(&sums, &ub, &ufb, &spl, &itp, &par, &out);
+    if (rc != 0) return PyErr_NoMemory();
     Py_RETURN_NONE;
 }
 
@@ -1802,31 +1887,13 @@ static PyObject *locate_parabola(PyObject *self, PyObject *args)
  * mixed by logmix (log(1 - f_B), log f_B). out (5 x n_e): log L disk, log L bulge, mean r, mean B, mean flux.
  */
 #define MAXN 512
-static PyObject *size_marginal(PyObject *self, PyObject *args)
+/* size_marginal's integrals of ne ellipticities (the arrays as size_marginal's, O: 5 x ne) */
+/* (not inlined: size_nodes' caller is compiled without contraction, and this must make size_marginal's numbers) */
+static __attribute__((noinline)) void size_marginal_run(
+    Py_ssize_t ne, Py_ssize_t nr, Py_ssize_t nf, Py_ssize_t nu, const double *LD, const double *LB, const double *FD,
+    const double *FB, const double *BD, const double *LP, const double *LS, const double *SPL, const double *ITP,
+    const double *XF, const double *U, const double *RF, const double *L0, const double *LM, double *O)
 {
-    Py_buffer b[15];
-    if (!PyArg_ParseTuple(args, "y*y*y*y*y*y*y*y*y*y*y*y*y*y*w*", &b[0], &b[1], &b[2], &b[3], &b[4], &b[5], &b[6],
-                          &b[7], &b[8], &b[9], &b[10], &b[11], &b[12], &b[13], &b[14]))
-        return NULL;
-    const Py_ssize_t D = (Py_ssize_t)sizeof(double);
-    Py_ssize_t nf = b[9].len / D, nu = b[10].len / D, nr = nf > 0 ? b[7].len / D / nf : 0;
-    Py_ssize_t ne = nr > 0 ? b[0].len / D / nr : 0;
-    int bad = nf < 2 || nu < 2 || nr < 2 || nf > MAXN || nu > MAXN || nr > MAXN
-              || b[8].len != nr * nf * D || b[7].len != nr * nf * D || b[12].len != 2 * D || b[13].len != 2 * D
-              || b[14].len < 5 * ne * D || b[5].len != ne * nf * D || b[11].len != ne * nf * D
-              || b[6].len != ne * nu * D;
-    for (int i = 1; i < 5 && !bad; i++) bad = b[i].len != ne * nr * D;
-    if (bad) {
-        RELEASE(&b[0], &b[1], &b[2], &b[3], &b[4], &b[5], &b[6], &b[7], &b[8], &b[9], &b[10], &b[11], &b[12],
-                &b[13], &b[14]);
-        PyErr_SetString(PyExc_ValueError, "size_marginal: inconsistent buffers");
-        return NULL;
-    }
-    const double *LD = b[0].buf, *LB = b[1].buf, *FD = b[2].buf, *FB = b[3].buf, *BD = b[4].buf;
-    const double *LP = b[5].buf, *LS = b[6].buf, *SPL = b[7].buf, *ITP = b[8].buf, *XF = b[9].buf, *U = b[10].buf;
-    const double *RF = b[11].buf, *L0 = b[12].buf, *LM = b[13].buf;
-    double *O = b[14].buf;
-    Py_BEGIN_ALLOW_THREADS
     for (Py_ssize_t e = 0; e < ne; e++) {
         const double *rf = RF + e * nf;
         double lm[2], mr[2], mf[2], mb = 0.0;
@@ -1885,6 +1952,34 @@ static PyObject *size_marginal(PyObject *self, PyObject *args)
         O[3 * ne + e] = (pa * mb + pb * 1.0) / tot;
         O[4 * ne + e] = (pa * mf[0] + pb * mf[1]) / tot;
     }
+}
+
+static PyObject *size_marginal(PyObject *self, PyObject *args)
+{
+    Py_buffer b[15];
+    if (!PyArg_ParseTuple(args, "y*y*y*y*y*y*y*y*y*y*y*y*y*y*w*", &b[0], &b[1], &b[2], &b[3], &b[4], &b[5], &b[6],
+                          &b[7], &b[8], &b[9], &b[10], &b[11], &b[12], &b[13], &b[14]))
+        return NULL;
+    const Py_ssize_t D = (Py_ssize_t)sizeof(double);
+    Py_ssize_t nf = b[9].len / D, nu = b[10].len / D, nr = nf > 0 ? b[7].len / D / nf : 0;
+    Py_ssize_t ne = nr > 0 ? b[0].len / D / nr : 0;
+    int bad = nf < 2 || nu < 2 || nr < 2 || nf > MAXN || nu > MAXN || nr > MAXN
+              || b[8].len != nr * nf * D || b[7].len != nr * nf * D || b[12].len != 2 * D || b[13].len != 2 * D
+              || b[14].len < 5 * ne * D || b[5].len != ne * nf * D || b[11].len != ne * nf * D
+              || b[6].len != ne * nu * D;
+    for (int i = 1; i < 5 && !bad; i++) bad = b[i].len != ne * nr * D;
+    if (bad) {
+        RELEASE(&b[0], &b[1], &b[2], &b[3], &b[4], &b[5], &b[6], &b[7], &b[8], &b[9], &b[10], &b[11], &b[12],
+                &b[13], &b[14]);
+        PyErr_SetString(PyExc_ValueError, "size_marginal: inconsistent buffers");
+        return NULL;
+    }
+    const double *LD = b[0].buf, *LB = b[1].buf, *FD = b[2].buf, *FB = b[3].buf, *BD = b[4].buf;
+    const double *LP = b[5].buf, *LS = b[6].buf, *SPL = b[7].buf, *ITP = b[8].buf, *XF = b[9].buf, *U = b[10].buf;
+    const double *RF = b[11].buf, *L0 = b[12].buf, *LM = b[13].buf;
+    double *O = b[14].buf;
+    Py_BEGIN_ALLOW_THREADS
+    size_marginal_run(ne, nr, nf, nu, LD, LB, FD, FB, BD, LP, LS, SPL, ITP, XF, U, RF, L0, LM, O);
     Py_END_ALLOW_THREADS
     RELEASE(&b[0], &b[1], &b[2], &b[3], &b[4], &b[5], &b[6], &b[7], &b[8], &b[9], &b[10], &b[11], &b[12], &b[13],
             &b[14]);
@@ -2589,6 +2684,339 @@ static PyObject *table_interp(PyObject *self, PyObject *args)
 }
 
 /*
+ * size_nodes(bins, marg, e_index, rc, expx, x0, xf, interp, spline, u, half_log_u, l0, logmix, prior, shift, out,
+ *            best): sampling.EllipticityLikelihood._nodes in one call (its Python lines stay as the reference: a
+ * test checks they agree). For each ellipticity i (e_index[i] among the bins), its size nodes r = rc[i] expx[n]
+ * (expx: exp of the nodes' ln r offsets x, n_r of them, x0 the first); their sums (binned_sums), each marginalised
+ * over bulge fraction, position and flux (marginal), and the size integral (size_marginal) against the size prior
+ * ln[p(r) r] = c - 2 ln a + 2 ln r - exp(alpha (ln r - ln a)) (prior: c, ln a, alpha) at ln r + shift[i] (shift:
+ * one per ellipticity, or none); out: 5 x n_e (logl_disk, logl_bulge, mean_r, mean_b, mean_flux). best: the lowest
+ * single-component chi^2 over the models and that model's SNR (in and out: updated where a model beats it).
+ * bins: the tuple of binned_sums' arguments without r2, e_index and out; marg: marginal's without sums and out.
+ */
+/* (the tuples are parsed on their own: PyArg_ParseTuple sizes its list of buffers to release on failure by the
+   top-level items, and the buffers of a nested tuple's items overran it) */
+#define BINS_FMT "y*y*y*y*y*iy*y*nndddddddy*y*y*y*d"
+#define BINS_ARGS(b, c) &b[0], &b[1], &b[2], &b[3], &b[4], &c.nb, &b[5], &b[6], &c.M, &c.J, &c.start, &c.per_oct, \
+    &c.low_f, &c.low_g, &c.zero_f, &c.zero_g, &c.ratio2, &b[7], &b[8], &b[9], &b[10], &c.pair_tol
+#define BINS_CHECK(b, c) bins_check(&c, &b[0], &b[1], &b[2], &b[3], &b[4], &b[5], &b[6], &b[7], &b[8], &b[9], &b[10])
+#define MARG_FMT "y*y*y*y*y*"
+#define MARG_ARGS(m) &m[0], &m[1], &m[2], &m[3], &m[4]
+
+/* the release of size_nodes' and locate_pass' buffers: the bins' 11, the marginal's 5, then n more */
+static void release_many(Py_buffer *b, int n)
+{
+    for (int i = 0; i < n; i++)
+        if (b[i].obj != NULL) PyBuffer_Release(&b[i]);
+}
+
+/* a call of size_nodes or locate_pass: its buffers (the bins' 11, the marginal's 5, then its own), the bins' and
+   the marginal's contexts and their tuples */
+typedef struct {
+    Py_buffer b[32];
+    BinsCtx bc;
+    MargCtx mc;
+    PyObject *bt, *mt;
+} CallCtx;
+
+/* the end of a call of size_nodes or locate_pass: its n buffers released; None, or MemoryError where rc says memory
+   ran out */
+static PyObject *finish_call(int rc, Py_buffer *b, int n)
+{
+    release_many(b, n);
+    if (rc != 0) return PyErr_NoMemory();
+    Py_RETURN_NONE;
+}
+
+/* the bins' and the marginal's tuples of a call parsed into its buffers 0 .. 15 and checked: 0, or -1 with an error
+   set (the caller releases the buffers) */
+static int parse_contexts(CallCtx *k)
+{
+    Py_buffer *b = k->b, *m = k->b + 11;
+    if (!PyArg_ParseTuple(k->bt, BINS_FMT, BINS_ARGS(b, k->bc)) || !PyArg_ParseTuple(k->mt, MARG_FMT, MARG_ARGS(m)))
+        return -1;
+    if (BINS_CHECK(b, k->bc) != 0 || marg_check(&k->mc, &m[0], &m[1], &m[2], &m[3], &m[4]) != 0) return -1;
+    return 0;
+}
+
+/* the sums and marginals of the models r = rc[i] ex[n] (n < nx) of ellipticities E[i]: mg (rows of 9) and their r;
+   scratch: sums (rows of NOUT), r2, the models' ellipticities. 0, or -1 where memory ran out */
+static __attribute__((noinline)) int node_models(const BinsCtx *bc, const MargCtx *mc, Py_ssize_t ne,
+                                                 const long long *E, const double *rc, const double *ex, Py_ssize_t nx,
+                                                 double *R, double *mg)
+{
+    const Py_ssize_t nm = ne * nx;
+    double *sums = (double *)malloc((NOUT + 1) * (nm > 0 ? nm : 1) * sizeof(double));
+    long long *em = (long long *)malloc((nm > 0 ? nm : 1) * sizeof(long long));
+    if (sums == NULL || em == NULL) {
+        free(sums);
+        free(em);
+        return -1;
+    }
+    double *r2 = sums + NOUT * nm;
+    for (Py_ssize_t i = 0; i < ne; i++)
+        for (Py_ssize_t n = 0; n < nx; n++) {
+            const double r = rc[i] * ex[n];
+            R[i * nx + n] = r;
+            r2[i * nx + n] = r * r;
+            em[i * nx + n] = E[i];
+        }
+    int rc_ = binned_sums_run(bc, nm, em, r2, sums);
+    if (rc_ == 0) rc_ = marginal_run(mc, nm, sums, mg);
+    free(sums);
+    free(em);
+    return rc_;
+}
+
+/* ln[p(r) r] of the size prior at ln r = lnr (sampling: priors.log_size_prior_per_lnr; pr: c, ln a, alpha) */
+static inline double log_size_prior(double lnr, const double *pr)
+{
+    return (pr[0] - 2 * pr[1]) + 2 * lnr - exp(pr[2] * (lnr - pr[1]));
+}
+
+static NO_CONTRACT int size_nodes_run(const BinsCtx *bc, const MargCtx *mc, Py_ssize_t ne, const long long *E,
+                                      const double *rc, const double *ex, Py_ssize_t nr, double x0, const double *XF,
+                                      Py_ssize_t nf, const double *ITP, const double *SPL, const double *U,
+                                      const double *HLU, Py_ssize_t nu, const double *L0, const double *LM,
+                                      const double *PR, const double *SH, double *O, double *best)
+{
+#if defined(__clang__)
+#pragma clang fp contract(off)
+#endif
+    const Py_ssize_t nm = ne * nr;
+    const Py_ssize_t n1 = nm > 0 ? nm : 1, e1 = ne > 0 ? ne : 1;
+    double *buf = (double *)malloc((10 * n1 + (2 * nf + nu) * e1) * sizeof(double));
+    if (buf == NULL) return -1;
+    double *R = buf, *mg = buf + n1, *col = mg + 9 * n1;
+    double *LP = col + 0, *RF = LP + nf * e1, *LS = RF + nf * e1;
+    if (node_models(bc, mc, ne, E, rc, ex, nr, R, mg) != 0) {
+        free(buf);
+        return -1;
+    }
+    /* the best single-component fit among the models (np.argmin of the lesser chi^2: its first minimum, or its
+       first NaN, which beats nothing) */
+    Py_ssize_t ib = -1;
+    double cb = 0.0;
+    for (Py_ssize_t m = 0; m < nm; m++) {
+        const double a = mg[9 * m + 5], b = mg[9 * m + 6];
+        const double c = (a != a || b != b) ? (a != a ? a : b) : (b < a ? b : a);   /* np.minimum */
+        if (c != c) { ib = -1; cb = c; break; }
+        if (ib < 0 || c < cb) { ib = m; cb = c; }
+    }
+    if (ib >= 0 && cb < best[0]) {
+        best[0] = cb;
+        best[1] = mg[9 * ib + 8] > mg[9 * ib + 7] ? mg[9 * ib + 8] : mg[9 * ib + 7];   /* Python's max(d, b) */
+    }
+    /* the size integral's inputs per ellipticity: the fine grid's r and prior, the first segment's prior */
+    const double lo12 = log(1e-12);
+    for (Py_ssize_t i = 0; i < ne; i++) {
+        const double sh = SH != NULL ? SH[i] : 0.0;
+        const double l0 = log(R[i * nr]) - x0;
+        for (Py_ssize_t q = 0; q < nf; q++) {
+            const double lnrf = l0 + XF[q];
+            RF[i * nf + q] = exp(lnrf);
+            LP[i * nf + q] = log_size_prior(lnrf + sh, PR);
+        }
+        const double lnrf0 = l0 + XF[0];
+        for (Py_ssize_t j = 0; j < nu; j++) {
+            double v = lnrf0 + HLU[j];
+            v = v != v ? v : (v > lo12 ? v : lo12);   /* np.maximum */
+            LS[i * nu + j] = log_size_prior(v + sh, PR) - 2 * v;
+        }
+    }
+    /* the models' marginals as the columns size_marginal takes (n_e x n_r each) */
+    double *LD = (double *)malloc(5 * n1 * sizeof(double));
+    if (LD == NULL) {
+        free(buf);
+        return -1;
+    }
+    double *LB = LD + n1, *FD = LB + n1, *FB = FD + n1, *BD = FB + n1;
+    for (Py_ssize_t m = 0; m < nm; m++) {
+        LD[m] = mg[9 * m];
+        LB[m] = mg[9 * m + 1];
+        FD[m] = mg[9 * m + 2];
+        FB[m] = mg[9 * m + 3];
+        BD[m] = mg[9 * m + 4];
+    }
+    size_marginal_run(ne, nr, nf, nu, LD, LB, FD, FB, BD, LP, LS, SPL, ITP, XF, U, RF, L0, LM, O);
+    free(LD);
+    free(buf);
+    return 0;
+}
+
+static PyObject *size_nodes(PyObject *self, PyObject *args)
+{
+    CallCtx k = {0};
+    Py_buffer *a = k.b + 16;   /* its own buffers */
+    double x0;
+    if (!PyArg_ParseTuple(args, "O!O!y*y*y*dy*y*y*y*y*y*y*y*y*w*w*", &PyTuple_Type, &k.bt, &PyTuple_Type, &k.mt, &a[0],
+                          &a[1], &a[2], &x0, &a[3], &a[4], &a[5], &a[6], &a[7], &a[8], &a[9], &a[10], &a[11], &a[12],
+                          &a[13]))
+        return NULL;
+    if (parse_contexts(&k) != 0) {
+        release_many(k.b, 32);
+        return NULL;
+    }
+    const Py_ssize_t D = (Py_ssize_t)sizeof(double);
+    const Py_ssize_t ne = a[0].len / (Py_ssize_t)sizeof(long long), nr = a[2].len / D, nf = a[3].len / D;
+    const Py_ssize_t nu = a[6].len / D;
+    const long long *E = (const long long *)a[0].buf;
+    int bad = ne < 0 || a[1].len != ne * D || nr < 2 || nf < 2 || nu < 2 || nr > MAXN || nf > MAXN || nu > MAXN
+              || a[4].len != nr * nf * D || a[5].len != nr * nf * D || a[7].len != nu * D || a[8].len != 2 * D
+              || a[9].len != 2 * D || a[10].len != 3 * D || (a[11].len != 0 && a[11].len != ne * D)
+              || a[12].len != 5 * ne * D || a[13].len != 2 * D;
+    for (Py_ssize_t i = 0; !bad && i < ne; i++) bad = E[i] < 0 || E[i] >= k.bc.n_e;
+    if (bad) {
+        release_many(k.b, 32);
+        PyErr_SetString(PyExc_ValueError, "size_nodes: inconsistent buffers");
+        return NULL;
+    }
+    int rc;
+    Py_BEGIN_ALLOW_THREADS
+    rc = size_nodes_run(&k.bc, &k.mc, ne, E, (const double *)a[1].buf, (const double *)a[2].buf, nr, x0,
+                        (const double *)a[3].buf, nf, (const double *)a[4].buf, (const double *)a[5].buf,
+                        (const double *)a[6].buf, (const double *)a[7].buf, nu, (const double *)a[8].buf,
+                        (const double *)a[9].buf, (const double *)a[10].buf,
+                        a[11].len ? (const double *)a[11].buf : NULL, (double *)a[12].buf, (double *)a[13].buf);
+    Py_END_ALLOW_THREADS
+    return finish_call(rc, k.b, 32);
+}
+
+/*
+ * locate_pass(bins, marg, e_index, rc, expx, xs, prior, shift, w, detail, r_peak, top, point): one pass of
+ * sampling.EllipticityLikelihood._locate in one call (its Python lines stay as the reference: a test checks they
+ * agree). For each ellipticity i, the models r = rc[i] expx[n] at the pass's ln r offsets xs (n < n_x), their sums and
+ * marginals as size_nodes', the size prior per ln r at ln r + shift[i] (prior and shift as size_nodes'), and the
+ * parabolas of locate_parabola (w: the populations' log weights): r_peak = rc exp(offset of the higher one's peak),
+ * top its value. With detail, point (5 x n_e) is the crude size integral over the pass's nodes (_locate's): log L of
+ * each population (trapezoid in ln r: log sum exp over the nodes plus log h), and the posterior means of r, B and
+ * the flux over the nodes.
+ */
+static double np_logaddexp(double x, double y)
+{
+    if (x == y) return x + M_LN2;
+    const double t = x - y;
+    if (t > 0) return x + log1p(exp(-t));
+    if (t <= 0) return y + log1p(exp(t));
+    return t;
+}
+
+static double nan_to_num(double v)
+{
+    return v != v ? 0.0 : (v == INFINITY ? DBL_MAX : (v == -INFINITY ? -DBL_MAX : v));
+}
+
+static NO_CONTRACT int locate_pass_run(const BinsCtx *bc, const MargCtx *mc, Py_ssize_t ne, const long long *E,
+                                       const double *rc, const double *ex, const double *xs, Py_ssize_t nx,
+                                       const double *PR, const double *SH, const double *W, int detail, double *RP,
+                                       double *TOP, double *PT)
+{
+#if defined(__clang__)
+#pragma clang fp contract(off)
+#endif
+    const Py_ssize_t nm = ne * nx, n1 = nm > 0 ? nm : 1;
+    double *buf = (double *)malloc((15 * n1 + (ne > 0 ? ne : 1)) * sizeof(double));
+    if (buf == NULL) return -1;
+    double *R = buf, *mg = R + n1, *LD = mg + 9 * n1, *LB = LD + n1, *LPR = LB + n1, *XPK = LPR + n1;
+    double *Y = XPK + (ne > 0 ? ne : 1), *A = Y + n1;
+    if (node_models(bc, mc, ne, E, rc, ex, nx, R, mg) != 0) {
+        free(buf);
+        return -1;
+    }
+    for (Py_ssize_t i = 0; i < ne; i++)
+        for (Py_ssize_t n = 0; n < nx; n++) {
+            const Py_ssize_t m = i * nx + n;
+            LD[m] = mg[9 * m];
+            LB[m] = mg[9 * m + 1];
+            LPR[m] = log_size_prior(log(R[m]) + (SH != NULL ? SH[i] : 0.0), PR);
+        }
+    locate_rows(LD, LB, LPR, W, xs, ne, nx, TOP, XPK);
+    for (Py_ssize_t i = 0; i < ne; i++) RP[i] = rc[i] * exp(XPK[i]);
+    if (detail) {
+        const double lh = log(xs[1] - xs[0]);
+        for (Py_ssize_t i = 0; i < ne; i++) {
+            const Py_ssize_t m0 = i * nx;
+            double ymax = -INFINITY;
+            for (Py_ssize_t n = 0; n < nx; n++) {
+                const Py_ssize_t m = m0 + n;
+                double y = np_logaddexp(W[0] + LD[m], W[1] + LB[m]) + LPR[m];
+                y = isfinite(y) ? y : -1e300;
+                Y[m] = y;
+                ymax = y > ymax ? y : ymax;
+            }
+            double wsum = 0.0;
+            for (Py_ssize_t n = 0; n < nx; n++) {
+                A[m0 + n] = exp(Y[m0 + n] - ymax);
+                wsum += A[m0 + n];
+            }
+            double mr = 0.0, mb = 0.0, mf = 0.0;
+            for (Py_ssize_t n = 0; n < nx; n++) {
+                const Py_ssize_t m = m0 + n;
+                const double w = A[m] / wsum;
+                mr += w * R[m];
+                mb += w * nan_to_num(mg[9 * m + 4]);
+                mf += w * nan_to_num(mg[9 * m + 2]);
+            }
+            for (int pop = 0; pop < 2; pop++) {
+                /* _logsumexp_rows of (log L, -1e300 where not finite) + lpr + log h */
+                double v[64], mx = -INFINITY;
+                int vnan = 0;
+                for (Py_ssize_t n = 0; n < nx; n++) {
+                    const double l = (pop == 0 ? LD : LB)[m0 + n];
+                    v[n] = (isfinite(l) ? l : -1e300) + LPR[m0 + n] + lh;
+                    if (v[n] != v[n]) vnan = 1;
+                    mx = v[n] > mx ? v[n] : mx;
+                }
+                if (vnan) mx = NAN;
+                const double ms = isfinite(mx) ? mx : 0.0;
+                double t = 0.0;
+                for (Py_ssize_t n = 0; n < nx; n++) t += exp(v[n] - ms);
+                PT[pop * ne + i] = ms + log(t);
+            }
+            PT[2 * ne + i] = mr;
+            PT[3 * ne + i] = mb;
+            PT[4 * ne + i] = mf;
+        }
+    }
+    free(buf);
+    return 0;
+}
+
+static PyObject *locate_pass(PyObject *self, PyObject *args)
+{
+    CallCtx k = {0};
+    Py_buffer *a = k.b + 16;   /* its own buffers */
+    int detail;
+    if (!PyArg_ParseTuple(args, "O!O!y*y*y*y*y*y*y*iw*w*w*", &PyTuple_Type, &k.bt, &PyTuple_Type, &k.mt, &a[0], &a[1],
+                          &a[2], &a[3], &a[4], &a[5], &a[6], &detail, &a[7], &a[8], &a[9]))
+        return NULL;
+    if (parse_contexts(&k) != 0) {
+        release_many(k.b, 32);
+        return NULL;
+    }
+    const Py_ssize_t D = (Py_ssize_t)sizeof(double);
+    const Py_ssize_t ne = a[0].len / (Py_ssize_t)sizeof(long long), nx = a[2].len / D;
+    const long long *E = (const long long *)a[0].buf;
+    int bad = a[1].len != ne * D || nx < 3 || nx > 64 || a[3].len != nx * D || a[4].len != 3 * D
+              || (a[5].len != 0 && a[5].len != ne * D) || a[6].len != 2 * D || a[7].len != ne * D
+              || a[8].len != ne * D || (detail && a[9].len != 5 * ne * D);
+    for (Py_ssize_t i = 0; !bad && i < ne; i++) bad = E[i] < 0 || E[i] >= k.bc.n_e;
+    if (bad) {
+        release_many(k.b, 32);
+        PyErr_SetString(PyExc_ValueError, "locate_pass: inconsistent buffers");
+        return NULL;
+    }
+    int rc;
+    Py_BEGIN_ALLOW_THREADS
+    rc = locate_pass_run(&k.bc, &k.mc, ne, E, (const double *)a[1].buf, (const double *)a[2].buf,
+                         (const double *)a[3].buf, nx, (const double *)a[4].buf,
+                         a[5].len ? (const double *)a[5].buf : NULL, (const double *)a[6].buf, detail,
+                         (double *)a[7].buf, (double *)a[8].buf, (double *)a[9].buf);
+    Py_END_ALLOW_THREADS
+    return finish_call(rc, k.b, 32);
+}
+
+/*
  * coarse_modes(kx, ky, transfer, coarse, keep, data_ft, xp, fp, index, base, shift, r2, out) and
  * coarse_gather(h, nx, sigma2, jinv, grid, total): likelihood.coarse_peak's work per exposure, its numpy lines'
  * arithmetic without fused multiply-adds (numpy's complex product may fuse its own, so the cross-correlation's
@@ -2730,6 +3158,11 @@ static PyMethodDef methods[] = {
      "-> (lo, offsets, columns, dc)"},
     {"polar_grid", polar_grid, METH_VARARGS,
      "polar_grid(basis32, channels32, bins_per_octave, npsi[, versions]) -> (u0, n_u, grid, dc, rows)"},
+    {"size_nodes", size_nodes, METH_VARARGS,
+     "size_nodes(bins, marg, e_index, rc, expx, x0, xf, interp, spline, u, half_log_u, l0, logmix, prior, shift, out, "
+     "best)"},
+    {"locate_pass", locate_pass, METH_VARARGS,
+     "locate_pass(bins, marg, e_index, rc, expx, xs, prior, shift, w, detail, r_peak, top, point)"},
     {"coarse_modes", coarse_modes, METH_VARARGS,
      "coarse_modes(kx, ky, transfer, coarse, keep, data_ft, xp, fp, index, base, shift, r2, out)"},
     {"coarse_gather", coarse_gather, METH_VARARGS, "coarse_gather(h, nx, sigma2, jinv, grid, total)"},

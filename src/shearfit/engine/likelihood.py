@@ -759,14 +759,24 @@ def mode_bins_versions(jms, e1, e2, bins_per_octave, channels=None, polar=None, 
                     lo=lo, offsets=offsets, columns=columns, dc=dc)
 
 
-def _model_sums_binned(jm, bins, e_index, r2, fast, ratio):
-    out = np.empty((r2.size, 15))
+def bins_context(jm, bins, fast, ratio):
+    """What the compiled binned sums take besides the models (``KERNEL.binned_sums``' other arguments, in its
+    order; ``KERNEL.size_nodes`` takes them as one tuple): the bins, the log tables of ``fast`` and the fold
+    groups' pairs."""
     _, _, pair_basis, pa, pb, ph = _packed_bins(jm)
     lt = fast.log_table(bins.bins_per_octave)
-    KERNEL.binned_sums(bins.shape, np.ascontiguousarray(r2), np.ascontiguousarray(e_index, dtype=np.int64),
-                         bins.lo, bins.offsets, bins.columns, bins.dc, bins.bins_per_octave, lt.rows[0], lt.rows[1],
-                         lt.m, lt.n_col, lt.start, lt.per_octave, lt.low[0], lt.low[1], lt.zero[0], lt.zero[1],
-                         float(ratio) ** 2, pair_basis, pa, pb, ph, float(jm.pair_skip), out)
+    return (bins.shape, bins.lo, bins.offsets, bins.columns, bins.dc, bins.bins_per_octave, lt.rows[0], lt.rows[1],
+            lt.m, lt.n_col, lt.start, lt.per_octave, lt.low[0], lt.low[1], lt.zero[0], lt.zero[1], float(ratio) ** 2,
+            pair_basis, pa, pb, ph, float(jm.pair_skip))
+
+
+def _model_sums_binned(jm, bins, e_index, r2, fast, ratio):
+    out = np.empty((r2.size, 15))
+    (shape, lo, offsets, columns, dc, nb, lf, lg, m, n_col, start, per_octave, low_f, low_g, zero_f, zero_g, ratio2,
+     pair_basis, pa, pb, ph, pair_skip) = bins_context(jm, bins, fast, ratio)
+    KERNEL.binned_sums(shape, np.ascontiguousarray(r2), np.ascontiguousarray(e_index, dtype=np.int64), lo, offsets,
+                       columns, dc, nb, lf, lg, m, n_col, start, per_octave, low_f, low_g, zero_f, zero_g, ratio2,
+                       pair_basis, pa, pb, ph, pair_skip, out)
     return ModelSums.from_kernel(out)
 
 
@@ -1180,6 +1190,15 @@ def _flux_grids(n_flux):
         a.setflags(write=False)
     itp, spl = _uniform_node_matrices(n_flux, SPLINE_FINE)   # the same uniform grids over [0, 1]
     return u, uf, spl, itp
+
+
+def marginal_context(cfg, pixel_scale):
+    """What the compiled marginalisation takes besides the models' sums (``KERNEL.marginal``'s other arguments:
+    the flux grids, their spline matrices and the parameters; ``KERNEL.size_nodes`` takes them as one tuple), or
+    None where the numpy lines run instead (no compiled kernel, or ``n_flux`` beyond its range)."""
+    if not (USE_KERNEL_MARGINAL and 2 <= cfg.n_flux <= 64):
+        return None
+    return _marginal_setup(cfg, None if pixel_scale is None else float(pixel_scale))
 
 
 def _marginal_kernel(sums, cfg, pixel_scale):

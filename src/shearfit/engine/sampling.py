@@ -27,7 +27,7 @@ import numpy as np
 from . import priors
 from ..config import FitConfig
 from .kernel import KERNEL, USE_KERNEL
-from .likelihood import (Marginal, linear_vectors, flux_position_marginal, mode_bins,
+from .likelihood import (Marginal, bins_context, linear_vectors, flux_position_marginal, marginal_context, mode_bins,
                          mode_bins_versions, model_sums, node_matrices, polar_pays, polar_setting,
                          shares_bins_geometry, versions_channels, versions_polar_grid)
 
@@ -225,7 +225,7 @@ class EllipticityLikelihood:
         return model_sums(self.jm, e1, e2, r, self.fast, self.cfg.bulge_size_ratio, lin=self.lin,
                           bins_per_octave=self.cfg.mode_bins_per_octave, bins=bins, bin_index=index)
 
-    def _locate(self, e1, e2, rc, half_width, bins=None, index=None, detail=False):
+    def _locate(self, e1, e2, rc, half_width, bins=None, index=None, detail=False, use_kernel=True):
         """Peak of the size posterior at each e: 5 nodes and, for each population (disk, pure bulge), a parabola
         through its best three; the peak is that of the population whose parabola peaks higher.
 
@@ -235,9 +235,16 @@ class EllipticityLikelihood:
         passes started between the two (session 74).
 
         With ``detail``: also that parabola's peak value (log L + log p(r) r of the population, with its weight)
-        and an EPoint of the crude size integral over the 5 nodes (the populations mixed)."""
+        and an EPoint of the crude size integral over the 5 nodes (the populations mixed).
+
+        With the bins, the compiled kernel (``KERNEL.locate_pass``: binned sums, marginalisation, prior, parabolas
+        and crude integral in one call) does what the lines below do, to rounding (its exp and log are the C
+        library's, not numpy's)."""
         cfg = self.cfg
         xs = _locate_nodes(float(half_width))
+        marg = marginal_context(cfg, self.jm.pixel_scale) if use_kernel and bins is not None else None
+        if marg is not None:
+            return self._locate_kernel(e1, e2, rc, float(half_width), bins, index, detail, marg)
         R = rc[:, None] * np.exp(xs)[None, :]
         n = xs.size
         sums = self._sums(np.repeat(e1, n), np.repeat(e2, n), R.ravel(), bins,
@@ -266,6 +273,24 @@ class EllipticityLikelihood:
                        mean_b=np.sum(w * np.nan_to_num(mg.mean_b_disk.reshape(R.shape)), axis=1),
                        mean_flux=np.sum(w * np.nan_to_num(mg.mean_flux_disk.reshape(R.shape)), axis=1))
         return r_peak, peak, point
+
+    def _locate_kernel(self, e1, e2, rc, half_width, bins, index, detail, marg):
+        cfg = self.cfg
+        ne = e1.size
+        xs = _locate_nodes(half_width)
+        self.n_models += ne * xs.size
+        shift = _prior_axis_shift(e1, e2, cfg)
+        r_peak, top = np.empty(ne), np.empty(ne)
+        point = np.empty((5, ne)) if detail else np.empty(0)
+        KERNEL.locate_pass(bins_context(self.jm, bins, self.fast, cfg.bulge_size_ratio), marg,
+                           np.ascontiguousarray(index, dtype=np.int64), np.ascontiguousarray(rc, dtype=float),
+                           _locate_exp(half_width), xs, self._node_constants()[2],
+                           b"" if shift is None else np.ascontiguousarray(shift, dtype=float),
+                           np.array(log_population_weights(cfg)), int(bool(detail)), r_peak, top, point)
+        if not detail:
+            return r_peak
+        return r_peak, top, EPoint(logl_disk=point[0], logl_bulge=point[1], mean_r=point[2], mean_b=point[3],
+                                   mean_flux=point[4])
 
     @staticmethod
     def _parabola_peaks(mg, ld0, lb0, lpr, xs, shape, use_kernel=True):
@@ -336,12 +361,47 @@ class EllipticityLikelihood:
             return out
         return self._nodes(e1, e2, rc, bins, np.arange(ne))
 
-    def _nodes(self, e1, e2, rc, bins, index):
-        """The size nodes of the samples (their bins at ``index``), marginalised, and the size integral."""
+    def _nodes(self, e1, e2, rc, bins, index, use_kernel=True):
+        """The size nodes of the samples (their bins at ``index``), marginalised, and the size integral. With the
+        bins, the compiled kernel (``KERNEL.size_nodes``: binned sums, marginalisation and size integral in one
+        call) does what the lines below do, to rounding (its exp and log are the C library's, not numpy's)."""
+        if use_kernel and bins is not None and self.x.size <= 512:
+            marg = marginal_context(self.cfg, self.jm.pixel_scale)
+            if marg is not None:
+                return self._nodes_kernel(e1, e2, rc, bins, index, marg)
         R = rc[:, None] * np.exp(self.x)[None, :]
         nr = self.x.size
         sums = self._sums(np.repeat(e1, nr), np.repeat(e2, nr), R.ravel(), bins, np.repeat(index, nr))
         return self._size_integral(e1, e2, R, flux_position_marginal(sums, self.cfg, self.jm.pixel_scale))
+
+    def _nodes_kernel(self, e1, e2, rc, bins, index, marg):
+        cfg = self.cfg
+        ne = e1.size
+        self.n_models += ne * self.x.size
+        xf, interp_w, spl = self._fine_grid()
+        shift = _prior_axis_shift(e1, e2, cfg)
+        out = np.empty((5, ne))
+        best = np.array([self.best_chi2_gal, self.best_snr])
+        expx, l0, prior = self._node_constants()
+        KERNEL.size_nodes(bins_context(self.jm, bins, self.fast, cfg.bulge_size_ratio), marg,
+                          np.ascontiguousarray(index, dtype=np.int64), np.ascontiguousarray(rc, dtype=float),
+                          expx, float(self.x[0]), xf, interp_w, spl, self._SEG_U, self._SEG_HALF_LOG_U,
+                          l0, np.array(log_population_weights(cfg)), prior,
+                          b"" if shift is None else np.ascontiguousarray(shift, dtype=float), out, best)
+        self.best_chi2_gal, self.best_snr = float(best[0]), float(best[1])
+        return EPoint(logl_disk=out[0], logl_bulge=out[1], mean_r=out[2], mean_b=out[3], mean_flux=out[4])
+
+    def _node_constants(self):
+        """What KERNEL.size_nodes takes of the object alone (made once): exp of the size nodes' offsets; log L of the
+        point source (r = 0), disk and bulge; the size prior per ln r as ln[alpha / Gamma(2 / alpha)], ln a,
+        alpha."""
+        v = getattr(self, "_node_consts", None)
+        if v is None:
+            alpha = float(self.cfg.size_alpha)
+            v = self._node_consts = (np.exp(self.x),
+                                     np.array([float(self.zero.logl_disk[0]), float(self.zero.logl_bulge[0])]),
+                                     np.array([math.log(alpha / math.gamma(2.0 / alpha)), self.ln_a, alpha]))
+        return v
 
     def _size_integral(self, e1, e2, R, mg):
         """The size integral of the samples from their size nodes ``R`` (n_e, n_nodes) marginalised (``mg``,
@@ -556,6 +616,14 @@ def _prior_axis_shift(e1, e2, cfg):
         return None
     em = np.minimum(np.hypot(e1, e2), 0.999)
     return k * np.log((1.0 - em) / (1.0 + em))
+
+
+@functools.lru_cache(maxsize=32)
+def _locate_exp(half_width):
+    """exp of the 5 ln r offsets of a size-locating pass (read-only, shared)."""
+    v = np.exp(_locate_nodes(half_width))
+    v.setflags(write=False)
+    return v
 
 
 @functools.lru_cache(maxsize=32)
