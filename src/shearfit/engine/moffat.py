@@ -84,15 +84,22 @@ def fit_moffats(psf_fts, ky, kx, max_iter=100, ftol=1e-10, xtol=1e-8):
     P = _levenberg_marquardt(kr, VR, np.array([_start(kr, vr) for vr in VR]).reshape(-1, 2), (True, True),
                              max_iter, ftol, xtol)
     out = []
-    for vr, p in zip(VR, P):
-        lb = float(np.clip(p[1], np.log(0.2), np.log(20.0)))
+    for vr, p in zip(VR, P.tolist()):
+        # (np.clip's numbers in Python floats: min(max(x, lo), hi) keeps a NaN x as np.clip does)
+        lb = min(max(p[1], _LOG_NU_MIN), _LOG_NU_MAX)
         if lb != p[1]:
             # beta at a bound (a PSF without Moffat wings, e.g. a Gaussian: beta -> infinity): the size refitted
             # for the bound, so that the pair still matches the PSF's width
-            p = _levenberg_marquardt(kr, vr[None], np.array([[p[0], lb]]), (True, False), max_iter, ftol, xtol)[0]
-        lrs = float(np.clip(p[0], np.log(0.05), np.log(50.0)))
+            p = _levenberg_marquardt(kr, vr[None], np.array([[p[0], lb]]), (True, False), max_iter, ftol,
+                                     xtol)[0].tolist()
+        lrs = min(max(p[0], _LOG_RS_MIN), _LOG_RS_MAX)
         out.append((float(np.exp(lrs)), float(1.0 + np.exp(lb))))
     return out
+
+
+#: the bounds of the fitted log(beta - 1) and log rs (pixels), as np.log makes them
+_LOG_NU_MIN, _LOG_NU_MAX = float(np.log(0.2)), float(np.log(20.0))
+_LOG_RS_MIN, _LOG_RS_MAX = float(np.log(0.05)), float(np.log(50.0))
 
 
 def _rings(ky, kx):
