@@ -695,28 +695,11 @@ static void polar_fill(const float *G, long long n_u, int npsi, const int *rows,
         const float w0 = w4[4 * j], w1 = w4[4 * j + 1], w2 = w4[4 * j + 2], w3 = w4[4 * j + 3];
         const long long mlo = rows[2 * j] - 1, mhi = rows[2 * j + 1] + 1;
         v8f *out = (v8f *)(A + 8 * (Py_ssize_t)(base[j] + POLAR_HU * mlo - lo));
-#if defined(__FMA__)
-        /* each row's two terms added to it one after the other: two fused multiply-adds a row, where the sum of the
-           two products first took a multiply, a fused multiply-add and an add (the loop is bound by these
-           operations: 6 % less time per ellipticity with AVX2, 5 % with AVX-512). Without FMA the sum first, which
-           keeps the two multiplies apart from the chain of adds (the other way took 22 % more time there) */
-        for (long long m = mlo; m <= mhi; m++, out += 2) {
-            const v8f gm = g[m], gl = g[m - 1], gh = g[m + 1];
-            v8f o0 = out[0], o1 = out[1];
-            o0 += w1 * gm;
-            o1 += w2 * gm;
-            o0 += w3 * gl;
-            o1 += w0 * gh;
-            out[0] = o0;
-            out[1] = o1;
-        }
-#else
         for (long long m = mlo; m <= mhi; m++, out += 2) {
             const v8f gm = g[m], gl = g[m - 1], gh = g[m + 1];
             out[0] += w1 * gm + w3 * gl;
             out[1] += w2 * gm + w0 * gh;
         }
-#endif
     }
     for (int t = 0; t < 8; t++) A[8 * nbin + t] += (float)dcw[t];
 }
