@@ -2651,6 +2651,16 @@ static inline NO_CONTRACT double table_lookup(const double *XP, const double *FP
     return slope * (x - XP[j]) + FP[j];
 }
 
+/* whether a table and its bucket index are usable by table_lookup: at least 3 nodes, a shift and base in range,
+   and every bucket's node within the table */
+static int table_ok(const int *IDX, Py_ssize_t nidx, Py_ssize_t m, int shift, long long base)
+{
+    if (m < 3 || nidx < 1 || shift < 0 || shift > 62 || base < 0) return 0;
+    for (Py_ssize_t b = 0; b < nidx; b++)
+        if (IDX[b] < 0 || IDX[b] > m - 1) return 0;
+    return 1;
+}
+
 /* table_lookup of n values */
 static NO_CONTRACT void table_lookup_n(const double *XP, const double *FP, Py_ssize_t m, const int *IDX,
                                        Py_ssize_t nidx, long long base, int shift, double right, const double *X,
@@ -2675,23 +2685,16 @@ static PyObject *table_interp(PyObject *self, PyObject *args)
     if (!PyArg_ParseTuple(args, "y*y*y*y*Lidw*", &xb, &xpb, &fpb, &ib, &base, &shift, &right, &ob)) return NULL;
     const Py_ssize_t n = xb.len / (Py_ssize_t)sizeof(double), m = xpb.len / (Py_ssize_t)sizeof(double);
     const Py_ssize_t nidx = ib.len / (Py_ssize_t)sizeof(int);
-    if (fpb.len != xpb.len || ob.len != xb.len || m < 3 || nidx < 1 || shift < 0 || shift > 62 || base < 0) {
+    const int *IDX = (const int *)ib.buf;
+    if (fpb.len != xpb.len || ob.len != xb.len || !table_ok(IDX, nidx, m, shift, base)) {
         RELEASE(&xb, &xpb, &fpb, &ib, &ob);
-        PyErr_SetString(PyExc_ValueError, "table_interp: inconsistent buffers");
+        PyErr_SetString(PyExc_ValueError, "table_interp: inconsistent buffers or an index outside the table");
         return NULL;
     }
     const double *X = (const double *)xb.buf, *XP = (const double *)xpb.buf, *FP = (const double *)fpb.buf;
-    const int *IDX = (const int *)ib.buf;
     double *O = (double *)ob.buf;
-    for (Py_ssize_t b = 0; b < nidx; b++) {
-        if (IDX[b] < 0 || IDX[b] > m - 1) {
-            RELEASE(&xb, &xpb, &fpb, &ib, &ob);
-            PyErr_SetString(PyExc_ValueError, "table_interp: index outside the table");
-            return NULL;
-        }
-    }
     Py_BEGIN_ALLOW_THREADS
-    for (Py_ssize_t i = 0; i < n; i++) O[i] = table_lookup(XP, FP, m, IDX, nidx, base, shift, right, X[i]);
+    table_lookup_n(XP, FP, m, IDX, nidx, base, shift, right, X, n, O);
     Py_END_ALLOW_THREADS
     RELEASE(&xb, &xpb, &fpb, &ib, &ob);
     Py_RETURN_NONE;
@@ -3083,13 +3086,12 @@ static PyObject *coarse_modes(PyObject *self, PyObject *args)
 #define CM_RELEASE RELEASE(&kxb, &kyb, &tb, &cb, &keb, &yb, &xpb, &fpb, &ib, &ob)
     const Py_ssize_t D = (Py_ssize_t)sizeof(double);
     const Py_ssize_t n = kxb.len / D, ng = yb.len / (2 * D), m = xpb.len / D, nidx = ib.len / (Py_ssize_t)sizeof(int);
+    const int *IDX = (const int *)ib.buf;
     int bad = kyb.len != kxb.len || tb.len != 2 * kxb.len || cb.len != n * (Py_ssize_t)sizeof(long long)
-              || (keb.len != 0 && keb.len != n) || ob.len != yb.len || fpb.len != xpb.len || m < 3 || nidx < 1
-              || shift < 0 || shift > 62 || base < 0;
+              || (keb.len != 0 && keb.len != n) || ob.len != yb.len || fpb.len != xpb.len
+              || !table_ok(IDX, nidx, m, shift, base);
     const long long *CO = (const long long *)cb.buf;
     for (Py_ssize_t j = 0; !bad && j < n; j++) bad = CO[j] < 0 || CO[j] >= ng;
-    const int *IDX = (const int *)ib.buf;
-    for (Py_ssize_t b = 0; !bad && b < nidx; b++) bad = IDX[b] < 0 || IDX[b] > m - 1;
     if (bad) {
         CM_RELEASE;
         PyErr_SetString(PyExc_ValueError, "coarse_modes: inconsistent buffers");

@@ -773,11 +773,9 @@ def bins_context(jm, bins, fast, ratio):
 
 def _model_sums_binned(jm, bins, e_index, r2, fast, ratio):
     out = np.empty((r2.size, 15))
-    (shape, lo, offsets, columns, dc, nb, lf, lg, m, n_col, start, per_octave, low_f, low_g, zero_f, zero_g, ratio2,
-     pair_basis, pa, pb, ph, pair_skip) = bins_context(jm, bins, fast, ratio)
-    KERNEL.binned_sums(shape, np.ascontiguousarray(r2), np.ascontiguousarray(e_index, dtype=np.int64), lo, offsets,
-                       columns, dc, nb, lf, lg, m, n_col, start, per_octave, low_f, low_g, zero_f, zero_g, ratio2,
-                       pair_basis, pa, pb, ph, pair_skip, out)
+    ctx = bins_context(jm, bins, fast, ratio)   # (binned_sums takes the models after the context's first item)
+    KERNEL.binned_sums(ctx[0], np.ascontiguousarray(r2), np.ascontiguousarray(e_index, dtype=np.int64), *ctx[1:],
+                       out)
     return ModelSums.from_kernel(out)
 
 
@@ -1128,8 +1126,9 @@ def flux_position_marginal(sums: ModelSums, cfg: FitConfig, pixel_scale=None, us
     The compiled kernel computes the same numbers as the numpy code below
     (``use_kernel=False``), which stays as the reference.
     """
-    if USE_KERNEL_MARGINAL and use_kernel and 2 <= cfg.n_flux <= 64:
-        return _marginal_kernel(sums, cfg, pixel_scale)
+    marg = marginal_context(cfg, pixel_scale) if use_kernel else None
+    if marg is not None:
+        return _marginal_kernel(sums, marg)
     return _marginal_numpy(sums, cfg, pixel_scale)
 
 
@@ -1202,11 +1201,10 @@ def marginal_context(cfg, pixel_scale):
     return _marginal_setup(cfg, None if pixel_scale is None else float(pixel_scale))
 
 
-def _marginal_kernel(sums, cfg, pixel_scale):
-    u, uf, spl, itp, par = _marginal_setup(cfg, None if pixel_scale is None else float(pixel_scale))
+def _marginal_kernel(sums, marg):
     x = sums.packed()
     out = np.empty((x.shape[0], 9))
-    KERNEL.marginal(x, u, uf, spl, itp, par, out)
+    KERNEL.marginal(x, *marg, out)
     return Marginal(logl_disk=out[:, 0], logl_bulge=out[:, 1], mean_flux_disk=out[:, 2], mean_flux_bulge=out[:, 3],
                     mean_b_disk=out[:, 4], chi2_disk=out[:, 5], chi2_bulge=out[:, 6], snr_disk=out[:, 7],
                     snr_bulge=out[:, 8])

@@ -282,11 +282,12 @@ class EllipticityLikelihood:
         shift = _prior_axis_shift(e1, e2, cfg)
         r_peak, top = np.empty(ne), np.empty(ne)
         point = np.empty((5, ne)) if detail else np.empty(0)
+        _, _, prior, logmix = self._node_constants()
         KERNEL.locate_pass(bins_context(self.jm, bins, self.fast, cfg.bulge_size_ratio), marg,
                            np.ascontiguousarray(index, dtype=np.int64), np.ascontiguousarray(rc, dtype=float),
-                           _locate_exp(half_width), xs, self._node_constants()[2],
-                           b"" if shift is None else np.ascontiguousarray(shift, dtype=float),
-                           np.array(log_population_weights(cfg)), int(bool(detail)), r_peak, top, point)
+                           _locate_exp(half_width), xs, prior,
+                           b"" if shift is None else np.ascontiguousarray(shift, dtype=float), logmix,
+                           int(bool(detail)), r_peak, top, point)
         if not detail:
             return r_peak
         return r_peak, top, EPoint(logl_disk=point[0], logl_bulge=point[1], mean_r=point[2], mean_b=point[3],
@@ -382,25 +383,26 @@ class EllipticityLikelihood:
         shift = _prior_axis_shift(e1, e2, cfg)
         out = np.empty((5, ne))
         best = np.array([self.best_chi2_gal, self.best_snr])
-        expx, l0, prior = self._node_constants()
+        expx, l0, prior, logmix = self._node_constants()
         KERNEL.size_nodes(bins_context(self.jm, bins, self.fast, cfg.bulge_size_ratio), marg,
                           np.ascontiguousarray(index, dtype=np.int64), np.ascontiguousarray(rc, dtype=float),
                           expx, float(self.x[0]), xf, interp_w, spl, self._SEG_U, self._SEG_HALF_LOG_U,
-                          l0, np.array(log_population_weights(cfg)), prior,
+                          l0, logmix, prior,
                           b"" if shift is None else np.ascontiguousarray(shift, dtype=float), out, best)
         self.best_chi2_gal, self.best_snr = float(best[0]), float(best[1])
         return EPoint(logl_disk=out[0], logl_bulge=out[1], mean_r=out[2], mean_b=out[3], mean_flux=out[4])
 
     def _node_constants(self):
-        """What KERNEL.size_nodes takes of the object alone (made once): exp of the size nodes' offsets; log L of the
-        point source (r = 0), disk and bulge; the size prior per ln r as ln[alpha / Gamma(2 / alpha)], ln a,
-        alpha."""
+        """What KERNEL.size_nodes and KERNEL.locate_pass take of the object alone (made once): exp of the size
+        nodes' offsets; log L of the point source (r = 0), disk and bulge; the size prior per ln r as
+        ln[alpha / Gamma(2 / alpha)], ln a, alpha; the populations' log weights (disk, bulge)."""
         v = getattr(self, "_node_consts", None)
         if v is None:
             alpha = float(self.cfg.size_alpha)
             v = self._node_consts = (np.exp(self.x),
                                      np.array([float(self.zero.logl_disk[0]), float(self.zero.logl_bulge[0])]),
-                                     np.array([math.log(alpha / math.gamma(2.0 / alpha)), self.ln_a, alpha]))
+                                     np.array([math.log(alpha / math.gamma(2.0 / alpha)), self.ln_a, alpha]),
+                                     np.array(log_population_weights(self.cfg)))
         return v
 
     def _size_integral(self, e1, e2, R, mg):
