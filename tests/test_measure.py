@@ -550,14 +550,21 @@ def test_polar_grid_bins_match_every_mode():
     a = mode_bins(jm, high.real, high.imag, 16, polar=(80, 0.85))
     b = mode_bins(jm, high.real, high.imag, 16)
     assert (a.lo, a.offsets, a.columns, a.dc) == (b.lo, b.offsets, b.columns, b.dc)
-    # the grid's nodes hold every mode's weights (float32 sums), the DC mode's in its own row
-    u0, n_u, grid, dc, rows = polar_grid(jm, 16, 80)
+    # the grid's nodes hold the weights of every mode but the DC mode (in its own row) and the modes left off the
+    # grid (float32 sums): those of its lowest rows, the lowest |K| of all, binned one by one
+    u0, n_u, grid, dc, rows, direct = polar_grid(jm, 16, 80)
     g = np.frombuffer(grid, np.float32).reshape(80, n_u, 8).astype(float)
     b3, c8 = _packed_bins(jm)[:2]
-    is_dc = (b3[:, 0] + b3[:, 2]) == 0
+    k2 = b3[:, 0].astype(float) + b3[:, 2]
+    is_dc = k2 == 0
     assert is_dc.sum() == 1
     np.testing.assert_allclose(np.frombuffer(dc)[:7], c8[is_dc][0, :7], rtol=1e-6)
-    total = c8[~is_dc].astype(float).sum(axis=0)
+    direct = np.frombuffer(direct, np.int32)
+    off = np.zeros(k2.size, bool)
+    off[direct] = True
+    assert 0 < direct.size < 0.2 * k2.size and not np.any(off & is_dc)
+    assert k2[off].max() <= k2[~off & ~is_dc].min()
+    total = c8[~is_dc & ~off].astype(float).sum(axis=0)
     np.testing.assert_allclose(g.sum(axis=(0, 1))[:7], total[:7], rtol=0, atol=2e-5 * np.abs(c8).sum(axis=0).max())
     rows = np.frombuffer(rows, np.int32).reshape(80, 2)
     assert np.all(rows[:, 0] >= 3) and np.all(rows[:, 1] <= n_u - 4)

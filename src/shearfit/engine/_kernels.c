@@ -512,11 +512,14 @@ static inline void scatter_mode(const float *C8, Py_ssize_t n_single, const int 
     row[3] += w4[3 * n_single + j] * cv;
 }
 
-/* A: NACC copies of nbin + 1 rows, zero; the sum is left in the first */
-static void bin_scatter(const float *C8, Py_ssize_t n_single, const int *idx, const float *w4,
-                        long long lo, Py_ssize_t nbin, float *A)
+/* A: NACC copies of nbin + 1 rows, the first zero (or holding a polar grid's rows, polar_fill), the others zeroed
+   here over their first nrows rows, which the modes reach (nbin + 1: every row, the DC mode's too); the sum is
+   left in the first */
+static void bin_scatter(const float *C8, Py_ssize_t n_single, const int *idx, const float *w4, long long lo,
+                        Py_ssize_t nbin, Py_ssize_t nrows, float *A)
 {
     const Py_ssize_t stride = 8 * (nbin + 1);
+    for (int c = 1; c < NACC; c++) memset(A + c * stride, 0, nrows * 8 * sizeof(float));
     Py_ssize_t j = 0;
     for (; j + NACC <= n_single; j += NACC)
         for (int c = 0; c < NACC; c++) scatter_mode(C8, n_single, idx, w4, lo, nbin, A + c * stride, j + c);
@@ -524,7 +527,7 @@ static void bin_scatter(const float *C8, Py_ssize_t n_single, const int *idx, co
     for (int c = 1; c < NACC; c++) {
         v8f *dst = (v8f *)A;
         const v8f *src = (const v8f *)(A + c * stride);
-        for (Py_ssize_t r = 0; r <= nbin; r++) dst[r] += src[r];
+        for (Py_ssize_t r = 0; r < nrows; r++) dst[r] += src[r];
     }
 }
 
@@ -561,16 +564,22 @@ static inline void lagrange6(double y, double *w)
 }
 
 /*
- * polar_grid(basis32, channels32, bins_per_octave, npsi[, versions]) -> (u0, n_u, grid, dc, rows): the modes
- * (basis32 and channels32 as make_bins') spread onto the grid; u0 the first node row's u (an integer), grid
- * float32 (versions, npsi, n_u, 8), dc float64 (versions, 8): the weights of the DC mode (K = 0), which the grid
- * leaves out, rows int32 (npsi, 2): each column's first and last row that a mode reached (first > last: none).
+ * polar_grid(basis32, channels32, bins_per_octave, npsi[, versions[, node_modes]]) -> (u0, n_u, grid, dc, rows,
+ * direct): the modes (basis32 and channels32 as make_bins') spread onto the grid; u0 the first node row's u (an
+ * integer), grid float32 (versions, npsi, n_u, 8), dc float64 (versions, 8): the weights of the DC mode (K = 0),
+ * which the grid leaves out, rows int32 (npsi, 2): each column's first and last row that a mode reached (first >
+ * last: none), direct int32: the modes left off the grid, which make_bins bins one by one.
+ * The modes are densest at high |K| (their number per octave of |K|^2 doubles from one octave to the next), while
+ * every row of the grid costs npsi nodes: the lowest rows held some 25 modes for 80 nodes. node_modes (0: none)
+ * is what binning one mode costs in nodes of the grid (likelihood.POLAR_MODE_NS / POLAR_NODE_NS); the modes of
+ * the lowest rows are left off the grid, as many rows as save most by that cost.
  */
 static PyObject *polar_grid(PyObject *self, PyObject *args)
 {
     Py_buffer b3, c8;
     int nb, npsi, nv = 1;
-    if (!PyArg_ParseTuple(args, "y*y*ii|i", &b3, &c8, &nb, &npsi, &nv)) return NULL;
+    double node_modes = 0.0;
+    if (!PyArg_ParseTuple(args, "y*y*ii|id", &b3, &c8, &nb, &npsi, &nv, &node_modes)) return NULL;
     const Py_ssize_t n = b3.len / (4 * (Py_ssize_t)sizeof(float));
     if (nv < 1 || c8.len != (Py_ssize_t)nv * 8 * n * (Py_ssize_t)sizeof(float) || nb < 1 || nb > 4096 ||
         npsi < POLAR_TPSI || npsi > 4096) {
@@ -584,8 +593,11 @@ static PyObject *polar_grid(PyObject *self, PyObject *args)
     double *u = (double *)malloc(ns * sizeof(double)), *ps = (double *)malloc(ns * sizeof(double));
     double *dc = (double *)calloc(8 * (Py_ssize_t)nv, sizeof(double));
     int *rows = (int *)malloc(2 * (Py_ssize_t)npsi * sizeof(int));
+    int *direct = (int *)malloc(ns * sizeof(int)), *rowof = (int *)malloc(ns * sizeof(int));
+    Py_ssize_t *cum = NULL;
+    Py_ssize_t nd = 0;
     float *G = NULL;
-    int nomem = u == NULL || ps == NULL || dc == NULL || rows == NULL;
+    int nomem = u == NULL || ps == NULL || dc == NULL || rows == NULL || direct == NULL || rowof == NULL;
     double umin = INFINITY, umax = -INFINITY;
     long long u0 = 0, n_u = 2 * POLAR_MARGIN + 4;
     Py_ssize_t colsz = 0, vsz = 0;
@@ -598,6 +610,39 @@ static PyObject *polar_grid(PyObject *self, PyObject *args)
         umin = u[j] < umin ? u[j] : umin;
         umax = u[j] > umax ? u[j] : umax;
     }
+    /* the modes of the lowest rows (rows of POLAR_HU bins from the lowest mode) left off the grid: the number of
+       rows r that saves most, npsi r nodes against node_modes nodes for each of their modes */
+    if (!nomem && umin <= umax && node_modes > 0.0) {
+        const Py_ssize_t nr = (Py_ssize_t)floor((umax - umin) / POLAR_HU) + 1;
+        cum = (Py_ssize_t *)calloc(nr + 1, sizeof(Py_ssize_t));
+        nomem = cum == NULL;
+        for (Py_ssize_t j = 0; !nomem && j < n; j++) {
+            if (u[j] != u[j]) continue;
+            Py_ssize_t r = (Py_ssize_t)floor((u[j] - umin) / POLAR_HU);
+            r = r < 0 ? 0 : (r >= nr ? nr - 1 : r);
+            rowof[j] = (int)r;
+            cum[r + 1]++;
+        }
+        double best = 0.0;
+        Py_ssize_t rbest = 0;
+        for (Py_ssize_t r = 1; !nomem && r <= nr; r++) cum[r] += cum[r - 1];
+        for (Py_ssize_t r = 1; !nomem && r < nr; r++) {   /* (the grid keeps the top row's modes) */
+            const double saving = (double)npsi * (double)r - node_modes * (double)cum[r];
+            if (saving > best) {
+                best = saving;
+                rbest = r;
+            }
+        }
+        if (!nomem && rbest > 0) {
+            double gmin = INFINITY;
+            for (Py_ssize_t j = 0; j < n; j++) {
+                if (u[j] != u[j]) continue;
+                if (rowof[j] < rbest) direct[nd++] = (int)j;
+                else gmin = u[j] < gmin ? u[j] : gmin;
+            }
+            umin = gmin;
+        }
+    }
     if (!nomem && umin <= umax) {
         u0 = (long long)floor(umin) - POLAR_HU * (POLAR_MARGIN + 2);
         n_u = (long long)floor((umax - (double)u0) / POLAR_HU) + POLAR_MARGIN + 5;
@@ -609,10 +654,14 @@ static PyObject *polar_grid(PyObject *self, PyObject *args)
         nomem = G == NULL;
     }
     for (int t = 0; t < npsi; t++) { rows[2 * t] = INT_MAX; rows[2 * t + 1] = INT_MIN; }
-    for (Py_ssize_t j = 0; !nomem && j < n; j++) {
+    for (Py_ssize_t j = 0, d = 0; !nomem && j < n; j++) {
         if (u[j] != u[j]) {
             for (int v = 0; v < nv; v++)
                 for (int t = 0; t < 8; t++) dc[8 * v + t] += C[((Py_ssize_t)v * n + j) * 8 + t];
+            continue;
+        }
+        if (d < nd && direct[d] == j) {   /* left off the grid */
+            d++;
             continue;
         }
         const double tu = (u[j] - (double)u0) / POLAR_HU, fu = floor(tu);
@@ -643,12 +692,14 @@ static PyObject *polar_grid(PyObject *self, PyObject *args)
         PyObject *g = PyBytes_FromStringAndSize((const char *)G, vsz * nv * (Py_ssize_t)sizeof(float));
         PyObject *d = PyBytes_FromStringAndSize((const char *)dc, 8 * (Py_ssize_t)nv * sizeof(double));
         PyObject *r = PyBytes_FromStringAndSize((const char *)rows, 2 * (Py_ssize_t)npsi * sizeof(int));
-        if (g && d && r) res = Py_BuildValue("LLOOO", u0, n_u, g, d, r);
+        PyObject *o = PyBytes_FromStringAndSize((const char *)direct, nd * (Py_ssize_t)sizeof(int));
+        if (g && d && r && o) res = Py_BuildValue("LLOOOO", u0, n_u, g, d, r, o);
         Py_XDECREF(g);
         Py_XDECREF(d);
         Py_XDECREF(r);
+        Py_XDECREF(o);
     }
-    free(u); free(ps); free(dc); free(rows); free(G);
+    free(u); free(ps); free(dc); free(rows); free(G); free(direct); free(rowof); free(cum);
     RELEASE(&b3, &c8);
     if (nomem) return PyErr_NoMemory();
     return res;
@@ -739,26 +790,44 @@ static void rows_to_columns(const float *A, Py_ssize_t nbin, Py_ssize_t npad, do
  */
 static PyObject *make_bins(PyObject *self, PyObject *args)
 {
-    Py_buffer shape, b3, c8, pg = {0}, pdc = {0}, prw = {0};
+    Py_buffer shape, b3, c8, pg = {0}, pdc = {0}, prw = {0}, pdir = {0};
     int nb, nv = 1, npsi = 0;
     long long pu0 = 0, pnu = 0;
     double q2min = 2.0;   /* the polar grid for ellipticities whose q^2 is at least this (2: none) */
-    if (!PyArg_ParseTuple(args, "y*y*y*i|i(LLy*y*y*id)", &shape, &b3, &c8, &nb, &nv, &pu0, &pnu, &pg, &pdc, &prw,
-                          &npsi, &q2min)) return NULL;
+    if (!PyArg_ParseTuple(args, "y*y*y*i|i(LLy*y*y*y*id)", &shape, &b3, &c8, &nb, &nv, &pu0, &pnu, &pg, &pdc, &prw,
+                          &pdir, &npsi, &q2min)) return NULL;
     Py_ssize_t n_e = shape.len / (3 * (Py_ssize_t)sizeof(double));
     Py_ssize_t n_single = b3.len / (4 * (Py_ssize_t)sizeof(float));
     const int polar = npsi > 0;
     if (nv < 1 || c8.len != (Py_ssize_t)nv * 8 * n_single * (Py_ssize_t)sizeof(float) || nb < 1 || nb > 4096 ||
         (polar && (pnu < 2 * POLAR_MARGIN + 4 || pg.len != (Py_ssize_t)nv * npsi * pnu * 8 * (Py_ssize_t)sizeof(float)
                    || pdc.len != (Py_ssize_t)nv * 8 * (Py_ssize_t)sizeof(double)
-                   || prw.len != 2 * (Py_ssize_t)npsi * (Py_ssize_t)sizeof(int)))) {
-        RELEASE(&shape, &b3, &c8, &pg, &pdc, &prw);
+                   || prw.len != 2 * (Py_ssize_t)npsi * (Py_ssize_t)sizeof(int)
+                   || pdir.len % (Py_ssize_t)sizeof(int) != 0))) {
+        RELEASE(&shape, &b3, &c8, &pg, &pdc, &prw, &pdir);
         PyErr_SetString(PyExc_ValueError, "make_bins: inconsistent buffers");
         return NULL;
     }
     const double *S = (const double *)shape.buf;
+    /* the modes the polar grid leaves off (polar_grid's direct), binned one by one */
+    const Py_ssize_t nd = polar ? pdir.len / (Py_ssize_t)sizeof(int) : 0;
+    const int *DIR = (const int *)pdir.buf;
+    for (Py_ssize_t d = 0; d < nd; d++)
+        if (DIR[d] < 0 || DIR[d] >= n_single) {
+            RELEASE(&shape, &b3, &c8, &pg, &pdc, &prw, &pdir);
+            PyErr_SetString(PyExc_ValueError, "make_bins: the polar grid's direct modes are not the modes'");
+            return NULL;
+        }
     Py_ssize_t ns = n_single > 0 ? n_single : 1;
     int *idx = (int *)malloc(ns * sizeof(int));
+    double *Pd = (double *)malloc(3 * (nd > 0 ? nd : 1) * sizeof(double));
+    float *Cd = (float *)malloc(8 * nv * (nd > 0 ? nd : 1) * sizeof(float));
+    for (Py_ssize_t d = 0; Pd != NULL && Cd != NULL && d < nd; d++) {
+        for (int t = 0; t < 3; t++) Pd[t * nd + d] = ((const float *)b3.buf)[4 * (Py_ssize_t)DIR[d] + t];
+        for (int v = 0; v < nv; v++)
+            memcpy(Cd + 8 * ((Py_ssize_t)v * nd + d), (const float *)c8.buf + 8 * ((Py_ssize_t)v * n_single + DIR[d]),
+                   8 * sizeof(float));
+    }
     long long *pbase = (long long *)malloc((npsi > 0 ? npsi : 1) * sizeof(long long));
     float *pw4 = (float *)malloc(4 * (npsi > 0 ? npsi : 1) * sizeof(float));
     double *pcs = (double *)malloc(2 * (npsi > 0 ? npsi : 1) * sizeof(double));
@@ -787,7 +856,7 @@ static PyObject *make_bins(PyObject *self, PyObject *args)
     float *A = NULL;
     double *cols = NULL;
     Py_ssize_t capA = 0, capC = 0, ncol = 0;
-    int nomem = (idx == NULL || frac == NULL || w4 == NULL || off == NULL || los == NULL || dc == NULL ||
+    int nomem = (idx == NULL || Pd == NULL || Cd == NULL || frac == NULL || w4 == NULL || off == NULL || los == NULL || dc == NULL ||
                  pbase == NULL || pw4 == NULL || pcs == NULL || (polar && pga == NULL));
     int own_cols = 0;   /* cols is memory of their own (malloc), not colobj's */
 
@@ -837,9 +906,15 @@ static PyObject *make_bins(PyObject *self, PyObject *args)
         const double hm = 0.5 * (a0 + a2), hd = sqrt(0.25 * (a0 - a2) * (a0 - a2) + a1 * a1);
         /* q^2: the ratio of the shape matrix's eigenvalues */
         const int use_polar = polar && hm - hd >= q2min * (hm + hd);
-        if (use_polar)
+        long long dlo = LLONG_MAX, dhi = LLONG_MIN;
+        if (use_polar) {
             polar_place(a0, a1, a2, nb, pu0, npsi, (const int *)prw.buf, pcs, pbase, pw4, &lo, &hi);
-        else {
+            if (nd > 0) {
+                bin_index_f32(Pd, nd, a0, a1, a2, nb, frac, idx, w4, &dlo, &dhi);
+                lo = dlo < lo ? dlo : lo;
+                hi = dhi > hi ? dhi : hi;
+            }
+        } else {
             if (!have_P) {
                 for (Py_ssize_t j = 0; j < n_single; j++)
                     for (int t = 0; t < 3; t++) P[t * n_single + j] = ((const float *)b3.buf)[4 * j + t];
@@ -859,12 +934,15 @@ static PyObject *make_bins(PyObject *self, PyObject *args)
         }
         for (int v = 0; v < nv; v++) {
             const Py_ssize_t ev = e * nv + v;
-            memset(A, 0, (use_polar ? 1 : NACC) * (nbin + 1) * 8 * sizeof(float));
-            if (use_polar)
+            memset(A, 0, (nbin + 1) * 8 * sizeof(float));
+            if (use_polar) {
                 polar_fill(pga + (Py_ssize_t)v * npsi * pnu * 8, pnu, npsi, (const int *)prw.buf,
                            pbase, pw4, (const double *)pdc.buf + 8 * v, lo, nbin, A);
-            else
-                bin_scatter((const float *)c8.buf + (Py_ssize_t)v * 8 * n_single, n_single, idx, w4, lo, nbin, A);
+                if (dhi >= dlo)   /* the modes left off the grid, into its rows */
+                    bin_scatter(Cd + 8 * (Py_ssize_t)v * nd, nd, idx, w4, lo, nbin, (Py_ssize_t)(dhi - lo) + 1, A);
+            } else
+                bin_scatter((const float *)c8.buf + (Py_ssize_t)v * 8 * n_single, n_single, idx, w4, lo, nbin,
+                            nbin + 1, A);
             if (NCH * (ncol + npad) > capC) {
                 capC = 2 * NCH * (ncol + npad);
                 double *r;
@@ -906,10 +984,10 @@ static PyObject *make_bins(PyObject *self, PyObject *args)
         Py_XDECREF(c);
         Py_XDECREF(d);
     }
-    free(P); free(idx); free(frac); free(w4); free(off); free(los); free(dc); free(A); free(pbase); free(pw4); free(pcs); free(pgown);
+    free(P); free(Pd); free(Cd); free(idx); free(frac); free(w4); free(off); free(los); free(dc); free(A); free(pbase); free(pw4); free(pcs); free(pgown);
     if (own_cols) free(cols);
     Py_XDECREF(colobj);
-    RELEASE(&shape, &b3, &c8, &pg, &pdc, &prw);
+    RELEASE(&shape, &b3, &c8, &pg, &pdc, &prw, &pdir);
     if (nomem) return PyErr_NoMemory();
     return res;
 }
@@ -3173,7 +3251,8 @@ static PyMethodDef methods[] = {
      "make_bins(shape, basis32, channels32, bins_per_octave[, versions[, (u0, n_u, grid, dc, rows, npsi, q2min)]]) "
      "-> (lo, offsets, columns, dc)"},
     {"polar_grid", polar_grid, METH_VARARGS,
-     "polar_grid(basis32, channels32, bins_per_octave, npsi[, versions]) -> (u0, n_u, grid, dc, rows)"},
+     "polar_grid(basis32, channels32, bins_per_octave, npsi[, versions[, node_modes]]) -> (u0, n_u, grid, dc, rows, "
+     "direct)"},
     {"size_nodes", size_nodes, METH_VARARGS,
      "size_nodes(bins, marg, e_index, rc, expx, x0, xf, interp, spline, u, half_log_u, l0, logmix, prior, shift, out, "
      "best)"},

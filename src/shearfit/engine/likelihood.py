@@ -644,6 +644,9 @@ def _polar_args(grid, polar):
 #: (benchmarks/README.md, session 77): binning mode by mode POLAR_DIRECT_NS + POLAR_MODE_NS per mode; from the grid
 #: POLAR_NODE_NS per node, plus the grid's making (70 ns per mode an object) over about 260 ellipticities
 POLAR_DIRECT_NS, POLAR_MODE_NS, POLAR_NODE_NS, POLAR_SPREAD_NS = 1460.0, 3.62, 1.3, 0.27
+#: a mode binned by itself costs this many of the grid's nodes: the grid leaves off the modes of its lowest rows,
+#: where they are fewer than a row's nodes pay for (``_kernels.c``, polar_grid)
+POLAR_NODE_MODES = POLAR_MODE_NS / POLAR_NODE_NS
 
 
 def polar_pays(jm: JointModes, bins_per_octave, angles) -> bool:
@@ -667,13 +670,13 @@ def polar_pays(jm: JointModes, bins_per_octave, angles) -> bool:
 def _aligned_grid(grid):
     """KERNEL.polar_grid's output with the grid's floats copied to 64-byte boundaries, as make_bins reads them
     (it copies a grid that is not, at every call)."""
-    u0, n_u, g, dc, rows = grid
+    u0, n_u, g, dc, rows, direct = grid
     raw = np.frombuffer(g, np.uint8)
     buf = np.empty(raw.size + 64, np.uint8)
     off = -buf.ctypes.data % 64
     out = buf[off:off + raw.size]
     out[:] = raw
-    return u0, n_u, out, dc, rows
+    return u0, n_u, out, dc, rows, direct
 
 
 def polar_grid(jm: JointModes, bins_per_octave, angles):
@@ -683,7 +686,7 @@ def polar_grid(jm: JointModes, bins_per_octave, angles):
     cache = getattr(jm, "_polar", None)
     if cache is None or cache[0] != key:
         b3, c8 = _packed_bins(jm)[:2]
-        cache = jm._polar = (key, _aligned_grid(KERNEL.polar_grid(b3, c8, key[0], key[1])))
+        cache = jm._polar = (key, _aligned_grid(KERNEL.polar_grid(b3, c8, key[0], key[1], 1, POLAR_NODE_MODES)))
     return cache[1]
 
 
@@ -699,7 +702,9 @@ def mode_bins(jm: JointModes, e1, e2, bins_per_octave, polar=None) -> ModeBins:
     ellipticities up to ``e_max`` are binned from its nodes: K^T C K = |K|^2 A(direction), so every node of one
     direction moves along the bins' axis by the same log A, and a whole column of nodes is shared among the bins
     with one set of weights (``_kernels.c``, polar_grid). The cost no longer grows with the number of modes
-    (exposures); the sums are right to sixth order in the nodes' spacing in log |K|^2 and in angle. Where the
+    (exposures); the sums are right to sixth order in the nodes' spacing in log |K|^2 and in angle. The modes of
+    the grid's lowest rows, fewer there than a row's nodes (``POLAR_NODE_MODES``), are left off it and binned one by
+    one. Where the
     modes are fewer than the grid's nodes pay for (:func:`polar_pays`: exposures sharing a Jacobian), every
     mode is binned as without ``polar``."""
     shape = np.ascontiguousarray(np.stack(shape_matrix(np.atleast_1d(np.asarray(e1, float)),
@@ -733,7 +738,8 @@ def versions_polar_grid(jms, channels, bins_per_octave, angles):
     """The polar grid (:func:`mode_bins`) of versions of one object (their :func:`versions_channels`), for
     :func:`mode_bins_versions`: each version's grid is the one its own :func:`polar_grid` makes."""
     b3 = _packed_bins(jms[0])[0]
-    return _aligned_grid(KERNEL.polar_grid(b3, channels, int(bins_per_octave), int(angles), len(jms)))
+    return _aligned_grid(KERNEL.polar_grid(b3, channels, int(bins_per_octave), int(angles), len(jms),
+                                           POLAR_NODE_MODES))
 
 
 def mode_bins_versions(jms, e1, e2, bins_per_octave, channels=None, polar=None, grid=None) -> ModeBins:
