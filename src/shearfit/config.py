@@ -130,10 +130,11 @@ class FitConfig:
         "from the model's own transform at their modes, far below it for most extended models; the binned sums only, "
         "benchmarks/speed.py --check); 0 keeps them in every model", "DESIGN: speed")
     mode_bins_per_octave: int = setting(
-        16, "the Fourier modes of a fit are summed, per ellipticity, in bins uniform in log K^T C K, this many per "
+        12, "the Fourier modes of a fit are summed, per ellipticity, in bins uniform in log K^T C K, this many per "
         "factor of 2 (the model transform depends on a mode only through r^2 K^T C K; each mode is shared among four "
-        "bins by cubic interpolation, so errors scale as the inverse fourth power: 16 gives sums within 1e-5 of "
-        "every mode's, benchmarks/speed.py --check); 0 evaluates "
+        "bins by cubic interpolation, so errors scale as the inverse fourth power: 12 gives the sums of every mode "
+        "within 2e-6, the position's second derivatives within 1.4e-5, and moves e by at most 2.8e-6 from 16, "
+        "benchmarks/README.md session 80); 0 evaluates "
         "every mode (also what the numpy path without the compiled kernel does)", "DESIGN: speed")
     mode_polar_angles: int = setting(
         80, "the modes of a fit are first spread onto a grid in log |K|^2 (a node every second bin of "
