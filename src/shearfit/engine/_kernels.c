@@ -996,18 +996,17 @@ static PyObject *make_bins(PyObject *self, PyObject *args)
    (G2: rows of J points, row s holding the table's points s, s + M, s + 2M, ...; M + 1 rows): bins below
    the table get low (the transform at its start, where it is flat), bins beyond it 0; pos = -inf (r = 0)
    gives every bin zero_val, the transform at rho = 0, and a NaN (r NaN) NaN */
-static inline __attribute__((always_inline)) void log_table_row(
-    const double *G2, Py_ssize_t M, Py_ssize_t J, double pos, Py_ssize_t n, Py_ssize_t npad, double low,
-    double zero_val, double *restrict R)
+/* where a model whose bin 0 lies at position pos of the log table reads it (G2 as log_table_row's): rows A and
+   B (bin b interpolated as A[b] + f (B[b] - A[b])), the bins within the table blo .. bhi - 1 of n; 0, or -1 for
+   pos = -inf (r = 0) or NaN, which read no row */
+static inline __attribute__((always_inline)) int table_rows(const double *G2, Py_ssize_t M, Py_ssize_t J, double pos,
+                                                            Py_ssize_t n, const double **A, const double **B,
+                                                            double *f, Py_ssize_t *blo_out, Py_ssize_t *bhi_out)
 {
-    if (!(pos > -1e15)) {
-        const double v = pos != pos ? pos : zero_val;
-        for (Py_ssize_t b = 0; b < n; b++) R[b] = v;
-        for (Py_ssize_t b = n; b < npad; b++) R[b] = 0.0;
-        return;
-    }
+    if (!(pos > -1e15)) return -1;
     if (pos > 1e15) pos = 1e15;
-    const double fl = floor(pos), f = pos - fl;
+    const double fl = floor(pos);
+    *f = pos - fl;
     const long long i0 = (long long)fl;
     long long s = i0 % (long long)M;
     if (s < 0) s += M;
@@ -1015,61 +1014,62 @@ static inline __attribute__((always_inline)) void log_table_row(
     long long blo = -j0, bhi = (long long)J - j0;
     blo = blo < 0 ? 0 : (blo > n ? n : blo);
     bhi = bhi < blo ? blo : (bhi > n ? n : bhi);
-    const double *A = G2 + s * J + j0, *B = G2 + (s + 1) * J + j0;
-    for (Py_ssize_t b = 0; b < blo; b++) R[b] = low;
-    for (Py_ssize_t b = (Py_ssize_t)blo; b < (Py_ssize_t)bhi; b++) R[b] = A[b] + f * (B[b] - A[b]);
-    for (Py_ssize_t b = (Py_ssize_t)bhi; b < npad; b++) R[b] = 0.0;
+    *A = G2 + s * J + j0;
+    *B = G2 + (s + 1) * J + j0;
+    *blo_out = (Py_ssize_t)blo;
+    *bhi_out = (Py_ssize_t)bhi;
+    return 0;
 }
 
-static inline double hsum8(v8u v)
+/* the transform at the n (padded: npad) bins of a model whose bin 0 lies at position pos of the log table
+   (G2: rows of J points, row s holding the table's points s, s + M, s + 2M, ...; M + 1 rows): bins below
+   the table get low (the transform at its start, where it is flat), bins beyond it 0; pos = -inf (r = 0)
+   gives every bin zero_val, the transform at rho = 0, and a NaN (r NaN) NaN */
+static inline __attribute__((always_inline)) void log_table_row(
+    const double *G2, Py_ssize_t M, Py_ssize_t J, double pos, Py_ssize_t n, Py_ssize_t npad, double low,
+    double zero_val, double *restrict R)
 {
-    return ((v[0] + v[4]) + (v[1] + v[5])) + ((v[2] + v[6]) + (v[3] + v[7]));
+    const double *A, *B;
+    double f;
+    Py_ssize_t blo, bhi;
+    if (table_rows(G2, M, J, pos, n, &A, &B, &f, &blo, &bhi) != 0) {
+        const double v = pos != pos ? pos : zero_val;
+        for (Py_ssize_t b = 0; b < n; b++) R[b] = v;
+        for (Py_ssize_t b = n; b < npad; b++) R[b] = 0.0;
+        return;
+    }
+    for (Py_ssize_t b = 0; b < blo; b++) R[b] = low;
+    for (Py_ssize_t b = blo; b < bhi; b++) R[b] = A[b] + f * (B[b] - A[b]);
+    for (Py_ssize_t b = bhi; b < npad; b++) R[b] = 0.0;
 }
 
 /* the sums of one model from its ellipticity's bins (W: NCH channels of npad), transforms rf, rg there, and
    the DC bin (dcw, at the transforms' values at 0, r0f and r0g): the output row o of NOUT, as block_body's.
-   With AVX-512 (32 vector registers) the fifteen sums run in one pass of eight-double accumulators; with
-   fewer registers (AVX2's 16, SSE's) those would spill to memory at every step, so the sums run in two passes
-   (the disk's six linear sums, ff and fg; then the bulge's and gg) of four-double accumulators: at most nine
-   live vectors each */
-#if defined(__AVX512F__)
-static void sums_from_bins(const double *restrict W, Py_ssize_t npad, const double *restrict rf,
-                           const double *restrict rg, const double *dcw, double r0f, double r0g, double *o)
-{
-    const v8u zero = {0};
-    v8u lf[6], lg[6], ff = zero, gg = zero, fg = zero;
-    for (int t = 0; t < 6; t++) lf[t] = lg[t] = zero;
-    for (Py_ssize_t b = 0; b < npad; b += 8) {
-        v8u vf = *(const v8u *)(rf + b), vg = *(const v8u *)(rg + b);
-        for (int t = 0; t < 6; t++) {
-            v8u w = *(const v8u *)(W + t * npad + b);
-            lf[t] += vf * w;
-            lg[t] += vg * w;
-        }
-        v8u q = *(const v8u *)(W + 6 * npad + b);
-        v8u qf = q * vf;
-        ff += qf * vf;
-        fg += qf * vg;
-        gg += q * vg * vg;
-    }
-    for (int t = 0; t < 6; t++) {
-        o[t] = hsum8(lf[t]) + r0f * dcw[t];
-        o[6 + t] = hsum8(lg[t]) + r0g * dcw[t];
-    }
-    o[12] = hsum8(ff) + dcw[6] * r0f * r0f;
-    o[13] = hsum8(gg) + dcw[6] * r0g * r0g;
-    o[14] = hsum8(fg) + dcw[6] * r0f * r0g;
-}
-#else
+   The fifteen sums in one pass would spill AVX2's 16 vector registers to memory at every step, so they run in two
+   passes (the disk's six linear sums, ff and fg; then the bulge's and gg) of four-double accumulators: at most nine
+   live vectors each. (With AVX-512, these two passes with the transforms interpolated in them ran x1.03 faster
+   than one pass of eight-double accumulators over the transforms written out, session 80: the AVX-512 build runs
+   them too.)
+   sums_core's ROWS = 1 takes the transforms from the log tables' rows instead (table_rows': rf, bf with the
+   fraction tf; rg, bg with tg), interpolated in the loop as log_table_row interpolates them, where every bin lies
+   within both tables: the same numbers, without writing the transforms out and reading them back (which took a
+   quarter of the binned sums' time) */
+#define TRANSFORM(V, X, Y, T, K) do {                                                                          \
+        V = *(const VT *)((X) + (K));                                                                        \
+        if (ROWS) V = V + (T) * (*(const VT *)((Y) + (K)) - V);                                             \
+    } while (0)
 typedef double v4u __attribute__((vector_size(4 * sizeof(double)), aligned(sizeof(double))));
+#define VT v4u
 
 static inline double hsum4(v4u v)
 {
     return (v[0] + v[2]) + (v[1] + v[3]);
 }
 
-static void sums_from_bins(const double *restrict W, Py_ssize_t npad, const double *restrict rf,
-                           const double *restrict rg, const double *dcw, double r0f, double r0g, double *o)
+static inline __attribute__((always_inline)) void sums_core(
+    const int ROWS, const double *restrict W, Py_ssize_t npad, const double *restrict rf, const double *restrict bf,
+    double tf, const double *restrict rg, const double *restrict bg, double tg, const double *dcw, double r0f,
+    double r0g, double *o)
 {
     const v4u zero = {0};
     v4u l[6], a = zero, b = zero;
@@ -1077,11 +1077,13 @@ static void sums_from_bins(const double *restrict W, Py_ssize_t npad, const doub
     /* pass 1: the disk's linear sums, ff and fg */
     for (int t = 0; t < 6; t++) l[t] = zero;
     for (Py_ssize_t k = 0; k < npad; k += 4) {
-        v4u vf = *(const v4u *)(rf + k);
+        v4u vf, vg;
+        TRANSFORM(vf, rf, bf, tf, k);
+        TRANSFORM(vg, rg, bg, tg, k);
         for (int t = 0; t < 6; t++) l[t] += vf * *(const v4u *)(W + t * npad + k);
         v4u qf = *(const v4u *)(Q + k) * vf;
         a += qf * vf;
-        b += qf * *(const v4u *)(rg + k);
+        b += qf * vg;
     }
     for (int t = 0; t < 6; t++) o[t] = hsum4(l[t]) + r0f * dcw[t];
     o[12] = hsum4(a) + dcw[6] * r0f * r0f;
@@ -1090,14 +1092,35 @@ static void sums_from_bins(const double *restrict W, Py_ssize_t npad, const doub
     for (int t = 0; t < 6; t++) l[t] = zero;
     a = zero;
     for (Py_ssize_t k = 0; k < npad; k += 4) {
-        v4u vg = *(const v4u *)(rg + k);
+        v4u vg;
+        TRANSFORM(vg, rg, bg, tg, k);
         for (int t = 0; t < 6; t++) l[t] += vg * *(const v4u *)(W + t * npad + k);
         a += *(const v4u *)(Q + k) * vg * vg;
     }
     for (int t = 0; t < 6; t++) o[6 + t] = hsum4(l[t]) + r0g * dcw[t];
     o[13] = hsum4(a) + dcw[6] * r0g * r0g;
 }
+#undef TRANSFORM
+#undef VT
+
+#if defined(__AVX2__)
+#define ROWS_IN_SUMS 1
+#else
+#define ROWS_IN_SUMS 0
 #endif
+
+static void sums_from_bins(const double *restrict W, Py_ssize_t npad, const double *restrict rf,
+                           const double *restrict rg, const double *dcw, double r0f, double r0g, double *o)
+{
+    sums_core(0, W, npad, rf, NULL, 0.0, rg, NULL, 0.0, dcw, r0f, r0g, o);
+}
+
+static void sums_from_rows(const double *restrict W, Py_ssize_t npad, const double *restrict af,
+                           const double *restrict bf, double tf, const double *restrict ag, const double *restrict bg,
+                           double tg, const double *dcw, double r0f, double r0g, double *o)
+{
+    sums_core(1, W, npad, af, bf, tf, ag, bg, tg, dcw, r0f, r0g, o);
+}
 
 /*
  * binned_sums(shape, r2, e_index, lo, offsets, columns, dc, bins_per_octave, log_f, log_g, M, J, start, per_octave,
@@ -1274,10 +1297,24 @@ static __attribute__((noinline)) int binned_sums_run(const BinsCtx *c, Py_ssize_
         const double *W = COLS + NCH * OFF[e];
         /* the position of bin 0 (kappa = 2^(lo / nb)) on the tables; r = 0 gives -inf */
         const double pos = (log2(R2[m]) - start) * per_oct + (double)LO[e] * (double)M;
-        log_table_row(GF, M, J, pos, npad, npad, low_f, zero_f, RF);
-        log_table_row(GG, M, J, pos + shift_g, npad, npad, low_g, zero_g, RG);
         double *o = O + NOUT * m;
-        sums_from_bins(W, npad, RF, RG, DC + 8 * e, zero_f, zero_g, o);
+        const double *AF, *BF, *AG, *BG;
+        double tf, tg;
+        Py_ssize_t flo, fhi, glo, ghi;
+        /* every bin within both tables (the usual case): the sums interpolate the tables' rows themselves, and the
+           fold pairs below, if any, take their bins' transforms from RF, RG made over the bins they read only. (Not
+           in the portable build: SSE2's sixteen registers of two doubles spill in the passes' loops as it is, and
+           the interpolation in them made it slower) */
+        const int rows = ROWS_IN_SUMS && table_rows(GF, M, J, pos, npad, &AF, &BF, &tf, &flo, &fhi) == 0
+                         && table_rows(GG, M, J, pos + shift_g, npad, &AG, &BG, &tg, &glo, &ghi) == 0
+                         && flo == 0 && fhi == npad && glo == 0 && ghi == npad;
+        if (rows)
+            sums_from_rows(W, npad, AF, BF, tf, AG, BG, tg, DC + 8 * e, zero_f, zero_g, o);
+        else {
+            log_table_row(GF, M, J, pos, npad, npad, low_f, zero_f, RF);
+            log_table_row(GG, M, J, pos + shift_g, npad, npad, low_g, zero_g, RG);
+            sums_from_bins(W, npad, RF, RG, DC + 8 * e, zero_f, zero_g, o);
+        }
         if (n_pairs > 0) {
             if (e != cur_e) {   /* the pair modes' bins at this ellipticity, as make_bins placed them */
                 pair_block(nk, kept, n_g, n_pairs, PI, PW, PA, PB, PH, RFT, RGT, O);
@@ -1314,6 +1351,11 @@ static __attribute__((noinline)) int binned_sums_run(const BinsCtx *c, Py_ssize_
                 if (npad >= 4)
                     for (Py_ssize_t g = 0; g < n_g; g++) PI[g] = PI[g] < 0 ? (int)npad : PI[g];
             }
+            if (rows)   /* the transforms of the bins the pairs read, as log_table_row makes them */
+                for (Py_ssize_t b = lo_b; b <= hi_b + 3; b++) {
+                    RF[b] = AF[b] + tf * (BF[b] - AF[b]);
+                    RG[b] = AG[b] + tg * (BG[b] - AG[b]);
+                }
             if (pair_tol > 0) {
                 /* |h R_a R_b| <= |h| (A_a^2 + A_b^2) / 2 for A a mode's largest |R^f|, |R^g|, and A <= 1.25 times
                    the largest over its four bins (the cubic weights' absolute sum is at most 1.25): so the
@@ -1334,12 +1376,14 @@ static __attribute__((noinline)) int binned_sums_run(const BinsCtx *c, Py_ssize_
                 if (1.5625 * bound <= pair_tol) continue;
             }
             if (npad >= 4) {
-                /* the model's bins' transforms into the block's column nk, and its pair terms with the block's */
+                /* the model's bins' transforms into the block's column nk, and its pair terms with the block's:
+                   only the bins the pair modes read (their first bins lo_b .. hi_b and the three after, and the
+                   four entries at npad for those at 0; the fold groups' modes are aliases near the highest |K|) */
                 for (int t = 0; t < 4; t++) {
-                    RF[npad + t] = t == 1 ? zero_f : 0.0;
-                    RG[npad + t] = t == 1 ? zero_g : 0.0;
+                    RFT[(npad + t) * PLB + nk] = t == 1 ? zero_f : 0.0;
+                    RGT[(npad + t) * PLB + nk] = t == 1 ? zero_g : 0.0;
                 }
-                for (Py_ssize_t b = 0; b < npad + 4; b++) {
+                for (Py_ssize_t b = lo_b; b <= hi_b + 3; b++) {
                     RFT[b * PLB + nk] = RF[b];
                     RGT[b * PLB + nk] = RG[b];
                 }
