@@ -790,12 +790,26 @@ static void rows_to_columns(const float *A, Py_ssize_t nbin, Py_ssize_t npad, do
  */
 static PyObject *make_bins(PyObject *self, PyObject *args)
 {
-    Py_buffer shape, b3, c8, pg = {0}, pdc = {0}, prw = {0}, pdir = {0};
+    Py_buffer shape, b3, c8, pg = {0}, pdc = {0}, prw = {0}, pdir = {0}, outb = {0};
     int nb, nv = 1, npsi = 0;
     long long pu0 = 0, pnu = 0;
     double q2min = 2.0;   /* the polar grid for ellipticities whose q^2 is at least this (2: none) */
-    if (!PyArg_ParseTuple(args, "y*y*y*i|i(LLy*y*y*y*id)", &shape, &b3, &c8, &nb, &nv, &pu0, &pnu, &pg, &pdc, &prw,
-                          &pdir, &npsi, &q2min)) return NULL;
+    PyObject *polar_obj = Py_None, *out_obj = Py_None;
+    if (!PyArg_ParseTuple(args, "y*y*y*i|iOO", &shape, &b3, &c8, &nb, &nv, &polar_obj, &out_obj)) return NULL;
+    /* (the polar tuple's buffers parsed by a call of their own: PyArg_ParseTuple sizes its list of buffers to
+       release by the format's top-level items, which a nested tuple of them overruns) */
+    if (polar_obj != Py_None && !PyArg_ParseTuple(polar_obj, "LLy*y*y*y*id", &pu0, &pnu, &pg, &pdc, &prw, &pdir,
+                                                  &npsi, &q2min)) {
+        RELEASE(&shape, &b3, &c8);
+        return NULL;
+    }
+    /* out: where the columns are written while they fit (a float64 buffer the caller keeps and passes again, whose
+       memory is already mapped: fresh memory for them, its pages faulted in at every call, cost a quarter of the
+       binning); the columns returned are then None, the first NCH offsets[-1] doubles of out */
+    if (out_obj != Py_None && PyObject_GetBuffer(out_obj, &outb, PyBUF_WRITABLE | PyBUF_C_CONTIGUOUS) != 0) {
+        RELEASE(&shape, &b3, &c8, &pg, &pdc, &prw, &pdir);
+        return NULL;
+    }
     Py_ssize_t n_e = shape.len / (3 * (Py_ssize_t)sizeof(double));
     Py_ssize_t n_single = b3.len / (4 * (Py_ssize_t)sizeof(float));
     const int polar = npsi > 0;
@@ -804,7 +818,7 @@ static PyObject *make_bins(PyObject *self, PyObject *args)
                    || pdc.len != (Py_ssize_t)nv * 8 * (Py_ssize_t)sizeof(double)
                    || prw.len != 2 * (Py_ssize_t)npsi * (Py_ssize_t)sizeof(int)
                    || pdir.len % (Py_ssize_t)sizeof(int) != 0))) {
-        RELEASE(&shape, &b3, &c8, &pg, &pdc, &prw, &pdir);
+        RELEASE(&shape, &b3, &c8, &pg, &pdc, &prw, &pdir, &outb);
         PyErr_SetString(PyExc_ValueError, "make_bins: inconsistent buffers");
         return NULL;
     }
@@ -814,7 +828,7 @@ static PyObject *make_bins(PyObject *self, PyObject *args)
     const int *DIR = (const int *)pdir.buf;
     for (Py_ssize_t d = 0; d < nd; d++)
         if (DIR[d] < 0 || DIR[d] >= n_single) {
-            RELEASE(&shape, &b3, &c8, &pg, &pdc, &prw, &pdir);
+            RELEASE(&shape, &b3, &c8, &pg, &pdc, &prw, &pdir, &outb);
             PyErr_SetString(PyExc_ValueError, "make_bins: the polar grid's direct modes are not the modes'");
             return NULL;
         }
@@ -885,7 +899,10 @@ static PyObject *make_bins(PyObject *self, PyObject *args)
             bounded = hm - hd > 0.0 && isfinite(span) && span < 1e6;
             total += (double)((((Py_ssize_t)ceil(span) + 8 + BPAD - 1) / BPAD) * BPAD) * nv;
         }
-        if (bounded && NCH * total * sizeof(double) < 1e9) {
+        if (outb.buf != NULL) {   /* the caller's memory */
+            cols = (double *)outb.buf;
+            capC = outb.len / (Py_ssize_t)sizeof(double);
+        } else if (bounded && NCH * total * sizeof(double) < 1e9) {
             colobj = PyBytes_FromStringAndSize(NULL, (Py_ssize_t)(NCH * total) * (Py_ssize_t)sizeof(double));
             if (colobj == NULL) PyErr_Clear();   /* then the columns' own memory */
             else {
@@ -946,7 +963,7 @@ static PyObject *make_bins(PyObject *self, PyObject *args)
             if (NCH * (ncol + npad) > capC) {
                 capC = 2 * NCH * (ncol + npad);
                 double *r;
-                if (!own_cols && colobj != NULL) {   /* the bound fell short: memory of their own from here on */
+                if (!own_cols && cols != NULL) {   /* the bound or out fell short: memory of their own from here on */
                     r = (double *)malloc(capC * sizeof(double));
                     if (r != NULL) memcpy(r, cols, NCH * ncol * sizeof(double));
                 } else
@@ -971,7 +988,10 @@ static PyObject *make_bins(PyObject *self, PyObject *args)
         PyObject *l = PyBytes_FromStringAndSize((const char *)los, n_out * sizeof(long long));
         PyObject *o = PyBytes_FromStringAndSize((const char *)off, (n_out + 1) * sizeof(long long));
         PyObject *c;
-        if (!own_cols && colobj != NULL) {
+        if (!own_cols && outb.buf != NULL) {
+            c = Py_None;   /* in out */
+            Py_INCREF(c);
+        } else if (!own_cols && colobj != NULL) {
             c = colobj;   /* the reference passes to the result */
             colobj = NULL;
             if (_PyBytes_Resize(&c, NCH * ncol * (Py_ssize_t)sizeof(double)) != 0) c = NULL;
@@ -987,7 +1007,7 @@ static PyObject *make_bins(PyObject *self, PyObject *args)
     free(P); free(Pd); free(Cd); free(idx); free(frac); free(w4); free(off); free(los); free(dc); free(A); free(pbase); free(pw4); free(pcs); free(pgown);
     if (own_cols) free(cols);
     Py_XDECREF(colobj);
-    RELEASE(&shape, &b3, &c8, &pg, &pdc, &prw, &pdir);
+    RELEASE(&shape, &b3, &c8, &pg, &pdc, &prw, &pdir, &outb);
     if (nomem) return PyErr_NoMemory();
     return res;
 }
@@ -3292,7 +3312,8 @@ static PyMethodDef methods[] = {
     {"size_marginal", size_marginal, METH_VARARGS,
      "size_marginal(ld, lb, fd, fb, bd, logprior, lsegprior, spline, interp, xf, u, rf, l0, logmix, out)"},
     {"make_bins", make_bins, METH_VARARGS,
-     "make_bins(shape, basis32, channels32, bins_per_octave[, versions[, (u0, n_u, grid, dc, rows, npsi, q2min)]]) "
+     "make_bins(shape, basis32, channels32, bins_per_octave[, versions[, (u0, n_u, grid, dc, rows, direct, npsi, "
+     "q2min) or None[, out]]]) "
      "-> (lo, offsets, columns, dc)"},
     {"polar_grid", polar_grid, METH_VARARGS,
      "polar_grid(basis32, channels32, bins_per_octave, npsi[, versions[, node_modes]]) -> (u0, n_u, grid, dc, rows, "

@@ -24,6 +24,7 @@ integral), the flux numerically with the S^-alpha prior (cubic spline).
 from __future__ import annotations
 
 import functools
+import threading
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -690,7 +691,29 @@ def polar_grid(jm: JointModes, bins_per_octave, angles):
     return cache[1]
 
 
-def mode_bins(jm: JointModes, e1, e2, bins_per_octave, polar=None) -> ModeBins:
+#: a thread's memory for the columns of make_bins (:func:`mode_bins`' ``reuse``)
+_COLUMNS = threading.local()
+
+
+def _binned(shape, b3, c8, bins_per_octave, nv, polar_args, reuse):
+    """KERNEL.make_bins' (lo, offsets, columns, dc); with ``reuse`` the columns are written into this thread's
+    buffer, kept from one call to the next (its memory already mapped), and returned as a view of it: valid only
+    until the next call with ``reuse`` in the same thread. Where they do not fit, make_bins returns them in
+    memory of their own, and the buffer grows for the next call."""
+    if not reuse:
+        return KERNEL.make_bins(shape, b3, c8, int(bins_per_octave), nv, polar_args)
+    buf = getattr(_COLUMNS, "array", None)
+    if buf is None:
+        buf = _COLUMNS.array = np.empty(0)
+    lo, offsets, columns, dc = KERNEL.make_bins(shape, b3, c8, int(bins_per_octave), nv, polar_args, buf)
+    if columns is None:
+        columns = buf[:7 * int(np.frombuffer(offsets, np.int64)[-1])]   # (7: make_bins' channels)
+    else:
+        _COLUMNS.array = np.empty(int(1.5 * len(columns) / 8) + 1024)
+    return lo, offsets, columns, dc
+
+
+def mode_bins(jm: JointModes, e1, e2, bins_per_octave, polar=None, reuse=False) -> ModeBins:
     """Bin the modes for each ellipticity (e1[i], e2[i]), in K^T C K, ``bins_per_octave`` bins per factor of
     2, uniform in log K^T C K (each mode shared among four bins by cubic interpolation). Models of any size
     at one of these ellipticities then cost one evaluation per bin instead of per mode (:func:`model_sums`,
@@ -706,15 +729,16 @@ def mode_bins(jm: JointModes, e1, e2, bins_per_octave, polar=None) -> ModeBins:
     the grid's lowest rows, fewer there than a row's nodes (``POLAR_NODE_MODES``), are left off it and binned one by
     one. Where the
     modes are fewer than the grid's nodes pay for (:func:`polar_pays`: exposures sharing a Jacobian), every
-    mode is binned as without ``polar``."""
+    mode is binned as without ``polar``.
+
+    ``reuse``: the columns written into memory this thread keeps from one call to the next, valid only until its
+    next call with ``reuse`` (the sampler's chunks, whose bins live within the chunk: :func:`_binned`)."""
     shape = np.ascontiguousarray(np.stack(shape_matrix(np.atleast_1d(np.asarray(e1, float)),
                                                        np.atleast_1d(np.asarray(e2, float))), axis=1))
     b3, c8 = _packed_bins(jm)[:2]
-    if polar is not None and polar_pays(jm, bins_per_octave, polar[0]):
-        extra = (1, _polar_args(polar_grid(jm, bins_per_octave, polar[0]), polar))
-    else:
-        extra = ()
-    lo, offsets, columns, dc = KERNEL.make_bins(shape, b3, c8, int(bins_per_octave), *extra)
+    polar_args = (_polar_args(polar_grid(jm, bins_per_octave, polar[0]), polar)
+                  if polar is not None and polar_pays(jm, bins_per_octave, polar[0]) else None)
+    lo, offsets, columns, dc = _binned(shape, b3, c8, bins_per_octave, 1, polar_args, reuse)
     return ModeBins(shape=shape, bins_per_octave=int(bins_per_octave), lo=lo, offsets=offsets, columns=columns,
                     dc=dc)
 
@@ -742,26 +766,25 @@ def versions_polar_grid(jms, channels, bins_per_octave, angles):
                                            POLAR_NODE_MODES))
 
 
-def mode_bins_versions(jms, e1, e2, bins_per_octave, channels=None, polar=None, grid=None) -> ModeBins:
+def mode_bins_versions(jms, e1, e2, bins_per_octave, channels=None, polar=None, grid=None, reuse=False) -> ModeBins:
     """:func:`mode_bins` of several versions of one object at once (JointModes on the same modes, with other
     data: :func:`shares_bins_geometry`): entry ``i * V + v`` of the result is version v's bins at
     ellipticity i, the same numbers as ``mode_bins(jms[v], ...)``'s entry i. Each ellipticity's bin
     positions and interpolation weights are found once for the V versions. ``channels``:
     :func:`versions_channels` of ``jms``, made once for many calls; ``polar`` as :func:`mode_bins`'s (the
     versions' shared modes decide whether it pays), with ``grid`` :func:`versions_polar_grid`'s (made here if
-    None)."""
+    None); ``reuse`` as :func:`mode_bins`'."""
     nv = len(jms)
     c8 = versions_channels(jms) if channels is None else channels
     shape = np.ascontiguousarray(np.stack(shape_matrix(np.atleast_1d(np.asarray(e1, float)),
                                                        np.atleast_1d(np.asarray(e2, float))), axis=1))
     b3 = _packed_bins(jms[0])[0]
+    polar_args = None
     if polar is not None and polar_pays(jms[0], bins_per_octave, polar[0]):
         if grid is None:
             grid = versions_polar_grid(jms, c8, bins_per_octave, polar[0])
-        extra = (_polar_args(grid, polar),)
-    else:
-        extra = ()
-    lo, offsets, columns, dc = KERNEL.make_bins(shape, b3, c8, int(bins_per_octave), nv, *extra)
+        polar_args = _polar_args(grid, polar)
+    lo, offsets, columns, dc = _binned(shape, b3, c8, bins_per_octave, nv, polar_args, reuse)
     return ModeBins(shape=np.ascontiguousarray(np.repeat(shape, nv, axis=0)), bins_per_octave=int(bins_per_octave),
                     lo=lo, offsets=offsets, columns=columns, dc=dc)
 

@@ -339,7 +339,7 @@ class EllipticityLikelihood:
         ne = e1.size
         keys = e_key(e1, e2)
         # the chunk's modes binned once per ellipticity, for the size-locating passes and the nodes
-        bins = mode_bins(self.jm, e1, e2, cfg.mode_bins_per_octave, polar=polar_setting(cfg)) if (
+        bins = mode_bins(self.jm, e1, e2, cfg.mode_bins_per_octave, polar=polar_setting(cfg), reuse=True) if (
             USE_KERNEL and cfg.mode_bins_per_octave > 0) else None
         tail, tail_point = np.zeros(ne, bool), None
         if self.fixed_centres is not None:
@@ -542,7 +542,7 @@ class VersionLikelihoods:
                                                                        self.polar[0]):
             self.grid = versions_polar_grid(jms, self.channels, l0.cfg.mode_bins_per_octave, self.polar[0])
         bins = mode_bins_versions(jms, e1, e2, l0.cfg.mode_bins_per_octave, channels=self.channels,
-                                  polar=self.polar, grid=self.grid)
+                                  polar=self.polar, grid=self.grid, reuse=True)
         rc = l0.replayed_centres(e1, e2, keys)
         for lk in likes:
             lk.centres.update(zip(keys, rc.tolist()))
