@@ -499,9 +499,9 @@ class VersionLikelihoods:
     Versions on the same Fourier modes (:meth:`shearfit.engine.likelihood.JointModes.with_data`: metacal's
     sheared versions of a noshear fit) whose likelihoods take their size centres from one fit
     (``fixed_centres``, the replays of :func:`replay_samples`) are binned together
-    (:func:`shearfit.engine.likelihood.mode_bins_versions`: each ellipticity's bins found once), and their
-    size nodes summed and marginalised in one call each: per version the same numbers as its own
-    ``like(e1, e2)``, which is what the others get.
+    (:func:`shearfit.engine.likelihood.mode_bins_versions`: each ellipticity's bins found once), and each
+    version's size nodes summed, marginalised and integrated in one compiled call (``KERNEL.size_nodes``): per
+    version the same numbers as its own ``like(e1, e2)``, which is what the others get.
     """
 
     def __init__(self, likes):
@@ -546,6 +546,12 @@ class VersionLikelihoods:
         rc = l0.replayed_centres(e1, e2, keys)
         for lk in likes:
             lk.centres.update(zip(keys, rc.tolist()))
+        marg = marginal_context(l0.cfg, l0.jm.pixel_scale) if l0.x.size <= 512 else None
+        if marg is not None:
+            # each version's size nodes in one compiled call (KERNEL.size_nodes, as its own like's): its bins at
+            # ellipticity i are entry i * nv + v
+            base = np.arange(ne, dtype=np.int64) * nv
+            return [lk._nodes_kernel(e1, e2, rc, bins, base + v, marg) for v, lk in enumerate(likes)]
         R = rc[:, None] * np.exp(l0.x)[None, :]
         m = ne * nr
         # the models version after version; version v's bins at ellipticity i are entry i * nv + v
