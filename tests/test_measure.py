@@ -655,6 +655,46 @@ def test_mode_bins_do_not_depend_on_the_modes_order():
         assert np.max(np.abs(x - y)) <= 1e-5 * np.max(np.abs(y)), f
 
 
+def test_mode_bins_in_reused_memory_are_the_same_bins():
+    """make_bins writes the columns into a buffer the caller passes (the sampler's, kept per thread) while they fit,
+    and returns None for them; where they do not, into memory of their own, returned: the same bytes either way, by
+    mode or from the polar grid. mode_bins(reuse=True) returns a view of this thread's buffer, grown after a call
+    that did not fit, with the bins of reuse=False; a further call writes over it."""
+    from shearfit.engine import likelihood
+    from shearfit.engine.kernel import KERNEL
+    from shearfit.engine.likelihood import mode_bins
+    from shearfit.engine.model import shape_matrix
+
+    rng, jm, b3, c8 = _distorted_bins(7, 11, 40)
+    e = rng.uniform(0.0, 0.9, 40) * np.exp(2j * np.pi * rng.uniform(size=40))
+    shape = np.ascontiguousarray(np.stack(shape_matrix(e.real, e.imag), axis=1))
+    polar = likelihood._polar_args(likelihood.polar_grid(jm, 12, 80), (80, 0.95))
+    for pol in (None, polar):
+        lo, off, cols, dc = KERNEL.make_bins(shape, b3, c8, 12, 1, pol)
+        n = len(cols) // 8
+        for size in (0, n // 3, n, 2 * n):
+            out = np.full(size, np.nan)
+            got = KERNEL.make_bins(shape, b3, c8, 12, 1, pol, out)
+            assert (got[0], got[1], got[3]) == (lo, off, dc)
+            if size >= n:
+                assert got[2] is None and out[:n].tobytes() == cols
+            else:
+                assert got[2] == cols
+    with pytest.raises(BufferError):
+        KERNEL.make_bins(shape, b3, c8, 12, 1, None, b"read-only")
+    likelihood._COLUMNS.array = np.empty(0)   # this thread's buffer: too small at the first call
+    for part in (e[:10], e, e[:25]):
+        plain = mode_bins(jm, part.real, part.imag, 12, polar=(80, 0.95))
+        reused = mode_bins(jm, part.real, part.imag, 12, polar=(80, 0.95), reuse=True)
+        assert (reused.lo, reused.offsets, reused.dc) == (plain.lo, plain.offsets, plain.dc)
+        assert bytes(reused.columns) == plain.columns
+    assert isinstance(reused.columns, np.ndarray) and reused.columns.base is likelihood._COLUMNS.array
+    first = mode_bins(jm, e.real, e.imag, 12, polar=(80, 0.95), reuse=True)
+    kept = bytes(first.columns)
+    mode_bins(jm, -e.real, e.imag, 12, polar=(80, 0.95), reuse=True)
+    assert bytes(first.columns) != kept   # the view's memory serves the next call
+
+
 def test_mode_bins_are_each_ellipticitys_own_whatever_the_batch():
     """make_bins sizes its output from a bound on each ellipticity's bins (the shape matrix's eigenvalues): a
     batch's bins are those of each ellipticity binned alone, whether the bound holds (every shape matrix
