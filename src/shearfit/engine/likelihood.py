@@ -726,10 +726,9 @@ def mode_bins(jm: JointModes, e1, e2, bins_per_octave, polar=None, reuse=False) 
     direction moves along the bins' axis by the same log A, and a whole column of nodes is shared among the bins
     with one set of weights (``_kernels.c``, polar_grid). The cost no longer grows with the number of modes
     (exposures); the sums are right to sixth order in the nodes' spacing in log |K|^2 and in angle. The modes of
-    the grid's lowest rows, fewer there than a row's nodes (``POLAR_NODE_MODES``), are left off it and binned one by
-    one. Where the
-    modes are fewer than the grid's nodes pay for (:func:`polar_pays`: exposures sharing a Jacobian), every
-    mode is binned as without ``polar``.
+    the grid's lowest rows, fewer there than a row's nodes pay for (``POLAR_NODE_MODES``), are left off it and
+    binned one by one. Where the modes are fewer than the grid's nodes pay for (:func:`polar_pays`: exposures
+    sharing a Jacobian), every mode is binned as without ``polar``.
 
     ``reuse``: the columns written into memory this thread keeps from one call to the next, valid only until its
     next call with ``reuse`` (the sampler's chunks, whose bins live within the chunk: :func:`_binned`)."""
