@@ -388,8 +388,9 @@ def _metacal_passes(objs, cfg, passes, metacal, rng, split, psf="dilated", own_p
 
 def metacal_image_profile(objs):
     """Where the metacal images' time goes, per galaxy: shearfit's own k-space operations (the padded
-    transforms of the stamp, its noise and the PSF; the quintic interpolation at the versions' sheared
-    wavevectors; the inverse transforms onto the stamps) and the rest of the per-exposure work."""
+    transforms of the stamp, its noise and the PSF; the PSF's band; the new PSF's transform; the versions'
+    bands, interpolated at their sheared wavevectors; the inverse transforms onto the stamps) and the rest of
+    the per-exposure work."""
     from shearfit.calib import kspace, metacal
 
     acc = {}
@@ -402,11 +403,21 @@ def metacal_image_profile(objs):
             return out
         return wrap
 
-    saved = (kspace.padded_transforms, kspace.kvalues, kspace.band_maxk, metacal.band_images)
+    class Kernel:   # the compiled module, its versions' bands timed
+        def __init__(self, real):
+            self.real = real
+            self.quintic_band = timed("the versions' bands (compiled)", real.quintic_band)
+
+        def __getattr__(self, name):
+            return getattr(self.real, name)
+
+    saved = (kspace.padded_transforms, kspace.kvalues, kspace.band_maxk, metacal.band_images, kspace.KERNEL)
     kspace.padded_transforms = timed("padded transforms (rfft, 4 x padding)", saved[0])
-    kspace.kvalues = timed("quintic interpolation (compiled)", saved[1])
+    kspace.kvalues = timed("the new PSF's quintic interpolation", saved[1])
     kspace.band_maxk = timed("the PSF's band", saved[2])
     metacal.band_images = timed("inverse transforms onto the stamps", saved[3])
+    if saved[4] is not None:
+        kspace.KERNEL = Kernel(saved[4])
     rng = np.random.default_rng(1)
     try:
         t0 = time.perf_counter()
@@ -415,7 +426,7 @@ def metacal_image_profile(objs):
                 metacal.metacal_observations(ob, 0.01, rng, fit_moffat=False)
         total = time.perf_counter() - t0
     finally:
-        kspace.padded_transforms, kspace.kvalues, kspace.band_maxk, metacal.band_images = saved
+        kspace.padded_transforms, kspace.kvalues, kspace.band_maxk, metacal.band_images, kspace.KERNEL = saved
     n = len(objs)
     print(f"\n  metacal images: {1e3 * total / n:.1f} ms per galaxy, of which:")
     for name, dt in acc.items():

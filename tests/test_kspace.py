@@ -50,12 +50,67 @@ def test_compiled_interpolation_is_the_numpy_reference():
     n = kspace.padded_size((48, 48))
     table = kspace.padded_transforms(ims, n)
     tx, ty = rng.uniform(-n / 2 - 4, n / 2 + 4, (2, 3000))   # across the periodic and Hermitian edges
+    # and points periods away, at the table's own points and the edges' exact values
+    far = np.array([-5.3 * n, -2 * n - 0.5, -n, -n / 2, -1e-9, 0.0, n / 2, n - 2.5, 3.7 * n])
+    tx, ty = np.concatenate([tx, far, far[::-1]]), np.concatenate([ty, far[::-1], far])
     for sub in (table, table[2:3]):
         ref = kspace.kvalues_numpy(sub, tx, ty)
         assert np.abs(kspace.kvalues(sub, tx, ty) - ref).max() < 1e-12 * np.abs(ref).max()
 
 
 JACOBIANS = [PIX * np.array([[-1.0, 0.0], [0.0, 1.0]]), PIX * np.array([[0.3, -0.95], [0.94, 0.31]])]
+
+
+@pytest.mark.skipif(not USE_KERNEL, reason="the compiled loops are not built")
+@pytest.mark.parametrize("J", JACOBIANS)
+def test_compiled_band_edge_is_the_numpy_lines(J, monkeypatch):
+    """band_maxk's compiled loop gives its numpy lines' value to the bit, for thresholds that keep most of the
+    grid, a few points, and none (a band of 0)."""
+    xk = metacal._LANCZOS.kval
+    for fwhm in (0.6, 0.9):
+        psf = galsim.Moffat(fwhm=fwhm, beta=3.0).shear(g1=0.04, g2=0.03)
+        img = psf.drawImage(nx=25, ny=25, wcs=metacal._wcs(J), method="no_pixel").array
+        col = kspace.padded_transforms([img], kspace.padded_size(img.shape, (48, 48)))[0]
+        for thr in (1e-3, 0.5, 0.999, 2.0):
+            got = kspace.band_maxk(col, xk, J, thr)
+            with monkeypatch.context() as m:
+                m.setattr(kspace, "USE_KERNEL", False)
+                assert kspace.band_maxk(col, xk, J, thr) == got, (fwhm, thr)
+            assert (got > 0.0) if thr < 0.9 else (got >= 0.0)
+        assert kspace.band_maxk(col, xk, J, 2.0) == 0.0
+
+
+@pytest.mark.parametrize("size", [48, 47])
+@pytest.mark.parametrize("psf", ["dilated", "round"])
+def test_noise_turned_back_on_the_bands_is_the_turned_image(size, psf, monkeypatch):
+    """own_kspace_images(turn_noise=True): each version plus its noise turned back (``np.rot90(..., -1)``), the
+    turn made on the bands (turned_band's phase for an even stamp, none for an odd one), then the first noise
+    turned back, are the images turned in pixels and summed, to rounding; the compiled bands (the versions'
+    interpolation, the unsheared version read from the table's own points, the turn) are the numpy lines', on
+    a reflected and on a rotated, sheared pixel grid."""
+    names = tuple(metacal.VERSIONS)
+    for J in JACOBIANS:
+        obs = _obs(0.3, (0.2, -0.1), snr=40, n_exp=1, seed=4, J=J)[0]
+        image = obs.image[:size, :size]
+        noise = np.rot90(np.random.default_rng(6).normal(size=image.shape), 1)
+        new = None if psf == "dilated" else metacal.round_psf(obs.psf, J, 0.01, image.shape)
+        out = {}
+        for kernel in (True, False):
+            with monkeypatch.context() as m:
+                m.setattr(kspace, "USE_KERNEL", kernel and USE_KERNEL)
+                apart = np.asarray(metacal.own_kspace_images(image, noise, obs.psf, J, 0.01, names, new_psf=new))
+                out[kernel] = (apart, np.asarray(metacal.own_kspace_images(image, noise, obs.psf, J, 0.01, names,
+                                                                           new_psf=new, turn_noise=True)))
+        apart, turned = out[True]
+        back = np.rot90(apart[1::2], -1, axes=(1, 2))
+        peak = np.abs(apart).max()
+        assert turned.shape == (len(names) + 1,) + image.shape
+        assert np.abs(turned[:-1] - (apart[0::2] + back)).max() < 1e-13 * peak
+        assert np.abs(turned[-1] - back[0]).max() < 1e-13 * peak
+        for a, b in zip(out[True], out[False]):
+            assert np.abs(a - b).max() < 1e-13 * peak
+    with pytest.raises(ValueError, match="square"):
+        metacal.own_kspace_images(image[:, :-1], noise[:, :-1], obs.psf, J, 0.01, names, turn_noise=True)
 
 
 @pytest.mark.parametrize("J", JACOBIANS)

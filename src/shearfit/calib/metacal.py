@@ -376,14 +376,34 @@ def _shear_matrix(g1, g2):
     return m
 
 
-def own_kspace_images(image, noise, psf, J, delta, names, fft_size=None, new_psf=None):
+def turned_band(arr, n, size):
+    """The band of an image turned back by 90 degrees (``np.rot90(image, -1)`` of a square stamp of ``size``
+    pixels, origin at pixel (size // 2, size // 2)), from the band ``arr`` ((2 r + 1, r + 1): rows j = -r .. r,
+    columns i = 0 .. r, Hermitian in x, as :func:`band_images` takes it) of the image on the n x n periodic grid:
+    the turned image is g(c - x, y) with c = size - 1 - 2 (size // 2) (-1 for an even stamp: the array turns about
+    the pixel corner, not about the origin pixel), whose transform is exp(-i c kx) G(-kx, ky); the band's square
+    is its own image under the turn, so the turned band is exact and folds as the original does."""
+    r = arr.shape[1] - 1
+    out = np.empty_like(arr)
+    out[r:] = arr[r::-1].T                      # j >= 0: G(-i, j)
+    out[:r] = np.conj(arr[r:, r:0:-1]).T        # j < 0: G(-i, j) = conj G(i, -j)
+    c = size - 1 - 2 * (size // 2)
+    if c:
+        out *= np.exp(-1j * c * (2 * np.pi / n) * np.arange(r + 1))[None, :]
+    return out
+
+
+def own_kspace_images(image, noise, psf, J, delta, names, fft_size=None, new_psf=None, turn_noise=False):
     """The images of :func:`metacal_observations`' products, [version, its noise] per name of ``names``, from
     shearfit's own k-space operations (:mod:`shearfit.calib.kspace`) instead of GalSim's objects, for a PSF
     image on the stamp's pixels: the stamp's, its noise's and the PSF's discrete transforms once, each
     version's sheared wavevectors interpolated with one set of quintic weights for the three; drawn on the
     same periodic grid of :data:`WRAP_STAMPS` stamp widths (``fft_size``) as :class:`_Drawer`. ``new_psf``: the
     new PSF's image on the stamp's pixels (:func:`round_psf`'s) instead of the dilated PSF: its transform as an
-    interpolated image, as :func:`_galsim_images` takes it."""
+    interpolated image, as :func:`_galsim_images` takes it. ``turn_noise`` (a square stamp whose ``noise`` was
+    turned by ``np.rot90(noise, 1)``): instead, per name the version plus its noise turned back
+    (``np.rot90(..., -1)``), then the first name's noise turned back, the turns made on the bands
+    (:func:`turned_band`), so that one inverse transform serves each sum."""
     shape = image.shape
     n_small = int(fft_size) if fft_size else sfft.next_fast_len(int(np.ceil(WRAP_STAMPS * max(shape))))
     n = kspace.padded_size(shape, psf.shape)
@@ -392,13 +412,15 @@ def own_kspace_images(image, noise, psf, J, delta, names, fft_size=None, new_psf
     table = table[:3]
     J = np.asarray(J, float)
     jit = inv2(J).T
-    xk = _LANCZOS.kval
-    maxk = kspace.band_maxk(table[2], xk, J)
+    maxk = kspace.band_maxk(table[2], _LANCZOS.kval, J)
     dk = 2 * np.pi / n_small
     dilation = 1.0 + 2.0 * abs(delta)
     to_table = n / (2 * np.pi)
     grids = {}
     items = []
+    first = None
+    if turn_noise and shape[0] != shape[1]:
+        raise ValueError("own_kspace_images: turn_noise needs a square stamp")
     smax_j = kspace.singular_values2(J)[0]
     for name in names:
         s1, s2 = VERSIONS[name]
@@ -409,24 +431,71 @@ def own_kspace_images(image, noise, psf, J, delta, names, fft_size=None, new_psf
         r = int(np.ceil(maxk / (kspace.singular_values2(A)[1] * dk))) + 1
         r = min(r, int(np.ceil(maxk / dilation * smax_j / dk)))
         if r not in grids:
-            j, i = np.mgrid[-r:r + 1, 0:r + 1]
-            kap = dk * np.stack([i.ravel(), j.ravel()]).astype(float)
-            d = dilation * kap if new_psf is None else kap
-            gamma = kspace.kvalues(psf_table, d[0] * to_table, d[1] * to_table)[:, 0] * xk(d[0]) * xk(d[1])
-            grids[r] = (kap, gamma)
+            kap, tx, ty, x0, x1 = _band_points(r, dk, None if new_psf is not None else dilation, to_table)
+            grids[r] = (kap, kspace.kvalues(psf_table, tx, ty)[:, 0] * x0 * x1)
         kap, gamma = grids[r]
-        sky = A @ kap
         # the band's edge: maxk is the norm of one of the padded grid's wavevectors, which for the noshear
         # version may be one of these too, so it is inside however rounding computes the two norms
-        inside = np.nonzero(np.sum(sky * sky, axis=0) <= maxk * maxk * (1 + 1e-12))[0]
+        lim = maxk * maxk * (1 + 1e-12)
+        if kspace.USE_KERNEL and table.shape[0] == 3:
+            # the lines below in one compiled loop over the band (the same values to rounding); the version
+            # without shear, whose wavevectors are the padded table's own where its grid is a multiple of the
+            # stamp's, reads them there
+            step = n // n_small if (s1 == s2 == 0 and n % n_small == 0 and (n // n_small) * r <= n // 2) else 0
+            arr = np.empty((3 if turn_noise else 2, kap.shape[1]), complex)
+            phase = _turn_phase(r, n_small, shape[0]) if turn_noise else _NO_PHASE
+            kspace.KERNEL.quintic_band(table, n, r, dk, np.ascontiguousarray(A), np.ascontiguousarray(J.T), to_table,
+                                       lim, gamma, step, phase, arr)
+            arr = arr.reshape(-1, 2 * r + 1, r + 1)
+            if turn_noise:
+                items.append((r, arr[0]))
+                if first is None:
+                    first = (r, arr[2])
+            else:
+                items += [(r, arr[0]), (r, arr[1])]
+            continue
+        arr = np.zeros((2, kap.shape[1]), complex)
+        sky = A @ kap
+        inside = np.nonzero(np.sum(sky * sky, axis=0) <= lim)[0]
         kp = (J.T @ sky[:, inside]) * to_table   # the sheared wavevectors in the pixel frame: M kappa, M = J^T S J^-T
         v = kspace.kvalues(table, kp[0], kp[1])
-        f = gamma[inside] / v[:, 2]
-        for t in (0, 1):
-            arr = np.zeros(kap.shape[1], complex)
-            arr[inside] = v[:, t] * f
-            items.append((r, arr.reshape(2 * r + 1, r + 1)))
-    return band_images(shape, n_small, items)
+        arr[:, inside] = v[:, :2].T * (gamma[inside] / v[:, 2])
+        arr = arr.reshape(2, 2 * r + 1, r + 1)
+        if turn_noise:
+            back = turned_band(arr[1], n_small, shape[0])
+            items.append((r, arr[0] + back))
+            if first is None:
+                first = (r, back)
+        else:
+            items += [(r, arr[0]), (r, arr[1])]
+    return band_images(shape, n_small, items + ([first] if turn_noise else []))
+
+
+_NO_PHASE = np.zeros(1, complex)
+
+
+@functools.lru_cache(maxsize=32)
+def _turn_phase(r, n, size):
+    """:func:`turned_band`'s phase exp(-i c kx) at the columns i = 0 .. r (read-only, shared)."""
+    c = size - 1 - 2 * (size // 2)
+    out = np.exp(-1j * c * (2 * np.pi / n) * np.arange(r + 1)) if c else np.ones(r + 1, complex)
+    out.setflags(write=False)
+    return out
+
+
+@functools.lru_cache(maxsize=32)
+def _band_points(r, dk, dilation, to_table):
+    """A band's points kappa = dk (i, j) (rows j = -r .. r, columns i = 0 .. r; (2, points)), the new PSF's
+    points d = dilation kappa (kappa where ``dilation`` is None) in the padded table's units (d * to_table), and
+    the x-interpolant's transform at d's two components (read-only, shared by the exposures of one stamp size)."""
+    j, i = np.mgrid[-r:r + 1, 0:r + 1]
+    kap = dk * np.stack([i.ravel(), j.ravel()]).astype(float)
+    d = kap if dilation is None else dilation * kap
+    xk = _LANCZOS.kval
+    out = (kap, d[0] * to_table, d[1] * to_table, xk(d[0]), xk(d[1]))
+    for a in out:
+        a.setflags(write=False)
+    return out
 
 
 def round_psf(psf, J, delta, shape, fft_size=None):
@@ -512,20 +581,25 @@ def metacal_observations(obs: Observation, delta=0.01, rng=None, versions=tuple(
     mask[:, :_EDGE] = mask[:, -_EDGE:] = True
     var_in = float(np.mean(sigma[~mask] ** 2)) if np.any(~mask) else 1.0
     names = ("noshear",) + tuple(v for v in versions if v != "noshear")
-    if own:
-        images = own_kspace_images(image, nrot, obs.psf, J, delta, names, new_psf=psf_img if psf == "round" else None)
+    new_psf = psf_img if psf == "round" else None
+    if own and turn:
+        # each version's sum and the noshear noise, the noise turned back on its band (the same images to rounding)
+        images = own_kspace_images(image, nrot, obs.psf, J, delta, names, new_psf=new_psf, turn_noise=True)
+        sums, noise0 = images[:-1], images[-1]
     else:
-        images = _galsim_images(image, nrot, obs.psf, _wcs(J), _wcs(J, k), delta, names,
-                                new_psf_image=psf_img if psf == "round" else None)
-    images = np.asarray(images)
-    nims = np.rot90(images[1::2], -1, axes=(1, 2)) if turn else images[1::2]
+        if own:
+            images = own_kspace_images(image, nrot, obs.psf, J, delta, names, new_psf=new_psf)
+        else:
+            images = _galsim_images(image, nrot, obs.psf, _wcs(J), _wcs(J, k), delta, names, new_psf_image=new_psf)
+        images = np.asarray(images)
+        nims = np.rot90(images[1::2], -1, axes=(1, 2)) if turn else images[1::2]
+        sums, noise0 = images[0::2] + nims, nims[0]
     # the versions' noise: the original, processed, plus the added field: twice the added field's variance,
     # measured on the noshear version and used for all, so that every version is fitted with the same weights
     # (and the same Fourier modes)
-    var_out = float(np.mean(nims[0][~mask] ** 2)) if np.any(~mask) else var_in
+    var_out = float(np.mean(noise0[~mask] ** 2)) if np.any(~mask) else var_in
     scale = var_in / max(2.0 * var_out, 1e-300)
     weight = np.where(mask, 0.0, w * scale)
-    sums = images[0::2] + nims
     out = {}
     first = None
     for v, name in enumerate(names):

@@ -2172,44 +2172,86 @@ static inline __attribute__((always_inline)) void quintic_weights(double f, doub
 
 /* the npts points for NT images (a compile-time constant where the caller's switch makes it one); the table
    is NT planes of nc columns (kx = 0 .. n / 2) of n values (ky), so that each column's six taps are adjacent */
+/* one point (tx, ty) for NT images: acc[2 t], acc[2 t + 1] the t-th image's value */
+static inline __attribute__((always_inline)) void kvalue_point(
+    const double *restrict T, Py_ssize_t n, const Py_ssize_t NT, double tx, double ty, double *restrict acc)
+{
+    const Py_ssize_t nc = n / 2 + 1, plane = 2 * nc * n;
+    const double fx = floor(tx), fy = floor(ty);
+    double wx[6], wy[6];
+    quintic_weights(tx - fx, wx);
+    quintic_weights(ty - fy, wy);
+    Py_ssize_t ix = (Py_ssize_t)fx - 2, iy = (Py_ssize_t)fy - 2;
+    /* modulo n (a division only for points more than a period away) */
+    if (ix < 0 || ix >= n) ix = ix >= -n && ix < 0 ? ix + n : (ix < 2 * n && ix >= n ? ix - n : (ix % n + n) % n);
+    if (iy < 0 || iy >= n) iy = iy >= -n && iy < 0 ? iy + n : (iy < 2 * n && iy >= n ? iy - n : (iy % n + n) % n);
+    for (Py_ssize_t t = 0; t < 2 * NT; t++) acc[t] = 0.0;
+    if (iy >= 1 && iy + 5 < n) {
+        /* the usual point: each column's six values adjacent (a mirrored column's, at -ky, in reverse), so each
+           column's sum is six two-lane products of (re, im) pairs */
+        typedef double v2d __attribute__((vector_size(16)));
+        const v2d W[6] = {{wy[0], wy[0]}, {wy[1], wy[1]}, {wy[2], wy[2]},
+                          {wy[3], wy[3]}, {wy[4], wy[4]}, {wy[5], wy[5]}};
+        for (int a = 0; a < 6; a++) {
+            const int low = ix <= n / 2;
+            const Py_ssize_t col = low ? ix : n - ix;
+            for (Py_ssize_t t = 0; t < NT; t++) {
+                const double *v = T + t * plane + 2 * n * col;
+                v2d sum = {0.0, 0.0}, x;
+                if (low) {
+                    v += 2 * iy;
+                    for (int b = 0; b < 6; b++) {
+                        memcpy(&x, v + 2 * b, sizeof x);
+                        sum += W[b] * x;
+                    }
+                } else {
+                    v += 2 * (n - iy - 5);
+                    for (int b = 0; b < 6; b++) {
+                        memcpy(&x, v + 2 * (5 - b), sizeof x);
+                        sum += W[b] * x;
+                    }
+                }
+                acc[2 * t] += wx[a] * sum[0];
+                acc[2 * t + 1] += (low ? wx[a] : -wx[a]) * sum[1];
+            }
+            ix = ix + 1 == n ? 0 : ix + 1;
+        }
+        return;
+    }
+    Py_ssize_t cy[6], my[6];
+    for (int b = 0; b < 6; b++) {
+        cy[b] = iy;
+        my[b] = iy == 0 ? 0 : n - iy;   /* -ky, for the mirrored columns */
+        iy = iy + 1 == n ? 0 : iy + 1;
+    }
+    for (int a = 0; a < 6; a++) {
+        const int low = ix <= n / 2;
+        const Py_ssize_t col = low ? ix : n - ix;
+        const Py_ssize_t *rows = low ? cy : my;
+        /* this column's six values summed with the y weights first; the mirrored column conjugated */
+        for (Py_ssize_t t = 0; t < NT; t++) {
+            const double *v = T + t * plane + 2 * n * col;
+            double re = 0.0, im = 0.0;
+            for (int b = 0; b < 6; b++) {
+                re += wy[b] * v[2 * rows[b]];
+                im += wy[b] * v[2 * rows[b] + 1];
+            }
+            acc[2 * t] += wx[a] * re;
+            acc[2 * t + 1] += (low ? wx[a] : -wx[a]) * im;
+        }
+        ix = ix + 1 == n ? 0 : ix + 1;
+    }
+}
+
+/* the npts points for NT images (a compile-time constant where the caller's switch makes it one); the table
+   is NT planes of nc columns (kx = 0 .. n / 2) of n values (ky), so that each column's six taps are adjacent */
 static inline __attribute__((always_inline)) void kvalues_range(
     const double *restrict T, Py_ssize_t n, const Py_ssize_t NT, const double *restrict TX,
     const double *restrict TY, Py_ssize_t npts, double *restrict O)
 {
-    const Py_ssize_t nc = n / 2 + 1, plane = 2 * nc * n;
     for (Py_ssize_t p = 0; p < npts; p++) {
-        const double fx = floor(TX[p]), fy = floor(TY[p]);
-        double wx[6], wy[6];
-        quintic_weights(TX[p] - fx, wx);
-        quintic_weights(TY[p] - fy, wy);
-        Py_ssize_t ix = ((Py_ssize_t)fx - 2) % n, iy = ((Py_ssize_t)fy - 2) % n;
-        ix = ix < 0 ? ix + n : ix;
-        iy = iy < 0 ? iy + n : iy;
-        Py_ssize_t cy[6], my[6];
-        for (int b = 0; b < 6; b++) {
-            cy[b] = iy;
-            my[b] = iy == 0 ? 0 : n - iy;   /* -ky, for the mirrored columns */
-            iy = iy + 1 == n ? 0 : iy + 1;
-        }
         double acc[2 * KI_MAXTAB];
-        for (Py_ssize_t t = 0; t < 2 * NT; t++) acc[t] = 0.0;
-        for (int a = 0; a < 6; a++) {
-            const int low = ix <= n / 2;
-            const Py_ssize_t col = low ? ix : n - ix;
-            const Py_ssize_t *rows = low ? cy : my;
-            /* this column's six values summed with the y weights first; the mirrored column conjugated */
-            for (Py_ssize_t t = 0; t < NT; t++) {
-                const double *v = T + t * plane + 2 * n * col;
-                double re = 0.0, im = 0.0;
-                for (int b = 0; b < 6; b++) {
-                    re += wy[b] * v[2 * rows[b]];
-                    im += wy[b] * v[2 * rows[b] + 1];
-                }
-                acc[2 * t] += wx[a] * re;
-                acc[2 * t + 1] += (low ? wx[a] : -wx[a]) * im;
-            }
-            ix = ix + 1 == n ? 0 : ix + 1;
-        }
+        kvalue_point(T, n, NT, TX[p], TY[p], acc);
         for (Py_ssize_t t = 0; t < 2 * NT; t++) O[2 * NT * p + t] = acc[t];
     }
 }
@@ -2240,6 +2282,146 @@ static PyObject *quintic_kvalues(PyObject *self, PyObject *args)
     Py_END_ALLOW_THREADS
     RELEASE(&tab, &txb, &tyb, &out);
     Py_RETURN_NONE;
+}
+
+/*
+ * quintic_band(table, n, r, dk, A, JT, to_table, lim, gamma, step, phase, out): one metacal version's band
+ * (calib/metacal.py's own_kspace_images, whose numpy lines are the reference): for the points kappa = dk (i, j)
+ * of the band (rows j = -r .. r, columns i = 0 .. r), the sky wavevector A kappa; where its squared norm is at
+ * most lim, the three transforms of table (3 planes: the stamp, its noise, the PSF) at the pixel-frame point
+ * JT (A kappa) to_table (quintic_kvalues' interpolation; with step > 0, the version without shear, whose points
+ * are the table's own (step i, step j), read directly), and out[t] = table t's value times gamma / the PSF's
+ * (t = 0, 1); zero elsewhere. A, JT: float64 2 x 2 (row-major); gamma: complex128 (2 r + 1) (r + 1); out:
+ * complex128 2 or 3 of those. With 3 (phase: complex128 r + 1), the noise's band turned (metacal.turned_band:
+ * out[2][j, i] = phase[i] noise(-i, j)) is out[2], and out[0] the stamp's plus it.
+ */
+static PyObject *quintic_band(PyObject *self, PyObject *args)
+{
+    Py_buffer tab, ab, jb, gb, phb, ob;
+    Py_ssize_t n, r, step;
+    double dk, to_table, lim;
+    if (!PyArg_ParseTuple(args, "y*nndy*y*ddy*ny*w*", &tab, &n, &r, &dk, &ab, &jb, &to_table, &lim, &gb, &step,
+                          &phb, &ob))
+        return NULL;
+    const Py_ssize_t nc = n / 2 + 1, npts = (2 * r + 1) * (r + 1), cz = 2 * (Py_ssize_t)sizeof(double);
+    const int turn = ob.len == 3 * npts * cz;
+    if (n < 2 || r < 0 || tab.len != 3 * nc * n * cz || ab.len != 4 * (Py_ssize_t)sizeof(double)
+        || jb.len != 4 * (Py_ssize_t)sizeof(double) || gb.len != npts * cz || (!turn && ob.len != 2 * npts * cz)
+        || (turn && phb.len != (r + 1) * cz) || step < 0 || step * r > n / 2) {
+        RELEASE(&tab, &ab, &jb, &gb, &phb, &ob);
+        PyErr_SetString(PyExc_ValueError, "quintic_band: inconsistent buffers");
+        return NULL;
+    }
+    const double *T = (const double *)tab.buf, *A = (const double *)ab.buf, *JT = (const double *)jb.buf,
+                 *G = (const double *)gb.buf, *PH = (const double *)phb.buf;
+    double *O0 = (double *)ob.buf, *O1 = O0 + 2 * npts;
+    Py_BEGIN_ALLOW_THREADS
+    for (Py_ssize_t j = -r, p = 0; j <= r; j++) {
+        for (Py_ssize_t i = 0; i <= r; i++, p++) {
+            const double k0 = dk * (double)i, k1 = dk * (double)j;
+            const double s0 = A[0] * k0 + A[1] * k1, s1 = A[2] * k0 + A[3] * k1;
+            if (!(s0 * s0 + s1 * s1 <= lim)) {
+                O0[2 * p] = O0[2 * p + 1] = O1[2 * p] = O1[2 * p + 1] = 0.0;
+                continue;
+            }
+            double v[6];
+            if (step) {
+                const Py_ssize_t col = step * i, row = step * j < 0 ? step * j + n : step * j;
+                for (int t = 0; t < 3; t++) {
+                    v[2 * t] = T[t * 2 * nc * n + 2 * (n * col + row)];
+                    v[2 * t + 1] = T[t * 2 * nc * n + 2 * (n * col + row) + 1];
+                }
+            } else {
+                kvalue_point(T, n, 3, (JT[0] * s0 + JT[1] * s1) * to_table, (JT[2] * s0 + JT[3] * s1) * to_table, v);
+            }
+            /* f = gamma / the PSF's value, as numpy divides complex numbers (Smith's), then times each image's */
+            const double gr = G[2 * p], gi = G[2 * p + 1], pr = v[4], pi = v[5];
+            double fr, fi;
+            if (fabs(pr) >= fabs(pi)) {
+                if (pr == 0.0 && pi == 0.0) {
+                    fr = gr / fabs(pr);
+                    fi = gi / fabs(pr);
+                } else {
+                    const double rat = pi / pr, scl = 1.0 / (pr + pi * rat);
+                    fr = (gr + gi * rat) * scl;
+                    fi = (gi - gr * rat) * scl;
+                }
+            } else {
+                const double rat = pr / pi, scl = 1.0 / (pi + pr * rat);
+                fr = (gr * rat + gi) * scl;
+                fi = (gi * rat - gr) * scl;
+            }
+            O0[2 * p] = v[0] * fr - v[1] * fi;
+            O0[2 * p + 1] = v[0] * fi + v[1] * fr;
+            O1[2 * p] = v[2] * fr - v[3] * fi;
+            O1[2 * p + 1] = v[2] * fi + v[3] * fr;
+        }
+    }
+    if (turn) {
+        /* the noise turned: (j, i) from (-i, j), or for j < 0 the conjugate of (i, -j); each row r + 1 long */
+        double *O2 = O1 + 2 * npts;
+        const Py_ssize_t w = r + 1;
+        for (Py_ssize_t j = -r, p = 0; j <= r; j++) {
+            for (Py_ssize_t i = 0; i <= r; i++, p++) {
+                double br, bi;
+                if (j >= 0) {
+                    br = O1[2 * ((r - i) * w + j)];
+                    bi = O1[2 * ((r - i) * w + j) + 1];
+                } else {
+                    br = O1[2 * ((r + i) * w - j)];
+                    bi = -O1[2 * ((r + i) * w - j) + 1];
+                }
+                const double cr = PH[2 * i], ci = PH[2 * i + 1];
+                O2[2 * p] = br * cr - bi * ci;
+                O2[2 * p + 1] = br * ci + bi * cr;
+                O0[2 * p] += O2[2 * p];
+                O0[2 * p + 1] += O2[2 * p + 1];
+            }
+        }
+    }
+    Py_END_ALLOW_THREADS
+    RELEASE(&tab, &ab, &jb, &gb, &phb, &ob);
+    Py_RETURN_NONE;
+}
+
+/*
+ * band_maxk(column, xx, kx, ky, thr, a, b, c) -> the largest a kx^2 + 2 b kx ky + c ky^2 over the points where
+ * |column| xx > thr, or -inf where none is: calib/kspace.band_maxk's loop over the padded grid (column: complex128
+ * (nc, n), kx then ky; xx: float64 (nc, n); kx: float64 (nc); ky: float64 (n)), the same operations in the same
+ * order as its numpy lines (no fused multiply-adds), so the same value to the bit.
+ */
+__attribute__((optimize("fp-contract=off"))) static PyObject *band_maxk(PyObject *self, PyObject *args)
+{
+    Py_buffer col, xxb, kxb, kyb;
+    double thr, a, b, c;
+    if (!PyArg_ParseTuple(args, "y*y*y*y*dddd", &col, &xxb, &kxb, &kyb, &thr, &a, &b, &c)) return NULL;
+    const Py_ssize_t nc = kxb.len / (Py_ssize_t)sizeof(double), n = kyb.len / (Py_ssize_t)sizeof(double);
+    if (nc < 1 || n < 1 || col.len != nc * n * 2 * (Py_ssize_t)sizeof(double)
+        || xxb.len != nc * n * (Py_ssize_t)sizeof(double)) {
+        RELEASE(&col, &xxb, &kxb, &kyb);
+        PyErr_SetString(PyExc_ValueError, "band_maxk: inconsistent buffers");
+        return NULL;
+    }
+    const double *P = (const double *)col.buf, *XX = (const double *)xxb.buf, *KX = (const double *)kxb.buf,
+                 *KY = (const double *)kyb.buf;
+    double best = -INFINITY;
+    Py_BEGIN_ALLOW_THREADS
+    const double b2 = 2 * b, hi = thr * thr * (1 + 1e-12), lo = thr * thr * (1 - 1e-12);
+    for (Py_ssize_t i = 0; i < nc; i++) {
+        const double t1 = a * KX[i] * KX[i], u = b2 * KX[i];
+        const double *p = P + 2 * n * i, *xx = XX + n * i;
+        for (Py_ssize_t j = 0; j < n; j++) {
+            /* the squares decide but within rounding of the threshold, where numpy's |z| (hypot) does */
+            const double s2 = (p[2 * j] * p[2 * j] + p[2 * j + 1] * p[2 * j + 1]) * (xx[j] * xx[j]);
+            if (s2 > hi || (s2 >= lo && hypot(p[2 * j], p[2 * j + 1]) * xx[j] > thr)) {
+                const double k2 = t1 + u * KY[j] + c * KY[j] * KY[j];
+                best = k2 > best ? k2 : best;
+            }
+        }
+    }
+    Py_END_ALLOW_THREADS
+    RELEASE(&col, &xxb, &kxb, &kyb);
+    return PyFloat_FromDouble(best);
 }
 
 /*
@@ -3334,6 +3516,9 @@ static PyMethodDef methods[] = {
      "binned_sums(shape, r2, e_index, lo, offsets, columns, dc, bins_per_octave, log_f, log_g, M, J, start, "
      "per_octave, low_f, low_g, zero_f, zero_g, ratio2, pair_basis, pair_a, pair_b, pair_h, out)"},
     {"quintic_kvalues", quintic_kvalues, METH_VARARGS, "quintic_kvalues(table, n, ntab, tx, ty, out)"},
+    {"quintic_band", quintic_band, METH_VARARGS,
+     "quintic_band(table, n, r, dk, A, JT, to_table, lim, gamma, step, phase, out): one metacal version's band"},
+    {"band_maxk", band_maxk, METH_VARARGS, "band_maxk(column, xx, kx, ky, thr, a, b, c) -> max k2 over the band"},
     {"hermite_log_table", hermite_log_table, METH_VARARGS, "hermite_log_table(k0, dk, nodes, lv, slope, out)"},
     {"set_bessel", set_bessel, METH_VARARGS, "set_bessel(kv_capsule, gamma_capsule)"},
     {"moffat_lm", moffat_lm, METH_VARARGS, "moffat_lm(kr, VR, P, free0, free1, max_iter, ftol, xtol)"},
