@@ -448,11 +448,15 @@ def test_replays_that_evaluate_near_the_cut_first_give_the_same_estimates():
     """With a first margin, a replay evaluates the samples within 1 nat of the posterior cut first and the rest
     only where its posterior moved enough: the estimates are those of the full 10-nat margin, to rounding (the
     compiled marginalisation's vector exponentials may differ in the last place with an element's position in a
-    batch), for metacal's sheared versions of galaxies at SNR 15 to 300, with fewer samples evaluated."""
+    batch; e_var, a difference of sums of e^2, to their rounding; the numpy loops to 1e-10), for metacal's sheared
+    versions of galaxies at SNR 15 to 300, with fewer samples evaluated."""
     from shearfit.calib.metacal import VERSIONS
+    from shearfit.engine import likelihood
     from shearfit.engine.measure import measure_versions
 
     fewer = 0
+    # the numpy loops' sums round differently with a batch's composition: 1.7e-12 seen (the bulge fraction)
+    rtol = 1e-12 if likelihood.USE_KERNEL else 1e-10
     for seed in range(4):
         obs = _obs(0.25, (0.3 * (-1) ** seed, 0.1), snr=[15, 40, 100, 300][seed], seed=seed)
         per = [metacal_observations(o, 0.01, np.random.default_rng(seed)) for o in obs]
@@ -460,7 +464,10 @@ def test_replays_that_evaluate_near_the_cut_first_give_the_same_estimates():
         full = measure_versions(versions, 23.0, margin=10.0)
         first = measure_versions(versions, 23.0, margin=10.0, first_margin=1.0)
         for a, b in zip(full, first):
-            np.testing.assert_allclose(_fields(a), _fields(b), rtol=1e-12, atol=0)
+            fa, fb = np.array(_fields(a), float), np.array(_fields(b), float)
+            np.testing.assert_allclose(np.delete(fa, 2), np.delete(fb, 2), rtol=rtol, atol=0)
+            # e_var, <e^2> - <e>^2 of e ~ 0.3: to rounding of the sums of e^2 (~0.1), not of e_var (~1e-4)
+            assert abs(a.e_var - b.e_var) < 0.1 * rtol
             fewer += b.n_samples < a.n_samples
     assert fewer >= 8
 
