@@ -68,6 +68,8 @@ def main(argv=None):
                          "0.1-2\" (a galaxy that would not fit its stamp is redrawn: 64-pixel stamps hold up to "
                          "about 0.9\")")
     ap.add_argument("--stamp-size", type=int, default=48)
+    ap.add_argument("--psf-oversampling", type=int, default=1, metavar="K",
+                    help="the PSF images drawn K times finer than the stamps (a PSFEx-like model's)")
     ap.add_argument("--rotate-exposures", action="store_true",
                     help="give each exposure's pixel grid its own rotation (as ring_test.py --rotate-exposures)")
     ap.add_argument("--noisy", action="store_true",
@@ -105,7 +107,8 @@ def main(argv=None):
     cfg = replace(cfg, e_grid_min=min(cfg.e_grid_min, metacal.E_GRID_MIN))
     kw = dict(n_exposures=7, snr_range=(args.snr_min, args.snr_max),
               mag_range=(args.mag_min, args.mag_max), stamp_size=args.stamp_size, add_noise=args.noisy,
-              population=population, profile=profile, rotate_exposures=args.rotate_exposures)
+              population=population, profile=profile, rotate_exposures=args.rotate_exposures,
+              psf_oversampling=args.psf_oversampling)
     h = args.h
     t0 = time.perf_counter()
     twins = (False, True) if (args.noisy and args.antithetic) else (False,)
@@ -114,7 +117,8 @@ def main(argv=None):
     print(f"{args.n_galaxies} {'noisy' if args.noisy else 'noise-free'} galaxies"
           f"{' and their antithetic twins' if len(twins) > 1 else ''} ({args.population} population, SNR "
           f"{args.snr_min:g}-{args.snr_max:g}{'' if args.noisy else ' weights'}, mag {args.mag_min:g}-{args.mag_max:g}), "
-          f"7 exposures, {args.stamp_size}-pixel stamps{', rotated pixel grids' if args.rotate_exposures else ''}; "
+          f"7 exposures, {args.stamp_size}-pixel stamps{', rotated pixel grids' if args.rotate_exposures else ''}"
+          f"{f', PSFs oversampled {args.psf_oversampling} times' if args.psf_oversampling > 1 else ''}; "
           f"true shears +-{h:g}, metacal delta {args.delta:g}, new PSF {args.metacal_psf}; rendered in "
           f"{time.perf_counter() - t0:.0f} s")
     shipped = (f"{metacal.WRAP_STAMPS:g}:{metacal.K_INTERPOLANT}:{metacal.PSF_K_INTERPOLANT}:"

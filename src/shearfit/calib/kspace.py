@@ -1,4 +1,4 @@
-"""Metacal's k-space operations in shearfit's own code (native-sampled PSFs).
+"""Metacal's k-space operations in shearfit's own code.
 
 The metacal versions of a stamp (:mod:`shearfit.calib.metacal`) are, in the
 stamp's pixel frame (wavevector kappa, the sky's K = J^-T kappa for the
@@ -20,6 +20,11 @@ quintic k-interpolant of Bernstein & Gruen (2014), the one GalSim's
 ``InterpolatedImage`` uses by default (and the metacal module asks for),
 in the compiled loops where they are built (:func:`kvalues`).
 
+A PSF image oversampled k times (its pixels J / k) has its own padded grid,
+and its factors X and D_P are taken at kappa / k in its pixels: the
+x-interpolant's transforms then no longer cancel, I = X(q) D_I(q) and
+P = X(q / k) D_P(q / k) at q = M kappa.
+
 The deconvolution is applied within the PSF's band, a disc in the sky frame
 of radius ``maxk`` (the largest sky wavenumber where the PSF's transform
 exceeds ``MAXK_THRESHOLD`` of its flux, GalSim's ``maxk_threshold``),
@@ -35,8 +40,8 @@ from scipy import fft as sfft
 
 from ..engine.kernel import KERNEL, USE_KERNEL
 
-__all__ = ["quintic", "padded_transforms", "kvalues", "band_maxk", "round_envelope", "singular_values2", "PAD_FACTOR",
-           "MAXK_THRESHOLD"]
+__all__ = ["quintic", "padded_transforms", "kvalues", "band_maxk", "band_points", "band_maxk_of_points", "round_envelope",
+           "singular_values2", "PAD_FACTOR", "MAXK_THRESHOLD"]
 
 #: The padded grid of the discrete transforms, in widths of the larger image (GalSim's default pad_factor).
 PAD_FACTOR = 4
@@ -157,6 +162,38 @@ def band_maxk(psf_column, xkernel, jac, threshold=MAXK_THRESHOLD):
     if k2max == -np.inf:
         return 0.0
     return float(min(np.sqrt(k2max), nyquist))
+
+
+def band_points(psf_column, xkernel, threshold=MAXK_THRESHOLD):
+    """The wavevectors (kx, ky) of the padded grid where the PSF's transform exceeds ``threshold`` of its flux
+    (:func:`band_maxk`'s points), reduced to the vertices of their convex hull: the largest of a positive definite
+    quadratic form over the points, which :func:`band_maxk_of_points` takes for a Jacobian, lies at a vertex, so
+    that a PSF image's band is found for any Jacobian from a few points. (2, m), or (2, 0) where no point is above."""
+    from scipy.spatial import ConvexHull, QhullError
+
+    n = psf_column.shape[1]
+    kx, ky, xx = _band_grid(n, xkernel)
+    above = np.nonzero(np.abs(psf_column) * xx > threshold * abs(psf_column[0, 0]))
+    pts = np.stack([kx[above[0], 0], ky[0, above[1]]])
+    if pts.shape[1] >= 3:
+        try:
+            pts = pts[:, ConvexHull(pts.T).vertices]
+        except QhullError:   # collinear points: all of them
+            pass
+    return np.ascontiguousarray(pts)
+
+
+def band_maxk_of_points(points, jac):
+    """:func:`band_maxk` from :func:`band_points`' points: the largest \\|J^-T kappa\\| over them, at most pi / s_max."""
+    jac = np.asarray(jac, float)
+    nyquist = np.pi / singular_values2(jac)[0]
+    if points.shape[1] == 0:
+        return 0.0
+    (p, q), (r, s) = jac
+    det2 = (p * s - q * r) ** 2
+    a, b, c = (q * q + s * s) / det2, -(p * q + r * s) / det2, (p * p + r * r) / det2
+    kx, ky = points
+    return float(min(np.sqrt(np.max(a * kx * kx + 2 * b * kx * ky + c * ky * ky)), nyquist))
 
 
 def round_envelope(psf_column, xkernel, jac, dilation, maxk):

@@ -15,19 +15,24 @@ instead the round envelope below the dilated PSF in every direction
 the estimator leaks into the ellipticities would pass through it; on round
 versions there is none to leak.
 
-For a PSF given on the stamp's pixels (the usual case) these operations are
-shearfit's own (:func:`own_kspace_images`, :mod:`shearfit.calib.kspace`):
-the transforms of the stamp, its noise and the PSF are taken once per
-exposure and every version interpolates them at its sheared wavevectors
-with one set of quintic weights; the deconvolution stops at the PSF's band
-(where its transform falls below 1e-3 of its flux, and at most the pixels'
-Nyquist disc). For an oversampled PSF, or with other interpolants
+These operations are shearfit's own (:func:`own_kspace_images`,
+:mod:`shearfit.calib.kspace`): the transforms of the stamp, its noise and
+the PSF are taken once per exposure and every version interpolates them at
+its sheared wavevectors with one set of quintic weights (for a PSF given on
+the stamp's pixels, the usual case, in one compiled loop per version; for an
+oversampled PSF, whose transform is interpolated at its own pixels'
+wavevectors and remembered per PSF image, in numpy); the deconvolution
+stops at the PSF's band (where its transform falls below 1e-3 of its flux,
+and at most the PSF pixels' Nyquist disc). With other interpolants
 (``K_INTERPOLANT``, ``PSF_K_INTERPOLANT``) or GalSim's own FFT grid
 (``WRAP_STAMPS = 0``), GalSim's objects do them (``galsim.Deconvolve``,
 ``.shear``, ``.dilate``, :func:`_galsim_images`); set ``OWN_KSPACE = False``
 for GalSim's objects always. Given the same band, the two give the same
-images to 1e-6 of the peak (``tests/test_kspace.py``); the own operations
-take a third of the time.
+noise-free images to 1e-6 of the peak for a native PSF and 2e-6 for one
+oversampled 3 times (``tests/test_kspace.py``; with noise, where GalSim
+leaves out some of the band's edge, 2e-5 and 5e-3) and the same noise-free
+metacal m (``benchmarks/metacal_noise_free.py``); the own operations take a
+fifth of the time (a third for an oversampled PSF).
 
 The deconvolution and the shear correlate the noise anisotropically, which
 would itself respond to the shear. The standard cure: a new noise field with
@@ -75,7 +80,7 @@ from scipy import fft as sfft
 from scipy import ndimage
 
 from ..errors import FITCLASS_GALAXY, ShearfitIOError, ShearfitValueError
-from ..engine.model import inv2, psf_moffat, psf_moffats
+from ..engine.model import ContentMemo, inv2, psf_moffat, psf_moffats
 from . import kspace
 from ..observation import Observation
 
@@ -105,8 +110,8 @@ K_INTERPOLANT = "quintic"
 PSF_K_INTERPOLANT = "quintic"
 #: The x-interpolant of the interpolated stamps and PSFs.
 _LANCZOS = galsim.Lanczos(15)
-#: The versions of stamps with native PSFs made by shearfit's own k-space operations (:func:`own_kspace_images`;
-#: False: by GalSim's objects, :func:`_galsim_images`).
+#: The versions made by shearfit's own k-space operations (:func:`own_kspace_images`; False: by GalSim's objects,
+#: :func:`_galsim_images`).
 OWN_KSPACE = True
 #: The symmetrising noise turned by 90 degrees before the operations and back after them, so that its correlation
 #: is the processed noise's sheared the other way (False: processed as it is, so that the versions' whole noise
@@ -150,6 +155,21 @@ def dilated_image(image, dilation):
     interpolant is separable)."""
     ny, nx = image.shape
     return _dilation_matrix(ny, float(dilation)) @ image @ _dilation_matrix(nx, float(dilation)).T
+
+
+#: the versions' new PSF images (the exposures' PSFs dilated), remembered by the PSF image's contents: the objects
+#: of a CCD given one PSF image share it
+_DILATED = ContentMemo(16 * 2 ** 20, max_entries=64)
+
+
+def _dilated_psf(psf, dilation):
+    """:func:`dilated_image` of a PSF image, normalised to unit sum (read-only, remembered: :data:`_DILATED`)."""
+    def make():
+        img = dilated_image(psf, dilation)
+        img /= img.sum()
+        img.setflags(write=False)
+        return img
+    return _DILATED.get(psf, float(dilation), make)
 
 
 def _draw(prof, shape, wcs):
@@ -393,7 +413,92 @@ def turned_band(arr, n, size):
     return out
 
 
-def own_kspace_images(image, noise, psf, J, delta, names, fft_size=None, new_psf=None, turn_noise=False):
+#: an oversampled PSF image's padded transform and what is made from it alone (its band for a Jacobian, the new
+#: PSF's transform at a band's points), remembered by the image's contents: the objects of a CCD given one PSF image
+#: make its transform once
+_PSF_TABLES = ContentMemo(64 * 2 ** 20, max_entries=64)
+
+
+def _psf_table(psf, n):
+    """(table, memo): the padded transform of a PSF image (:func:`shearfit.calib.kspace.padded_transforms`, one
+    plane) and a dict for what is made from it alone, remembered by its contents (:data:`_PSF_TABLES`; read-only)."""
+    def make():
+        t = kspace.padded_transforms([psf], n)[0:1]
+        t.setflags(write=False)
+        return t, {}
+    return _PSF_TABLES.get(psf, ("table", n), make)
+
+
+def _add_band(items, first, r, arr, n_small, size, turn_noise):
+    """A version's bands (``arr``: the stamp's and its noise's) into ``items`` for :func:`band_images`: the two, or
+    with ``turn_noise`` their sum with the noise turned back (:func:`turned_band`); returns the first version's
+    turned noise (``first``, or this one's if it is None)."""
+    if not turn_noise:
+        items += [(r, arr[0]), (r, arr[1])]
+        return first
+    back = turned_band(arr[1], n_small, size)
+    items.append((r, arr[0] + back))
+    return (r, back) if first is None else first
+
+
+def _oversampled_kspace_images(image, noise, psf, J, k, delta, names, n_small, new_psf, turn_noise):
+    """:func:`own_kspace_images` for a PSF image oversampled k times (its pixels J / k): the stamp's and its noise's
+    transforms as interpolated images on the stamp's pixels, the PSF's (and the new PSF's) on its own, each the
+    padded table's quintic interpolation times the x-interpolant's transform at the wavevector in its own pixels
+    (kappa for the stamp, kappa / k for the PSF), which no longer cancel. In numpy, with the compiled
+    interpolation; the PSF's table, band and new PSF's transform remembered per PSF image (:func:`_psf_table`)."""
+    shape = image.shape
+    n_s = kspace.padded_size(shape)
+    n_p = kspace.padded_size(psf.shape)
+    table = kspace.padded_transforms([image, noise], n_s)
+    ptab, memo = _psf_table(psf, n_p)
+    gtab, gmemo = (ptab, memo) if new_psf is None else _psf_table(new_psf, n_p)
+    J = np.asarray(J, float)
+    jit = inv2(J).T
+    xk = _LANCZOS.kval
+    if "hull" not in memo:
+        memo["hull"] = kspace.band_points(ptab[0], xk)
+    maxk = kspace.band_maxk_of_points(memo["hull"], J / k)
+    dk = 2 * np.pi / n_small
+    dilation = 1.0 + 2.0 * abs(delta)
+    to_s, to_p = n_s / (2 * np.pi), n_p / (2 * np.pi)
+    smax_j = kspace.singular_values2(J)[0]
+    scale = (1.0 if new_psf is not None else dilation) / k   # kappa -> the new PSF's wavevector in its pixels
+    items = []
+    first = None
+    for name in names:
+        s1, s2 = VERSIONS[name]
+        S = _shear_matrix(s1 * delta, s2 * delta)
+        A = S @ jit
+        r = int(np.ceil(maxk / (kspace.singular_values2(A)[1] * dk))) + 1
+        r = min(r, int(np.ceil(maxk / dilation * smax_j / dk)))
+        gkey = ("gamma", r, dk, scale, to_p)
+        got = gmemo.get(gkey)
+        if got is None:
+            j, i = np.mgrid[-r:r + 1, 0:r + 1]
+            kap = dk * np.stack([i.ravel(), j.ravel()]).astype(float)
+            d = kap * scale
+            gamma = kspace.kvalues(gtab, d[0] * to_p, d[1] * to_p)[:, 0] * xk(d[0]) * xk(d[1])
+            for a in (kap, gamma):
+                a.setflags(write=False)
+            got = gmemo[gkey] = (kap, gamma)
+        kap, gamma = got
+        sky = A @ kap
+        inside = np.nonzero(np.sum(sky * sky, axis=0) <= maxk * maxk * (1 + 1e-12))[0]
+        q = J.T @ sky[:, inside]   # the sheared wavevectors in the stamp's pixels
+        m = inside.size
+        x = xk(np.concatenate([q.ravel(), q.ravel() / k]))   # X at the stamp's q and at the PSF's q / k
+        v = kspace.kvalues(table, q[0] * to_s, q[1] * to_s)
+        p = kspace.kvalues(ptab, q[0] * (to_p / k), q[1] * (to_p / k))[:, 0]
+        f = gamma[inside] * ((x[:m] * x[m:2 * m]) / (p * (x[2 * m:3 * m] * x[3 * m:])))
+        arr = np.zeros((2, kap.shape[1]), complex)
+        arr[:, inside] = v.T * f
+        arr = arr.reshape(2, 2 * r + 1, r + 1)
+        first = _add_band(items, first, r, arr, n_small, shape[0], turn_noise)
+    return band_images(shape, n_small, items + ([first] if turn_noise else []))
+
+
+def own_kspace_images(image, noise, psf, J, delta, names, fft_size=None, new_psf=None, turn_noise=False, k=1):
     """The images of :func:`metacal_observations`' products, [version, its noise] per name of ``names``, from
     shearfit's own k-space operations (:mod:`shearfit.calib.kspace`) instead of GalSim's objects, for a PSF
     image on the stamp's pixels: the stamp's, its noise's and the PSF's discrete transforms once, each
@@ -406,6 +511,10 @@ def own_kspace_images(image, noise, psf, J, delta, names, fft_size=None, new_psf
     (:func:`turned_band`), so that one inverse transform serves each sum."""
     shape = image.shape
     n_small = int(fft_size) if fft_size else sfft.next_fast_len(int(np.ceil(WRAP_STAMPS * max(shape))))
+    if turn_noise and shape[0] != shape[1]:
+        raise ValueError("own_kspace_images: turn_noise needs a square stamp")
+    if k != 1:
+        return _oversampled_kspace_images(image, noise, psf, J, int(k), delta, names, n_small, new_psf, turn_noise)
     n = kspace.padded_size(shape, psf.shape)
     table = kspace.padded_transforms([image, noise, psf] + ([] if new_psf is None else [new_psf]), n)
     psf_table = table[2:3] if new_psf is None else table[3:4]
@@ -419,8 +528,6 @@ def own_kspace_images(image, noise, psf, J, delta, names, fft_size=None, new_psf
     grids = {}
     items = []
     first = None
-    if turn_noise and shape[0] != shape[1]:
-        raise ValueError("own_kspace_images: turn_noise needs a square stamp")
     smax_j = kspace.singular_values2(J)[0]
     for name in names:
         s1, s2 = VERSIONS[name]
@@ -461,13 +568,7 @@ def own_kspace_images(image, noise, psf, J, delta, names, fft_size=None, new_psf
         v = kspace.kvalues(table, kp[0], kp[1])
         arr[:, inside] = v[:, :2].T * (gamma[inside] / v[:, 2])
         arr = arr.reshape(2, 2 * r + 1, r + 1)
-        if turn_noise:
-            back = turned_band(arr[1], n_small, shape[0])
-            items.append((r, arr[0] + back))
-            if first is None:
-                first = (r, back)
-        else:
-            items += [(r, arr[0]), (r, arr[1])]
+        first = _add_band(items, first, r, arr, n_small, shape[0], turn_noise)
     return band_images(shape, n_small, items + ([first] if turn_noise else []))
 
 
@@ -544,7 +645,7 @@ def metacal_observations(obs: Observation, delta=0.01, rng=None, versions=tuple(
     good = w > 0
     image = np.where(good, obs.image, 0.0)
     dilation = 1.0 + 2.0 * abs(delta)
-    own = OWN_KSPACE and k == 1 and WRAP_STAMPS and K_INTERPOLANT == PSF_K_INTERPOLANT == "quintic"
+    own = OWN_KSPACE and WRAP_STAMPS and K_INTERPOLANT == PSF_K_INTERPOLANT == "quintic"
     if psf == "round":
         # on the PSF's pixels (J / k), drawn on the stamp's periodic grid (the oversampled PSF's own for k > 1:
         # the same width on the sky)
@@ -552,8 +653,7 @@ def metacal_observations(obs: Observation, delta=0.01, rng=None, versions=tuple(
     else:
         # its image: a dilation commutes with the Jacobian, so it is drawn in the PSF's own pixel frame, where the
         # interpolation is separable (GalSim's drawImage of the dilated interpolated PSF to 1e-7 of the peak)
-        psf_img = dilated_image(obs.psf, dilation)
-        psf_img /= psf_img.sum()
+        psf_img = _dilated_psf(obs.psf, dilation)
     # the App. A Moffat of the new PSF: the exposure's own, dilated the same way (so objects sharing an
     # exposure's Moffat share its alias tables); fitted to the new PSF only when none was given (and always to
     # the round PSF)
@@ -584,11 +684,11 @@ def metacal_observations(obs: Observation, delta=0.01, rng=None, versions=tuple(
     new_psf = psf_img if psf == "round" else None
     if own and turn:
         # each version's sum and the noshear noise, the noise turned back on its band (the same images to rounding)
-        images = own_kspace_images(image, nrot, obs.psf, J, delta, names, new_psf=new_psf, turn_noise=True)
+        images = own_kspace_images(image, nrot, obs.psf, J, delta, names, new_psf=new_psf, turn_noise=True, k=k)
         sums, noise0 = images[:-1], images[-1]
     else:
         if own:
-            images = own_kspace_images(image, nrot, obs.psf, J, delta, names, new_psf=new_psf)
+            images = own_kspace_images(image, nrot, obs.psf, J, delta, names, new_psf=new_psf, k=k)
         else:
             images = _galsim_images(image, nrot, obs.psf, _wcs(J), _wcs(J, k), delta, names, new_psf_image=new_psf)
         images = np.asarray(images)
