@@ -1087,10 +1087,14 @@ def test_samples_and_batch():
     s = res.samples
     assert set(s.dtype.names) >= {"e1", "e2", "logl", "logpost", "area"}
     assert np.all(np.hypot(s["e1"], s["e2"]) < 1)
+    # deterministic, and independent of the number of processes: to the bit with the compiled loops; numpy's own
+    # vector exp and log may round a value's last place by its position in an array (3e-15 seen)
+    from shearfit.engine import likelihood
+    rel = 0.0 if likelihood.KERNEL is not None else 1e-12
     out = shearfit.measure_objects([obs, obs], [22.5, 22.5])
-    assert [o.e1 for o in out] == [res.e1, res.e1]   # deterministic
+    assert [o.e1 for o in out] == pytest.approx([res.e1, res.e1], rel=rel, abs=0.0)
     par = shearfit.measure_objects([obs, obs], 22.5, processes=2)
-    assert [o.e1 for o in par] == [res.e1, res.e1]   # and independent of the number of processes
+    assert [o.e1 for o in par] == pytest.approx([res.e1, res.e1], rel=rel, abs=0.0)
 
 
 def test_bad_input_errors():
@@ -1173,7 +1177,7 @@ def test_tail_samples_skip_their_size_nodes_without_changing_the_estimate():
     assert np.array_equal(skip.samples["e1"], full.samples["e1"])
     a, b = full.samples["logpost"], skip.samples["logpost"]
     top = a.max()
-    crude = b != a
+    crude = np.abs(b - a) > 1e-9   # (the numpy loops round the others differently in their last places)
     assert crude.sum() > 10
     assert np.all(a[crude] < top - 12) and np.all(b[crude] < top - 12)
 
