@@ -501,7 +501,8 @@ def _oversampled_kspace_images(image, noise, psf, J, k, delta, names, n_small, n
 def own_kspace_images(image, noise, psf, J, delta, names, fft_size=None, new_psf=None, turn_noise=False, k=1):
     """The images of :func:`metacal_observations`' products, [version, its noise] per name of ``names``, from
     shearfit's own k-space operations (:mod:`shearfit.calib.kspace`) instead of GalSim's objects, for a PSF
-    image on the stamp's pixels: the stamp's, its noise's and the PSF's discrete transforms once, each
+    image on the stamp's pixels (``k`` = 1; one oversampled k times: :func:`_oversampled_kspace_images`): the
+    stamp's, its noise's and the PSF's discrete transforms once, each
     version's sheared wavevectors interpolated with one set of quintic weights for the three; drawn on the
     same periodic grid of :data:`WRAP_STAMPS` stamp widths (``fft_size``) as :class:`_Drawer`. ``new_psf``: the
     new PSF's image on the stamp's pixels (:func:`round_psf`'s) instead of the dilated PSF: its transform as an
