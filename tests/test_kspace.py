@@ -226,6 +226,39 @@ def test_own_versions_of_an_oversampled_psf_are_galsims(J, psf, monkeypatch):
         assert np.array_equal(out[True][name].psf, r.psf)
 
 
+@pytest.mark.skipif(not USE_KERNEL, reason="the compiled loops are not built")
+@pytest.mark.parametrize("k", [2, 3])
+def test_compiled_oversampled_bands_are_the_numpy_lines(k, monkeypatch):
+    """quintic_band_os (an oversampled PSF's versions in one compiled loop, the x-interpolant's transform from a
+    table within 3e-10 of GalSim's) gives the numpy lines' images to 1e-9 of their largest, with and without the
+    noise's turn, with either new PSF, on a reflected and on a rotated, sheared pixel grid; the table itself is
+    GalSim's transform to 3e-10 between its points."""
+    from shearfit.simulate.stamps import draw_psf_image, moffat_psf
+
+    xt, h = metacal._x_table(4)
+    u = np.random.default_rng(1).uniform(0, 4 * np.pi - 0.01, 20000)
+    t = u / h
+    i = t.astype(int)
+    f = t - i
+    xm = np.where(i > 0, xt[np.maximum(i - 1, 0)], xt[1])   # the compiled Catmull-Rom step, in numpy
+    cr = xt[i] + f * (0.5 * (xt[i + 1] - xm) + f * (xm - 2.5 * xt[i] + 2 * xt[i + 1] - 0.5 * xt[i + 2]
+                                                      + f * (1.5 * (xt[i] - xt[i + 1]) + 0.5 * (xt[i + 2] - xm))))
+    assert np.abs(cr - metacal._LANCZOS.kval(u)).max() < 3e-10
+    names = tuple(metacal.VERSIONS)
+    for J in JACOBIANS:
+        obs = _obs(0.3, (0.2, -0.1), snr=40, n_exp=1, seed=4, J=J)[0]
+        pim = draw_psf_image(moffat_psf(0.6, 3.0, 0.04, 0.03), J, size=25 * k, oversampling=k)
+        noise = np.rot90(np.random.default_rng(6).normal(size=obs.image.shape), 1)
+        for new in (None, metacal.round_psf(pim, J / k, 0.01, pim.shape)):
+            for turn in (False, True):
+                got = {}
+                for kernel in (True, False):
+                    monkeypatch.setattr(kspace, "USE_KERNEL", kernel)
+                    got[kernel] = np.asarray(metacal.own_kspace_images(obs.image, noise, pim, J, 0.01, names, k=k,
+                                                                       new_psf=new, turn_noise=turn))
+                assert np.abs(got[True] - got[False]).max() < 1e-9 * np.abs(got[False]).max()
+
+
 def test_other_interpolants_take_galsims_path(monkeypatch):
     """The own operations serve native and oversampled PSFs with the quintic k-interpolant; another interpolant
     or GalSim's own FFT grid goes through GalSim's objects."""

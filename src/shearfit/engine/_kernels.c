@@ -2295,6 +2295,70 @@ static PyObject *quintic_kvalues(PyObject *self, PyObject *args)
  * complex128 2 or 3 of those. With 3 (phase: complex128 r + 1), the noise's band turned (metacal.turned_band:
  * out[2][j, i] = phase[i] noise(-i, j)) is out[2], and out[0] the stamp's plus it.
  */
+/* one band point's two products: f = gamma / the PSF's value (as numpy divides complex numbers, Smith's),
+   then o0 = the stamp's value times f, o1 = the noise's */
+static inline __attribute__((always_inline)) void band_products(const double *v, double pr, double pi, double gr,
+                                                                 double gi, double *o0, double *o1)
+{
+    double fr, fi;
+    if (fabs(pr) >= fabs(pi)) {
+        if (pr == 0.0 && pi == 0.0) {
+            fr = gr / fabs(pr);
+            fi = gi / fabs(pr);
+        } else {
+            const double rat = pi / pr, scl = 1.0 / (pr + pi * rat);
+            fr = (gr + gi * rat) * scl;
+            fi = (gi - gr * rat) * scl;
+        }
+    } else {
+        const double rat = pr / pi, scl = 1.0 / (pi + pr * rat);
+        fr = (gr * rat + gi) * scl;
+        fi = (gi * rat - gr) * scl;
+    }
+    o0[0] = v[0] * fr - v[1] * fi;
+    o0[1] = v[0] * fi + v[1] * fr;
+    o1[0] = v[2] * fr - v[3] * fi;
+    o1[1] = v[2] * fi + v[3] * fr;
+}
+
+/* the noise's band O1 turned (metacal.turned_band: O2[j, i] = phase[i] O1(-i, j), or for j < 0 the conjugate of
+   (i, -j); rows r + 1 long) and added to the stamp's O0 */
+static void turn_band(double *O0, const double *O1, double *O2, const double *PH, Py_ssize_t r)
+{
+    const Py_ssize_t w = r + 1;
+    for (Py_ssize_t j = -r, p = 0; j <= r; j++) {
+        for (Py_ssize_t i = 0; i <= r; i++, p++) {
+            double br, bi;
+            if (j >= 0) {
+                br = O1[2 * ((r - i) * w + j)];
+                bi = O1[2 * ((r - i) * w + j) + 1];
+            } else {
+                br = O1[2 * ((r + i) * w - j)];
+                bi = -O1[2 * ((r + i) * w - j) + 1];
+            }
+            const double cr = PH[2 * i], ci = PH[2 * i + 1];
+            O2[2 * p] = br * cr - bi * ci;
+            O2[2 * p + 1] = br * ci + bi * cr;
+            O0[2 * p] += O2[2 * p];
+            O0[2 * p + 1] += O2[2 * p + 1];
+        }
+    }
+}
+
+/* band point (i, j)'s sky wavevector A dk (i, j) into s0, s1 and whether it lies within the band (its squared
+   norm at most lim); outside, both products are set to zero */
+static inline __attribute__((always_inline)) int band_sky(const double *A, double dk, Py_ssize_t i, Py_ssize_t j,
+                                                           double lim, double *s0, double *s1, double *o0,
+                                                           double *o1)
+{
+    const double k0 = dk * (double)i, k1 = dk * (double)j;
+    *s0 = A[0] * k0 + A[1] * k1;
+    *s1 = A[2] * k0 + A[3] * k1;
+    if (*s0 * *s0 + *s1 * *s1 <= lim) return 1;
+    o0[0] = o0[1] = o1[0] = o1[1] = 0.0;
+    return 0;
+}
+
 static PyObject *quintic_band(PyObject *self, PyObject *args)
 {
     Py_buffer tab, ab, jb, gb, phb, ob;
@@ -2318,12 +2382,8 @@ static PyObject *quintic_band(PyObject *self, PyObject *args)
     Py_BEGIN_ALLOW_THREADS
     for (Py_ssize_t j = -r, p = 0; j <= r; j++) {
         for (Py_ssize_t i = 0; i <= r; i++, p++) {
-            const double k0 = dk * (double)i, k1 = dk * (double)j;
-            const double s0 = A[0] * k0 + A[1] * k1, s1 = A[2] * k0 + A[3] * k1;
-            if (!(s0 * s0 + s1 * s1 <= lim)) {
-                O0[2 * p] = O0[2 * p + 1] = O1[2 * p] = O1[2 * p + 1] = 0.0;
-                continue;
-            }
+            double s0, s1;
+            if (!band_sky(A, dk, i, j, lim, &s0, &s1, O0 + 2 * p, O1 + 2 * p)) continue;
             double v[6];
             if (step) {
                 const Py_ssize_t col = step * i, row = step * j < 0 ? step * j + n : step * j;
@@ -2334,53 +2394,77 @@ static PyObject *quintic_band(PyObject *self, PyObject *args)
             } else {
                 kvalue_point(T, n, 3, (JT[0] * s0 + JT[1] * s1) * to_table, (JT[2] * s0 + JT[3] * s1) * to_table, v);
             }
-            /* f = gamma / the PSF's value, as numpy divides complex numbers (Smith's), then times each image's */
-            const double gr = G[2 * p], gi = G[2 * p + 1], pr = v[4], pi = v[5];
-            double fr, fi;
-            if (fabs(pr) >= fabs(pi)) {
-                if (pr == 0.0 && pi == 0.0) {
-                    fr = gr / fabs(pr);
-                    fi = gi / fabs(pr);
-                } else {
-                    const double rat = pi / pr, scl = 1.0 / (pr + pi * rat);
-                    fr = (gr + gi * rat) * scl;
-                    fi = (gi - gr * rat) * scl;
-                }
-            } else {
-                const double rat = pr / pi, scl = 1.0 / (pi + pr * rat);
-                fr = (gr * rat + gi) * scl;
-                fi = (gi * rat - gr) * scl;
-            }
-            O0[2 * p] = v[0] * fr - v[1] * fi;
-            O0[2 * p + 1] = v[0] * fi + v[1] * fr;
-            O1[2 * p] = v[2] * fr - v[3] * fi;
-            O1[2 * p + 1] = v[2] * fi + v[3] * fr;
+            band_products(v, v[4], v[5], G[2 * p], G[2 * p + 1], O0 + 2 * p, O1 + 2 * p);
         }
     }
-    if (turn) {
-        /* the noise turned: (j, i) from (-i, j), or for j < 0 the conjugate of (i, -j); each row r + 1 long */
-        double *O2 = O1 + 2 * npts;
-        const Py_ssize_t w = r + 1;
-        for (Py_ssize_t j = -r, p = 0; j <= r; j++) {
-            for (Py_ssize_t i = 0; i <= r; i++, p++) {
-                double br, bi;
-                if (j >= 0) {
-                    br = O1[2 * ((r - i) * w + j)];
-                    bi = O1[2 * ((r - i) * w + j) + 1];
-                } else {
-                    br = O1[2 * ((r + i) * w - j)];
-                    bi = -O1[2 * ((r + i) * w - j) + 1];
-                }
-                const double cr = PH[2 * i], ci = PH[2 * i + 1];
-                O2[2 * p] = br * cr - bi * ci;
-                O2[2 * p + 1] = br * ci + bi * cr;
-                O0[2 * p] += O2[2 * p];
-                O0[2 * p + 1] += O2[2 * p + 1];
-            }
-        }
-    }
+    if (turn) turn_band(O0, O1, O1 + 2 * npts, PH, r);
     Py_END_ALLOW_THREADS
     RELEASE(&tab, &ab, &jb, &gb, &phb, &ob);
+    Py_RETURN_NONE;
+}
+
+/* the x-interpolant's transform at u from its table at 0, h, 2 h, ... (even in u; zero beyond the table), by
+   four-point Lagrange interpolation */
+static inline double xtable(const double *X, Py_ssize_t nx, double h, double u)
+{
+    const double t = fabs(u) / h;
+    Py_ssize_t i = (Py_ssize_t)t;
+    if (i >= nx - 2) return 0.0;
+    const double f = t - (double)i;
+    const double xm = i > 0 ? X[i - 1] : X[1];   /* X(-h) = X(h) */
+    return X[i] + f * (0.5 * (X[i + 1] - xm) + f * (xm - 2.5 * X[i] + 2.0 * X[i + 1] - 0.5 * X[i + 2]
+                                                      + f * (1.5 * (X[i] - X[i + 1]) + 0.5 * (X[i + 2] - xm))));
+}
+
+/*
+ * quintic_band_os(stamp, ns, psf, np, k, r, dk, A, JT, lim, gamma, xtab, xh, phase, out): quintic_band for a PSF
+ * oversampled k times (calib/metacal.py's _oversampled_kspace_images, whose numpy lines are the reference): the
+ * stamp's and its noise's table (2 planes, grid ns) at the sheared wavevector q = JT (A kappa) in the stamp's
+ * pixels, the PSF's (1 plane, grid np) at q / k in its own, each times the x-interpolant's transform X there (xtab:
+ * X at 0, xh, 2 xh, ..., interpolated), and out[t] = table t's value times gamma X(q) / (the PSF's value X(q / k));
+ * with 3 outputs the noise's band turned and added as quintic_band does.
+ */
+static PyObject *quintic_band_os(PyObject *self, PyObject *args)
+{
+    Py_buffer sb, pb, ab, jb, gb, xb, phb, ob;
+    Py_ssize_t ns, np_, k, r;
+    double dk, lim, xh;
+    if (!PyArg_ParseTuple(args, "y*ny*nnndy*y*dy*y*dy*w*", &sb, &ns, &pb, &np_, &k, &r, &dk, &ab, &jb, &lim, &gb, &xb,
+                          &xh, &phb, &ob))
+        return NULL;
+    const Py_ssize_t npts = (2 * r + 1) * (r + 1), cz = 2 * (Py_ssize_t)sizeof(double);
+    const Py_ssize_t nx = xb.len / (Py_ssize_t)sizeof(double);
+    const int turn = ob.len == 3 * npts * cz;
+    if (ns < 2 || np_ < 2 || k < 1 || r < 0 || sb.len != 2 * (ns / 2 + 1) * ns * cz
+        || pb.len != (np_ / 2 + 1) * np_ * cz || ab.len != 4 * (Py_ssize_t)sizeof(double)
+        || jb.len != 4 * (Py_ssize_t)sizeof(double) || gb.len != npts * cz || nx < 4 || !(xh > 0)
+        || (!turn && ob.len != 2 * npts * cz) || (turn && phb.len != (r + 1) * cz)) {
+        RELEASE(&sb, &pb, &ab, &jb, &gb, &xb, &phb, &ob);
+        PyErr_SetString(PyExc_ValueError, "quintic_band_os: inconsistent buffers");
+        return NULL;
+    }
+    const double *S = (const double *)sb.buf, *P = (const double *)pb.buf, *A = (const double *)ab.buf,
+                 *JT = (const double *)jb.buf, *G = (const double *)gb.buf, *X = (const double *)xb.buf,
+                 *PH = (const double *)phb.buf;
+    double *O0 = (double *)ob.buf, *O1 = O0 + 2 * npts;
+    const double to_s = (double)ns / (2 * M_PI), to_p = (double)np_ / (2 * M_PI) / (double)k, ik = 1.0 / (double)k;
+    Py_BEGIN_ALLOW_THREADS
+    for (Py_ssize_t j = -r, p = 0; j <= r; j++) {
+        for (Py_ssize_t i = 0; i <= r; i++, p++) {
+            double s0, s1;
+            if (!band_sky(A, dk, i, j, lim, &s0, &s1, O0 + 2 * p, O1 + 2 * p)) continue;
+            const double q0 = JT[0] * s0 + JT[1] * s1, q1 = JT[2] * s0 + JT[3] * s1;
+            double v[4], w[2];
+            kvalue_point(S, ns, 2, q0 * to_s, q1 * to_s, v);
+            kvalue_point(P, np_, 1, q0 * to_p, q1 * to_p, w);
+            const double xs = xtable(X, nx, xh, q0) * xtable(X, nx, xh, q1);
+            const double xp = xtable(X, nx, xh, q0 * ik) * xtable(X, nx, xh, q1 * ik);
+            band_products(v, w[0] * xp, w[1] * xp, G[2 * p] * xs, G[2 * p + 1] * xs, O0 + 2 * p, O1 + 2 * p);
+        }
+    }
+    if (turn) turn_band(O0, O1, O1 + 2 * npts, PH, r);
+    Py_END_ALLOW_THREADS
+    RELEASE(&sb, &pb, &ab, &jb, &gb, &xb, &phb, &ob);
     Py_RETURN_NONE;
 }
 
@@ -3518,6 +3602,8 @@ static PyMethodDef methods[] = {
     {"quintic_kvalues", quintic_kvalues, METH_VARARGS, "quintic_kvalues(table, n, ntab, tx, ty, out)"},
     {"quintic_band", quintic_band, METH_VARARGS,
      "quintic_band(table, n, r, dk, A, JT, to_table, lim, gamma, step, phase, out): one metacal version's band"},
+    {"quintic_band_os", quintic_band_os, METH_VARARGS,
+     "quintic_band_os(stamp, ns, psf, np, k, r, dk, A, JT, lim, gamma, xtab, xh, phase, out): an oversampled PSF's"},
     {"band_maxk", band_maxk, METH_VARARGS, "band_maxk(column, xx, kx, ky, thr, a, b, c) -> max k2 over the band"},
     {"hermite_log_table", hermite_log_table, METH_VARARGS, "hermite_log_table(k0, dk, nodes, lv, slope, out)"},
     {"set_bessel", set_bessel, METH_VARARGS, "set_bessel(kv_capsule, gamma_capsule)"},
