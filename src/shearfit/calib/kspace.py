@@ -147,10 +147,7 @@ def band_maxk(psf_column, xkernel, jac, threshold=MAXK_THRESHOLD):
     thr = threshold * abs(psf_column[0, 0])
     jac = np.asarray(jac, float)
     nyquist = np.pi / singular_values2(jac)[0]
-    # |J^-T kappa|^2 as the quadratic form of (J^T J)^-1 = adj(J^T J) / det(J)^2 over the grid
-    (p, q), (r, s) = jac
-    det2 = (p * s - q * r) ** 2
-    a, b, c = (q * q + s * s) / det2, -(p * q + r * s) / det2, (p * p + r * r) / det2
+    a, b, c = _inverse_form(jac)
     if USE_KERNEL and psf_column.dtype == np.complex128 and psf_column.flags.c_contiguous:
         # the same loop compiled (the same value to the bit, in a tenth of the time)
         k2max = KERNEL.band_maxk(psf_column, xx, kx, ky, float(thr), float(a), float(b), float(c))
@@ -189,9 +186,7 @@ def band_maxk_of_points(points, jac):
     nyquist = np.pi / singular_values2(jac)[0]
     if points.shape[1] == 0:
         return 0.0
-    (p, q), (r, s) = jac
-    det2 = (p * s - q * r) ** 2
-    a, b, c = (q * q + s * s) / det2, -(p * q + r * s) / det2, (p * p + r * r) / det2
+    a, b, c = _inverse_form(jac)
     kx, ky = points
     return float(min(np.sqrt(np.max(a * kx * kx + 2 * b * kx * ky + c * ky * ky)), nyquist))
 
@@ -216,9 +211,7 @@ def round_envelope(psf_column, xkernel, jac, dilation, maxk):
     amp = np.abs(psf_column) * xx
     amp /= amp[0, 0]   # the flux: 1 at K = 0
     jac = np.asarray(jac, float)
-    (p, q), (r, s) = jac
-    det2 = (p * s - q * r) ** 2
-    a, b, c = (q * q + s * s) / det2, -(p * q + r * s) / det2, (p * p + r * r) / det2
+    a, b, c = _inverse_form(jac)
     ksky = np.sqrt(np.maximum(a * kx * kx + 2 * b * kx * ky + c * ky * ky, 0.0)) / dilation
     edge = maxk / dilation
     step = 2 * np.pi / n / singular_values2(jac)[0]   # the grid's step in sky |K| along its longer axis
@@ -236,6 +229,14 @@ def round_envelope(psf_column, xkernel, jac, dilation, maxk):
     if knots[-1] < edge:
         knots, values = np.append(knots, edge), np.append(values, least[-1])
     return np.append(knots, edge * (1 + 1e-9)), np.append(values, 0.0)
+
+
+def _inverse_form(jac):
+    """(a, b, c): \\|J^-T kappa\\|^2 = a kx^2 + 2 b kx ky + c ky^2, the quadratic form of (J^T J)^-1 = adj(J^T J) /
+    det(J)^2."""
+    (p, q), (r, s) = jac
+    det2 = (p * s - q * r) ** 2
+    return (q * q + s * s) / det2, -(p * q + r * s) / det2, (p * p + r * r) / det2
 
 
 def singular_values2(A):
