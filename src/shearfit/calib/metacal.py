@@ -441,6 +441,16 @@ def _add_band(items, first, r, arr, n_small, size, turn_noise):
     return (r, back) if first is None else first
 
 
+def _add_compiled_band(items, first, r, arr, turn_noise):
+    """:func:`_add_band` for a compiled loop's bands (``arr``: the stamp's and the noise's, or with ``turn_noise``
+    their sum and the noise turned back, already made)."""
+    if not turn_noise:
+        items += [(r, arr[0]), (r, arr[1])]
+        return first
+    items.append((r, arr[0]))
+    return (r, arr[2]) if first is None else first
+
+
 def _oversampled_kspace_images(image, noise, psf, J, k, delta, names, n_small, new_psf, turn_noise):
     """:func:`own_kspace_images` for a PSF image oversampled k times (its pixels J / k): the stamp's and its noise's
     transforms as interpolated images on the stamp's pixels, the PSF's (and the new PSF's) on its own, each the
@@ -475,12 +485,10 @@ def _oversampled_kspace_images(image, noise, psf, J, k, delta, names, n_small, n
         gkey = ("gamma", r, dk, scale, to_p)
         got = gmemo.get(gkey)
         if got is None:
-            j, i = np.mgrid[-r:r + 1, 0:r + 1]
-            kap = dk * np.stack([i.ravel(), j.ravel()]).astype(float)
+            kap = _band_kappa(r, dk)
             d = kap * scale
             gamma = kspace.kvalues(gtab, d[0] * to_p, d[1] * to_p)[:, 0] * xk(d[0]) * xk(d[1])
-            for a in (kap, gamma):
-                a.setflags(write=False)
+            gamma.setflags(write=False)
             got = gmemo[gkey] = (kap, gamma)
         kap, gamma = got
         lim = maxk * maxk * (1 + 1e-12)
@@ -492,12 +500,7 @@ def _oversampled_kspace_images(image, noise, psf, J, k, delta, names, n_small, n
             xtab, xh = _x_table(int(np.ceil(maxk * smax_j / np.pi)) + 1)
             kspace.KERNEL.quintic_band_os(table, n_s, ptab, n_p, k, r, dk, np.ascontiguousarray(A),
                                           np.ascontiguousarray(J.T), lim, gamma, xtab, xh, phase, arr)
-            arr = arr.reshape(-1, 2 * r + 1, r + 1)
-            if turn_noise:
-                items.append((r, arr[0]))
-                first = (r, arr[2]) if first is None else first
-            else:
-                items += [(r, arr[0]), (r, arr[1])]
+            first = _add_compiled_band(items, first, r, arr.reshape(-1, 2 * r + 1, r + 1), turn_noise)
             continue
         sky = A @ kap
         inside = np.nonzero(np.sum(sky * sky, axis=0) <= lim)[0]
@@ -570,13 +573,7 @@ def own_kspace_images(image, noise, psf, J, delta, names, fft_size=None, new_psf
             phase = _turn_phase(r, n_small, shape[0]) if turn_noise else _NO_PHASE
             kspace.KERNEL.quintic_band(table, n, r, dk, np.ascontiguousarray(A), np.ascontiguousarray(J.T), to_table,
                                        lim, gamma, step, phase, arr)
-            arr = arr.reshape(-1, 2 * r + 1, r + 1)
-            if turn_noise:
-                items.append((r, arr[0]))
-                if first is None:
-                    first = (r, arr[2])
-            else:
-                items += [(r, arr[0]), (r, arr[1])]
+            first = _add_compiled_band(items, first, r, arr.reshape(-1, 2 * r + 1, r + 1), turn_noise)
             continue
         arr = np.zeros((2, kap.shape[1]), complex)
         sky = A @ kap
@@ -616,12 +613,20 @@ def _turn_phase(r, n, size):
 
 
 @functools.lru_cache(maxsize=32)
+def _band_kappa(r, dk):
+    """A band's points kappa = dk (i, j), rows j = -r .. r, columns i = 0 .. r: (2, points) (read-only, shared)."""
+    j, i = np.mgrid[-r:r + 1, 0:r + 1]
+    kap = dk * np.stack([i.ravel(), j.ravel()]).astype(float)
+    kap.setflags(write=False)
+    return kap
+
+
+@functools.lru_cache(maxsize=32)
 def _band_points(r, dk, dilation, to_table):
     """A band's points kappa = dk (i, j) (rows j = -r .. r, columns i = 0 .. r; (2, points)), the new PSF's
     points d = dilation kappa (kappa where ``dilation`` is None) in the padded table's units (d * to_table), and
     the x-interpolant's transform at d's two components (read-only, shared by the exposures of one stamp size)."""
-    j, i = np.mgrid[-r:r + 1, 0:r + 1]
-    kap = dk * np.stack([i.ravel(), j.ravel()]).astype(float)
+    kap = _band_kappa(r, dk)
     d = kap if dilation is None else dilation * kap
     xk = _LANCZOS.kval
     out = (kap, d[0] * to_table, d[1] * to_table, xk(d[0]), xk(d[1]))
@@ -648,8 +653,7 @@ def round_psf(psf, J, delta, shape, fft_size=None):
     knots, values = kspace.round_envelope(column, xk, J, 1.0 + 2.0 * abs(delta), maxk)
     dk = 2 * np.pi / n_small
     r = int(np.ceil(knots[-1] * kspace.singular_values2(J)[0] / dk)) + 1
-    j, i = np.mgrid[-r:r + 1, 0:r + 1]
-    kap = dk * np.stack([i.ravel(), j.ravel()]).astype(float)
+    kap = _band_kappa(r, dk)
     # linear in |K|^2 between the knots: smooth at K = 0, as a PSF's transform is (1 - c K^2)
     k2 = np.sum((inv2(J).T @ kap) ** 2, axis=0)
     arr = np.interp(k2, knots ** 2, values, right=0.0).astype(complex)
