@@ -2517,14 +2517,20 @@ __attribute__((optimize("fp-contract=off"))) static PyObject *band_maxk(PyObject
  * with values lv and slopes d/dk there; the rest of out untouched.
  */
 static void hermite_log_fill(double k0, double dk, const int64_t *N, Py_ssize_t m, const double *LV,
-                             const double *SL, double *O)
+                             const double *SL, const double *CU, double *O)
 {
+    /* the quintic Hermite interpolant of the logarithm on each segment: values, slopes and curvatures at both
+       ends (model._moffat_table's numpy lines, term for term) */
     for (Py_ssize_t s = 0; s + 1 < m; s++) {
         const double ka = k0 + (double)N[s] * dk, h = (double)(N[s + 1] - N[s]) * dk;
-        const double a0 = LV[s], a1 = h * SL[s], b0 = LV[s + 1], b1 = h * SL[s + 1];
+        const double a0 = LV[s], a1 = h * SL[s], a2 = h * h * CU[s];
+        const double b0 = LV[s + 1], b1 = h * SL[s + 1], b2 = h * h * CU[s + 1];
         for (int64_t i = N[s]; i < N[s + 1]; i++) {
-            const double t = (k0 + (double)i * dk - ka) / h, t2 = t * t, t3 = t2 * t;
-            O[i] = (2 * t3 - 3 * t2 + 1) * a0 + (t3 - 2 * t2 + t) * a1 + (-2 * t3 + 3 * t2) * b0 + (t3 - t2) * b1;
+            const double t = (k0 + (double)i * dk - ka) / h, t2 = t * t, t3 = t2 * t, t4 = t3 * t, t5 = t4 * t;
+            const double h0 = 1 - 10 * t3 + 15 * t4 - 6 * t5, h1 = t - 6 * t3 + 8 * t4 - 3 * t5;
+            const double h2 = 0.5 * (t2 - 3 * t3 + 3 * t4 - t5), g0 = 10 * t3 - 15 * t4 + 6 * t5;
+            const double g1 = -4 * t3 + 7 * t4 - 3 * t5, g2 = 0.5 * (t3 - 2 * t4 + t5);
+            O[i] = h0 * a0 + h1 * a1 + h2 * a2 + g0 * b0 + g1 * b1 + g2 * b2;
         }
     }
     vexp_shift(O + N[0], 0.0, O + N[0], (Py_ssize_t)(N[m - 1] - N[0]));
@@ -2533,24 +2539,24 @@ static void hermite_log_fill(double k0, double dk, const int64_t *N, Py_ssize_t 
 static PyObject *hermite_log_table(PyObject *self, PyObject *args)
 {
     double k0, dk;
-    Py_buffer nb, lvb, slb, out;
-    if (!PyArg_ParseTuple(args, "ddy*y*y*w*", &k0, &dk, &nb, &lvb, &slb, &out)) return NULL;
+    Py_buffer nb, lvb, slb, cub, out;
+    if (!PyArg_ParseTuple(args, "ddy*y*y*y*w*", &k0, &dk, &nb, &lvb, &slb, &cub, &out)) return NULL;
     const Py_ssize_t m = nb.len / (Py_ssize_t)sizeof(int64_t), nout = out.len / (Py_ssize_t)sizeof(double);
     const int64_t *N = (const int64_t *)nb.buf;
-    int bad = m < 2 || lvb.len != m * (Py_ssize_t)sizeof(double) || slb.len != lvb.len;
+    int bad = m < 2 || lvb.len != m * (Py_ssize_t)sizeof(double) || slb.len != lvb.len || cub.len != lvb.len;
     for (Py_ssize_t s = 0; !bad && s < m; s++)
         bad = N[s] < 0 || N[s] >= nout || (s > 0 && N[s] <= N[s - 1]);
     if (bad) {
-        RELEASE(&nb, &lvb, &slb, &out);
+        RELEASE(&nb, &lvb, &slb, &cub, &out);
         PyErr_SetString(PyExc_ValueError, "hermite_log_table: inconsistent buffers");
         return NULL;
     }
-    const double *LV = (const double *)lvb.buf, *SL = (const double *)slb.buf;
+    const double *LV = (const double *)lvb.buf, *SL = (const double *)slb.buf, *CU = (const double *)cub.buf;
     double *O = (double *)out.buf;
     Py_BEGIN_ALLOW_THREADS
-    hermite_log_fill(k0, dk, N, m, LV, SL, O);
+    hermite_log_fill(k0, dk, N, m, LV, SL, CU, O);
     Py_END_ALLOW_THREADS
-    RELEASE(&nb, &lvb, &slb, &out);
+    RELEASE(&nb, &lvb, &slb, &cub, &out);
     Py_RETURN_NONE;
 }
 
@@ -2754,24 +2760,35 @@ static PyObject *set_bessel(PyObject *self, PyObject *args)
     Py_RETURN_NONE;
 }
 
-/* the residuals R = f - v, their sum of squares and the Jacobian J (n x 2: d/dlog rs, d/dlog nu) at
-   q = (log rs, log nu), as moffat.moffat_ft_dlogs: f = c x^nu K_nu(x), df/dlog rs = -c x^(nu+1) K_(nu-1)(x),
-   df/dlog nu by a forward difference of 1e-7 */
-static double moffat_eval(const double *kr, const double *v, Py_ssize_t n, const double *q, double *R, double *J)
+/* the residuals R = f - v at q = (log rs, log nu) and their sum of squares, with f = c x^nu K_nu(x) kept in F
+   for the Jacobian (moffat_jac), as moffat.moffat_ft_dlogs's f0 */
+static double moffat_resid(const double *kr, const double *v, Py_ssize_t n, const double *q, double *R, double *F)
+{
+    const double nu = exp(q[1]), rs = exp(q[0]);
+    const double c = pow(2.0, 1.0 - nu) / sp_gamma(nu, 0);
+    double cost = 0.0;
+    for (Py_ssize_t k = 0; k < n; k++) {
+        const double x = kr[k] * rs;
+        F[k] = c * pow(x, nu) * sp_kv(nu, x, 0);
+        R[k] = F[k] - v[k];
+        cost += R[k] * R[k];
+    }
+    return cost;
+}
+
+/* the Jacobian J (n x 2: d/dlog rs, d/dlog nu) at q, f there in F (moffat_resid's): df/dlog rs = -c x^(nu+1)
+   K_(nu-1)(x), df/dlog nu by a forward difference of 1e-7, as moffat.moffat_ft_dlogs. Made only where the fit
+   takes a step from q (until session 82 at every trial point too, rejected or final: the same numbers) */
+static void moffat_jac(const double *kr, Py_ssize_t n, const double *q, const double *F, double *J)
 {
     const double h = 1e-7;
     const double nu = exp(q[1]), nu2 = nu * exp(h), rs = exp(q[0]);
     const double c = pow(2.0, 1.0 - nu) / sp_gamma(nu, 0), c2 = pow(2.0, 1.0 - nu2) / sp_gamma(nu2, 0);
-    double cost = 0.0;
     for (Py_ssize_t k = 0; k < n; k++) {
         const double x = kr[k] * rs;
-        const double f0 = c * pow(x, nu) * sp_kv(nu, x, 0);
         J[2 * k] = -c * pow(x, nu + 1.0) * sp_kv(nu - 1.0, x, 0);
-        J[2 * k + 1] = (c2 * pow(x, nu2) * sp_kv(nu2, x, 0) - f0) / h;
-        R[k] = f0 - v[k];
-        cost += R[k] * R[k];
+        J[2 * k + 1] = (c2 * pow(x, nu2) * sp_kv(nu2, x, 0) - F[k]) / h;
     }
-    return cost;
 }
 
 /* whether the step from p to q is below the tolerance in both parameters (numpy: np.all(|Q - P| <= ...)) */
@@ -2793,18 +2810,19 @@ static PyObject *moffat_lm(PyObject *self, PyObject *args)
         PyErr_SetString(PyExc_ValueError, "moffat_lm: inconsistent buffers (or set_bessel not called)");
         return NULL;
     }
-    double *buf = (double *)malloc(6 * n * sizeof(double));
+    double *buf = (double *)malloc(7 * n * sizeof(double));
     if (buf == NULL) { RELEASE(&kb, &vb, &pb); return PyErr_NoMemory(); }
     const double *kr = (const double *)kb.buf;
     double *P = (double *)pb.buf;
     Py_BEGIN_ALLOW_THREADS
-    double *R = buf, *J = buf + n, *Rq = buf + 3 * n, *Jq = buf + 4 * n;
+    double *R = buf, *J = buf + n, *Rq = buf + 3 * n, *F = buf + 4 * n, *Fq = buf + 5 * n;
     const int fr[2] = {free0, free1};
     for (Py_ssize_t r = 0; r < m; r++) {
         const double *v = (const double *)vb.buf + r * n;
         double *p = P + 2 * r;
         double lam = 1e-3;
-        double cost = moffat_eval(kr, v, n, p, R, J);
+        double cost = moffat_resid(kr, v, n, p, R, F);
+        moffat_jac(kr, n, p, F, J);
         for (int it = 0; it < max_iter; it++) {
             /* the normal equations of the free parameters, damped by lam times their diagonal */
             double a00 = 0, a01 = 0, a11 = 0, g0 = 0, g1 = 0;
@@ -2844,7 +2862,7 @@ static PyObject *moffat_lm(PyObject *self, PyObject *args)
                     q[t] += s < -2.0 ? -2.0 : (s > 2.0 ? 2.0 : s);
                 }
             if (bad || lm_small(q, p, xtol)) break;   /* a singular system, or a step below the tolerance */
-            const double cq = moffat_eval(kr, v, n, q, Rq, Jq);
+            const double cq = moffat_resid(kr, v, n, q, Rq, Fq);
             const int accept = isfinite(cq) && cq <= cost;
             const int converged = accept && ((cost - cq <= ftol * cost) || lm_small(q, p, xtol));
             if (accept) {
@@ -2852,7 +2870,7 @@ static PyObject *moffat_lm(PyObject *self, PyObject *args)
                 p[1] = q[1];
                 cost = cq;
                 memcpy(R, Rq, n * sizeof(double));
-                memcpy(J, Jq, 2 * n * sizeof(double));
+                if (!converged) moffat_jac(kr, n, p, Fq, J);   /* (a converged fit takes no step from here) */
             }
             lam = accept ? (lam / 3.0 > 1e-12 ? lam / 3.0 : 1e-12) : lam * 4.0;
             if (converged || (!accept && lam > 1e12)) break;
@@ -2873,9 +2891,9 @@ static double moffat_ft1(double x, double nu, double c)
 /*
  * moffat_table(k, rs, beta, x_exact, h0, grow, floor, out): model._moffat_table's numbers (its numpy lines stay
  * as the reference and the fallback; a test checks they agree) on the uniform grid k: exact up to x = k rs =
- * x_exact, beyond it the cubic Hermite interpolant of the logarithm through exact nodes h0 + grow x apart, with
- * the exact slopes -rs K_(nu-1) / K_nu there, and 0 beyond the last node above floor. scipy's kv and gamma
- * (set_bessel).
+ * x_exact, beyond it the quintic Hermite interpolant of the logarithm through exact nodes h0 + grow x apart, with
+ * the exact slopes -rs K_(nu-1) / K_nu and curvatures (Bessel's equation) there, and 0 beyond the last node above
+ * floor. scipy's kv and gamma (set_bessel).
  */
 static PyObject *moffat_table(PyObject *self, PyObject *args)
 {
@@ -2899,7 +2917,7 @@ static PyObject *moffat_table(PyObject *self, PyObject *args)
         const double top = (k[n - 1] * rs + h0 / grow) / a;
         const Py_ssize_t count = (Py_ssize_t)ceil(log(top) / log1p(grow)) + 1;
         int64_t *nodes = (int64_t *)malloc((count > 0 ? count : 1) * sizeof(int64_t));
-        double *buf = (double *)malloc(3 * (count > 0 ? count : 1) * sizeof(double));
+        double *buf = (double *)malloc(4 * (count > 0 ? count : 1) * sizeof(double));
         if (nodes == NULL || buf == NULL) nomem = 1;
         Py_ssize_t nn = 0;
         for (Py_ssize_t i = 0; !nomem && i < count; i++) {
@@ -2909,7 +2927,7 @@ static PyObject *moffat_table(PyObject *self, PyObject *args)
             if (nn == 0 || v != nodes[nn - 1]) nodes[nn++] = v;
         }
         if (!nomem) {
-            double *V = buf, *KV = buf + count, *LV = buf + 2 * count;
+            double *V = buf, *KV = buf + count, *LV = buf + 2 * count, *CU = buf + 3 * count;
             Py_ssize_t m = 0;
             for (Py_ssize_t i = 0; i < nn; i++) {
                 const double xn = k[nodes[i]] * rs;
@@ -2920,13 +2938,16 @@ static PyObject *moffat_table(PyObject *self, PyObject *args)
             if (m >= 4) {
                 for (Py_ssize_t i = 0; i < n; i++) out[i] = 0.0;
                 for (Py_ssize_t i = 0; i < j; i++) out[i] = moffat_ft1(k[i] * rs, nu, c);
-                /* the slopes d log f / dk at the nodes, in KV's place */
+                /* the slopes d log f / dk at the nodes, in KV's place, and the curvatures d^2 log f / dk^2 from
+                   Bessel's equation (K''/K = 1 + nu^2 / x^2 - (K'/K) / x) */
                 for (Py_ssize_t i = 0; i < m; i++) {
                     const double xn = k[nodes[i]] * rs;
-                    KV[i] = -rs * sp_kv(nu - 1.0, xn, 0) / KV[i];
+                    const double ratio = sp_kv(nu - 1.0, xn, 0) / KV[i], rho = -ratio - nu / xn;
+                    KV[i] = -rs * ratio;
+                    CU[i] = rs * rs * ((1.0 + (nu * nu - nu) / (xn * xn)) - rho / xn - rho * rho);
                     LV[i] = log(V[i]);
                 }
-                hermite_log_fill(k[0], k[1] - k[0], nodes, m, LV, KV, out);
+                hermite_log_fill(k[0], k[1] - k[0], nodes, m, LV, KV, CU, out);
                 for (Py_ssize_t i = 0; i < m; i++) out[nodes[i]] = V[i];
                 done = 1;
             }
@@ -3605,7 +3626,7 @@ static PyMethodDef methods[] = {
     {"quintic_band_os", quintic_band_os, METH_VARARGS,
      "quintic_band_os(stamp, ns, psf, np, k, r, dk, A, JT, lim, gamma, xtab, xh, phase, out): an oversampled PSF's"},
     {"band_maxk", band_maxk, METH_VARARGS, "band_maxk(column, xx, kx, ky, thr, a, b, c) -> max k2 over the band"},
-    {"hermite_log_table", hermite_log_table, METH_VARARGS, "hermite_log_table(k0, dk, nodes, lv, slope, out)"},
+    {"hermite_log_table", hermite_log_table, METH_VARARGS, "hermite_log_table(k0, dk, nodes, lv, slope, curvature, out)"},
     {"set_bessel", set_bessel, METH_VARARGS, "set_bessel(kv_capsule, gamma_capsule)"},
     {"moffat_lm", moffat_lm, METH_VARARGS, "moffat_lm(kr, VR, P, free0, free1, max_iter, ftol, xtol)"},
     {"moffat_table", moffat_table, METH_VARARGS, "moffat_table(k, rs, beta, x_exact, h0, grow, floor, out) -> nodes used"},

@@ -337,25 +337,31 @@ def _alias_geometry(ny, nx, s):
     return ktab, i0, w0, w1, sel, KYf, KXf, cs, (kyv, iy, kxv, ix)
 
 
-def _moffat_table(k, rs, beta, x_exact=1.0, h0=0.06, grow=0.03, floor=1e-30, use_kernel=True):
+#: the alias tables' Moffat (:func:`_moffat_table`) is exact below x = k rs = 1 where beta < MOFFAT_SMOOTH_BETA (the
+#: transform's cusp: x^(2 nu) with 2 nu < 3), below x = 0.05 otherwise
+MOFFAT_SMOOTH_BETA = 2.5
+
+
+def _moffat_table(k, rs, beta, x_exact=None, h0=0.1, grow=0.1, floor=1e-30, use_kernel=True):
     """moffat_ft on a uniform grid k, set to zero where it falls below ``floor``.
 
-    Exact up to x = k rs = ``x_exact`` (where the transform of beta < 2 has its cusp); beyond, the cubic
-    Hermite interpolant of its logarithm through exact nodes, with the exact slopes d log f / dx =
-    -K_(nu-1)(x) / K_nu(x) there. The logarithm's higher derivatives fall as x grows (it tends to
-    -x + (nu - 1/2) log x), so the nodes are ``h0 + grow x`` apart: 90 for rs = 1.7 pixels on a 48-pixel
-    stamp's table, where exact values at every point below x = 4 and nodes every 0.2 beyond cost most of
-    the table's time. Within 1.5e-7 of the exact values (tests/test_model.py, beta 1.2-21 and rs 0.05-40
-    pixels: bound 2e-7; the worst case beta 2.5 at rs 15.8), far below the error of the linear
-    interpolation in the table (at its midpoints 6e-6 for rs = 1.7, beta 3; 1e-3 for rs = 15.8, beta
-    2.5). Nodes 0.04 + 0.02 x apart (134 at rs = 1.7) were within 3.6e-8 and took a third longer (77
-    against 57 us a table at rs = 2.3, beta 3). The
-    transform decreases monotonically (its derivative is -c x^nu K_(nu-1)(x)), so it is zero beyond the last
-    node above the floor. The compiled kernel (``moffat_table``, with scipy's kv and gamma) makes the same
-    numbers to rounding (tests/test_model.py) without the array operations' overhead, which was most of a
+    Exact up to x = k rs = ``x_exact`` (None: 1 where beta < MOFFAT_SMOOTH_BETA, where the transform has its
+    cusp, else 0.05); beyond, the quintic Hermite interpolant of its logarithm through exact nodes, with the exact
+    slopes d log f / dx = -K_(nu-1)(x) / K_nu(x) and curvatures there (from Bessel's equation, K''/K = 1 +
+    nu^2 / x^2 - (K'/K) / x: no more Bessel functions than the slopes). The logarithm's higher derivatives fall
+    as x grows (it tends to -x + (nu - 1/2) log x), so the nodes are ``h0 + grow x`` apart. Within 2.2e-8 of the
+    exact values (tests/test_model.py, beta 1.2-21 and rs 0.05-40 pixels), far below the error of the linear
+    interpolation in the table (at its midpoints 6e-6 for rs = 1.7, beta 3; 1e-3 for rs = 15.8, beta 2.5).
+    Until session 82 the interpolant was cubic, through nodes 0.06 + 0.03 x apart beyond x = 1 (within 1.5e-7):
+    at the fitted rs of 2.4-5 pixels of ``benchmarks/speed.py``'s PSFs a table took some 250 Bessel functions, now
+    about 95. The transform decreases monotonically (its derivative is -c x^nu K_(nu-1)(x)), so it is zero beyond
+    the last node above the floor. The compiled kernel (``moffat_table``, with scipy's kv and gamma) makes the
+    same numbers to rounding (tests/test_model.py) without the array operations' overhead, which was most of a
     table's time where every exposure of every object had its own PSF and so its own Moffat.
     """
     n = k.size
+    if x_exact is None:
+        x_exact = 1.0 if beta < MOFFAT_SMOOTH_BETA else 0.05
     if use_kernel and _moffat.USE_KERNEL_BESSEL:
         out = np.empty(n)
         KERNEL.moffat_table(np.ascontiguousarray(k, dtype=float), float(rs), float(beta), float(x_exact), float(h0),
@@ -380,10 +386,14 @@ def _moffat_table(k, rs, beta, x_exact=1.0, h0=0.06, grow=0.03, floor=1e-30, use
             out[:j] = moffat_ft(k[:j], rs, beta)
             nodes, v, xn, kvn = nodes[:m], v[:m], xn[:m], kvn[:m]
             last = nodes[-1]
-            slope = -rs * special.kv(nu - 1.0, xn) / kvn   # d log f / dk at the nodes
+            ratio = special.kv(nu - 1.0, xn) / kvn
+            rho = -ratio - nu / xn                          # K_nu' / K_nu
+            slope = -rs * ratio                             # d log f / dk at the nodes
+            curv = rs * rs * ((1.0 + (nu * nu - nu) / (xn * xn)) - rho / xn - rho * rho)   # d^2 log f / dk^2
             lv = np.log(v)
             if USE_KERNEL:
-                KERNEL.hermite_log_table(float(k[0]), float(k[1] - k[0]), nodes.astype(np.int64), lv, slope, out)
+                KERNEL.hermite_log_table(float(k[0]), float(k[1] - k[0]), nodes.astype(np.int64), lv, slope, curv,
+                                         out)
             else:
                 seg = np.repeat(np.arange(m - 1), np.diff(nodes))   # each point's segment, points j .. last - 1
                 k0 = k[nodes[seg]]
@@ -391,8 +401,14 @@ def _moffat_table(k, rs, beta, x_exact=1.0, h0=0.06, grow=0.03, floor=1e-30, use
                 t = (k[j:last] - k0) / h
                 t2 = t * t
                 t3 = t2 * t
-                out[j:last] = np.exp((2 * t3 - 3 * t2 + 1) * lv[seg] + (t3 - 2 * t2 + t) * h * slope[seg]
-                                     + (-2 * t3 + 3 * t2) * lv[seg + 1] + (t3 - t2) * h * slope[seg + 1])
+                t4 = t3 * t
+                t5 = t4 * t
+                out[j:last] = np.exp((1 - 10 * t3 + 15 * t4 - 6 * t5) * lv[seg]
+                                     + (t - 6 * t3 + 8 * t4 - 3 * t5) * (h * slope[seg])
+                                     + 0.5 * (t2 - 3 * t3 + 3 * t4 - t5) * (h * h * curv[seg])
+                                     + (10 * t3 - 15 * t4 + 6 * t5) * lv[seg + 1]
+                                     + (-4 * t3 + 7 * t4 - 3 * t5) * (h * slope[seg + 1])
+                                     + 0.5 * (t3 - 2 * t4 + t5) * (h * h * curv[seg + 1]))
             out[nodes] = v
             return out
     out = moffat_ft(k, rs, beta)
