@@ -268,6 +268,13 @@ def test_fold_groups_are_those_of_the_sparse_product():
         assert np.array_equal(msizes, [np.count_nonzero(label[multi] == g) for g in dict.fromkeys(label[multi])])
         ref = H[ref_multi][:, ref_multi].toarray()
         assert np.allclose(Hm.toarray(), ref, rtol=1e-14, atol=1e-14 * np.abs(ref).max(initial=0))
+        # the compiled groups (union-find, blocks summed row after row) are the numpy lines': the same groups and
+        # elements, their values to rounding (numpy's complex products may fuse a multiply-add, the kernel's not)
+        q0, multi0, msizes0, Hm0 = _fold_groups(r, c, tv, n, use_kernel=False)
+        assert np.array_equal(multi, multi0) and np.array_equal(msizes, msizes0)
+        assert np.allclose(q, q0, rtol=1e-15, atol=0)
+        assert np.array_equal(Hm.indptr, Hm0.indptr) and np.array_equal(Hm.indices, Hm0.indices)
+        assert np.allclose(Hm.data, Hm0.data, rtol=1e-15, atol=1e-15 * np.abs(Hm0.data).max(initial=0)), trial
 
 
 def test_decoupled_fold_groups_stay_within_their_tolerance():

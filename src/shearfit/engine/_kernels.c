@@ -3588,6 +3588,222 @@ static PyObject *coarse_gather(PyObject *self, PyObject *args)
     Py_RETURN_NONE;
 }
 
+/*
+ * fold_groups(row, col, t, n, q) -> None or (multi, msizes, data, indices, indptr): likelihood._fold_groups's
+ * numbers (its numpy lines stay as the reference; a test checks they agree) for the entries t (complex128) of a
+ * sparse F at (row, col) (int64, each pair at most once), n columns. q (n doubles, written): H's diagonal for the
+ * columns that share no row with another, 0 elsewhere. Where some do, the fold groups (the columns linked
+ * through shared rows, each labelled by its least column, ordered by label, columns ascending within) and H
+ * restricted to them in csr form (int64 multi, msizes, indices, indptr; complex128 data), each element summed
+ * over its rows in ascending order, as bytearrays. The products conj(t_a) t_b without fused multiply-adds, as
+ * numpy's.
+ */
+static Py_ssize_t fg_find(Py_ssize_t *parent, Py_ssize_t a)
+{
+    while (parent[a] != a) {
+        parent[a] = parent[parent[a]];
+        a = parent[a];
+    }
+    return a;
+}
+
+static NO_CONTRACT void fg_conj_mul(const double *a, const double *b, double *re, double *im)
+{
+#if defined(__clang__)
+#pragma clang fp contract(off)
+#endif
+    const double ar = a[0], ai = -a[1], br = b[0], bi = b[1];
+    *re = ar * br - ai * bi;
+    *im = ar * bi + ai * br;
+}
+
+/* |t|^2 of n complex entries, as numpy's (conj(t) t).real without a fused multiply-add */
+static NO_CONTRACT void fg_squares(const double *T, Py_ssize_t n, double *TT)
+{
+#if defined(__clang__)
+#pragma clang fp contract(off)
+#endif
+    for (Py_ssize_t e = 0; e < n; e++) TT[e] = T[2 * e] * T[2 * e] - (-T[2 * e + 1]) * T[2 * e + 1];
+}
+
+/* entries (row, index) ordered by row, then index (qsort's comparison) */
+static int fg_cmp(const void *x, const void *y)
+{
+    const int64_t *a = (const int64_t *)x, *b = (const int64_t *)y;
+    return a[0] < b[0] ? -1 : a[0] > b[0] ? 1 : (a[1] < b[1] ? -1 : a[1] > b[1]);
+}
+
+static PyObject *fold_groups(PyObject *self, PyObject *args)
+{
+    Py_buffer rb, cb, tb, qb;
+    Py_ssize_t n;
+    if (!PyArg_ParseTuple(args, "y*y*y*nw*", &rb, &cb, &tb, &n, &qb)) return NULL;
+    const Py_ssize_t ne = rb.len / (Py_ssize_t)sizeof(int64_t);
+    const int64_t *ROW = (const int64_t *)rb.buf, *COL = (const int64_t *)cb.buf;
+    const double *T = (const double *)tb.buf;
+    double *Q = (double *)qb.buf;
+    int bad = n < 0 || cb.len != rb.len || tb.len != 2 * ne * (Py_ssize_t)sizeof(double)
+              || qb.len != n * (Py_ssize_t)sizeof(double);
+    Py_ssize_t nrow = 0;
+    for (Py_ssize_t e = 0; !bad && e < ne; e++) {
+        bad = ROW[e] < 0 || COL[e] < 0 || COL[e] >= n;
+        if (!bad && ROW[e] + 1 > nrow) nrow = (Py_ssize_t)ROW[e] + 1;
+    }
+    if (bad) {
+        RELEASE(&rb, &cb, &tb, &qb);
+        PyErr_SetString(PyExc_ValueError, "fold_groups: inconsistent buffers");
+        return NULL;
+    }
+    /* scratch: per row its count of entries; |t|^2; per column linked, its root, place and group */
+    int32_t *rcount = (int32_t *)calloc((size_t)(nrow + 1), sizeof(int32_t));
+    double *TT = (double *)malloc((size_t)(ne + 1) * sizeof(double));
+    unsigned char *linked = (unsigned char *)calloc((size_t)(n + 1), 1);
+    Py_ssize_t *parent = (Py_ssize_t *)malloc((size_t)(4 * (n + 1)) * sizeof(Py_ssize_t));
+    int64_t *rel = NULL, *multi = NULL, *msizes = NULL, *gstart = NULL, *boff = NULL, *ind = NULL, *iptr = NULL;
+    double *blk = NULL, *dat = NULL;
+    unsigned char *present = NULL;
+    PyObject *res = NULL;
+    int nomem = rcount == NULL || TT == NULL || linked == NULL || parent == NULL;
+    Py_ssize_t nm = 0, ng = 0, nnz = 0, nblk = 0, nrel = 0;
+    if (!nomem) {
+        for (Py_ssize_t e = 0; e < ne; e++) rcount[ROW[e]]++;
+        fg_squares(T, ne, TT);
+        for (Py_ssize_t c = 0; c < n; c++) Q[c] = 0.0;
+        for (Py_ssize_t e = 0; e < ne; e++) {
+            Q[COL[e]] += TT[e];
+            if (rcount[ROW[e]] >= 2) linked[COL[e]] = 1;
+        }
+        for (Py_ssize_t c = 0; c < n; c++) if (linked[c]) { Q[c] = 0.0; nm++; }
+        /* the linked columns' entries (row, entry), by row: every entry of a shared row is one */
+        for (Py_ssize_t e = 0; e < ne; e++) nrel += linked[COL[e]];
+        if (nm > 0) {
+            rel = (int64_t *)malloc((size_t)(2 * nrel) * sizeof(int64_t));
+            multi = (int64_t *)malloc((size_t)nm * sizeof(int64_t));
+            msizes = (int64_t *)malloc((size_t)nm * sizeof(int64_t));
+            gstart = (int64_t *)malloc((size_t)(nm + 1) * sizeof(int64_t));
+            boff = (int64_t *)malloc((size_t)(nm + 1) * sizeof(int64_t));
+            nomem = rel == NULL || multi == NULL || msizes == NULL || gstart == NULL || boff == NULL;
+        }
+    }
+    if (!nomem && nm > 0) {
+        Py_ssize_t *pos = parent + (n + 1), *grp = parent + 2 * (n + 1), *lab = parent + 3 * (n + 1);
+        Py_ssize_t k = 0;
+        for (Py_ssize_t e = 0; e < ne; e++)
+            if (linked[COL[e]]) { rel[2 * k] = ROW[e]; rel[2 * k + 1] = e; k++; }
+        qsort(rel, (size_t)nrel, 2 * sizeof(int64_t), fg_cmp);
+        /* the groups: union of the columns of each shared row, the least column the root */
+        for (Py_ssize_t c = 0; c < n; c++) parent[c] = c;
+        for (Py_ssize_t k0 = 0; k0 < nrel;) {
+            Py_ssize_t k1 = k0 + 1;
+            while (k1 < nrel && rel[2 * k1] == rel[2 * k0]) k1++;
+            Py_ssize_t a = fg_find(parent, (Py_ssize_t)COL[rel[2 * k0 + 1]]);
+            for (Py_ssize_t kk = k0 + 1; kk < k1; kk++) {
+                Py_ssize_t b = fg_find(parent, (Py_ssize_t)COL[rel[2 * kk + 1]]);
+                if (a == b) continue;
+                if (a < b) parent[b] = a;
+                else { parent[a] = b; a = b; }
+            }
+            k0 = k1;
+        }
+        /* multi: the linked columns by (label, column); groups in label order (pos: a label's count, then its
+           group's next place; grp: a label's group number) */
+        for (Py_ssize_t c = 0; c < n; c++) pos[c] = 0;
+        for (Py_ssize_t c = 0; c < n; c++)
+            if (linked[c]) {
+                lab[c] = fg_find(parent, c);
+                pos[lab[c]]++;
+            }
+        Py_ssize_t at = 0;
+        for (Py_ssize_t c = 0; c < n; c++)
+            if (linked[c] && lab[c] == c) {
+                const Py_ssize_t size = pos[c];
+                grp[c] = ng;
+                gstart[ng] = at;
+                msizes[ng] = size;
+                boff[ng] = nblk;
+                nblk += size * size;
+                pos[c] = at;
+                at += size;
+                ng++;
+            }
+        gstart[ng] = at;
+        boff[ng] = nblk;
+        for (Py_ssize_t c = 0; c < n; c++)
+            if (linked[c]) {
+                const Py_ssize_t l = lab[c];
+                multi[pos[l]] = c;
+                parent[c] = pos[l]++;   /* (parent now holds each linked column's place in multi) */
+                grp[c] = grp[l];
+            }
+        blk = (double *)malloc((size_t)(2 * (nblk > 0 ? nblk : 1)) * sizeof(double));
+        present = (unsigned char *)calloc((size_t)(nblk > 0 ? nblk : 1), 1);
+        nomem = blk == NULL || present == NULL;
+        if (!nomem) {
+            /* H's terms, row after row ascending: every pair of a shared row's columns, and a linked column's own
+               term on a row it has alone */
+            for (Py_ssize_t k0 = 0; k0 < nrel;) {
+                Py_ssize_t k1 = k0 + 1;
+                while (k1 < nrel && rel[2 * k1] == rel[2 * k0]) k1++;
+                for (Py_ssize_t ka = k0; ka < k1; ka++) {
+                    const Py_ssize_t ea = (Py_ssize_t)rel[2 * ka + 1], ca = (Py_ssize_t)COL[ea], g = grp[ca];
+                    const Py_ssize_t p = msizes[g], li = parent[ca] - gstart[g];
+                    for (Py_ssize_t kb = k0; kb < k1; kb++) {
+                        const Py_ssize_t eb = (Py_ssize_t)rel[2 * kb + 1], lj = parent[COL[eb]] - gstart[g];
+                        const Py_ssize_t at2 = boff[g] + li * p + lj;
+                        double re, im;
+                        fg_conj_mul(T + 2 * ea, T + 2 * eb, &re, &im);
+                        if (present[at2]) {
+                            blk[2 * at2] += re;
+                            blk[2 * at2 + 1] += im;
+                        } else {
+                            blk[2 * at2] = re;
+                            blk[2 * at2 + 1] = im;
+                            present[at2] = 1;
+                            nnz++;
+                        }
+                    }
+                }
+                k0 = k1;
+            }
+            ind = (int64_t *)malloc((size_t)(nnz > 0 ? nnz : 1) * sizeof(int64_t));
+            iptr = (int64_t *)malloc((size_t)(nm + 1) * sizeof(int64_t));
+            dat = (double *)malloc((size_t)(2 * (nnz > 0 ? nnz : 1)) * sizeof(double));
+            nomem = ind == NULL || iptr == NULL || dat == NULL;
+        }
+        if (!nomem) {
+            Py_ssize_t z = 0;
+            for (Py_ssize_t g = 0; g < ng; g++) {
+                const Py_ssize_t p = msizes[g];
+                for (Py_ssize_t li = 0; li < p; li++) {
+                    iptr[gstart[g] + li] = z;
+                    for (Py_ssize_t lj = 0; lj < p; lj++) {
+                        const Py_ssize_t at2 = boff[g] + li * p + lj;
+                        if (!present[at2]) continue;
+                        ind[z] = gstart[g] + lj;
+                        dat[2 * z] = blk[2 * at2];
+                        dat[2 * z + 1] = blk[2 * at2 + 1];
+                        z++;
+                    }
+                }
+            }
+            iptr[nm] = z;
+            PyObject *o1 = PyByteArray_FromStringAndSize((const char *)multi, nm * 8);
+            PyObject *o2 = PyByteArray_FromStringAndSize((const char *)msizes, ng * 8);
+            PyObject *o3 = PyByteArray_FromStringAndSize((const char *)dat, nnz * 16);
+            PyObject *o4 = PyByteArray_FromStringAndSize((const char *)ind, nnz * 8);
+            PyObject *o5 = PyByteArray_FromStringAndSize((const char *)iptr, (nm + 1) * 8);
+            if (o1 && o2 && o3 && o4 && o5) res = PyTuple_Pack(5, o1, o2, o3, o4, o5);
+            Py_XDECREF(o1); Py_XDECREF(o2); Py_XDECREF(o3); Py_XDECREF(o4); Py_XDECREF(o5);
+        }
+    }
+    free(rcount); free(TT); free(linked); free(parent); free(rel); free(multi); free(msizes); free(gstart);
+    free(boff); free(blk); free(present); free(ind); free(iptr); free(dat);
+    RELEASE(&rb, &cb, &tb, &qb);
+    if (nomem) return PyErr_NoMemory();
+    if (res == NULL && !PyErr_Occurred()) Py_RETURN_NONE;
+    return res;
+}
+
 static PyMethodDef methods[] = {
     {"kernel_isa", kernel_isa, METH_NOARGS, "kernel_isa() -> the instruction-set level this module was built for"},
     {"cpu_levels", cpu_levels, METH_NOARGS, "cpu_levels() -> the instruction-set levels this CPU runs"},
@@ -3612,6 +3828,7 @@ static PyMethodDef methods[] = {
      "locate_pass(bins, marg, e_index, rc, expx, xs, prior, shift, w, detail, r_peak, top, point)"},
     {"coarse_modes", coarse_modes, METH_VARARGS,
      "coarse_modes(kx, ky, transfer, coarse, keep, data_ft, xp, fp, index, base, shift, r2, out)"},
+    {"fold_groups", fold_groups, METH_VARARGS, "fold_groups(row, col, t, n, q) -> None or (multi, msizes, data, indices, indptr)"},
     {"coarse_gather", coarse_gather, METH_VARARGS, "coarse_gather(h, nx, sigma2, jinv, grid, total)"},
     {"table_interp", table_interp, METH_VARARGS,
      "table_interp(x, xp, fp, index, base, shift, right, out): np.interp(x, xp, fp, right=right), bucketed search"},

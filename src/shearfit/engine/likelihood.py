@@ -370,7 +370,7 @@ def _distinct_pairs(kx, ky):
     return order[new], inv
 
 
-def _fold_groups(row, col, t, n):
+def _fold_groups(row, col, t, n, use_kernel=True):
     """The Parseval weights and fold groups of H = F^H F, F the sparse matrix of the entries ``t`` at
     (``row``, ``col``) (each pair at most once; rows ascending along the entries of each column), n columns.
 
@@ -379,7 +379,21 @@ def _fold_groups(row, col, t, n):
     shared rows, groups ordered by their first column, columns ascending within); msizes, the groups'
     sizes; Hm, H restricted to multi (csr, in multi's order). Each element of H is summed over its rows in
     ascending order, as a sparse product F^H F sums it.
+
+    The compiled kernel (``KERNEL.fold_groups``: the groups by union-find, H's blocks summed row after row) makes
+    the same groups and elements as the lines below, their values to rounding (numpy's complex products may fuse
+    a multiply-add; tests/test_measure.py), without their array operations' overhead (0.34 ms a galaxy of
+    ``benchmarks/speed.py``).
     """
+    if use_kernel and USE_KERNEL:
+        q = np.empty(n)
+        got = KERNEL.fold_groups(np.ascontiguousarray(row, dtype=np.int64), np.ascontiguousarray(col, dtype=np.int64),
+                                 np.ascontiguousarray(t, dtype=complex), int(n), q)
+        if got is None:
+            return q, np.zeros(0, np.int64), np.zeros(0, np.int64), sparse.csr_matrix((0, 0), dtype=complex)
+        multi, msizes, data, indices, indptr = (np.frombuffer(b, dt) for b, dt in zip(
+            got, (np.int64, np.int64, complex, np.int64, np.int64)))
+        return q, multi, msizes, sparse.csr_matrix((data, indices, indptr), shape=(multi.size, multi.size))
     tt = (np.conj(t) * t).real
     counts = np.bincount(row)
     shared = counts[row] >= 2                        # entries on a row with another column
