@@ -388,12 +388,36 @@ def test_drop_threshold_is_the_sorted_sums_one():
         tol = 10 ** rng.uniform(-3, 1)
         got, want = _drop_threshold(b, tol), by_sorting(b, tol)
         assert got == want, i
+        # the compiled threshold (KERNEL.drop_threshold) and the numpy lines' alike
+        assert got == _drop_threshold(b, tol, use_kernel=False), i
         seen.add(want is None)
     assert seen == {False}
     # nothing droppable: every bound above the tolerance, or the smallest ones tied and summing above it
     for b in (np.array([2.0, 3.0]), np.full(3, 0.4), np.zeros(0)):
         assert _drop_threshold(b, 1.0) is None and by_sorting(b, 1.0) is None
     assert _drop_threshold(np.array([0.4, 0.4, 0.1]), 1.0) == 0.4
+
+
+def test_mode_bounds_compiled_and_numpy_agree():
+    """The noise-aware cut's bounds per mode (w |T|^2 / (N sigma^2)) and the flux bound S^2 made by the compiled
+    kernel (KERNEL.mode_bound) are the numpy lines': the bounds to rounding, S^2 to rounding (its sums in order
+    where numpy's are pairwise); a wrong sampled mode, weight or conjugate fails it."""
+    from shearfit.engine import likelihood
+    from shearfit.engine.likelihood import _mode_bounds
+    from shearfit.engine.model import prepare_exposures
+    from shearfit.simulate.stamps import ring_set
+
+    if not likelihood.USE_KERNEL:
+        pytest.skip("the compiled kernel is not in use")
+    rng = np.random.default_rng(3)
+    sim = ring_set(2, (0.01, -0.02), rng, n_rotations=1, n_exposures=3, snr_range=(15, 30), stamp_size=40,
+                   rotate_exposures=True)
+    for obs, _ in sim:
+        exps = prepare_exposures(obs, shearfit.FitConfig())
+        (b1, s1), (b0, s0) = _mode_bounds(exps), _mode_bounds(exps, use_kernel=False)
+        for x, y in zip(b1, b0):
+            assert x.shape == y.shape and np.allclose(x, y, rtol=2e-15, atol=0)
+        assert s1 == pytest.approx(s0, rel=1e-13)
 
 
 def test_prepare_exposures_is_prepare_exposure_of_each():

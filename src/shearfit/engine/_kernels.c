@@ -3804,6 +3804,125 @@ static PyObject *fold_groups(PyObject *self, PyObject *args)
     return res;
 }
 
+/*
+ * mode_bound(transfer, coarse, cweight, data_ft, norm, p) -> (h, ff): likelihood._mode_bounds' work for one
+ * exposure (its numpy lines stay as the reference): per mode j, w = cweight[coarse[j]] and p[j] = w |T_j|^2 norm
+ * (|T|^2 as re^2 + im^2, where numpy squares its hypot: the same to rounding); h = norm sum_j Re(conj(Y[coarse[j]])
+ * T_j) w and ff = sum_j p[j], summed in order (numpy's sums are pairwise: the same to rounding).
+ */
+static NO_CONTRACT void mode_bound_loop(const double *T, const int64_t *CO, const double *CW, const double *Y,
+                                        Py_ssize_t n, double norm, double *P, double *h_out, double *ff_out)
+{
+#if defined(__clang__)
+#pragma clang fp contract(off)
+#endif
+    double h = 0.0, ff = 0.0;
+    for (Py_ssize_t j = 0; j < n; j++) {
+        const double w = CW[CO[j]];
+        P[j] = w * (T[2 * j] * T[2 * j] + T[2 * j + 1] * T[2 * j + 1]) * norm;
+        ff += P[j];
+        const double yr = Y[2 * CO[j]], yi = -Y[2 * CO[j] + 1], tr = T[2 * j], ti = T[2 * j + 1];
+        h += (yr * tr - yi * ti) * w;
+    }
+    *h_out = h * norm;
+    *ff_out = ff;
+}
+
+static PyObject *mode_bound(PyObject *self, PyObject *args)
+{
+    Py_buffer tb, cb, wb, yb, pb;
+    double norm;
+    if (!PyArg_ParseTuple(args, "y*y*y*y*dw*", &tb, &cb, &wb, &yb, &norm, &pb)) return NULL;
+    const Py_ssize_t n = cb.len / (Py_ssize_t)sizeof(int64_t), nw = wb.len / (Py_ssize_t)sizeof(double);
+    const int64_t *CO = (const int64_t *)cb.buf;
+    int bad = tb.len != 2 * n * (Py_ssize_t)sizeof(double) || pb.len != n * (Py_ssize_t)sizeof(double)
+              || yb.len != 2 * nw * (Py_ssize_t)sizeof(double);
+    for (Py_ssize_t j = 0; !bad && j < n; j++) bad = CO[j] < 0 || CO[j] >= nw;
+    if (bad) {
+        RELEASE(&tb, &cb, &wb, &yb, &pb);
+        PyErr_SetString(PyExc_ValueError, "mode_bound: inconsistent buffers");
+        return NULL;
+    }
+    double h, ff;
+    mode_bound_loop((const double *)tb.buf, CO, (const double *)wb.buf, (const double *)yb.buf, n, norm,
+                    (double *)pb.buf, &h, &ff);
+    RELEASE(&tb, &cb, &wb, &yb, &pb);
+    return Py_BuildValue("dd", h, ff);
+}
+
+/*
+ * drop_threshold(b, tolerance) -> t or None: likelihood._drop_threshold's number (its numpy lines stay as the
+ * reference; a test checks they agree): the values <= tolerance (-0.0 as 0.0) summed in buckets of their bit
+ * patterns (>> 47), in order; the bucket where the cumulative sum first exceeds the tolerance sorted and summed
+ * from the buckets below; the largest value that ends a run of equal values with the sum within the tolerance,
+ * else the largest value of the buckets below, else None.
+ */
+static int dbl_cmp(const void *x, const void *y)
+{
+    const double a = *(const double *)x, b = *(const double *)y;
+    return a < b ? -1 : a > b;
+}
+
+static PyObject *drop_threshold(PyObject *self, PyObject *args)
+{
+    Py_buffer bb;
+    double tol;
+    if (!PyArg_ParseTuple(args, "y*d", &bb, &tol)) return NULL;
+    const Py_ssize_t n = bb.len / (Py_ssize_t)sizeof(double);
+    const double *B = (const double *)bb.buf;
+    double *v = (double *)malloc((size_t)(n + 1) * sizeof(double));
+    int64_t *key = (int64_t *)malloc((size_t)(n + 1) * sizeof(int64_t));
+    double *csum = NULL, *w = NULL;
+    int nomem = v == NULL || key == NULL, found = 0;
+    double t = 0.0;
+    if (!nomem) {
+        Py_ssize_t m = 0;
+        for (Py_ssize_t i = 0; i < n; i++)
+            if (B[i] <= tol) v[m++] = B[i] + 0.0;
+        int64_t k0 = INT64_MAX, k1 = INT64_MIN;
+        for (Py_ssize_t i = 0; i < m; i++) {
+            int64_t bits;
+            memcpy(&bits, v + i, sizeof bits);
+            key[i] = bits >> 47;
+            if (key[i] < k0) k0 = key[i];
+            if (key[i] > k1) k1 = key[i];
+        }
+        if (m > 0) {
+            const Py_ssize_t nb = (Py_ssize_t)(k1 - k0) + 1;
+            csum = (double *)calloc((size_t)nb, sizeof(double));
+            w = (double *)malloc((size_t)m * sizeof(double));
+            nomem = csum == NULL || w == NULL;
+            if (!nomem) {
+                for (Py_ssize_t i = 0; i < m; i++) { key[i] -= k0; csum[key[i]] += v[i]; }
+                for (Py_ssize_t b = 1; b < nb; b++) csum[b] += csum[b - 1];
+                Py_ssize_t j = 0;
+                while (j < nb && !(csum[j] > tol)) j++;   /* searchsorted(csum, tol, 'right') */
+                if (j < nb) {
+                    Py_ssize_t nw = 0;
+                    for (Py_ssize_t i = 0; i < m; i++) if (key[i] == j) w[nw++] = v[i];
+                    qsort(w, (size_t)nw, sizeof(double), dbl_cmp);
+                    const double base = j > 0 ? csum[j - 1] : 0.0;
+                    double cs = 0.0;
+                    for (Py_ssize_t i = 0; i < nw; i++) {
+                        cs = i == 0 ? w[0] : cs + w[i];
+                        const int last = i + 1 == nw || w[i + 1] != w[i];
+                        if (last && base + cs <= tol) { t = w[i]; found = 1; }
+                    }
+                }
+                if (!found && j > 0) {
+                    for (Py_ssize_t i = 0; i < m; i++)
+                        if (key[i] < j && (!found || v[i] > t)) { t = v[i]; found = 1; }
+                }
+            }
+        }
+    }
+    free(v); free(key); free(csum); free(w);
+    PyBuffer_Release(&bb);
+    if (nomem) return PyErr_NoMemory();
+    if (!found) Py_RETURN_NONE;
+    return PyFloat_FromDouble(t);
+}
+
 static PyMethodDef methods[] = {
     {"kernel_isa", kernel_isa, METH_NOARGS, "kernel_isa() -> the instruction-set level this module was built for"},
     {"cpu_levels", cpu_levels, METH_NOARGS, "cpu_levels() -> the instruction-set levels this CPU runs"},
@@ -3828,6 +3947,8 @@ static PyMethodDef methods[] = {
      "locate_pass(bins, marg, e_index, rc, expx, xs, prior, shift, w, detail, r_peak, top, point)"},
     {"coarse_modes", coarse_modes, METH_VARARGS,
      "coarse_modes(kx, ky, transfer, coarse, keep, data_ft, xp, fp, index, base, shift, r2, out)"},
+    {"mode_bound", mode_bound, METH_VARARGS, "mode_bound(transfer, coarse, cweight, data_ft, norm, p) -> (h, ff)"},
+    {"drop_threshold", drop_threshold, METH_VARARGS, "drop_threshold(b, tolerance) -> t or None"},
     {"fold_groups", fold_groups, METH_VARARGS, "fold_groups(row, col, t, n, q) -> None or (multi, msizes, data, indices, indptr)"},
     {"coarse_gather", coarse_gather, METH_VARARGS, "coarse_gather(h, nx, sigma2, jinv, grid, total)"},
     {"table_interp", table_interp, METH_VARARGS,

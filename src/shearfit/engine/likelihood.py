@@ -258,7 +258,7 @@ def _bins_geometry(jm):
 _BUCKET_SHIFT = 47
 
 
-def _drop_threshold(b, tolerance):
+def _drop_threshold(b, tolerance, use_kernel=True):
     """The largest t among the values of ``b`` (>= 0) such that the sum of every b_j <= t is at most
     ``tolerance`` (None where even the smallest exceeds it): the weakest modes are dropped whole sets of
     equal bounds at a time, so that the cut does not depend on how a sort orders ties.
@@ -267,7 +267,12 @@ def _drop_threshold(b, tolerance):
     are summed in buckets of their bit patterns (monotonic in the value), and only the bucket where the
     sum crosses the tolerance is sorted (sums in another order than the sorted one's: the same t unless
     a sum lies within rounding of the tolerance).
+
+    The compiled kernel (``KERNEL.drop_threshold``) makes the same t, its sums in the same order
+    (tests/test_measure.py).
     """
+    if use_kernel and USE_KERNEL:
+        return KERNEL.drop_threshold(np.ascontiguousarray(b, dtype=float), float(tolerance))
     v = b[b <= tolerance] + 0.0
     if v.size == 0:
         return None
@@ -288,17 +293,28 @@ def _drop_threshold(b, tolerance):
     return float(np.max(v[key < j])) if j > 0 else None
 
 
-def _mode_bounds(exposures):
+def _mode_bounds(exposures, use_kernel=True):
     """Per exposure, each mode's w |T_j|^2 / (N sigma^2), and S^2 for S the bound on the flux of the brightest
     model the data allow (a point source at 3 times its fitted flux plus 5 sigma; None where no mode has
     weight): a model's own term of chi^2 in a mode, w |S R T_j|^2 / (N sigma^2), is at most S^2 times its value
-    (|R| <= 1)."""
+    (|R| <= 1). The compiled kernel (``KERNEL.mode_bound``, an exposure a call) makes the same values, its sums in
+    order where numpy's are pairwise (the same to rounding; tests/test_measure.py)."""
     h = 0.0
     ff = 0.0
     bounds = []
     for ex in exposures:
         ny, nx = ex.shape
         norm = 1.0 / (ny * nx * ex.sigma2)
+        if use_kernel and USE_KERNEL:
+            p = np.empty(ex.coarse.size)
+            he, fe = KERNEL.mode_bound(np.ascontiguousarray(ex.transfer, dtype=complex),
+                                       np.ascontiguousarray(ex.coarse, dtype=np.int64),
+                                       np.ascontiguousarray(ex.cweight, dtype=float),
+                                       np.ascontiguousarray(ex.data_ft, dtype=complex), norm, p)
+            h += he
+            ff += fe
+            bounds.append(p)
+            continue
         w = ex.cweight[ex.coarse]
         p = w * np.abs(ex.transfer) ** 2 * norm
         h += float(np.sum((np.conj(ex.data_ft[ex.coarse]) * ex.transfer * w).real) * norm)
