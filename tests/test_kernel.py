@@ -156,6 +156,32 @@ def test_alias_tables_compiled_and_numpy_agree(monkeypatch, rs, beta, s):
         assert np.abs(np.asarray(x, float) - np.asarray(y, float)).max() < 1e-14
 
 
+@pytest.mark.parametrize("shape", [(48, 48), (48, 40), (47, 50), (33, 33)])
+@pytest.mark.parametrize("s", [1, 3, 5])
+def test_alias_sums_from_half_the_rows_are_the_same_numbers(shape, s):
+    """The App. A alias tables made from half the rows (alias_sums_mirror: row ny - r read from row r's mirrored
+    aliases) are alias_sums' to the bit, even and odd grids alike; a row read from the wrong mirror, or an alias
+    order not mirrored, fails it (the sums' order is the same alias order)."""
+    if model.KERNEL is None or not model.USE_KERNEL:
+        pytest.skip("the compiled kernel is not in use")
+    ny, nx = shape
+    assert model._alias_mirrored(ny, nx, s)
+    ktab, i0, w0, w1 = model._alias_geometry(ny, nx, s)[:4]
+    kept = model._kept_aliases(ny, nx, s)
+    for rs, beta in [(0.7, 1.4), (2.4, 2.6), (5.0, 4.3)]:
+        mtab = model._moffat_table(ktab, rs, beta)
+        out = []
+        for mirror in (False, True):
+            A, Gs, M = np.empty(i0.shape[2:]), np.empty(kept.size * ny * (nx // 2 + 1)), np.empty(i0.shape[2:])
+            if mirror:
+                model.KERNEL.alias_sums_mirror(mtab, i0, w0, w1, kept, A, Gs, M, ny, nx // 2 + 1, i0.shape[0])
+            else:
+                model.KERNEL.alias_sums(mtab, i0, w0, w1, kept, A, Gs, M)
+            out.append((A, Gs, M))
+        for x, y in zip(*out):
+            assert np.array_equal(x, y)
+
+
 @pytest.mark.parametrize("s", [1, 3, 5])
 @pytest.mark.parametrize("shape, offset", [((48, 48), None), ((48, 48), (0.31, -0.27)), ((47, 50), (-0.4, 0.12))])
 def test_fine_modes_compiled_and_numpy_agree(monkeypatch, s, shape, offset):

@@ -2566,6 +2566,20 @@ static PyObject *hermite_log_table(PyObject *self, PyObject *args)
  * (in alias order), and Gs = G of the aliases listed in kept, block after block; G2max[j], if given, the largest
  * G^2 of mode j over the kept aliases.
  */
+/* each mode's largest |G|^2 over the nk kept aliases' transforms G (nk blocks of n; model.py's G2max: |G|
+   squared is G squared) */
+static void kept_g2max(const double *G, Py_ssize_t nk, Py_ssize_t n, double *M)
+{
+    for (Py_ssize_t j = 0; j < n; j++) M[j] = G[j] * G[j];
+    for (Py_ssize_t c = 1; c < nk; c++) {
+        const double *Gc = G + c * n;
+        for (Py_ssize_t j = 0; j < n; j++) {
+            const double v = Gc[j] * Gc[j];
+            M[j] = v > M[j] ? v : M[j];
+        }
+    }
+}
+
 static PyObject *alias_sums(PyObject *self, PyObject *args)
 {
     Py_buffer tb, ib, w0b, w1b, kb, ab, gb, mb = {0};
@@ -2609,21 +2623,87 @@ static PyObject *alias_sums(PyObject *self, PyObject *args)
             for (Py_ssize_t j = 0; j < n; j++) A[j] += T[Ia[j]] * Wa[j] + T[Ia[j] + 1] * Wb[j];
         }
     }
-    if (mb.buf != NULL) {
-        /* each mode's largest |G|^2 over the kept aliases (model.py's G2max: |G| squared is G squared) */
-        double *M = (double *)mb.buf;
-        for (Py_ssize_t j = 0; j < n; j++) M[j] = G[j] * G[j];
-        for (Py_ssize_t c = 1; c < nk; c++) {
-            const double *Gc = G + c * n;
-            for (Py_ssize_t j = 0; j < n; j++) {
-                const double v = Gc[j] * Gc[j];
-                M[j] = v > M[j] ? v : M[j];
-            }
-        }
-    }
+    if (mb.buf != NULL) kept_g2max(G, nk, n, (double *)mb.buf);
     Py_END_ALLOW_THREADS
     RELEASE(&tb, &ib, &w0b, &w1b, &kb, &ab, &gb);
     if (mb.buf != NULL) PyBuffer_Release(&mb);
+    Py_RETURN_NONE;
+}
+
+/*
+ * alias_sums_mirror(table, i0, w0, w1, kept, A, Gs, G2max, ny, nxh, side): alias_sums' numbers for the alias
+ * tables of an rfft grid (ny rows of nxh modes, side x side aliases n = (ny_a, nx_a), alias a = ny_a side +
+ * nx_a, the offsets symmetric), made from half of its rows. Row ny - r (ky -> -ky) holds the mirror image of row r:
+ * its alias (ny_a, nx_a) is row r's (side - 1 - ny_a, nx_a), every |k + 2 pi n| and pixel response the same to the
+ * bit (model._alias_geometry: a test checks it), so its transforms are row r's read in the mirrored order and its
+ * sum A is added up in alias order from them, as alias_sums does: the same numbers, half the interpolations.
+ */
+static PyObject *alias_sums_mirror(PyObject *self, PyObject *args)
+{
+    Py_buffer tb, ib, w0b, w1b, kb, ab, gb, mb;
+    Py_ssize_t ny, nxh, side;
+    if (!PyArg_ParseTuple(args, "y*y*y*y*y*w*w*w*nnn", &tb, &ib, &w0b, &w1b, &kb, &ab, &gb, &mb, &ny, &nxh, &side))
+        return NULL;
+    const Py_ssize_t ntab = tb.len / (Py_ssize_t)sizeof(double), n = ab.len / (Py_ssize_t)sizeof(double);
+    const Py_ssize_t total = ib.len / (Py_ssize_t)sizeof(int64_t), nk = kb.len / (Py_ssize_t)sizeof(int64_t);
+    const Py_ssize_t na = side * side;
+    const int64_t *I = (const int64_t *)ib.buf, *K = (const int64_t *)kb.buf;
+    int bad = n < 1 || ny < 1 || nxh < 1 || side < 1 || ny * nxh != n || na * n != total
+              || w0b.len != total * (Py_ssize_t)sizeof(double) || w1b.len != w0b.len
+              || gb.len != nk * n * (Py_ssize_t)sizeof(double) || mb.len != n * (Py_ssize_t)sizeof(double) || nk < 1;
+    /* the rows computed: 0 .. nsrc - 1 (row 0, ky = 0, is its own mirror; an even grid's Nyquist row too); only
+       their table indices are read */
+    const Py_ssize_t nsrc = ny / 2 + 1, m = nsrc * nxh;
+    for (Py_ssize_t a = 0; !bad && a < nk; a++) bad = K[a] < 0 || K[a] >= na;
+    for (Py_ssize_t a = 0; !bad && a < na; a++) {
+        const int64_t *Ia = I + a * n;
+        int64_t lo = 0, hi = 0;
+        for (Py_ssize_t j = 0; j < m; j++) {
+            lo = Ia[j] < lo ? Ia[j] : lo;
+            hi = Ia[j] > hi ? Ia[j] : hi;
+        }
+        bad = lo < 0 || hi + 1 >= ntab;
+    }
+    if (bad) {
+        RELEASE(&tb, &ib, &w0b, &w1b, &kb, &ab, &gb, &mb);
+        PyErr_SetString(PyExc_ValueError, "alias_sums_mirror: inconsistent buffers");
+        return NULL;
+    }
+    double *Gall = (double *)malloc((size_t)(na * m) * sizeof(double));
+    if (Gall == NULL) {
+        RELEASE(&tb, &ib, &w0b, &w1b, &kb, &ab, &gb, &mb);
+        return PyErr_NoMemory();
+    }
+    const double *T = (const double *)tb.buf, *W0 = (const double *)w0b.buf, *W1 = (const double *)w1b.buf;
+    double *A = (double *)ab.buf, *G = (double *)gb.buf, *M = (double *)mb.buf;
+    Py_BEGIN_ALLOW_THREADS
+    /* every alias's transform at the source rows (their modes are the first m of each alias's block) */
+    for (Py_ssize_t a = 0; a < na; a++) {
+        const int64_t *Ia = I + a * n;
+        const double *Wa = W0 + a * n, *Wb = W1 + a * n;
+        double *Ga = Gall + a * m;
+        for (Py_ssize_t j = 0; j < m; j++) Ga[j] = T[Ia[j]] * Wa[j] + T[Ia[j] + 1] * Wb[j];
+    }
+    for (Py_ssize_t r = 0; r < ny; r++) {
+        const int mirrored = r >= nsrc;
+        const Py_ssize_t src = mirrored ? ny - r : r;
+        double *Ar = A + r * nxh;
+        for (Py_ssize_t c = 0; c < nxh; c++) Ar[c] = 0.0;
+        for (Py_ssize_t a = 0; a < na; a++) {
+            const Py_ssize_t b = mirrored ? (side - 1 - a / side) * side + a % side : a;
+            const double *Gb = Gall + b * m + src * nxh;
+            for (Py_ssize_t c = 0; c < nxh; c++) Ar[c] += Gb[c];
+        }
+        for (Py_ssize_t k = 0; k < nk; k++) {
+            const Py_ssize_t a = (Py_ssize_t)K[k];
+            const Py_ssize_t b = mirrored ? (side - 1 - a / side) * side + a % side : a;
+            memcpy(G + k * n + r * nxh, Gall + b * m + src * nxh, nxh * sizeof(double));
+        }
+    }
+    kept_g2max(G, nk, n, M);
+    Py_END_ALLOW_THREADS
+    free(Gall);
+    RELEASE(&tb, &ib, &w0b, &w1b, &kb, &ab, &gb, &mb);
     Py_RETURN_NONE;
 }
 
@@ -3949,6 +4029,8 @@ static PyMethodDef methods[] = {
      "coarse_modes(kx, ky, transfer, coarse, keep, data_ft, xp, fp, index, base, shift, r2, out)"},
     {"mode_bound", mode_bound, METH_VARARGS, "mode_bound(transfer, coarse, cweight, data_ft, norm, p) -> (h, ff)"},
     {"drop_threshold", drop_threshold, METH_VARARGS, "drop_threshold(b, tolerance) -> t or None"},
+    {"alias_sums_mirror", alias_sums_mirror, METH_VARARGS,
+     "alias_sums_mirror(table, i0, w0, w1, kept, A, Gs, G2max, ny, nxh, side)"},
     {"fold_groups", fold_groups, METH_VARARGS, "fold_groups(row, col, t, n, q) -> None or (multi, msizes, data, indices, indptr)"},
     {"coarse_gather", coarse_gather, METH_VARARGS, "coarse_gather(h, nx, sigma2, jinv, grid, total)"},
     {"table_interp", table_interp, METH_VARARGS,

@@ -337,6 +337,18 @@ def _alias_geometry(ny, nx, s):
     return ktab, i0, w0, w1, sel, KYf, KXf, cs, (kyv, iy, kxv, ix)
 
 
+@functools.lru_cache(maxsize=8)
+def _alias_mirrored(ny, nx, s):
+    """Whether the alias geometry of a (ny, nx) stamp is its own mirror image in ky to the bit: row ny - r's alias
+    (ny_a, nx_a) has row r's (-ny_a, nx_a) table index and weights (2 pi fftfreq, hypot and sinc are odd or even
+    exactly where the C library's sin is odd), so that ``KERNEL.alias_sums_mirror`` may make the tables from half
+    the rows (the same numbers)."""
+    _, i0, w0, w1 = _alias_geometry(ny, nx, s)[:4]
+    rows = (ny - np.arange(1, (ny + 1) // 2)) % ny      # the mirrored rows ny - r, r = 1 .. ceil(ny / 2) - 1
+    src = np.arange(1, (ny + 1) // 2)
+    return all(np.array_equal(a[::-1, :, rows], a[:, :, src]) for a in (i0, w0, w1))
+
+
 #: the alias tables' Moffat (:func:`_moffat_table`) is exact below x = k rs = 1 where beta < MOFFAT_SMOOTH_BETA (the
 #: transform's cusp: x^(2 nu) with 2 nu < 3), below x = 0.05 otherwise
 MOFFAT_SMOOTH_BETA = 2.5
@@ -449,7 +461,11 @@ def _moffat_aliases(rs, beta, ny, nx, s):
         A = np.empty(i0.shape[2:])
         Gs = np.empty(kept.size * A.size)
         G2max = np.empty(A.size)
-        KERNEL.alias_sums(mtab, i0, w0, w1, kept, A, Gs, G2max)
+        if _alias_mirrored(ny, nx, s):
+            # half the rows' interpolations: the others are their mirror images (the same numbers)
+            KERNEL.alias_sums_mirror(mtab, i0, w0, w1, kept, A, Gs, G2max, ny, A.shape[1], i0.shape[0])
+        else:
+            KERNEL.alias_sums(mtab, i0, w0, w1, kept, A, Gs, G2max)
         absG = None   # fine_modes_select squares G itself: |G|^2 = G^2
     else:
         G = mtab[i0] * w0 + mtab[i0 + 1] * w1
