@@ -398,6 +398,42 @@ def test_drop_threshold_is_the_sorted_sums_one():
     assert _drop_threshold(np.array([0.4, 0.4, 0.1]), 1.0) == 0.4
 
 
+@pytest.mark.parametrize("rotate", [True, False])
+def test_bins_geometry_compiled_and_numpy_agree(rotate):
+    """The modes packed for binning (their order, b3, the q column, the fold groups' pairs, and the six linear
+    vectors' float32 weights) by the compiled kernel (bins_geometry, bins_channels) are the numpy lines' to the
+    bit: exposures with their own rotations (fold groups within each) and sharing one Jacobian (merged modes),
+    with the weak groups decoupled and after a shift (H's phases)."""
+    from dataclasses import replace
+
+    from shearfit.engine import likelihood
+    from shearfit.engine.likelihood import _bins_geometry, _packed_bins, join_exposures, shift_joint
+    from shearfit.engine.model import prepare_exposures
+    from shearfit.simulate.stamps import ring_set
+
+    if not likelihood.USE_KERNEL:
+        pytest.skip("the compiled kernel is not in use")
+    cfg = shearfit.FitConfig()
+    sim = ring_set(2, (0.0, 0.0), np.random.default_rng(5), n_rotations=1, n_exposures=4, snr_range=(20, 40),
+                   stamp_size=40, rotate_exposures=rotate)
+    n_pairs = 0
+    for obs, _ in sim:
+        exps = prepare_exposures(obs, cfg)
+        for fold in (0.0, cfg.fold_chi2_tolerance):
+            jm = join_exposures(exps, cfg.mode_chi2_tolerance, fold_tolerance=fold,
+                                pair_tolerance=cfg.pair_chi2_tolerance)
+            for j in (jm, shift_joint(jm, 0.013, -0.021)):
+                got = _bins_geometry(replace(j))
+                want = _bins_geometry(replace(j), use_kernel=False)
+                for a, b in zip(got, want):
+                    assert a.dtype == b.dtype and a.shape == b.shape and np.array_equal(a, b)
+                c_got = _packed_bins(replace(j))[1]
+                c_want = _packed_bins(replace(j), use_kernel=False)[1]
+                assert np.array_equal(c_got, c_want)
+                n_pairs += got[4].size
+    assert n_pairs > 0
+
+
 def test_mode_bounds_compiled_and_numpy_agree():
     """The noise-aware cut's bounds per mode (w |T|^2 / (N sigma^2)) and the flux bound S^2 made by the compiled
     kernel (KERNEL.mode_bound) are the numpy lines': the bounds to rounding, S^2 to rounding (its sums in order

@@ -4003,6 +4003,141 @@ static PyObject *drop_threshold(PyObject *self, PyObject *args)
     return PyFloat_FromDouble(t);
 }
 
+/*
+ * bins_geometry(multi, basis, q, indptr, indices, data, order, b3, qcol) -> (gsel, pa, pb, ph): likelihood.
+ * _bins_geometry's arrays (its numpy lines stay as the reference; a test checks they agree to the bit): the
+ * modes' order (those alone on their sampled mode ascending, then multi's), b3 = [kx^2, 2 kx ky, ky^2, 0] of
+ * each (float32, from basis: 3 x n doubles), qcol (float32): q for the modes alone, H's diagonal (real) for
+ * multi's; and the fold groups' pairs: H's (csr over multi: int64 indptr, indices; complex128 data) entries
+ * above the diagonal with a real part, in csr order, as (gsel: the modes they touch, ascending, as rows of the
+ * order; pa, pb: each pair's two among gsel; ph = 2 Re H_ab), bytearrays.
+ */
+static PyObject *bins_geometry(PyObject *self, PyObject *args)
+{
+    Py_buffer mb, bb, qb, ipb, inb, db, ob, b3b, qcb;
+    if (!PyArg_ParseTuple(args, "y*y*y*y*y*y*w*w*w*", &mb, &bb, &qb, &ipb, &inb, &db, &ob, &b3b, &qcb)) return NULL;
+    const Py_ssize_t n = qb.len / (Py_ssize_t)sizeof(double), nm = mb.len / (Py_ssize_t)sizeof(int64_t);
+    const Py_ssize_t nnz = inb.len / (Py_ssize_t)sizeof(int64_t);
+    const int64_t *MU = (const int64_t *)mb.buf, *IP = (const int64_t *)ipb.buf, *IN = (const int64_t *)inb.buf;
+    int bad = nm > n || bb.len != 3 * n * (Py_ssize_t)sizeof(double) || ipb.len != (nm + 1) * (Py_ssize_t)sizeof(int64_t)
+              || db.len != 2 * nnz * (Py_ssize_t)sizeof(double) || ob.len != n * (Py_ssize_t)sizeof(int64_t)
+              || b3b.len != 4 * n * (Py_ssize_t)sizeof(float) || qcb.len != n * (Py_ssize_t)sizeof(float);
+    for (Py_ssize_t i = 0; !bad && i < nm; i++) bad = MU[i] < 0 || MU[i] >= n;
+    for (Py_ssize_t i = 0; !bad && i < nm; i++) bad = IP[i] < 0 || IP[i] > IP[i + 1] || IP[i + 1] > nnz;
+    bad = bad || (nm > 0 && IP[0] != 0);
+    for (Py_ssize_t k = 0; !bad && k < nnz; k++) bad = IN[k] < 0 || IN[k] >= nm;
+    if (bad) {
+        RELEASE(&mb, &bb, &qb, &ipb, &inb, &db, &ob, &b3b, &qcb);
+        PyErr_SetString(PyExc_ValueError, "bins_geometry: inconsistent buffers");
+        return NULL;
+    }
+    const double *B = (const double *)bb.buf, *Q = (const double *)qb.buf, *D = (const double *)db.buf;
+    int64_t *O = (int64_t *)ob.buf;
+    float *B3 = (float *)b3b.buf, *QC = (float *)qcb.buf;
+    unsigned char *inm = (unsigned char *)calloc((size_t)(n + 1), 1);
+    int64_t *pr = (int64_t *)malloc((size_t)(2 * nnz + 1) * sizeof(int64_t));
+    double *ph = (double *)malloc((size_t)(nnz + 1) * sizeof(double));
+    int64_t *map = (int64_t *)malloc((size_t)(nm + 1) * sizeof(int64_t));
+    PyObject *res = NULL;
+    if (inm == NULL || pr == NULL || ph == NULL || map == NULL) {
+        free(inm); free(pr); free(ph); free(map);
+        RELEASE(&mb, &bb, &qb, &ipb, &inb, &db, &ob, &b3b, &qcb);
+        return PyErr_NoMemory();
+    }
+    for (Py_ssize_t i = 0; i < nm; i++) inm[MU[i]] = 1;
+    Py_ssize_t ns = 0;
+    for (Py_ssize_t j = 0; j < n; j++) if (!inm[j]) O[ns++] = j;
+    const Py_ssize_t n_single = ns;
+    for (Py_ssize_t i = 0; i < nm; i++) O[n_single + i] = MU[i];
+    for (Py_ssize_t i = 0; i < n; i++) {
+        const int64_t j = O[i];
+        B3[4 * i] = (float)B[j];
+        B3[4 * i + 1] = (float)B[n + j];
+        B3[4 * i + 2] = (float)B[2 * n + j];
+        B3[4 * i + 3] = 0.0f;
+        QC[i] = i < n_single ? (float)Q[j] : 0.0f;
+    }
+    /* H's diagonal (real) for multi's rows, and its pairs above the diagonal with a real part */
+    Py_ssize_t np_ = 0;
+    for (Py_ssize_t i = 0; i < nm; i++) map[i] = 0;
+    for (Py_ssize_t i = 0; i < nm; i++)
+        for (int64_t k = IP[i]; k < IP[i + 1]; k++) {
+            const int64_t c = IN[k];
+            const double re = D[2 * k];
+            if (c == i) QC[n_single + i] = (float)re;
+            if (i < c && re != 0) {
+                pr[2 * np_] = i;
+                pr[2 * np_ + 1] = c;
+                ph[np_] = 2.0 * re;
+                map[i] = map[c] = 1;
+                np_++;
+            }
+        }
+    Py_ssize_t ng = 0;
+    for (Py_ssize_t i = 0; i < nm; i++) map[i] = map[i] ? ng++ : -1;
+    int64_t *gsel = (int64_t *)malloc((size_t)(ng + 1) * sizeof(int64_t));
+    int64_t *pa = (int64_t *)malloc((size_t)(np_ + 1) * sizeof(int64_t));
+    int64_t *pb = (int64_t *)malloc((size_t)(np_ + 1) * sizeof(int64_t));
+    if (gsel != NULL && pa != NULL && pb != NULL) {
+        for (Py_ssize_t i = 0; i < nm; i++) if (map[i] >= 0) gsel[map[i]] = n_single + i;
+        for (Py_ssize_t k = 0; k < np_; k++) {
+            pa[k] = map[pr[2 * k]];
+            pb[k] = map[pr[2 * k + 1]];
+        }
+        PyObject *o1 = PyByteArray_FromStringAndSize((const char *)gsel, ng * 8);
+        PyObject *o2 = PyByteArray_FromStringAndSize((const char *)pa, np_ * 8);
+        PyObject *o3 = PyByteArray_FromStringAndSize((const char *)pb, np_ * 8);
+        PyObject *o4 = PyByteArray_FromStringAndSize((const char *)ph, np_ * 8);
+        if (o1 && o2 && o3 && o4) res = PyTuple_Pack(4, o1, o2, o3, o4);
+        Py_XDECREF(o1); Py_XDECREF(o2); Py_XDECREF(o3); Py_XDECREF(o4);
+    }
+    int nomem = gsel == NULL || pa == NULL || pb == NULL;
+    free(inm); free(pr); free(ph); free(map); free(gsel); free(pa); free(pb);
+    RELEASE(&mb, &bb, &qb, &ipb, &inb, &db, &ob, &b3b, &qcb);
+    if (nomem) return PyErr_NoMemory();
+    return res;
+}
+
+/*
+ * bins_channels(order, z, kx, ky, qcol, c8): likelihood._packed_bins' weights (its numpy lines stay as the
+ * reference; a test checks they agree to the bit): per mode i of the order, the six linear vectors of mode
+ * order[i] (Re z, kx Im z, ky Im z, -kx kx Re z, -kx ky Re z, -ky ky Re z, as _linear_rows multiplies them), its
+ * qcol and 0, as float32 (n x 8).
+ */
+static PyObject *bins_channels(PyObject *self, PyObject *args)
+{
+    Py_buffer ob, zb, xb, yb, qb, cb;
+    if (!PyArg_ParseTuple(args, "y*y*y*y*y*w*", &ob, &zb, &xb, &yb, &qb, &cb)) return NULL;
+    const Py_ssize_t n = ob.len / (Py_ssize_t)sizeof(int64_t), nz = xb.len / (Py_ssize_t)sizeof(double);
+    const int64_t *O = (const int64_t *)ob.buf;
+    int bad = zb.len != 2 * nz * (Py_ssize_t)sizeof(double) || yb.len != xb.len
+              || qb.len != n * (Py_ssize_t)sizeof(float) || cb.len != 8 * n * (Py_ssize_t)sizeof(float);
+    for (Py_ssize_t i = 0; !bad && i < n; i++) bad = O[i] < 0 || O[i] >= nz;
+    if (bad) {
+        RELEASE(&ob, &zb, &xb, &yb, &qb, &cb);
+        PyErr_SetString(PyExc_ValueError, "bins_channels: inconsistent buffers");
+        return NULL;
+    }
+    const double *Z = (const double *)zb.buf, *X = (const double *)xb.buf, *Y = (const double *)yb.buf;
+    const float *QC = (const float *)qb.buf;
+    float *C = (float *)cb.buf;
+    for (Py_ssize_t i = 0; i < n; i++) {
+        const int64_t j = O[i];
+        const double zr = Z[2 * j], zi = Z[2 * j + 1], kx = X[j], ky = Y[j];
+        float *c = C + 8 * i;
+        c[0] = (float)zr;
+        c[1] = (float)(kx * zi);
+        c[2] = (float)(ky * zi);
+        c[3] = (float)((-kx * kx) * zr);
+        c[4] = (float)((-kx * ky) * zr);
+        c[5] = (float)((-ky * ky) * zr);
+        c[6] = QC[i];
+        c[7] = 0.0f;
+    }
+    RELEASE(&ob, &zb, &xb, &yb, &qb, &cb);
+    Py_RETURN_NONE;
+}
+
 static PyMethodDef methods[] = {
     {"kernel_isa", kernel_isa, METH_NOARGS, "kernel_isa() -> the instruction-set level this module was built for"},
     {"cpu_levels", cpu_levels, METH_NOARGS, "cpu_levels() -> the instruction-set levels this CPU runs"},
@@ -4031,6 +4166,9 @@ static PyMethodDef methods[] = {
     {"drop_threshold", drop_threshold, METH_VARARGS, "drop_threshold(b, tolerance) -> t or None"},
     {"alias_sums_mirror", alias_sums_mirror, METH_VARARGS,
      "alias_sums_mirror(table, i0, w0, w1, kept, A, Gs, G2max, ny, nxh, side)"},
+    {"bins_geometry", bins_geometry, METH_VARARGS,
+     "bins_geometry(multi, basis, q, indptr, indices, data, order, b3, qcol) -> (gsel, pa, pb, ph)"},
+    {"bins_channels", bins_channels, METH_VARARGS, "bins_channels(order, z, kx, ky, qcol, c8)"},
     {"fold_groups", fold_groups, METH_VARARGS, "fold_groups(row, col, t, n, q) -> None or (multi, msizes, data, indices, indptr)"},
     {"coarse_gather", coarse_gather, METH_VARARGS, "coarse_gather(h, nx, sigma2, jinv, grid, total)"},
     {"table_interp", table_interp, METH_VARARGS,

@@ -193,7 +193,7 @@ def _block_factors(A, sizes):
     return ranks, out
 
 
-def _packed_bins(jm):
+def _packed_bins(jm, use_kernel=True):
     """Every mode, compact for binning (cached): (b3, c8, pair_basis, pair_a, pair_b, pair_h).
 
     b3: the basis [kx^2, 2 kx ky, ky^2, 0] and c8: the weights [lin0..lin5, q, 0] of every mode, in float32
@@ -204,24 +204,47 @@ def _packed_bins(jm):
     """
     cache = getattr(jm, "_bins32", None)
     if cache is None:
-        order, b3, qcol, pair_basis, pa, pb, ph = _bins_geometry(jm)
-        # linear_vectors' rows in the modes' order, each made straight into its column
+        order, b3, qcol, pair_basis, pa, pb, ph = _bins_geometry(jm, use_kernel)
         c8 = np.empty((order.size, 8), np.float32)
-        for t, row in enumerate(_linear_rows(jm.z[order], jm.kx[order], jm.ky[order])):
-            c8[:, t] = row
-        c8[:, 6] = qcol
-        c8[:, 7] = 0.0
+        if use_kernel and USE_KERNEL:
+            # the same numbers in one pass (bins_channels)
+            KERNEL.bins_channels(order, np.ascontiguousarray(jm.z, dtype=complex),
+                                 np.ascontiguousarray(jm.kx, dtype=float), np.ascontiguousarray(jm.ky, dtype=float),
+                                 qcol, c8)
+        else:
+            # linear_vectors' rows in the modes' order, each made straight into its column
+            for t, row in enumerate(_linear_rows(jm.z[order], jm.kx[order], jm.ky[order])):
+                c8[:, t] = row
+            c8[:, 6] = qcol
+            c8[:, 7] = 0.0
         cache = jm._bins32 = (b3, c8, pair_basis, pa, pb, ph)
     return cache
 
 
-def _bins_geometry(jm):
+def _bins_geometry(jm, use_kernel=True):
     """What :func:`_packed_bins` takes from the modes alone, not from the data (cached, and carried by
     :meth:`JointModes.with_data` to another version's modes): the modes' order (alone on their sampled mode
     first, then the fold groups', as packed()'s, without its rows of doubles and the groups' factors, which
     only the unbinned kernel needs), b3, the q column (float32) and the fold groups' pairs (the rows of b3 of
-    their modes, and per pair its two modes among them and 2 Re H_ab)."""
+    their modes, and per pair its two modes among them and 2 Re H_ab). The compiled kernel (``bins_geometry``;
+    ``bins_channels`` for :func:`_packed_bins`' weights) makes the same arrays to the bit in one pass
+    (tests/test_measure.py)."""
     cache = getattr(jm, "_bins32_geometry", None)
+    if cache is None and use_kernel and USE_KERNEL:
+        # the same arrays in one compiled call (bins_geometry)
+        n = jm.n_modes
+        H = jm.H.tocsr() if jm.multi.size else sparse.csr_matrix((0, 0), dtype=complex)
+        order, b3, qcol = np.empty(n, np.int64), np.empty((n, 4), np.float32), np.empty(n, np.float32)
+        got = KERNEL.bins_geometry(np.ascontiguousarray(jm.multi, dtype=np.int64),
+                                   np.ascontiguousarray(jm.basis, dtype=float), np.ascontiguousarray(jm.q, dtype=float),
+                                   np.ascontiguousarray(H.indptr, dtype=np.int64),
+                                   np.ascontiguousarray(H.indices, dtype=np.int64),
+                                   np.ascontiguousarray(H.data, dtype=complex), order, b3, qcol)
+        gsel, pa, pb, ph = (np.frombuffer(b, dt) for b, dt in zip(got, (np.int64, np.int64, np.int64, float)))
+        cache = (order, b3, qcol, np.ascontiguousarray(b3[gsel]), pa, pb, ph)
+        for arr in cache:
+            arr.setflags(write=False)
+        jm._bins32_geometry = cache
     if cache is None:
         singles = jm.single_modes()
         n_single = singles.size
