@@ -28,8 +28,11 @@ margin of the bytes per mode (450 against the 170-300 of most fits) covers. ``be
 prints the estimate beside the measured peaks (tracemalloc and RSS, each case in a fresh process): 1.25
 to 2.6 times them (the engine of 2026-11-25, whose fold groups are binned) for 7 exposures on stamps of
 48-128 pixels, the largest galaxies and a sharp PSF (the
-loosest for faint galaxies, whose noise-aware cut drops two thirds of the modes). A change of the engine that holds more
-per mode (per ellipticity and fold-group mode, say) needs these coefficients measured again.
+loosest for faint galaxies, whose noise-aware cut drops two thirds of the modes). Without the compiled loops
+(``SHEARFIT_ISA=numpy``), the numpy lines' model sums take their models in blocks of
+``likelihood.NUMPY_BLOCK_ELEMENTS`` (model, mode) pairs, so that the estimate bounds them too (0.4-0.6 times
+it on those cases; until session 82 they took a sampler's chunk at once, 10-15 times it). A change of the engine
+that holds more per mode (per ellipticity and fold-group mode, say) needs these coefficients measured again.
 """
 
 from __future__ import annotations
