@@ -107,13 +107,13 @@ class EllipticityLikelihood:
         self._loc_e = np.zeros((0, 2))
         self._loc_x = np.zeros(0)
         self._peak_max = -np.inf   # the highest last-pass peak so far (see _located_centres)
-        self.lin = linear_vectors(jm)
+        self._lin = None
         # ellipticities evaluated together (their bins made in one call, their models' sums in one): 256 took 3 %
         # less time than 64 on benchmarks/speed.py's galaxies, the same estimates to the bit (benchmarks/README.md)
         self.chunk = chunk
         # r = 0, the point source: one model shared by every ellipticity; the size integral runs
         # from it to the first node (sec. 3.2: "the set of r values included a point source")
-        s0 = model_sums(jm, [0.0], [0.0], [0.0], fast, cfg.bulge_size_ratio, lin=self.lin,
+        s0 = model_sums(jm, [0.0], [0.0], [0.0], fast, cfg.bulge_size_ratio, lin=self._lin_numpy(),
                           bins_per_octave=cfg.mode_bins_per_octave)
         self.zero = flux_position_marginal(s0, cfg, jm.pixel_scale)
         # sum over the modes of |unit-flux point source|^2 / sigma^2: a flux F's SNR were it unresolved is
@@ -127,6 +127,19 @@ class EllipticityLikelihood:
         # same object (metacal's) replays them instead of locating its own (``fixed_centres``)
         self.centres = {}
         self.fixed_centres = None
+
+    @property
+    def lin(self):
+        """The modes' six linear vectors (:func:`linear_vectors`), made at first use."""
+        if self._lin is None:
+            self._lin = linear_vectors(self.jm)
+        return self._lin
+
+    def _lin_numpy(self):
+        """What model_sums takes as ``lin``: only the numpy lines read it (the compiled sums make their own
+        weights), so the kernel's fits do not make it (a (6, modes) stack a version: 4 % of metacal's replays'
+        setup)."""
+        return None if USE_KERNEL else self.lin
 
     @property
     def ln_a(self):
@@ -222,7 +235,7 @@ class EllipticityLikelihood:
 
     def _sums(self, e1, e2, r, bins, index):
         """Model sums of (e1, e2, r); with ``bins`` (the chunk's), ``index`` is each model's e in them."""
-        return model_sums(self.jm, e1, e2, r, self.fast, self.cfg.bulge_size_ratio, lin=self.lin,
+        return model_sums(self.jm, e1, e2, r, self.fast, self.cfg.bulge_size_ratio, lin=self._lin_numpy(),
                           bins_per_octave=self.cfg.mode_bins_per_octave, bins=bins, bin_index=index)
 
     def _locate(self, e1, e2, rc, half_width, bins=None, index=None, detail=False, use_kernel=True):
