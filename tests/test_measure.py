@@ -738,7 +738,7 @@ def test_mode_bins_in_reused_memory_are_the_same_bins():
     rng, jm, b3, c8 = _distorted_bins(7, 11, 40)
     e = rng.uniform(0.0, 0.9, 40) * np.exp(2j * np.pi * rng.uniform(size=40))
     shape = np.ascontiguousarray(np.stack(shape_matrix(e.real, e.imag), axis=1))
-    polar = likelihood._polar_args(likelihood.polar_grid(jm, 12, 80), (80, 0.95))
+    polar = likelihood.polar_args(likelihood.polar_grid(jm, 12, 80), (80, 0.95))
     for pol in (None, polar):
         lo, off, cols, dc = KERNEL.make_bins(shape, b3, c8, 12, 1, pol)
         n = len(cols) // 8
@@ -1135,6 +1135,53 @@ def test_compiled_size_nodes_and_locating_passes_match_numpy(axis):
         likelihood.KERNEL.size_nodes(ctx, marg, np.zeros(2, np.int64), np.ones(2), np.ones(7), 0.0, np.zeros(3),
                                      np.zeros((7, 3)), np.zeros((7, 3)), np.zeros(9), np.zeros(9), np.zeros(2),
                                      np.zeros(2), np.zeros(3), b"", np.empty((5, 3)), np.empty(2))
+
+
+@pytest.mark.parametrize("axis,snr,locate", [("major", 400, True), ("area", 30, True), ("major", 30, False)])
+def test_compiled_sample_chunk_matches_its_python_lines(axis, snr, locate):
+    """The sampler's chunks in one compiled call (KERNEL.sample_chunk: shape matrices, bins, size-locating passes,
+    the tail's crude values and the size nodes) give what the lines of EllipticityLikelihood._chunk give, to the
+    bit: over several chunks in turn (the highest peak so far carried from one to the next, so that the tail's
+    shortcut is taken at SNR 400), with and without the locating passes, the size prior on either axis; the size
+    centres recorded, the models counted and the best single-component fit alike. The first chunk starts from an
+    empty column buffer (make_bins' columns then in memory of their own, and the buffer grown). Bad buffers raise."""
+    from shearfit.engine import likelihood
+    from shearfit.engine.likelihood import join_exposures, marginal_context
+    from shearfit.engine.model import prepare_exposure
+    from shearfit.engine.profiles import fast_pair
+    from shearfit.engine.sampling import EllipticityLikelihood
+
+    if not likelihood.USE_KERNEL or marginal_context(shearfit.FitConfig(), PIX) is None:
+        pytest.skip("compiled kernel not built")
+    cfg = shearfit.FitConfig(size_prior_axis=axis)
+    obs = _observations(0.25, (0.45, -0.3), noise=True, snr=snr)
+    jm = join_exposures([prepare_exposure(o, cfg) for o in obs], cfg.mode_chi2_tolerance)
+    widths = (0.6, 0.15) if locate else None
+    likes = [EllipticityLikelihood(jm, cfg, 22.0, fast_pair(), np.linspace(-1.0, 0.8, 7), 0.25,
+                                   locate_widths=widths, locate_from=0.28) for _ in range(2)]
+    assert likes[0]._chunk_args() is not None
+    rng = np.random.default_rng(11)
+    likelihood._COLUMNS.array = np.empty(0)
+    tails = 0
+    for n in (30, 80, 50):
+        e = rng.uniform(0, 0.9, n) * np.exp(2j * rng.uniform(0, np.pi, n))
+        a = likes[0]._chunk(e.real, e.imag)
+        b = likes[1]._chunk(e.real, e.imag, use_kernel=False)
+        for f in ("logl_disk", "logl_bulge", "mean_r", "mean_b", "mean_flux"):
+            assert np.array_equal(getattr(a, f), getattr(b, f), equal_nan=True), f
+        tails += int(np.sum(a.logl_disk < likes[0]._peak_max - cfg.tail_skip)) if locate else 0
+    assert likelihood._COLUMNS.array.size > 0
+    assert likes[0].centres == likes[1].centres and len(likes[0].centres) == 160
+    assert likes[0].n_models == likes[1].n_models
+    assert (likes[0]._peak_max, likes[0].best_chi2_gal, likes[0].best_snr) == \
+        (likes[1]._peak_max, likes[1].best_chi2_gal, likes[1].best_snr)
+    if snr == 400:
+        # the shortcut taken: fewer models than every sample's passes and nodes
+        assert likes[0].n_models < 1 + 160 * (5 + 5 + 7) and tails > 0
+    fused = likes[0]._chunk_args()
+    with pytest.raises(ValueError, match="inconsistent"):
+        likelihood.KERNEL.sample_chunk(fused[0], fused[1], fused[2] + (np.empty(0),), np.zeros(3), np.zeros(2),
+                                       np.ones(3), b"", *fused[3:], np.empty((5, 3)), np.empty(3), np.zeros(4))
 
 
 def test_size_peak_reuse_saves_models_without_moving_the_estimate():

@@ -1973,6 +1973,14 @@ static PyObject *marginal(PyObject *self, PyObject *args)
 #else
 #define NO_CONTRACT
 #endif
+/* NO_CLONE: a function of NO_CONTRACT that a caller passes constants must not be cloned for them: GCC 12's copy of
+   locate_pass_run specialised to sample_chunk's 5 nodes lost fp-contract=off, and the means of its crude integral
+   differed from locate_pass' in their last places */
+#if defined(__GNUC__) && !defined(__clang__)
+#define NO_CLONE __attribute__((noclone))
+#else
+#define NO_CLONE
+#endif
 static NO_CONTRACT void locate_rows(const double *LD, const double *LB, const double *LPR, const double *w,
                                     const double *xs, Py_ssize_t nrow, Py_ssize_t n, double *top, double *xpk)
 {
@@ -3300,7 +3308,7 @@ static inline double log_size_prior(double lnr, const double *pr)
     return (pr[0] - 2 * pr[1]) + 2 * lnr - exp(pr[2] * (lnr - pr[1]));
 }
 
-static NO_CONTRACT int size_nodes_run(const BinsCtx *bc, const MargCtx *mc, Py_ssize_t ne, const long long *E,
+static NO_CONTRACT NO_CLONE int size_nodes_run(const BinsCtx *bc, const MargCtx *mc, Py_ssize_t ne, const long long *E,
                                       const double *rc, const double *ex, Py_ssize_t nr, double x0, const double *XF,
                                       Py_ssize_t nf, const double *ITP, const double *SPL, const double *U,
                                       const double *HLU, Py_ssize_t nu, const double *L0, const double *LM,
@@ -3432,7 +3440,7 @@ static double nan_to_num(double v)
     return v != v ? 0.0 : (v == INFINITY ? DBL_MAX : (v == -INFINITY ? -DBL_MAX : v));
 }
 
-static NO_CONTRACT int locate_pass_run(const BinsCtx *bc, const MargCtx *mc, Py_ssize_t ne, const long long *E,
+static NO_CONTRACT NO_CLONE int locate_pass_run(const BinsCtx *bc, const MargCtx *mc, Py_ssize_t ne, const long long *E,
                                        const double *rc, const double *ex, const double *xs, Py_ssize_t nx,
                                        const double *PR, const double *SH, const double *W, int detail, double *RP,
                                        double *TOP, double *PT)
@@ -3540,6 +3548,196 @@ static PyObject *locate_pass(PyObject *self, PyObject *args)
                          (double *)a[7].buf, (double *)a[8].buf, (double *)a[9].buf);
     Py_END_ALLOW_THREADS
     return finish_call(rc, k.b, 32);
+}
+
+/*
+ * sample_chunk(bins_rest, marg, binning, e1, e2, rc, shift, locate_xs, locate_ex, locate_ratio, tail_skip, expx, x0,
+ *              xf, interp, spline, u, half_log_u, l0, logmix, prior, out, rc_out, state) -> int:
+ * sampling.EllipticityLikelihood._chunk in one call, where the size peak is located afresh at every ellipticity (its
+ * Python lines stay as the reference: a test checks they agree to the bit). The chunk's shape matrices
+ * (model.shape_matrix's arithmetic) and bins (make_bins: binning = (basis32, channels32, bins_per_octave, polar or
+ * None, out buffer)); with locate_xs, locate_ex (a row of 5 ln r offsets and their exp per pass, none without passes)
+ * the passes of locate_pass from rc * locate_ratio, the last with detail where tail_skip > 0: a sample whose peak
+ * lies more than tail_skip below the highest so far (state[0], updated) keeps that pass's crude size integral; the
+ * others' size nodes as size_nodes (expx on: its arguments; best = state[1 .. 2]). out: 5 x n_e; rc_out: the size
+ * centres used; state[3] += the models evaluated. bins_rest: bins_context's items after the bins (from
+ * bins_per_octave on). Returns the doubles make_bins' columns took where they did not fit in the out buffer (the
+ * caller's buffer should grow), 0 where they did.
+ */
+static NO_CONTRACT void shape_rows(const double *e1, const double *e2, Py_ssize_t n, double *S)
+{
+    for (Py_ssize_t i = 0; i < n; i++) {
+        const double e = hypot(e1[i], e2[i]);
+        const double q = (1.0 - e) / (1.0 + e);
+        const int pos = e > 0;
+        const double safe = pos ? e : 1.0;
+        const double c2 = pos ? e1[i] / safe : 1.0;
+        const double s2 = e2[i] / safe;
+        const double qq = q * q;
+        const double mean = 0.5 * (1.0 + qq), half = 0.5 * (1.0 - qq);
+        const double hc = half * c2;
+        S[3 * i] = mean + hc;
+        S[3 * i + 1] = half * s2;
+        S[3 * i + 2] = mean - hc;
+    }
+}
+
+static NO_CONTRACT int chunk_run(const BinsCtx *bc, const MargCtx *mc, Py_ssize_t ne, const double *rc, const double *SH,
+                     const double *LXS, const double *LEX, Py_ssize_t nw, double ratio, double tail_skip,
+                     const double *ex, Py_ssize_t nr, double x0, const double *XF, Py_ssize_t nf, const double *ITP,
+                     const double *SPL, const double *U, const double *HLU, Py_ssize_t nu, const double *L0,
+                     const double *LM, const double *PR, double *O, double *RC, double *state)
+{
+    const Py_ssize_t n1 = ne > 0 ? ne : 1;
+    long long *E = (long long *)malloc(2 * n1 * sizeof(long long));
+    double *buf = (double *)malloc((9 * n1) * sizeof(double));
+    if (E == NULL || buf == NULL) {
+        free(E);
+        free(buf);
+        return -1;
+    }
+    long long *EF = E + n1;
+    double *RN = buf, *TOP = RN + n1, *PT = TOP + n1, *RF = PT + 5 * n1, *SF = RF + n1;
+    int rc_ = 0;
+    for (Py_ssize_t i = 0; i < ne; i++) {
+        E[i] = i;
+        RC[i] = nw > 0 ? rc[i] * ratio : rc[i];
+    }
+    Py_ssize_t nfull = ne;
+    for (Py_ssize_t k = 0; rc_ == 0 && k < nw; k++) {
+        const int detail = k == nw - 1 && tail_skip > 0;
+        rc_ = locate_pass_run(bc, mc, ne, E, RC, LEX + 5 * k, LXS + 5 * k, 5, PR, SH, LM, detail, RN, TOP, PT);
+        if (rc_ != 0) break;
+        state[3] += (double)(5 * ne);
+        memcpy(RC, RN, ne * sizeof(double));
+        if (!detail) continue;
+        double pm = -INFINITY;   /* np.max: NaN where any is */
+        for (Py_ssize_t i = 0; i < ne; i++) {
+            if (TOP[i] != TOP[i]) { pm = TOP[i]; break; }
+            pm = TOP[i] > pm ? TOP[i] : pm;
+        }
+        if (pm > state[0]) state[0] = pm;   /* max(peak_max, pm): the first unless the second is greater */
+        nfull = 0;
+        for (Py_ssize_t i = 0; i < ne; i++)
+            if (!(TOP[i] < state[0] - tail_skip)) EF[nfull++] = i;
+    }
+    if (rc_ == 0 && nfull == ne) {
+        rc_ = size_nodes_run(bc, mc, ne, E, RC, ex, nr, x0, XF, nf, ITP, SPL, U, HLU, nu, L0, LM, PR, SH, O, state + 1);
+        state[3] += (double)(ne * nr);
+    } else if (rc_ == 0) {
+        /* the tail's crude values, the others' nodes */
+        for (int f = 0; f < 5; f++)
+            for (Py_ssize_t i = 0; i < ne; i++) O[f * ne + i] = PT[f * ne + i];
+        if (nfull > 0) {
+            for (Py_ssize_t j = 0; j < nfull; j++) {
+                RF[j] = RC[EF[j]];
+                SF[j] = SH != NULL ? SH[EF[j]] : 0.0;
+            }
+            double *of = (double *)malloc(5 * nfull * sizeof(double));
+            if (of == NULL) rc_ = -1;
+            else {
+                rc_ = size_nodes_run(bc, mc, nfull, EF, RF, ex, nr, x0, XF, nf, ITP, SPL, U, HLU, nu, L0, LM, PR,
+                                     SH != NULL ? SF : NULL, of, state + 1);
+                for (int f = 0; rc_ == 0 && f < 5; f++)
+                    for (Py_ssize_t j = 0; j < nfull; j++) O[f * ne + EF[j]] = of[f * nfull + j];
+                free(of);
+            }
+            state[3] += (double)(nfull * nr);
+        }
+    }
+    free(E);
+    free(buf);
+    return rc_;
+}
+
+static PyObject *sample_chunk(PyObject *self, PyObject *args)
+{
+    PyObject *brest, *mt, *binning;
+    Py_buffer a[18];
+    memset(a, 0, sizeof(a));
+    double ratio, tail_skip, x0;
+    if (!PyArg_ParseTuple(args, "O!O!O!y*y*y*y*y*y*ddy*dy*y*y*y*y*y*y*y*w*w*w*", &PyTuple_Type, &brest, &PyTuple_Type,
+                          &mt, &PyTuple_Type, &binning, &a[0], &a[1], &a[2], &a[3], &a[4], &a[5], &ratio, &tail_skip,
+                          &a[6], &x0, &a[7], &a[8], &a[9], &a[10], &a[11], &a[12], &a[13], &a[14], &a[15], &a[16],
+                          &a[17]))
+        return NULL;
+    const Py_ssize_t D = (Py_ssize_t)sizeof(double);
+    const Py_ssize_t ne = a[0].len / D, nw = a[4].len / (5 * D), nr = a[6].len / D, nf = a[7].len / D;
+    const Py_ssize_t nu = a[10].len / D;
+    PyObject *res = NULL, *shape = NULL, *bins = NULL, *mbargs = NULL, *cols = NULL, *bt = NULL;
+    CallCtx k;
+    memset(&k, 0, sizeof(k));
+    Py_buffer cb = {0};
+    if (a[1].len != ne * D || a[2].len != ne * D || (a[3].len != 0 && a[3].len != ne * D) || a[4].len != nw * 5 * D
+        || a[5].len != a[4].len || nr < 2 || nf < 2 || nu < 2 || nr > MAXN || nf > MAXN || nu > MAXN
+        || a[8].len != nr * nf * D || a[9].len != nr * nf * D || a[11].len != nu * D || a[12].len != 2 * D
+        || a[13].len != 2 * D || a[14].len != 3 * D || a[15].len != 5 * ne * D || a[16].len != ne * D
+        || a[17].len != 4 * D || PyTuple_GET_SIZE(binning) != 5 || PyTuple_GET_SIZE(brest) != 17) {
+        PyErr_SetString(PyExc_ValueError, "sample_chunk: inconsistent buffers");
+        goto done;
+    }
+    /* the chunk's shape matrices and bins */
+    shape = PyBytes_FromStringAndSize(NULL, 3 * ne * D);
+    if (shape == NULL) goto done;
+    shape_rows((const double *)a[0].buf, (const double *)a[1].buf, ne, (double *)PyBytes_AS_STRING(shape));
+    PyObject *bi = PyTuple_GET_ITEM(binning, 0), *ci = PyTuple_GET_ITEM(binning, 1), *nbi = PyTuple_GET_ITEM(binning, 2);
+    PyObject *pol = PyTuple_GET_ITEM(binning, 3), *outbuf = PyTuple_GET_ITEM(binning, 4);
+    mbargs = Py_BuildValue("(OOOOiOO)", shape, bi, ci, nbi, 1, pol, outbuf);
+    if (mbargs == NULL) goto done;
+    bins = make_bins(NULL, mbargs);
+    if (bins == NULL) goto done;
+    PyObject *offs = PyTuple_GET_ITEM(bins, 1);
+    const long long *OFF = (const long long *)PyBytes_AS_STRING(offs);
+    long long need = 0;
+    cols = PyTuple_GET_ITEM(bins, 2);
+    if (cols == Py_None) {   /* in the out buffer: its first NCH offsets[-1] doubles */
+        if (PyObject_GetBuffer(outbuf, &cb, PyBUF_SIMPLE) != 0) { cols = NULL; goto done; }
+        cols = PyMemoryView_FromMemory((char *)cb.buf, NCH * OFF[ne] * D, PyBUF_READ);
+        if (cols == NULL) goto done;
+    } else {
+        need = (long long)(PyBytes_GET_SIZE(cols) / D);
+        Py_INCREF(cols);
+    }
+    bt = PyTuple_New(22);
+    if (bt == NULL) goto done;
+    PyObject *first[5] = {shape, PyTuple_GET_ITEM(bins, 0), offs, cols, PyTuple_GET_ITEM(bins, 3)};
+    for (int t = 0; t < 5; t++) {
+        Py_INCREF(first[t]);
+        PyTuple_SET_ITEM(bt, t, first[t]);
+    }
+    for (int t = 0; t < 17; t++) {
+        PyObject *o = PyTuple_GET_ITEM(brest, t);
+        Py_INCREF(o);
+        PyTuple_SET_ITEM(bt, 5 + t, o);
+    }
+    k.bt = bt;
+    k.mt = mt;
+    if (parse_contexts(&k) != 0) goto done;
+    if (k.bc.n_e != ne) {
+        PyErr_SetString(PyExc_ValueError, "sample_chunk: the bins are not the chunk's");
+        goto done;
+    }
+    int rc;
+    Py_BEGIN_ALLOW_THREADS
+    rc = chunk_run(&k.bc, &k.mc, ne, (const double *)a[2].buf, a[3].len ? (const double *)a[3].buf : NULL,
+                   (const double *)a[4].buf, (const double *)a[5].buf, nw, ratio, tail_skip, (const double *)a[6].buf,
+                   nr, x0, (const double *)a[7].buf, nf, (const double *)a[8].buf, (const double *)a[9].buf,
+                   (const double *)a[10].buf, (const double *)a[11].buf, nu, (const double *)a[12].buf,
+                   (const double *)a[13].buf, (const double *)a[14].buf, (double *)a[15].buf, (double *)a[16].buf,
+                   (double *)a[17].buf);
+    Py_END_ALLOW_THREADS
+    if (rc != 0) PyErr_NoMemory();
+    else res = PyLong_FromLongLong(need);
+done:
+    release_many(k.b, 32);
+    if (cb.obj != NULL) PyBuffer_Release(&cb);
+    Py_XDECREF(bt);
+    Py_XDECREF(cols);
+    Py_XDECREF(bins);
+    Py_XDECREF(mbargs);
+    Py_XDECREF(shape);
+    release_many(a, 18);
+    return res;
 }
 
 /*
@@ -4160,6 +4358,9 @@ static PyMethodDef methods[] = {
      "best)"},
     {"locate_pass", locate_pass, METH_VARARGS,
      "locate_pass(bins, marg, e_index, rc, expx, xs, prior, shift, w, detail, r_peak, top, point)"},
+    {"sample_chunk", sample_chunk, METH_VARARGS,
+     "sample_chunk(bins_rest, marg, binning, e1, e2, rc, shift, locate_xs, locate_ex, locate_ratio, tail_skip, expx, "
+     "x0, xf, interp, spline, u, half_log_u, l0, logmix, prior, out, rc_out, state) -> int"},
     {"coarse_modes", coarse_modes, METH_VARARGS,
      "coarse_modes(kx, ky, transfer, coarse, keep, data_ft, xp, fp, index, base, shift, r2, out)"},
     {"mode_bound", mode_bound, METH_VARARGS, "mode_bound(transfer, coarse, cweight, data_ft, norm, p) -> (h, ff)"},

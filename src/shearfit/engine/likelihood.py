@@ -221,6 +221,10 @@ def _packed_bins(jm, use_kernel=True):
     return cache
 
 
+#: :func:`_packed_bins` for the sampler's compiled chunks (sampling.EllipticityLikelihood._chunk_args)
+packed_bins = _packed_bins
+
+
 def _bins_geometry(jm, use_kernel=True):
     """What :func:`_packed_bins` takes from the modes alone, not from the data (cached, and carried by
     :meth:`JointModes.with_data` to another version's modes): the modes' order (alone on their sampled mode
@@ -687,7 +691,7 @@ def polar_setting(cfg):
     return (n, float(cfg.mode_polar_e_max)) if n > 0 else None
 
 
-def _polar_args(grid, polar):
+def polar_args(grid, polar):
     """make_bins' polar argument: the grid (KERNEL.polar_grid's), its angles and the least q^2 binned from it."""
     n, e_max = polar
     q = (1.0 - e_max) / (1.0 + e_max)
@@ -748,6 +752,19 @@ def polar_grid(jm: JointModes, bins_per_octave, angles):
 _COLUMNS = threading.local()
 
 
+def column_buffer():
+    """This thread's memory for make_bins' columns (:func:`_binned`'s ``reuse``)."""
+    buf = getattr(_COLUMNS, "array", None)
+    if buf is None:
+        buf = _COLUMNS.array = np.empty(0)
+    return buf
+
+
+def grow_column_buffer(n):
+    """A larger :func:`column_buffer` for the next call, after make_bins needed ``n`` doubles that did not fit."""
+    _COLUMNS.array = np.empty(int(1.5 * n) + 1024)
+
+
 def _binned(shape, b3, c8, bins_per_octave, nv, polar_args, reuse):
     """KERNEL.make_bins' (lo, offsets, columns, dc); with ``reuse`` the columns are written into this thread's
     buffer, kept from one call to the next (its memory already mapped), and returned as a view of it: valid only
@@ -755,14 +772,12 @@ def _binned(shape, b3, c8, bins_per_octave, nv, polar_args, reuse):
     memory of their own, and the buffer grows for the next call."""
     if not reuse:
         return KERNEL.make_bins(shape, b3, c8, int(bins_per_octave), nv, polar_args)
-    buf = getattr(_COLUMNS, "array", None)
-    if buf is None:
-        buf = _COLUMNS.array = np.empty(0)
+    buf = column_buffer()
     lo, offsets, columns, dc = KERNEL.make_bins(shape, b3, c8, int(bins_per_octave), nv, polar_args, buf)
     if columns is None:
         columns = buf[:7 * int(np.frombuffer(offsets, np.int64)[-1])]   # (7: make_bins' channels)
     else:
-        _COLUMNS.array = np.empty(int(1.5 * len(columns) / 8) + 1024)
+        grow_column_buffer(len(columns) / 8)
     return lo, offsets, columns, dc
 
 
@@ -788,9 +803,9 @@ def mode_bins(jm: JointModes, e1, e2, bins_per_octave, polar=None, reuse=False) 
     shape = np.ascontiguousarray(np.stack(shape_matrix(np.atleast_1d(np.asarray(e1, float)),
                                                        np.atleast_1d(np.asarray(e2, float))), axis=1))
     b3, c8 = _packed_bins(jm)[:2]
-    polar_args = (_polar_args(polar_grid(jm, bins_per_octave, polar[0]), polar)
-                  if polar is not None and polar_pays(jm, bins_per_octave, polar[0]) else None)
-    lo, offsets, columns, dc = _binned(shape, b3, c8, bins_per_octave, 1, polar_args, reuse)
+    pargs = (polar_args(polar_grid(jm, bins_per_octave, polar[0]), polar)
+             if polar is not None and polar_pays(jm, bins_per_octave, polar[0]) else None)
+    lo, offsets, columns, dc = _binned(shape, b3, c8, bins_per_octave, 1, pargs, reuse)
     return ModeBins(shape=shape, bins_per_octave=int(bins_per_octave), lo=lo, offsets=offsets, columns=columns,
                     dc=dc)
 
@@ -831,12 +846,12 @@ def mode_bins_versions(jms, e1, e2, bins_per_octave, channels=None, polar=None, 
     shape = np.ascontiguousarray(np.stack(shape_matrix(np.atleast_1d(np.asarray(e1, float)),
                                                        np.atleast_1d(np.asarray(e2, float))), axis=1))
     b3 = _packed_bins(jms[0])[0]
-    polar_args = None
+    pargs = None
     if polar is not None and polar_pays(jms[0], bins_per_octave, polar[0]):
         if grid is None:
             grid = versions_polar_grid(jms, c8, bins_per_octave, polar[0])
-        polar_args = _polar_args(grid, polar)
-    lo, offsets, columns, dc = _binned(shape, b3, c8, bins_per_octave, nv, polar_args, reuse)
+        pargs = polar_args(grid, polar)
+    lo, offsets, columns, dc = _binned(shape, b3, c8, bins_per_octave, nv, pargs, reuse)
     return ModeBins(shape=np.ascontiguousarray(np.repeat(shape, nv, axis=0)), bins_per_octave=int(bins_per_octave),
                     lo=lo, offsets=offsets, columns=columns, dc=dc)
 
@@ -845,11 +860,16 @@ def bins_context(jm, bins, fast, ratio):
     """What the compiled binned sums take besides the models (``KERNEL.binned_sums``' other arguments, in its
     order; ``KERNEL.size_nodes`` takes them as one tuple): the bins, the log tables of ``fast`` and the fold
     groups' pairs."""
+    return (bins.shape, bins.lo, bins.offsets, bins.columns, bins.dc, bins.bins_per_octave) + bins_context_rest(
+        jm, fast, bins.bins_per_octave, ratio)
+
+
+def bins_context_rest(jm, fast, bins_per_octave, ratio):
+    """:func:`bins_context`'s items after bins_per_octave: the log tables of ``fast`` and the fold groups' pairs."""
     _, _, pair_basis, pa, pb, ph = _packed_bins(jm)
-    lt = fast.log_table(bins.bins_per_octave)
-    return (bins.shape, bins.lo, bins.offsets, bins.columns, bins.dc, bins.bins_per_octave, lt.rows[0], lt.rows[1],
-            lt.m, lt.n_col, lt.start, lt.per_octave, lt.low[0], lt.low[1], lt.zero[0], lt.zero[1], float(ratio) ** 2,
-            pair_basis, pa, pb, ph, float(jm.pair_skip))
+    lt = fast.log_table(bins_per_octave)
+    return (lt.rows[0], lt.rows[1], lt.m, lt.n_col, lt.start, lt.per_octave, lt.low[0], lt.low[1], lt.zero[0],
+            lt.zero[1], float(ratio) ** 2, pair_basis, pa, pb, ph, float(jm.pair_skip))
 
 
 def _model_sums_binned(jm, bins, e_index, r2, fast, ratio):

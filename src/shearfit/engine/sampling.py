@@ -27,8 +27,9 @@ import numpy as np
 from . import priors
 from ..config import FitConfig
 from .kernel import KERNEL, USE_KERNEL
-from .likelihood import (Marginal, bins_context, linear_vectors, flux_position_marginal, marginal_context, mode_bins,
-                         mode_bins_versions, model_sums, node_matrices, polar_pays, polar_setting,
+from .likelihood import (Marginal, bins_context, bins_context_rest, column_buffer, grow_column_buffer, linear_vectors,
+                         flux_position_marginal, marginal_context, mode_bins, mode_bins_versions, model_sums,
+                         node_matrices, packed_bins, polar_args, polar_grid, polar_pays, polar_setting,
                          shares_bins_geometry, versions_channels, versions_polar_grid)
 
 __all__ = ["EllipticityLikelihood", "VersionLikelihoods", "Samples", "adaptive_samples", "two_pass_samples",
@@ -347,10 +348,13 @@ class EllipticityLikelihood:
         return EPoint(*[np.concatenate([getattr(o, f) for o in out]) for f in
                         ("logl_disk", "logl_bulge", "mean_r", "mean_b", "mean_flux")])
 
-    def _chunk(self, e1, e2) -> EPoint:
+    def _chunk(self, e1, e2, use_kernel=True) -> EPoint:
         cfg = self.cfg
         ne = e1.size
         keys = e_key(e1, e2)
+        fused = self._chunk_args() if use_kernel else None
+        if fused is not None:
+            return self._chunk_kernel(e1, e2, keys, fused)
         # the chunk's modes binned once per ellipticity, for the size-locating passes and the nodes
         bins = mode_bins(self.jm, e1, e2, cfg.mode_bins_per_octave, polar=polar_setting(cfg), reuse=True) if (
             USE_KERNEL and cfg.mode_bins_per_octave > 0) else None
@@ -374,6 +378,59 @@ class EllipticityLikelihood:
                     getattr(out, f)[full] = getattr(rest, f)
             return out
         return self._nodes(e1, e2, rc, bins, np.arange(ne))
+
+    def _chunk_args(self):
+        """What KERNEL.sample_chunk takes of the object alone (made once), or None where the lines of
+        :meth:`_chunk` run instead: no compiled kernel or binning, replayed size centres, or size peaks reused
+        from neighbours (``size_reuse_distance``)."""
+        v = self.__dict__.get("_chunk_consts", False)
+        if v is not False:
+            return v
+        cfg = self.cfg
+        v = None
+        marg = marginal_context(cfg, self.jm.pixel_scale) if USE_KERNEL and cfg.mode_bins_per_octave > 0 else None
+        if (marg is not None and self.fixed_centres is None and self.x.size <= 512
+                and (self.locate_widths is None or cfg.size_reuse_distance <= 0)):
+            nb = int(cfg.mode_bins_per_octave)
+            polar = polar_setting(cfg)
+            b3, c8 = packed_bins(self.jm)[:2]
+            pargs = (polar_args(polar_grid(self.jm, nb, polar[0]), polar)
+                          if polar is not None and polar_pays(self.jm, nb, polar[0]) else None)
+            widths = [] if self.locate_widths is None else [float(w) for w in self.locate_widths]
+            lxs = np.array([_locate_nodes(w) for w in widths], float).reshape(-1, 5)
+            lex = np.array([_locate_exp(w) for w in widths], float).reshape(-1, 5)
+            xf, interp_w, spl = self._fine_grid()
+            expx, l0, prior, logmix = self._node_constants()
+            # bins_context's items after the bins themselves (bins_per_octave on), without a chunk's bins
+            rest = (nb,) + bins_context_rest(self.jm, self.fast, nb, cfg.bulge_size_ratio)
+            v = (rest, marg, (b3, c8, nb, pargs), lxs, lex, self.locate_ratio, float(cfg.tail_skip), expx,
+                 float(self.x[0]), xf, np.ascontiguousarray(interp_w, dtype=float),
+                 np.ascontiguousarray(spl, dtype=float), self._SEG_U, self._SEG_HALF_LOG_U, l0, logmix, prior)
+        self._chunk_consts = v
+        return v
+
+    def _chunk_kernel(self, e1, e2, keys, fused):
+        """:meth:`_chunk` in one compiled call (``KERNEL.sample_chunk``: the bins, the size-locating passes, the
+        tail's shortcut and the size nodes), the same numbers as its lines (tests/test_kernel.py)."""
+        rest, marg, binning, lxs, lex, ratio, tail_skip, expx, x0, xf, interp_w, spl, u, hlu, l0, logmix, prior = fused
+        ne = e1.size
+        shift = _prior_axis_shift(e1, e2, self.cfg)
+        out = np.empty((5, ne))
+        rc = self.centre(e1, e2)
+        rc_out = np.empty(ne)
+        state = np.array([self._peak_max, self.best_chi2_gal, self.best_snr, 0.0])
+        need = KERNEL.sample_chunk(rest, marg, binning + (column_buffer(),), np.ascontiguousarray(e1, dtype=float),
+                                   np.ascontiguousarray(e2, dtype=float), rc,
+                                   b"" if shift is None else np.ascontiguousarray(shift, dtype=float), lxs, lex,
+                                   ratio, tail_skip, expx, x0, xf, interp_w, spl, u, hlu, l0, logmix, prior, out,
+                                   rc_out, state)
+        if need:
+            grow_column_buffer(need)
+        self._peak_max = float(state[0])
+        self.best_chi2_gal, self.best_snr = float(state[1]), float(state[2])
+        self.n_models += int(state[3])
+        self.centres.update(zip(keys, rc_out.tolist()))
+        return EPoint(logl_disk=out[0], logl_bulge=out[1], mean_r=out[2], mean_b=out[3], mean_flux=out[4])
 
     def _nodes(self, e1, e2, rc, bins, index, use_kernel=True):
         """The size nodes of the samples (their bins at ``index``), marginalised, and the size integral. With the
