@@ -3550,20 +3550,7 @@ static PyObject *locate_pass(PyObject *self, PyObject *args)
     return finish_call(rc, k.b, 32);
 }
 
-/*
- * sample_chunk(bins_rest, marg, binning, e1, e2, rc, shift, locate_xs, locate_ex, locate_ratio, tail_skip, expx, x0,
- *              xf, interp, spline, u, half_log_u, l0, logmix, prior, out, rc_out, state) -> int:
- * sampling.EllipticityLikelihood._chunk in one call, where the size peak is located afresh at every ellipticity (its
- * Python lines stay as the reference: a test checks they agree to the bit). The chunk's shape matrices
- * (model.shape_matrix's arithmetic) and bins (make_bins: binning = (basis32, channels32, bins_per_octave, polar or
- * None, out buffer)); with locate_xs, locate_ex (a row of 5 ln r offsets and their exp per pass, none without passes)
- * the passes of locate_pass from rc * locate_ratio, the last with detail where tail_skip > 0: a sample whose peak
- * lies more than tail_skip below the highest so far (state[0], updated) keeps that pass's crude size integral; the
- * others' size nodes as size_nodes (expx on: its arguments; best = state[1 .. 2]). out: 5 x n_e; rc_out: the size
- * centres used; state[3] += the models evaluated. bins_rest: bins_context's items after the bins (from
- * bins_per_octave on). Returns the doubles make_bins' columns took where they did not fit in the out buffer (the
- * caller's buffer should grow), 0 where they did.
- */
+/* the chunk's shape matrices (model.shape_matrix's arithmetic) */
 static NO_CONTRACT void shape_rows(const double *e1, const double *e2, Py_ssize_t n, double *S)
 {
     for (Py_ssize_t i = 0; i < n; i++) {
@@ -3650,52 +3637,88 @@ static NO_CONTRACT int chunk_run(const BinsCtx *bc, const MargCtx *mc, Py_ssize_
     return rc_;
 }
 
-static PyObject *sample_chunk(PyObject *self, PyObject *args)
-{
+/* what a chunk's evaluation takes of the object alone (sampling.EllipticityLikelihood._chunk_args, its tuple parsed
+   by chunk_args_parse): the bins' other arguments, the marginal's, make_bins' (basis32, channels32,
+   bins_per_octave, polar or None, out buffer), the locating passes and the size nodes' constants */
+typedef struct {
     PyObject *brest, *mt, *binning;
-    Py_buffer a[18];
-    memset(a, 0, sizeof(a));
+    const double *LXS, *LEX, *ex, *XF, *ITP, *SPL, *U, *HLU, *L0, *LM, *PR;
+    Py_ssize_t nw, nr, nf, nu;
     double ratio, tail_skip, x0;
-    if (!PyArg_ParseTuple(args, "O!O!O!y*y*y*y*y*y*ddy*dy*y*y*y*y*y*y*y*w*w*w*", &PyTuple_Type, &brest, &PyTuple_Type,
-                          &mt, &PyTuple_Type, &binning, &a[0], &a[1], &a[2], &a[3], &a[4], &a[5], &ratio, &tail_skip,
-                          &a[6], &x0, &a[7], &a[8], &a[9], &a[10], &a[11], &a[12], &a[13], &a[14], &a[15], &a[16],
-                          &a[17]))
-        return NULL;
+} ChunkArgs;
+
+#define CHUNK_BUFS 13
+/* the tuple (bins_rest, marg, binning, locate_xs, locate_ex, locate_ratio, tail_skip, expx, x0, xf, interp, spline,
+   u, half_log_u, l0, logmix, prior) into A (its buffers in b, CHUNK_BUFS of them, released by the caller): 0, or -1
+   with an error set */
+static int chunk_args_parse(PyObject *t, ChunkArgs *A, Py_buffer *b)
+{
+    if (!PyTuple_Check(t)
+        || !PyArg_ParseTuple(t, "O!O!O!y*y*ddy*dy*y*y*y*y*y*y*y*", &PyTuple_Type, &A->brest, &PyTuple_Type, &A->mt,
+                             &PyTuple_Type, &A->binning, &b[0], &b[1], &A->ratio, &A->tail_skip, &b[2], &A->x0,
+                             &b[3], &b[4], &b[5], &b[6], &b[7], &b[8], &b[9], &b[10])) {
+        if (!PyErr_Occurred()) PyErr_SetString(PyExc_TypeError, "sample_chunk: the object's arguments are a tuple");
+        return -1;
+    }
     const Py_ssize_t D = (Py_ssize_t)sizeof(double);
-    const Py_ssize_t ne = a[0].len / D, nw = a[4].len / (5 * D), nr = a[6].len / D, nf = a[7].len / D;
-    const Py_ssize_t nu = a[10].len / D;
-    PyObject *res = NULL, *shape = NULL, *bins = NULL, *mbargs = NULL, *cols = NULL, *bt = NULL;
+    A->nw = b[0].len / (5 * D);
+    A->nr = b[2].len / D;
+    A->nf = b[3].len / D;
+    A->nu = b[6].len / D;
+    if (b[0].len != A->nw * 5 * D || b[1].len != b[0].len || A->nr < 2 || A->nf < 2 || A->nu < 2 || A->nr > MAXN
+        || A->nf > MAXN || A->nu > MAXN || b[4].len != A->nr * A->nf * D || b[5].len != A->nr * A->nf * D
+        || b[7].len != A->nu * D || b[8].len != 2 * D || b[9].len != 2 * D || b[10].len != 3 * D
+        || PyTuple_GET_SIZE(A->binning) != 5 || PyTuple_GET_SIZE(A->brest) != 17) {
+        PyErr_SetString(PyExc_ValueError, "sample_chunk: inconsistent buffers");
+        return -1;
+    }
+    A->LXS = (const double *)b[0].buf;
+    A->LEX = (const double *)b[1].buf;
+    A->ex = (const double *)b[2].buf;
+    A->XF = (const double *)b[3].buf;
+    A->ITP = (const double *)b[4].buf;
+    A->SPL = (const double *)b[5].buf;
+    A->U = (const double *)b[6].buf;
+    A->HLU = (const double *)b[7].buf;
+    A->L0 = (const double *)b[8].buf;
+    A->LM = (const double *)b[9].buf;
+    A->PR = (const double *)b[10].buf;
+    return 0;
+}
+
+/* one chunk of ne ellipticities (e1, e2; size centres rc, prior shifts SH or NULL) as sample_chunk: O (5 x ne), RC
+   (the centres used), state (peak_max, best chi^2, its SNR, models += ). *need: the doubles make_bins' columns took
+   where they did not fit in the out buffer (else left). Holds the GIL (make_bins' objects), releases it for the
+   arithmetic. 0, or -1 with an error set */
+static int chunk_eval(const ChunkArgs *A, Py_ssize_t ne, const double *e1, const double *e2, const double *rc,
+                      const double *SH, double *O, double *RC, double *state, long long *need)
+{
+    const Py_ssize_t D = (Py_ssize_t)sizeof(double);
+    int ret = -1;
+    PyObject *shape = NULL, *bins = NULL, *mbargs = NULL, *cols = NULL, *bt = NULL;
     CallCtx k;
     memset(&k, 0, sizeof(k));
     Py_buffer cb = {0};
-    if (a[1].len != ne * D || a[2].len != ne * D || (a[3].len != 0 && a[3].len != ne * D) || a[4].len != nw * 5 * D
-        || a[5].len != a[4].len || nr < 2 || nf < 2 || nu < 2 || nr > MAXN || nf > MAXN || nu > MAXN
-        || a[8].len != nr * nf * D || a[9].len != nr * nf * D || a[11].len != nu * D || a[12].len != 2 * D
-        || a[13].len != 2 * D || a[14].len != 3 * D || a[15].len != 5 * ne * D || a[16].len != ne * D
-        || a[17].len != 4 * D || PyTuple_GET_SIZE(binning) != 5 || PyTuple_GET_SIZE(brest) != 17) {
-        PyErr_SetString(PyExc_ValueError, "sample_chunk: inconsistent buffers");
-        goto done;
-    }
-    /* the chunk's shape matrices and bins */
     shape = PyBytes_FromStringAndSize(NULL, 3 * ne * D);
     if (shape == NULL) goto done;
-    shape_rows((const double *)a[0].buf, (const double *)a[1].buf, ne, (double *)PyBytes_AS_STRING(shape));
-    PyObject *bi = PyTuple_GET_ITEM(binning, 0), *ci = PyTuple_GET_ITEM(binning, 1), *nbi = PyTuple_GET_ITEM(binning, 2);
-    PyObject *pol = PyTuple_GET_ITEM(binning, 3), *outbuf = PyTuple_GET_ITEM(binning, 4);
-    mbargs = Py_BuildValue("(OOOOiOO)", shape, bi, ci, nbi, 1, pol, outbuf);
+    shape_rows(e1, e2, ne, (double *)PyBytes_AS_STRING(shape));
+    PyObject *outbuf = PyTuple_GET_ITEM(A->binning, 4);
+    mbargs = Py_BuildValue("(OOOOiOO)", shape, PyTuple_GET_ITEM(A->binning, 0), PyTuple_GET_ITEM(A->binning, 1),
+                           PyTuple_GET_ITEM(A->binning, 2), 1, PyTuple_GET_ITEM(A->binning, 3), outbuf);
     if (mbargs == NULL) goto done;
     bins = make_bins(NULL, mbargs);
     if (bins == NULL) goto done;
     PyObject *offs = PyTuple_GET_ITEM(bins, 1);
     const long long *OFF = (const long long *)PyBytes_AS_STRING(offs);
-    long long need = 0;
-    cols = PyTuple_GET_ITEM(bins, 2);
-    if (cols == Py_None) {   /* in the out buffer: its first NCH offsets[-1] doubles */
-        if (PyObject_GetBuffer(outbuf, &cb, PyBUF_SIMPLE) != 0) { cols = NULL; goto done; }
+    PyObject *c = PyTuple_GET_ITEM(bins, 2);
+    if (c == Py_None) {   /* in the out buffer: its first NCH offsets[-1] doubles */
+        if (PyObject_GetBuffer(outbuf, &cb, PyBUF_SIMPLE) != 0) goto done;
         cols = PyMemoryView_FromMemory((char *)cb.buf, NCH * OFF[ne] * D, PyBUF_READ);
         if (cols == NULL) goto done;
     } else {
-        need = (long long)(PyBytes_GET_SIZE(cols) / D);
+        long long n = (long long)(PyBytes_GET_SIZE(c) / D);
+        if (n > *need) *need = n;
+        cols = c;
         Py_INCREF(cols);
     }
     bt = PyTuple_New(22);
@@ -3706,28 +3729,24 @@ static PyObject *sample_chunk(PyObject *self, PyObject *args)
         PyTuple_SET_ITEM(bt, t, first[t]);
     }
     for (int t = 0; t < 17; t++) {
-        PyObject *o = PyTuple_GET_ITEM(brest, t);
+        PyObject *o = PyTuple_GET_ITEM(A->brest, t);
         Py_INCREF(o);
         PyTuple_SET_ITEM(bt, 5 + t, o);
     }
     k.bt = bt;
-    k.mt = mt;
+    k.mt = A->mt;
     if (parse_contexts(&k) != 0) goto done;
     if (k.bc.n_e != ne) {
         PyErr_SetString(PyExc_ValueError, "sample_chunk: the bins are not the chunk's");
         goto done;
     }
-    int rc;
+    int rc_;
     Py_BEGIN_ALLOW_THREADS
-    rc = chunk_run(&k.bc, &k.mc, ne, (const double *)a[2].buf, a[3].len ? (const double *)a[3].buf : NULL,
-                   (const double *)a[4].buf, (const double *)a[5].buf, nw, ratio, tail_skip, (const double *)a[6].buf,
-                   nr, x0, (const double *)a[7].buf, nf, (const double *)a[8].buf, (const double *)a[9].buf,
-                   (const double *)a[10].buf, (const double *)a[11].buf, nu, (const double *)a[12].buf,
-                   (const double *)a[13].buf, (const double *)a[14].buf, (double *)a[15].buf, (double *)a[16].buf,
-                   (double *)a[17].buf);
+    rc_ = chunk_run(&k.bc, &k.mc, ne, rc, SH, A->LXS, A->LEX, A->nw, A->ratio, A->tail_skip, A->ex, A->nr, A->x0,
+                    A->XF, A->nf, A->ITP, A->SPL, A->U, A->HLU, A->nu, A->L0, A->LM, A->PR, O, RC, state);
     Py_END_ALLOW_THREADS
-    if (rc != 0) PyErr_NoMemory();
-    else res = PyLong_FromLongLong(need);
+    if (rc_ != 0) PyErr_NoMemory();
+    else ret = 0;
 done:
     release_many(k.b, 32);
     if (cb.obj != NULL) PyBuffer_Release(&cb);
@@ -3736,7 +3755,443 @@ done:
     Py_XDECREF(bins);
     Py_XDECREF(mbargs);
     Py_XDECREF(shape);
-    release_many(a, 18);
+    return ret;
+}
+
+/*
+ * sample_chunk(args, e1, e2, rc, shift, out, rc_out, state) -> int: sampling.EllipticityLikelihood._chunk in one call,
+ * where the size peak is located afresh at every ellipticity (its Python lines stay as the reference: a test checks
+ * they agree to the bit). args: the object's (EllipticityLikelihood._chunk_args, with make_bins' out buffer), as
+ * chunk_args_parse reads them. The chunk's shape matrices (model.shape_matrix's arithmetic) and bins (make_bins); with
+ * locating passes (a row of 5 ln r offsets and their exp per pass, none without) their passes from rc *
+ * locate_ratio, the last with detail where tail_skip > 0: a sample whose peak lies more than tail_skip below the
+ * highest so far (state[0], updated) keeps that pass's crude size integral; the others' size nodes as size_nodes
+ * (best = state[1 .. 2]). out: 5 x n_e; rc_out: the size centres used; state[3] += the models evaluated. Returns the
+ * doubles make_bins' columns took where they did not fit in the out buffer (the caller's buffer should grow), 0
+ * where they did.
+ */
+static PyObject *sample_chunk(PyObject *self, PyObject *args)
+{
+    PyObject *targs;
+    Py_buffer a[8], cbuf[CHUNK_BUFS];
+    memset(a, 0, sizeof(a));
+    memset(cbuf, 0, sizeof(cbuf));
+    PyObject *res = NULL;
+    ChunkArgs A;
+    if (!PyArg_ParseTuple(args, "O!y*y*y*y*w*w*w*", &PyTuple_Type, &targs, &a[0], &a[1], &a[2], &a[3], &a[4], &a[5],
+                          &a[6]))
+        return NULL;
+    if (chunk_args_parse(targs, &A, cbuf) != 0) goto done;
+    const Py_ssize_t D = (Py_ssize_t)sizeof(double);
+    const Py_ssize_t ne = a[0].len / D;
+    if (a[1].len != ne * D || a[2].len != ne * D || (a[3].len != 0 && a[3].len != ne * D) || a[4].len != 5 * ne * D
+        || a[5].len != ne * D || a[6].len != 4 * D) {
+        PyErr_SetString(PyExc_ValueError, "sample_chunk: inconsistent buffers");
+        goto done;
+    }
+    long long need = 0;
+    if (chunk_eval(&A, ne, (const double *)a[0].buf, (const double *)a[1].buf, (const double *)a[2].buf,
+                   a[3].len ? (const double *)a[3].buf : NULL, (double *)a[4].buf, (double *)a[5].buf,
+                   (double *)a[6].buf, &need) == 0)
+        res = PyLong_FromLongLong(need);
+done:
+    release_many(cbuf, CHUNK_BUFS);
+    release_many(a, 8);
+    return res;
+}
+
+/*
+ * adaptive_samples(args, prior_disk, prior_bulge, growth, shift, ints, params, state) -> (samples, n, need):
+ * sampling.adaptive_samples of an EllipticityLikelihood whose chunks sample_chunk evaluates, in one call (its Python
+ * lines stay as the reference: a test checks they agree to the bit). The lattice of step unit, points (i, j) with
+ * |i|, |j| <= half: prior_disk, prior_bulge (the log ellipticity priors), growth (min(q^(-1/3), the growth's cap),
+ * EllipticityLikelihood.centre over r_center) and shift (the size prior's axis shift, or empty) at each point,
+ * row i + half, column j + half. ints: half, the start step, the pre-pass step, the first box's half-width n, n_above,
+ * chunk. params: unit, model_e_limit, the log thresholds of the pre-pass (log posterior_cut - margin), of the count
+ * (log above_fraction) and of the refinement (log min(posterior_cut, above_fraction)), log(1 - f_B), log f_B,
+ * r_center. state: as sample_chunk's. samples: 11 rows of n doubles (e1, e2, area, logl, logpost, the five fields
+ * of the EPoint, the size centre), bytes; need: as sample_chunk's return.
+ */
+typedef struct {
+    long long *key;   /* (i, j) packed, -1: empty */
+    int *val;
+    Py_ssize_t cap;
+} LatMap;
+
+static inline long long lat_key(long long i, long long j) { return ((i + (1LL << 30)) << 32) | (j + (1LL << 30)); }
+
+static inline Py_ssize_t lat_slot(const LatMap *m, long long key)
+{
+    unsigned long long h = (unsigned long long)key * 0x9E3779B97F4A7C15ULL;
+    Py_ssize_t s = (Py_ssize_t)(h >> 20) & (m->cap - 1);
+    while (m->key[s] != -1 && m->key[s] != key) s = (s + 1) & (m->cap - 1);
+    return s;
+}
+
+static int lat_grow(LatMap *m)
+{
+    LatMap n = {NULL, NULL, m->cap * 2};
+    n.key = (long long *)malloc(n.cap * sizeof(long long));
+    n.val = (int *)malloc(n.cap * sizeof(int));
+    if (n.key == NULL || n.val == NULL) {
+        free(n.key);
+        free(n.val);
+        return -1;
+    }
+    for (Py_ssize_t s = 0; s < n.cap; s++) n.key[s] = -1;
+    for (Py_ssize_t s = 0; s < m->cap; s++)
+        if (m->key[s] != -1) {
+            Py_ssize_t t = lat_slot(&n, m->key[s]);
+            n.key[t] = m->key[s];
+            n.val[t] = m->val[s];
+        }
+    free(m->key);
+    free(m->val);
+    *m = n;
+    return 0;
+}
+
+typedef struct {
+    long long step, i0, j0, ni, nj;
+    unsigned char *mask;
+} LatRegion;
+
+typedef struct {
+    const ChunkArgs *A;
+    const double *PD, *PB, *GR, *SHT;
+    long long half, chunk;
+    double unit, limit2, ld0, lb0, r_center;
+    LatMap map;
+    Py_ssize_t n, cap;
+    long long *I, *J;
+    double *col;   /* 11 rows of cap: e1, e2, area, logl, logpost, point (5), rc */
+    LatRegion *reg;
+    Py_ssize_t nreg, capreg;
+    long long *pi, *pj;   /* the points of the last _points, and their count */
+    Py_ssize_t npts, cappts;
+    double *state;
+    long long need;
+} LatStore;
+
+static int store_reserve(LatStore *s, Py_ssize_t n)
+{
+    if (n <= s->cap) return 0;
+    Py_ssize_t cap = s->cap * 2 > n ? s->cap * 2 : n;
+    long long *I = (long long *)realloc(s->I, cap * sizeof(long long));
+    if (I != NULL) s->I = I;
+    long long *J = (long long *)realloc(s->J, cap * sizeof(long long));
+    if (J != NULL) s->J = J;
+    double *col = (double *)malloc(11 * cap * sizeof(double));
+    if (I == NULL || J == NULL || col == NULL) {
+        free(col);
+        return -1;
+    }
+    for (int r = 0; s->n > 0 && r < 11; r++) memcpy(col + r * cap, s->col + r * s->cap, s->n * sizeof(double));
+    free(s->col);
+    s->col = col;
+    s->cap = cap;
+    return 0;
+}
+
+/* _Store._points: the step's lattice points of the region (mask over the box from (i0, j0), ni x nj; the store
+   takes the mask) with i^2 + j^2 below the limit, row after row, into pi, pj; records the region */
+static int store_points(LatStore *s, long long step, long long i0, long long j0, long long ni, long long nj,
+                        unsigned char *mask)
+{
+    if (s->nreg == s->capreg) {
+        Py_ssize_t cap = s->capreg ? 2 * s->capreg : 16;
+        LatRegion *r = (LatRegion *)realloc(s->reg, cap * sizeof(LatRegion));
+        if (r == NULL) {
+            free(mask);
+            return -1;
+        }
+        s->reg = r;
+        s->capreg = cap;
+    }
+    LatRegion R = {step, i0, j0, ni, nj, mask};
+    s->reg[s->nreg++] = R;
+    s->npts = 0;
+    const long long a0 = ((-i0) % step + step) % step, b0 = ((-j0) % step + step) % step;
+    for (long long a = a0; a < ni; a += step)
+        for (long long b = b0; b < nj; b += step) {
+            const long long I = i0 + a, J = j0 + b;
+            if (!mask[a * nj + b] || !((double)(I * I + J * J) < s->limit2)) continue;
+            if (s->npts == s->cappts) {
+                Py_ssize_t cap = s->cappts ? 2 * s->cappts : 256;
+                long long *pi = (long long *)realloc(s->pi, cap * sizeof(long long));
+                if (pi != NULL) s->pi = pi;
+                long long *pj = (long long *)realloc(s->pj, cap * sizeof(long long));
+                if (pi == NULL || pj == NULL) return -1;
+                s->pj = pj;
+                s->cappts = cap;
+            }
+            s->pi[s->npts] = I;
+            s->pj[s->npts] = J;
+            s->npts++;
+        }
+    return 0;
+}
+
+/* _Store._box: the box clipped to the lattice; 1 and a zeroed mask (ni x nj), or 0 where it is empty */
+static int store_box(const LatStore *s, long long imin, long long imax, long long jmin, long long jmax, long long *i0,
+                     long long *j0, long long *ni, long long *nj, unsigned char **mask)
+{
+    const long long h = s->half;
+    imin = imin > -h ? imin : -h;
+    jmin = jmin > -h ? jmin : -h;
+    imax = imax < h ? imax : h;
+    jmax = jmax < h ? jmax : h;
+    if (imax < imin || jmax < jmin) return 0;
+    *i0 = imin;
+    *j0 = jmin;
+    *ni = imax - imin + 1;
+    *nj = jmax - jmin + 1;
+    *mask = (unsigned char *)calloc((size_t)(*ni * *nj), 1);
+    return *mask == NULL ? -1 : 1;
+}
+
+/* _Store.add of the points pi, pj: the new ones evaluated in chunks of s->chunk, mixed with the priors */
+static int store_add(LatStore *s)
+{
+    /* the points not yet sampled, in order (a point twice in the list: once) */
+    Py_ssize_t nn = 0;
+    for (Py_ssize_t p = 0; p < s->npts; p++) {
+        if (2 * (s->n + nn + 1) > s->map.cap && lat_grow(&s->map) != 0) return -1;
+        const long long key = lat_key(s->pi[p], s->pj[p]);
+        Py_ssize_t slot = lat_slot(&s->map, key);
+        if (s->map.key[slot] != -1) continue;
+        s->map.key[slot] = key;
+        s->map.val[slot] = (int)(s->n + nn);
+        s->pi[nn] = s->pi[p];
+        s->pj[nn] = s->pj[p];
+        nn++;
+    }
+    if (nn == 0) return 0;
+    if (store_reserve(s, s->n + nn) != 0) return -1;
+    const Py_ssize_t cap = s->cap, w = 2 * s->half + 1;
+    double *E1 = s->col, *E2 = s->col + cap, *AR = s->col + 2 * cap, *LL = s->col + 3 * cap, *LP = s->col + 4 * cap;
+    double *PT = s->col + 5 * cap, *RCo = s->col + 10 * cap;
+    const Py_ssize_t c = (Py_ssize_t)s->chunk;
+    double *rc = (double *)malloc(2 * c * sizeof(double) + 5 * c * sizeof(double));
+    if (rc == NULL) return -1;
+    double *sh = rc + c, *o = sh + c;
+    for (Py_ssize_t p = 0; p < nn; p++) {
+        const Py_ssize_t m = s->n + p;
+        s->I[m] = s->pi[p];
+        s->J[m] = s->pj[p];
+        E1[m] = (double)s->pi[p] * s->unit;
+        E2[m] = (double)s->pj[p] * s->unit;
+        AR[m] = 0.0;
+    }
+    int ret = 0;
+    for (Py_ssize_t c0 = 0; ret == 0 && c0 < nn; c0 += c) {
+        const Py_ssize_t ne = nn - c0 < c ? nn - c0 : c, m0 = s->n + c0;
+        for (Py_ssize_t q = 0; q < ne; q++) {
+            const Py_ssize_t at = (s->I[m0 + q] + s->half) * w + (s->J[m0 + q] + s->half);
+            rc[q] = s->r_center * s->GR[at];
+            sh[q] = s->SHT != NULL ? s->SHT[at] : 0.0;
+        }
+        ret = chunk_eval(s->A, ne, E1 + m0, E2 + m0, rc, s->SHT != NULL ? sh : NULL, o, RCo + m0, s->state, &s->need);
+        if (ret != 0) break;
+        for (Py_ssize_t q = 0; q < ne; q++) {
+            const Py_ssize_t m = m0 + q, at = (s->I[m] + s->half) * w + (s->J[m] + s->half);
+            for (int f = 0; f < 5; f++) PT[f * cap + m] = o[f * ne + q];
+            const double la = s->ld0 + o[q], lb = s->lb0 + o[ne + q];
+            LL[m] = np_logaddexp(la, lb);
+            LP[m] = np_logaddexp(la + s->PD[at], lb + s->PB[at]);
+        }
+    }
+    free(rc);
+    if (ret == 0) s->n += nn;
+    return ret;
+}
+
+/* _Store.above_log: into sel (s->n), whether each sample's posterior lies above exp(lf) of the largest; the count */
+static Py_ssize_t store_above(const LatStore *s, double lf, unsigned char *sel)
+{
+    const double *LP = s->col + 4 * s->cap;
+    int finite = 0;
+    double mx = -INFINITY;
+    int nan = 0;
+    for (Py_ssize_t m = 0; m < s->n; m++) {
+        finite |= isfinite(LP[m]);
+        if (LP[m] != LP[m]) nan = 1;
+        else if (LP[m] > mx) mx = LP[m];
+    }
+    Py_ssize_t k = 0;
+    const double t = (nan ? NAN : mx) + lf;
+    for (Py_ssize_t m = 0; m < s->n; m++) {
+        sel[m] = finite && LP[m] > t;
+        k += sel[m];
+    }
+    return k;
+}
+
+/* _Store.lattice_around: the step's points within reach (Chebyshev) of the samples sel, then their evaluation */
+static int store_around(LatStore *s, const unsigned char *sel, long long step, long long reach)
+{
+    long long imin = LLONG_MAX, imax = LLONG_MIN, jmin = LLONG_MAX, jmax = LLONG_MIN;
+    int any = 0;
+    for (Py_ssize_t m = 0; m < s->n; m++)
+        if (sel[m]) {
+            any = 1;
+            imin = s->I[m] < imin ? s->I[m] : imin;
+            imax = s->I[m] > imax ? s->I[m] : imax;
+            jmin = s->J[m] < jmin ? s->J[m] : jmin;
+            jmax = s->J[m] > jmax ? s->J[m] : jmax;
+        }
+    if (!any) return 0;
+    long long i0, j0, ni, nj;
+    unsigned char *mask;
+    const int got = store_box(s, imin - reach, imax + reach, jmin - reach, jmax + reach, &i0, &j0, &ni, &nj, &mask);
+    if (got <= 0) return got;
+    for (Py_ssize_t m = 0; m < s->n; m++) {
+        if (!sel[m]) continue;
+        long long a_lo = s->I[m] - reach - i0, a_hi = s->I[m] + reach - i0 + 1;
+        long long b_lo = s->J[m] - reach - j0, b_hi = s->J[m] + reach - j0 + 1;
+        a_lo = a_lo > 0 ? a_lo : 0;
+        b_lo = b_lo > 0 ? b_lo : 0;
+        a_hi = a_hi < ni ? a_hi : ni;
+        b_hi = b_hi < nj ? b_hi : nj;
+        for (long long a = a_lo; a < a_hi; a++) memset(mask + a * nj + b_lo, 1, b_hi > b_lo ? b_hi - b_lo : 0);
+    }
+    if (store_points(s, step, i0, j0, ni, nj, mask) != 0) return -1;
+    return store_add(s);
+}
+
+static void store_free(LatStore *s)
+{
+    free(s->map.key);
+    free(s->map.val);
+    free(s->I);
+    free(s->J);
+    free(s->col);
+    for (Py_ssize_t r = 0; r < s->nreg; r++) free(s->reg[r].mask);
+    free(s->reg);
+    free(s->pi);
+    free(s->pj);
+}
+
+static PyObject *adaptive_samples_c(PyObject *self, PyObject *args)
+{
+    PyObject *targs, *res = NULL;
+    Py_buffer a[7], cbuf[CHUNK_BUFS];
+    memset(a, 0, sizeof(a));
+    memset(cbuf, 0, sizeof(cbuf));
+    ChunkArgs A;
+    LatStore s;
+    memset(&s, 0, sizeof(s));
+    unsigned char *sel = NULL;
+    if (!PyArg_ParseTuple(args, "O!y*y*y*y*y*y*w*", &PyTuple_Type, &targs, &a[0], &a[1], &a[2], &a[3], &a[4], &a[5],
+                          &a[6]))
+        return NULL;
+    if (chunk_args_parse(targs, &A, cbuf) != 0) goto done;
+    const Py_ssize_t D = (Py_ssize_t)sizeof(double);
+    const long long *IN = (const long long *)a[4].buf;
+    const double *PA = (const double *)a[5].buf;
+    if (a[4].len != 6 * (Py_ssize_t)sizeof(long long) || a[5].len != 10 * D || a[6].len != 4 * D) {
+        PyErr_SetString(PyExc_ValueError, "adaptive_samples: inconsistent buffers");
+        goto done;
+    }
+    const long long half = IN[0], w = 2 * half + 1;
+    long long step = IN[1], pre = IN[2];
+    const long long n0 = IN[3], n_above = IN[4];
+    if (half < 1 || half > 100000 || step < 1 || pre < 1 || IN[5] < 1 || a[0].len != w * w * D
+        || a[1].len != a[0].len || a[2].len != a[0].len || (a[3].len != 0 && a[3].len != a[0].len)) {
+        PyErr_SetString(PyExc_ValueError, "adaptive_samples: inconsistent buffers");
+        goto done;
+    }
+    s.A = &A;
+    s.PD = (const double *)a[0].buf;
+    s.PB = (const double *)a[1].buf;
+    s.GR = (const double *)a[2].buf;
+    s.SHT = a[3].len ? (const double *)a[3].buf : NULL;
+    s.half = half;
+    s.chunk = IN[5];
+    s.unit = PA[0];
+    const double limit = PA[1] / PA[0];
+    s.limit2 = limit * limit;
+    const double lf_pre = PA[2], lf_count = PA[3], lf_refine = PA[4];
+    s.ld0 = PA[5];
+    s.lb0 = PA[6];
+    s.r_center = PA[7];
+    s.state = (double *)a[6].buf;
+    s.map.cap = 1024;
+    s.map.key = (long long *)malloc(s.map.cap * sizeof(long long));
+    s.map.val = (int *)malloc(s.map.cap * sizeof(int));
+    s.cap = 0;
+    if (s.map.key == NULL || s.map.val == NULL || store_reserve(&s, 512) != 0) {
+        PyErr_NoMemory();
+        goto done;
+    }
+    for (Py_ssize_t q = 0; q < s.map.cap; q++) s.map.key[q] = -1;
+    {
+        long long i0, j0, ni, nj;
+        unsigned char *mask;
+        int got = store_box(&s, -n0, n0, -n0, n0, &i0, &j0, &ni, &nj, &mask);
+        if (got < 0) { PyErr_NoMemory(); goto done; }
+        if (got > 0) {
+            memset(mask, 1, (size_t)(ni * nj));
+            if (store_points(&s, pre, i0, j0, ni, nj, mask) != 0 || store_add(&s) != 0) {
+                if (!PyErr_Occurred()) PyErr_NoMemory();
+                goto done;
+            }
+        }
+    }
+    while (pre > step) {
+        free(sel);
+        sel = (unsigned char *)malloc(s.n > 0 ? s.n : 1);
+        if (sel == NULL) { PyErr_NoMemory(); goto done; }
+        store_above(&s, lf_pre, sel);
+        const long long nw = pre / 2 > step ? pre / 2 : step;
+        if (store_around(&s, sel, nw, pre) != 0) {
+            if (!PyErr_Occurred()) PyErr_NoMemory();
+            goto done;
+        }
+        pre = nw;
+    }
+    for (;;) {
+        free(sel);
+        sel = (unsigned char *)malloc(s.n > 0 ? s.n : 1);
+        if (sel == NULL) { PyErr_NoMemory(); goto done; }
+        if (store_above(&s, lf_count, sel) >= n_above || step <= 1) break;
+        store_above(&s, lf_refine, sel);
+        const long long nw = step / 2 > 1 ? step / 2 : 1;
+        if (store_around(&s, sel, nw, step) != 0) {
+            if (!PyErr_Occurred()) PyErr_NoMemory();
+            goto done;
+        }
+        step = nw;
+    }
+    /* _Store.result: each sample's cell, from the finest region containing it */
+    {
+        const Py_ssize_t cap = s.cap, n = s.n;
+        PyObject *out = PyBytes_FromStringAndSize(NULL, 11 * (n > 0 ? n : 0) * D);
+        if (out == NULL) goto done;
+        double *O = (double *)PyBytes_AS_STRING(out);
+        for (int r = 0; r < 11; r++)
+            if (r != 2) memcpy(O + r * n, s.col + r * cap, n * D);
+        for (Py_ssize_t m = 0; m < n; m++) {
+            long long st = LLONG_MAX;
+            for (Py_ssize_t r = 0; r < s.nreg; r++) {
+                const LatRegion *R = &s.reg[r];
+                const long long aa = s.I[m] - R->i0, bb = s.J[m] - R->j0;
+                if (aa >= 0 && aa < R->ni && bb >= 0 && bb < R->nj && R->mask[aa * R->nj + bb] && R->step < st)
+                    st = R->step;
+            }
+            const int covered = st < LLONG_MAX;
+            const long long sv = covered ? st : 1;
+            const int on = covered && s.I[m] % sv == 0 && s.J[m] % sv == 0;
+            const double cell = (double)sv * s.unit;
+            O[2 * n + m] = on ? cell * cell : 0.0;
+        }
+        res = Py_BuildValue("(NnL)", out, n, s.need);
+    }
+done:
+    free(sel);
+    store_free(&s);
+    release_many(cbuf, CHUNK_BUFS);
+    release_many(a, 7);
     return res;
 }
 
@@ -4358,9 +4813,9 @@ static PyMethodDef methods[] = {
      "best)"},
     {"locate_pass", locate_pass, METH_VARARGS,
      "locate_pass(bins, marg, e_index, rc, expx, xs, prior, shift, w, detail, r_peak, top, point)"},
-    {"sample_chunk", sample_chunk, METH_VARARGS,
-     "sample_chunk(bins_rest, marg, binning, e1, e2, rc, shift, locate_xs, locate_ex, locate_ratio, tail_skip, expx, "
-     "x0, xf, interp, spline, u, half_log_u, l0, logmix, prior, out, rc_out, state) -> int"},
+    {"sample_chunk", sample_chunk, METH_VARARGS, "sample_chunk(args, e1, e2, rc, shift, out, rc_out, state) -> int"},
+    {"adaptive_samples", adaptive_samples_c, METH_VARARGS,
+     "adaptive_samples(args, prior_disk, prior_bulge, growth, shift, ints, params, state) -> (samples, n, need)"},
     {"coarse_modes", coarse_modes, METH_VARARGS,
      "coarse_modes(kx, ky, transfer, coarse, keep, data_ft, xp, fp, index, base, shift, r2, out)"},
     {"mode_bound", mode_bound, METH_VARARGS, "mode_bound(transfer, coarse, cweight, data_ft, norm, p) -> (h, ff)"},

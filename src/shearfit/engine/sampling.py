@@ -412,25 +412,37 @@ class EllipticityLikelihood:
     def _chunk_kernel(self, e1, e2, keys, fused):
         """:meth:`_chunk` in one compiled call (``KERNEL.sample_chunk``: the bins, the size-locating passes, the
         tail's shortcut and the size nodes), the same numbers as its lines (tests/test_kernel.py)."""
-        rest, marg, binning, lxs, lex, ratio, tail_skip, expx, x0, xf, interp_w, spl, u, hlu, l0, logmix, prior = fused
         ne = e1.size
         shift = _prior_axis_shift(e1, e2, self.cfg)
         out = np.empty((5, ne))
         rc = self.centre(e1, e2)
         rc_out = np.empty(ne)
-        state = np.array([self._peak_max, self.best_chi2_gal, self.best_snr, 0.0])
-        need = KERNEL.sample_chunk(rest, marg, binning + (column_buffer(),), np.ascontiguousarray(e1, dtype=float),
+        state = self._state()
+        need = KERNEL.sample_chunk(self._kernel_args(fused), np.ascontiguousarray(e1, dtype=float),
                                    np.ascontiguousarray(e2, dtype=float), rc,
-                                   b"" if shift is None else np.ascontiguousarray(shift, dtype=float), lxs, lex,
-                                   ratio, tail_skip, expx, x0, xf, interp_w, spl, u, hlu, l0, logmix, prior, out,
-                                   rc_out, state)
+                                   b"" if shift is None else np.ascontiguousarray(shift, dtype=float), out, rc_out,
+                                   state)
         if need:
             grow_column_buffer(need)
+        self._set_state(state)
+        self.centres.update(zip(keys, rc_out.tolist()))
+        return EPoint(logl_disk=out[0], logl_bulge=out[1], mean_r=out[2], mean_b=out[3], mean_flux=out[4])
+
+    @staticmethod
+    def _kernel_args(fused):
+        """:meth:`_chunk_args` as KERNEL.sample_chunk and KERNEL.adaptive_samples take it: make_bins' arguments
+        with this thread's column buffer (:func:`shearfit.engine.likelihood.column_buffer`)."""
+        return fused[:2] + (fused[2] + (column_buffer(),),) + fused[3:]
+
+    def _state(self):
+        """What the compiled chunks read and update of the fit so far: the highest last-pass peak, the best
+        single-component chi^2 and its SNR, and a count of the models evaluated (0)."""
+        return np.array([self._peak_max, self.best_chi2_gal, self.best_snr, 0.0])
+
+    def _set_state(self, state):
         self._peak_max = float(state[0])
         self.best_chi2_gal, self.best_snr = float(state[1]), float(state[2])
         self.n_models += int(state[3])
-        self.centres.update(zip(keys, rc_out.tolist()))
-        return EPoint(logl_disk=out[0], logl_bulge=out[1], mean_r=out[2], mean_b=out[3], mean_flux=out[4])
 
     def _nodes(self, e1, e2, rc, bins, index, use_kernel=True):
         """The size nodes of the samples (their bins at ``index``), marginalised, and the size integral. With the
@@ -729,9 +741,7 @@ class _Store:
         self._cols = ([], [], [], [])
         self._joined = None
         self.n = 0
-        # the lattice's half-width: every |e| < 1, and the coarsest boxes' margins
-        coarsest = int(round(max(cfg.e_grid_start, cfg.e_grid_prepass) / self.unit))
-        self.half = int(np.ceil(1.0 / self.unit)) + 4 * coarsest + 2
+        self.half = _lattice_half(cfg)
         # (step, i0, j0, mask): the region is mask's True entries, entry (a, b) the lattice point (i0 + a, j0 + b).
         # Masks cover only their region's box: over the whole lattice, metacal's 0.005 step made each one
         # 917 x 917 entries, and their allocation and search 6 % of its fits
@@ -851,7 +861,7 @@ class _Store:
         return lp > np.max(lp) + log_fraction
 
 
-def adaptive_samples(like: EllipticityLikelihood, cfg: FitConfig) -> Samples:
+def adaptive_samples(like: EllipticityLikelihood, cfg: FitConfig, use_kernel=True) -> Samples:
     """The paper's adaptive grid (sec. 3.3).
 
     Start on a 0.16 grid; while fewer than 30 samples lie above 5 % of the
@@ -870,11 +880,20 @@ def adaptive_samples(like: EllipticityLikelihood, cfg: FitConfig) -> Samples:
     only samples above the cut) nor the refinement (which starts from them)
     would have used them. The estimates move by at most 2.2e-7 (59 galaxies
     of SNR 7-60, ``benchmarks/speed.py --check --check-each``).
+
+    Where the likelihood's chunks are compiled (:meth:`EllipticityLikelihood._chunk_args`), the whole loop is
+    one compiled call (``KERNEL.adaptive_samples``: the lattice, its regions and the refinement, the chunks
+    evaluated as ``KERNEL.sample_chunk`` does), the same samples and numbers as the lines below
+    (``use_kernel=False``, which stay as the reference; tests/test_measure.py).
     """
-    st = _Store(like, cfg)
     step = int(round(cfg.e_grid_start / cfg.e_grid_min))
     pre = int(round(cfg.e_grid_prepass / cfg.e_grid_min)) if cfg.e_grid_prepass > 0 else step
     n = int(cfg.model_e_limit / cfg.e_grid_min) + max(step, pre)
+    if use_kernel:
+        got = _adaptive_kernel(like, cfg, step, pre, n)
+        if got is not None:
+            return got
+    st = _Store(like, cfg)
     st.add(st.lattice_box(pre, -n, n, -n, n))
     while pre > step:
         sel = st.above_log(np.log(cfg.posterior_cut) - cfg.e_grid_prepass_margin)
@@ -899,6 +918,68 @@ def adaptive_samples(like: EllipticityLikelihood, cfg: FitConfig) -> Samples:
         st.add(st.lattice_around(new, i, j, step))
         step = new
     return st.result()
+
+
+def _lattice_half(cfg):
+    """The half-width of the sampler's lattice (:class:`_Store`): every |e| < 1, and the coarsest boxes' margins."""
+    coarsest = int(round(max(cfg.e_grid_start, cfg.e_grid_prepass) / cfg.e_grid_min))
+    return int(np.ceil(1.0 / cfg.e_grid_min)) + 4 * coarsest + 2
+
+
+@functools.lru_cache(maxsize=8)
+def _lattice_growth(unit, half):
+    """:meth:`EllipticityLikelihood.centre` over r_center at every point of the lattice (as
+    :func:`_lattice_log_priors`): the same numbers as at those points' e1, e2 (NaN beyond |e| = 1, which no sample
+    reaches). Read-only."""
+    e = np.arange(-half, half + 1, dtype=float) * unit
+    E1, E2 = np.meshgrid(e, e, indexing="ij")
+    ee = np.hypot(E1, E2)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        q = (1 - ee) / (1 + ee)
+        out = np.minimum(q ** (-1.0 / 3.0), CENTRE_GROWTH_MAX)
+    out.setflags(write=False)
+    return out
+
+
+@functools.lru_cache(maxsize=8)
+def _lattice_shift(axis, unit, half):
+    """:func:`_prior_axis_shift` at every point of the lattice, or None for the semi-major axis. Read-only."""
+    e = np.arange(-half, half + 1, dtype=float) * unit
+    E1, E2 = np.meshgrid(e, e, indexing="ij")
+    out = _prior_axis_shift(E1, E2, FitConfig(size_prior_axis=axis))
+    if out is not None:
+        out = np.ascontiguousarray(out)
+        out.setflags(write=False)
+    return out
+
+
+def _adaptive_kernel(like, cfg, step, pre, n):
+    """adaptive_samples in one compiled call (``KERNEL.adaptive_samples``), or None where the likelihood's chunks
+    are not compiled."""
+    if not (USE_KERNEL and isinstance(like, EllipticityLikelihood)):
+        return None
+    fused = like._chunk_args()
+    if fused is None:
+        return None
+    unit = float(cfg.e_grid_min)
+    half = _lattice_half(cfg)
+    pd, pb = _lattice_log_priors(cfg, unit, half)
+    shift = _lattice_shift(cfg.size_prior_axis, unit, half)
+    ld0, lb0 = log_population_weights(cfg)
+    ints = np.array([half, step, pre, n, cfg.n_above, like.chunk], np.int64)
+    params = np.array([unit, cfg.model_e_limit, np.log(cfg.posterior_cut) - cfg.e_grid_prepass_margin,
+                       np.log(cfg.above_fraction), np.log(min(cfg.posterior_cut, cfg.above_fraction)), ld0, lb0,
+                       like.r_center, 0.0, 0.0], float)
+    state = like._state()
+    out, ns, need = KERNEL.adaptive_samples(like._kernel_args(fused), pd, pb, _lattice_growth(unit, half),
+                                            b"" if shift is None else shift, ints, params, state)
+    if need:
+        grow_column_buffer(need)
+    like._set_state(state)
+    cols = np.frombuffer(out, float).reshape(11, ns).copy()
+    e1, e2 = cols[0], cols[1]
+    like.centres.update(zip(e_key(e1, e2), cols[10].tolist()))
+    return Samples(e1=e1, e2=e2, area=cols[2], logl=cols[3], logpost=cols[4], point=EPoint(*cols[5:10]))
 
 
 def two_pass_samples(like: EllipticityLikelihood, cfg: FitConfig) -> Samples:
