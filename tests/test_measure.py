@@ -219,6 +219,50 @@ def test_distinct_pairs_of_rotated_lattices_are_np_unique():
         assert np.array_equal(first, ref_first) and np.array_equal(inv, ref_inv.ravel()), trial
 
 
+def test_compiled_join_matches_its_numpy_lines():
+    """join_exposures' concatenation and merging compiled (KERNEL.join_gather, KERNEL.join_distinct) give the numpy
+    lines' JointModes to the bit: exposures with their own rotated Jacobians, two sharing one (their modes merge),
+    with the noise-aware cut, with another fit's kept modes and fold groups imposed, and without a cut; the data map
+    alike. Bad buffers raise."""
+    from shearfit.engine import likelihood
+    from shearfit.engine.likelihood import join_exposures
+    from shearfit.engine.model import prepare_exposure
+
+    if not likelihood.USE_KERNEL:
+        pytest.skip("compiled kernel not built")
+    cfg = shearfit.FitConfig()
+
+    def rot(a):
+        return PIX * np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
+
+    jac = [rot(0.0), rot(0.05), rot(0.05), rot(-0.08)]
+    obs = _observations(0.3, (0.2, 0.1), noise=True, snr=40, n_exp=4, jacobians=jac)
+    exps = [prepare_exposure(o, cfg) for o in obs]
+    ref = join_exposures(exps, cfg.mode_chi2_tolerance, fold_tolerance=0.01, pair_tolerance=0.01, use_kernel=False)
+    runs = [dict(chi2_tolerance=cfg.mode_chi2_tolerance, fold_tolerance=0.01, pair_tolerance=0.01),
+            dict(keep=ref.keep, decoupled=ref.decoupled, pair_tolerance=0.01), dict()]
+    groups = []
+    for kw in runs:
+        a = join_exposures(exps, **kw)
+        b = join_exposures(exps, use_kernel=False, **kw)
+        groups.append(a.multi.size)
+        for f in ("kx", "ky", "z", "q", "multi", "msizes", "basis"):
+            assert np.array_equal(getattr(a, f), getattr(b, f)), f
+        assert (a.H != b.H).nnz == 0 and a.H.shape == b.H.shape
+        assert (a.yy, a.npix, a.n_exposures, a.pixel_scale, a.pair_skip) == \
+            (b.yy, b.npix, b.n_exposures, b.pixel_scale, b.pair_skip)
+        for f in ("zf", "index", "inv", "phase"):
+            assert np.array_equal(getattr(a.data_map, f), getattr(b.data_map, f)), f
+        assert np.array_equal(a.data_map.merged_z(exps), a.z)
+    assert max(groups) > 0 and ref.kx.size < sum(int(k.sum()) for k in ref.keep)   # fold groups, merged modes
+    with pytest.raises(ValueError, match="inconsistent"):
+        likelihood.KERNEL.join_gather(((np.zeros(3), np.zeros(2), np.zeros(3, complex), np.zeros(3, np.int64),
+                                        np.ones(2), np.zeros(2, complex), 4, 4, 1.0),), (b"",))
+    with pytest.raises(ValueError, match="inconsistent"):
+        likelihood.KERNEL.join_distinct(np.zeros(2), np.zeros(2), np.array([0, 5]), np.zeros(2, complex),
+                                        np.zeros(2, np.int64), 1)
+
+
 def test_fold_groups_are_those_of_the_sparse_product():
     """join_exposures' distinct wavevectors and fold groups, made without sparse products, against np.unique
     and H = F^H F with scipy.sparse and its connected components: the same modes, groups and weights (to

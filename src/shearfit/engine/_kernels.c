@@ -4196,6 +4196,211 @@ done:
 }
 
 /*
+ * join_gather(items, keep) -> (kx, ky, zf, tscaled, group, data, goffset) and join_distinct(kx, ky, order, zdat,
+ * group, goffset) -> (first, inv, z, grow): likelihood.join_exposures' concatenation and merging in two calls (its
+ * numpy lines stay as the reference; a test checks they agree to the bit), numpy's argsort of kx and the product
+ * conj(data) zf between them.
+ * join_gather: items, per exposure (kx, ky, transfer, coarse, cweight, data_ft, ny, nx, sigma2); keep, per exposure
+ * a uint8 mask of its modes or empty (all). The kept modes one exposure after the other: kx, ky, zf = T w / (ny nx
+ * sigma2) and tscaled = T sqrt(w / (ny nx sigma2)) (w = cweight[coarse]; complex128), group = coarse + the
+ * exposure's offset among the concatenated sampled modes (int64), data = data_ft at the mode's sampled mode
+ * (complex128); goffset, the sampled modes in all.
+ * join_distinct: one mode per distinct (kx, ky) (exactly equal), in np.unique's order of kx + i ky (order: kx's
+ * argsort; its runs of equal kx are ordered here by ky, then position): first, each distinct pair's first
+ * occurrence; inv, each mode's pair; z, zdat summed per pair in the modes' order (complex_bincount's); grow, each
+ * mode's sampled mode numbered among those present (int64 each; z complex128).
+ */
+static PyObject *join_gather(PyObject *self, PyObject *args)
+{
+    PyObject *items, *keeps;
+    if (!PyArg_ParseTuple(args, "O!O!", &PyTuple_Type, &items, &PyTuple_Type, &keeps)) return NULL;
+    const Py_ssize_t ne = PyTuple_GET_SIZE(items);
+    if (PyTuple_GET_SIZE(keeps) != ne) {
+        PyErr_SetString(PyExc_ValueError, "join_gather: a keep mask per exposure");
+        return NULL;
+    }
+    Py_buffer *b = (Py_buffer *)calloc(7 * (ne > 0 ? ne : 1), sizeof(Py_buffer));
+    int *ny = (int *)malloc(2 * (ne > 0 ? ne : 1) * sizeof(int)), *nx = ny + (ne > 0 ? ne : 1);
+    double *s2 = (double *)malloc((ne > 0 ? ne : 1) * sizeof(double));
+    PyObject *res = NULL;
+    if (b == NULL || ny == NULL || s2 == NULL) {
+        free(b);
+        free(ny);
+        free(s2);
+        return PyErr_NoMemory();
+    }
+    const Py_ssize_t D = (Py_ssize_t)sizeof(double);
+    Py_ssize_t total = 0, gtot = 0;
+    int bad = 0;
+    for (Py_ssize_t e = 0; e < ne && !bad; e++) {
+        Py_buffer *x = b + 7 * e;
+        PyObject *it = PyTuple_GET_ITEM(items, e);
+        if (!PyTuple_Check(it) || !PyArg_ParseTuple(it, "y*y*y*y*y*y*iid", &x[0], &x[1], &x[2], &x[3], &x[4], &x[5],
+                                                    &ny[e], &nx[e], &s2[e])
+            || PyObject_GetBuffer(PyTuple_GET_ITEM(keeps, e), &x[6], PyBUF_SIMPLE) != 0) {
+            bad = 2;
+            break;
+        }
+        const Py_ssize_t n = x[0].len / D, ng = x[4].len / D;
+        bad = x[1].len != n * D || x[2].len != 2 * n * D || x[3].len != n * (Py_ssize_t)sizeof(long long)
+              || x[5].len != 2 * ng * D || (x[6].len != 0 && x[6].len != n) || ny[e] < 1 || nx[e] < 1;
+        const long long *co = (const long long *)x[3].buf;
+        const unsigned char *k = (const unsigned char *)x[6].buf;
+        for (Py_ssize_t j = 0; !bad && j < n; j++) {
+            bad = co[j] < 0 || co[j] >= ng;
+            if (x[6].len == 0 || k[j]) total++;
+        }
+        gtot += ng;
+    }
+    if (bad) {
+        if (bad == 1 || !PyErr_Occurred()) {
+            PyErr_Clear();
+            PyErr_SetString(PyExc_ValueError, "join_gather: inconsistent buffers");
+        }
+        goto done;
+    }
+    {
+        PyObject *okx = PyBytes_FromStringAndSize(NULL, total * D), *oky = PyBytes_FromStringAndSize(NULL, total * D);
+        PyObject *ozf = PyBytes_FromStringAndSize(NULL, 2 * total * D);
+        PyObject *ots = PyBytes_FromStringAndSize(NULL, 2 * total * D);
+        PyObject *ogr = PyBytes_FromStringAndSize(NULL, total * (Py_ssize_t)sizeof(long long));
+        PyObject *oda = PyBytes_FromStringAndSize(NULL, 2 * total * D);
+        if (okx && oky && ozf && ots && ogr && oda) {
+            double *KX = (double *)PyBytes_AS_STRING(okx), *KY = (double *)PyBytes_AS_STRING(oky);
+            double *ZF = (double *)PyBytes_AS_STRING(ozf), *TS = (double *)PyBytes_AS_STRING(ots);
+            double *DA = (double *)PyBytes_AS_STRING(oda);
+            long long *GR = (long long *)PyBytes_AS_STRING(ogr);
+            Py_ssize_t m = 0;
+            long long goff = 0;
+            for (Py_ssize_t e = 0; e < ne; e++) {
+                const Py_buffer *x = b + 7 * e;
+                const Py_ssize_t n = x[0].len / D, ng = x[4].len / D;
+                const double *kx = (const double *)x[0].buf, *ky = (const double *)x[1].buf;
+                const double *T = (const double *)x[2].buf, *cw = (const double *)x[4].buf;
+                const double *df = (const double *)x[5].buf;
+                const long long *co = (const long long *)x[3].buf;
+                const unsigned char *k = (const unsigned char *)x[6].buf;
+                const double norm = 1.0 / ((double)((long long)ny[e] * nx[e]) * s2[e]);
+                for (Py_ssize_t j = 0; j < n; j++) {
+                    if (x[6].len != 0 && !k[j]) continue;
+                    const double w = cw[co[j]], tw = w * norm, sq = sqrt(tw);
+                    KX[m] = kx[j];
+                    KY[m] = ky[j];
+                    ZF[2 * m] = (T[2 * j] * w) * norm;
+                    ZF[2 * m + 1] = (T[2 * j + 1] * w) * norm;
+                    TS[2 * m] = T[2 * j] * sq;
+                    TS[2 * m + 1] = T[2 * j + 1] * sq;
+                    GR[m] = co[j] + goff;
+                    DA[2 * m] = df[2 * co[j]];
+                    DA[2 * m + 1] = df[2 * co[j] + 1];
+                    m++;
+                }
+                goff += ng;
+            }
+            res = Py_BuildValue("(NNNNNNn)", okx, oky, ozf, ots, ogr, oda, gtot);
+            okx = oky = ozf = ots = ogr = oda = NULL;
+        }
+        Py_XDECREF(okx);
+        Py_XDECREF(oky);
+        Py_XDECREF(ozf);
+        Py_XDECREF(ots);
+        Py_XDECREF(ogr);
+        Py_XDECREF(oda);
+    }
+done:
+    for (Py_ssize_t e = 0; e < 7 * ne; e++)
+        if (b[e].obj != NULL) PyBuffer_Release(&b[e]);
+    free(b);
+    free(ny);
+    free(s2);
+    return res;
+}
+
+static PyObject *join_distinct(PyObject *self, PyObject *args)
+{
+    Py_buffer kb = {0}, yb = {0}, ob = {0}, zb = {0}, gb = {0};
+    Py_ssize_t goffset;
+    if (!PyArg_ParseTuple(args, "y*y*y*y*y*n", &kb, &yb, &ob, &zb, &gb, &goffset)) return NULL;
+    const Py_ssize_t D = (Py_ssize_t)sizeof(double), L = (Py_ssize_t)sizeof(long long);
+    const Py_ssize_t n = kb.len / D;
+    const double *KX = (const double *)kb.buf, *KY = (const double *)yb.buf, *Z = (const double *)zb.buf;
+    const long long *O = (const long long *)ob.buf, *G = (const long long *)gb.buf;
+    int bad = yb.len != n * D || ob.len != n * L || zb.len != 2 * n * D || gb.len != n * L || goffset < 0;
+    for (Py_ssize_t i = 0; !bad && i < n; i++) bad = O[i] < 0 || O[i] >= n || G[i] < 0 || G[i] >= goffset;
+    if (bad) {
+        RELEASE(&kb, &yb, &ob, &zb, &gb);
+        PyErr_SetString(PyExc_ValueError, "join_distinct: inconsistent buffers");
+        return NULL;
+    }
+    const Py_ssize_t n1 = n > 0 ? n : 1;
+    long long *ord = (long long *)malloc(2 * n1 * L), *first = ord + n1;
+    long long *pres = (long long *)calloc(goffset > 0 ? goffset : 1, L);
+    double *acc = (double *)calloc(2 * n1, D);
+    if (ord == NULL || pres == NULL || acc == NULL) {
+        free(ord);
+        free(pres);
+        free(acc);
+        RELEASE(&kb, &yb, &ob, &zb, &gb);
+        return PyErr_NoMemory();
+    }
+    memcpy(ord, O, n * L);
+    /* the runs of equal kx in kx's order, each ordered by ky, then position (insertion sort: the runs are the
+       exposures' K = 0 and other exact coincidences, short) */
+    for (Py_ssize_t i = 0; i < n;) {
+        Py_ssize_t j = i + 1;
+        while (j < n && KX[ord[j]] == KX[ord[i]]) j++;
+        for (Py_ssize_t a = i + 1; a < j; a++) {
+            const long long v = ord[a];
+            Py_ssize_t c = a;
+            while (c > i && (KY[ord[c - 1]] > KY[v] || (KY[ord[c - 1]] == KY[v] && ord[c - 1] > v))) {
+                ord[c] = ord[c - 1];
+                c--;
+            }
+            ord[c] = v;
+        }
+        i = j;
+    }
+    PyObject *oinv = PyBytes_FromStringAndSize(NULL, n * L), *ogrow = PyBytes_FromStringAndSize(NULL, n * L);
+    PyObject *res = NULL;
+    if (oinv != NULL && ogrow != NULL) {
+        long long *INV = (long long *)PyBytes_AS_STRING(oinv), *GROW = (long long *)PyBytes_AS_STRING(ogrow);
+        Py_ssize_t nd = 0;
+        for (Py_ssize_t i = 0; i < n; i++) {
+            const long long o = ord[i];
+            if (i == 0 || KX[o] != KX[ord[i - 1]] || KY[o] != KY[ord[i - 1]]) first[nd++] = o;
+            INV[o] = nd - 1;
+        }
+        /* complex_bincount: each pair's real and imaginary sums in the modes' order */
+        for (Py_ssize_t j = 0; j < n; j++) {
+            acc[2 * INV[j]] += Z[2 * j];
+            acc[2 * INV[j] + 1] += Z[2 * j + 1];
+        }
+        for (Py_ssize_t j = 0; j < n; j++) pres[G[j]] = 1;
+        long long c = -1;
+        for (Py_ssize_t g = 0; g < goffset; g++) {
+            c += pres[g];
+            pres[g] = c;
+        }
+        for (Py_ssize_t j = 0; j < n; j++) GROW[j] = pres[G[j]];
+        PyObject *ofirst = PyBytes_FromStringAndSize((const char *)first, nd * L);
+        PyObject *oz = PyBytes_FromStringAndSize((const char *)acc, 2 * nd * D);
+        if (ofirst != NULL && oz != NULL) res = Py_BuildValue("(NNNN)", ofirst, oinv, oz, ogrow);
+        else {
+            Py_XDECREF(ofirst);
+            Py_XDECREF(oz);
+        }
+        if (res != NULL) oinv = ogrow = NULL;
+    }
+    Py_XDECREF(oinv);
+    Py_XDECREF(ogrow);
+    free(ord);
+    free(pres);
+    free(acc);
+    RELEASE(&kb, &yb, &ob, &zb, &gb);
+    return res;
+}
+
+/*
  * coarse_modes(kx, ky, transfer, coarse, keep, data_ft, xp, fp, index, base, shift, r2, out) and
  * coarse_gather(h, nx, sigma2, jinv, grid, total): likelihood.coarse_peak's work per exposure, its numpy lines'
  * arithmetic without fused multiply-adds (numpy's complex product may fuse its own, so the cross-correlation's
@@ -4814,6 +5019,8 @@ static PyMethodDef methods[] = {
     {"locate_pass", locate_pass, METH_VARARGS,
      "locate_pass(bins, marg, e_index, rc, expx, xs, prior, shift, w, detail, r_peak, top, point)"},
     {"sample_chunk", sample_chunk, METH_VARARGS, "sample_chunk(args, e1, e2, rc, shift, out, rc_out, state) -> int"},
+    {"join_gather", join_gather, METH_VARARGS, "join_gather(items, keep) -> (kx, ky, zf, tscaled, group, data, goffset)"},
+    {"join_distinct", join_distinct, METH_VARARGS, "join_distinct(kx, ky, order, zdat, group, goffset) -> (first, inv, z, grow)"},
     {"adaptive_samples", adaptive_samples_c, METH_VARARGS,
      "adaptive_samples(args, prior_disk, prior_bulge, growth, shift, ints, params, state) -> (samples, n, need)"},
     {"coarse_modes", coarse_modes, METH_VARARGS,

@@ -525,7 +525,8 @@ def _csr_entries(H):
 
 
 def join_exposures(exposures: list[ExposureModes], chi2_tolerance: float = 0.0, keep=None,
-                   fold_tolerance: float = 0.0, decoupled=None, pair_tolerance: float = 0.0) -> JointModes:
+                   fold_tolerance: float = 0.0, decoupled=None, pair_tolerance: float = 0.0,
+                   use_kernel=True) -> JointModes:
     """Concatenate the exposures' modes (after the noise-aware cut, if a tolerance is given).
 
     ``keep`` (per exposure, a boolean mask of its modes) imposes the modes
@@ -536,6 +537,9 @@ def join_exposures(exposures: list[ExposureModes], chi2_tolerance: float = 0.0, 
     ``result.decoupled``) imposes another fit's choice. With ``pair_tolerance`` > 0, each model's sums
     leave out the fold groups' remaining cross terms where, for that model at the brightest flux the data
     allow, they could change chi^2 by at most this (``result.pair_skip``; the binned sums only).
+
+    The modes' concatenation and merging are compiled (``KERNEL.join_gather``, ``KERNEL.join_distinct``: the
+    same arrays as the numpy lines below, which ``use_kernel=False`` runs and which stay as the reference).
     """
     mb = _mode_bounds(exposures) if keep is None and (chi2_tolerance > 0 or fold_tolerance > 0) else None
     s2 = None
@@ -543,6 +547,8 @@ def join_exposures(exposures: list[ExposureModes], chi2_tolerance: float = 0.0, 
         s2 = (mb if mb is not None else _mode_bounds(exposures))[1]
     if keep is None and chi2_tolerance > 0:
         keep = _noise_aware_cut(exposures, chi2_tolerance, mb)
+    if use_kernel and USE_KERNEL:
+        return _join_kernel(exposures, keep, mb, s2, fold_tolerance, decoupled, pair_tolerance)
     if keep is not None:
         exposures = [_select(ex, k) for ex, k in zip(exposures, keep)]
     kx, ky, zf, tscaled, group = [], [], [], [], []
@@ -577,6 +583,41 @@ def join_exposures(exposures: list[ExposureModes], chi2_tolerance: float = 0.0, 
     present = np.zeros(goffset, bool)
     present[group] = True
     grow = (np.cumsum(present) - 1)[group]
+    return _joint_modes(exposures, kx[first], ky[first], zu, dmap, grow, inv, tscaled, yy, npix, keep, mb, s2,
+                        fold_tolerance, decoupled, pair_tolerance)
+
+
+def _join_kernel(exposures, keep, mb, s2, fold_tolerance, decoupled, pair_tolerance):
+    """join_exposures' concatenation and merging compiled (``KERNEL.join_gather``, numpy's argsort and complex
+    product, ``KERNEL.join_distinct``): the same arrays as its numpy lines, to the bit."""
+    c = np.ascontiguousarray
+    items = tuple((c(ex.kx, dtype=float), c(ex.ky, dtype=float), c(ex.transfer, dtype=complex),
+                   c(ex.coarse, dtype=np.int64), c(ex.cweight, dtype=float), c(ex.data_ft, dtype=complex).ravel(),
+                   int(ex.shape[0]), int(ex.shape[1]), float(ex.sigma2)) for ex in exposures)
+    keeps = tuple(b"" if keep is None else c(k, dtype=np.uint8) for k in (keep or exposures))
+    kxb, kyb, zfb, tsb, grb, dab, goffset = KERNEL.join_gather(items, keeps)
+    kx, ky = np.frombuffer(kxb, float), np.frombuffer(kyb, float)
+    zf, tscaled = np.frombuffer(zfb, complex), np.frombuffer(tsb, complex)
+    group = np.frombuffer(grb, np.int64)
+    zdat = np.conj(np.frombuffer(dab, complex)) * zf
+    fb, ib, zb, gb = KERNEL.join_distinct(kx, ky, np.argsort(kx), zdat, group, goffset)
+    first, inv, grow = np.frombuffer(fb, np.int64), np.frombuffer(ib, np.int64), np.frombuffer(gb, np.int64)
+    zu = np.frombuffer(zb, complex).copy()
+    yy = 0.0
+    npix = 0
+    for ex in exposures:
+        yy += ex.yy
+        npix += ex.npix
+    dmap = _DataMap(zf=zf, index=group, inv=inv, sigma2=[ex.sigma2 for ex in exposures],
+                    sizes=[ex.cweight.size for ex in exposures], phase=np.ones(first.size, complex))
+    return _joint_modes(exposures, kx[first], ky[first], zu, dmap, grow, inv, tscaled, yy, npix, keep, mb, s2,
+                        fold_tolerance, decoupled, pair_tolerance)
+
+
+def _joint_modes(exposures, kxu, kyu, zu, dmap, grow, inv, tscaled, yy, npix, keep, mb, s2, fold_tolerance,
+                 decoupled, pair_tolerance):
+    """join_exposures' JointModes from its merged modes: the fold groups, decoupled where they matter least."""
+    n = kxu.size
     q, multi, msizes, Hm = _fold_groups(grow, inv, tscaled, n)
     if decoupled is None and mb is not None and mb[1] is not None and fold_tolerance > 0 and msizes.size:
         decoupled = _weak_couplings(msizes, Hm, mb[1], fold_tolerance)
@@ -587,7 +628,6 @@ def join_exposures(exposures: list[ExposureModes], chi2_tolerance: float = 0.0, 
                                      f"{msizes.size}")
         if np.any(decoupled):
             q, multi, msizes, Hm = _decouple(q, multi, msizes, Hm, decoupled)
-    kxu, kyu = kx[first], ky[first]
     return JointModes(kx=kxu, ky=kyu, z=zu, q=q, multi=multi, msizes=msizes, H=Hm,
                       basis=np.stack([kxu * kxu, 2 * kxu * kyu, kyu * kyu]), yy=yy, npix=npix,
                       n_exposures=len(exposures), pixel_scale=float(np.mean([e.pixel_scale for e in exposures])),

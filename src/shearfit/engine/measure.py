@@ -6,7 +6,7 @@ import contextlib
 import gc
 import hashlib
 from dataclasses import dataclass, replace
-from typing import Iterable, Sequence
+from typing import Iterable, Mapping, Sequence
 
 import numpy as np
 from scipy import special
@@ -177,7 +177,7 @@ class FitPlan:
     shift: tuple
     size_nodes: np.ndarray
     r_center: float
-    centres: dict
+    centres: Mapping   # sampling.SizeCentres (a dict made at its first look)
     samples: Samples
     observations: list = None   # the fitted observations and their ExposureModes, whose modes a version
     exposures: list = None      # with the same PSFs, Jacobians and offsets reuses

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import functools
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass, field, fields
 
 import numpy as np
@@ -68,6 +69,52 @@ def _logsumexp_rows(a):
     m = np.max(a, axis=1)
     m = np.where(np.isfinite(m), m, 0.0)
     return m + np.log(np.sum(np.exp(a - m[:, None]), axis=1))
+
+
+class SizeCentres(Mapping):
+    """The size centre used at each ellipticity, keyed by :func:`e_key`: added as arrays (:meth:`add`), made a
+    dict at the first look (only metacal's replays look: a plain fit's hundreds of keys were 5 % of its sampler's
+    own time)."""
+
+    def __init__(self):
+        self._d = {}
+        self._pending = []
+
+    def add(self, e1, e2, rc):
+        self._pending.append((np.array(e1, float), np.array(e2, float), np.array(rc, float)))
+
+    def _dict(self):
+        if self._pending:
+            for e1, e2, rc in self._pending:
+                self._d.update(zip(e_key(e1, e2), rc.tolist()))
+            self._pending = []
+        return self._d
+
+    def __getitem__(self, key):
+        return self._dict()[key]
+
+    def __iter__(self):
+        return iter(self._dict())
+
+    def __len__(self):
+        return len(self._dict())
+
+    def get(self, key, default=None):
+        return self._dict().get(key, default)
+
+    def keys(self):
+        return self._dict().keys()
+
+    def values(self):
+        return self._dict().values()
+
+    def items(self):
+        return self._dict().items()
+
+    def __eq__(self, other):
+        return self._dict() == (other._dict() if isinstance(other, SizeCentres) else other)
+
+    __hash__ = None
 
 
 @dataclass
@@ -126,7 +173,7 @@ class EllipticityLikelihood:
         self.best_snr = 0.0
         # the size centre used at each ellipticity, keyed by ``e_key``: a fit of another version of the
         # same object (metacal's) replays them instead of locating its own (``fixed_centres``)
-        self.centres = {}
+        self.centres = SizeCentres()
         self.fixed_centres = None
 
     @property
@@ -351,10 +398,10 @@ class EllipticityLikelihood:
     def _chunk(self, e1, e2, use_kernel=True) -> EPoint:
         cfg = self.cfg
         ne = e1.size
-        keys = e_key(e1, e2)
         fused = self._chunk_args() if use_kernel else None
         if fused is not None:
-            return self._chunk_kernel(e1, e2, keys, fused)
+            return self._chunk_kernel(e1, e2, fused)
+        keys = e_key(e1, e2)
         # the chunk's modes binned once per ellipticity, for the size-locating passes and the nodes
         bins = mode_bins(self.jm, e1, e2, cfg.mode_bins_per_octave, polar=polar_setting(cfg), reuse=True) if (
             USE_KERNEL and cfg.mode_bins_per_octave > 0) else None
@@ -365,7 +412,7 @@ class EllipticityLikelihood:
             rc = self.centre(e1, e2)
             if self.locate_widths is not None:
                 rc, tail, tail_point = self._located_centres(e1, e2, rc, bins)
-        self.centres.update(zip(keys, rc.tolist()))
+        self.centres.add(e1, e2, rc)
         if np.any(tail):
             # the size nodes of the samples far in the tail are not evaluated: their crude values stand
             full = np.nonzero(~tail)[0]
@@ -409,7 +456,7 @@ class EllipticityLikelihood:
         self._chunk_consts = v
         return v
 
-    def _chunk_kernel(self, e1, e2, keys, fused):
+    def _chunk_kernel(self, e1, e2, fused):
         """:meth:`_chunk` in one compiled call (``KERNEL.sample_chunk``: the bins, the size-locating passes, the
         tail's shortcut and the size nodes), the same numbers as its lines (tests/test_kernel.py)."""
         ne = e1.size
@@ -425,7 +472,7 @@ class EllipticityLikelihood:
         if need:
             grow_column_buffer(need)
         self._set_state(state)
-        self.centres.update(zip(keys, rc_out.tolist()))
+        self.centres.add(e1, e2, rc_out)
         return EPoint(logl_disk=out[0], logl_bulge=out[1], mean_r=out[2], mean_b=out[3], mean_flux=out[4])
 
     @staticmethod
@@ -627,7 +674,7 @@ class VersionLikelihoods:
                                   polar=self.polar, grid=self.grid, reuse=True)
         rc = l0.replayed_centres(e1, e2, keys)
         for lk in likes:
-            lk.centres.update(zip(keys, rc.tolist()))
+            lk.centres.add(e1, e2, rc)
         marg = marginal_context(l0.cfg, l0.jm.pixel_scale) if l0.x.size <= 512 else None
         if marg is not None:
             # each version's size nodes in one compiled call (KERNEL.size_nodes, as its own like's): its bins at
@@ -978,7 +1025,7 @@ def _adaptive_kernel(like, cfg, step, pre, n):
     like._set_state(state)
     cols = np.frombuffer(out, float).reshape(11, ns).copy()
     e1, e2 = cols[0], cols[1]
-    like.centres.update(zip(e_key(e1, e2), cols[10].tolist()))
+    like.centres.add(e1, e2, cols[10])
     return Samples(e1=e1, e2=e2, area=cols[2], logl=cols[3], logpost=cols[4], point=EPoint(*cols[5:10]))
 
 
