@@ -396,6 +396,30 @@ def test_noise_variance_and_the_offset_phase_are_the_direct_ones():
         w = rng.uniform(0.5, 2.0, n) * (rng.uniform(size=n) > 0.2)
         w[0] = 1.0
         assert noise_variance(w) == 1.0 / float(np.median(w[w > 0]))
+    # the compiled masked stamp and its weights' figures (model._masked_stamp): numpy's stamp, variance and count,
+    # and a stamp without positive weight refused alike
+    from shearfit.engine import likelihood
+    from shearfit.engine.model import _data_modes, _masked_stamp
+    from shearfit.observation import Observation
+
+    for trial in range(6):
+        im = rng.normal(0, 1, (24, 24))
+        w = np.full((24, 24), 2.5) if trial % 2 else rng.uniform(0.5, 2.0, (24, 24))
+        w[rng.uniform(size=w.shape) < 0.1] = 0.0
+        if trial == 5:
+            w[:] = 0.0
+        o = Observation(image=im, weight=w, psf=np.ones((5, 5)) / 25, jacobian=PIX * np.eye(2))
+        stats = {}
+        y = _masked_stamp(o, 24, 24, stats)
+        assert np.array_equal(y, np.where(w > 0, im, 0.0))
+        assert ("weights" in stats) == likelihood.USE_KERNEL
+        if trial == 5:
+            for ws in (stats.get("weights"), None):
+                with pytest.raises(ShearfitValueError, match="positive weight"):
+                    _data_modes(o, 24, 24, y, None, ws)
+            continue
+        a, b = _data_modes(o, 24, 24, y, None, stats.get("weights")), _data_modes(o, 24, 24)
+        assert a[0] == b[0] and a[2] == b[2] and a[3] == b[3] and np.array_equal(a[1], b[1])
     obs = _observations(0.3, (0.2, 0.1), n_exp=1, noise=True, snr=40)[0]
     ny, nx = obs.shape
     ky, kx, T0, c0 = _fine_modes_moffat(obs.psf, ny, nx, 3, tolerance=1e-6)

@@ -201,6 +201,7 @@ def test_moffat_fit_starts_near_its_solution(monkeypatch):
     from shearfit.engine import moffat
 
     monkeypatch.setattr(moffat, "USE_KERNEL_BESSEL", False)
+    monkeypatch.setattr(moffat, "USE_KERNEL", False)   # (the compiled starts are checked against _start below)
     real = moffat.moffat_ft_dlogs
     old_start = moffat._start
     calls = []
@@ -221,6 +222,33 @@ def test_moffat_fit_starts_near_its_solution(monkeypatch):
         n_old += len(calls)
         assert np.allclose(new, old, rtol=1e-7, atol=0), (beta, fwhm, new, old)
     assert n_new < 0.8 * n_old, (n_new, n_old)
+
+
+def test_compiled_moffat_starts_match_numpy():
+    """The fits' starting points made by the compiled kernel (moffat_start, numpy taking the logarithms) are
+    moffat._start's to the bit: ring averages of Moffats of beta 1.3-20 and sizes 0.3-15 px with noise, rows that
+    never fall to 0.15 inside the band (a Gaussian's fallback), that rise again, that hold a NaN or ties."""
+    from shearfit.engine import moffat
+
+    if not moffat.USE_KERNEL:
+        pytest.skip("compiled kernel not built")
+    rng = np.random.default_rng(4)
+    kr = np.linspace(0.08, 0.7 * np.pi, 14)
+    rows = []
+    for _ in range(300):
+        beta, rs = rng.uniform(1.3, 20), np.exp(rng.uniform(np.log(0.3), np.log(15)))
+        rows.append(moffat.moffat_ft(kr, rs, beta) + rng.normal(0, 0.01, kr.size))
+    rows.append(np.exp(-0.5 * (kr * 0.5) ** 2))             # never below 0.15
+    rows.append(np.where(kr < 1, 0.9, 0.4))                  # never below 0.15, ties
+    r = moffat.moffat_ft(kr, 2.0, 3.0)
+    rows.append(np.concatenate([r[:7], r[6:13] + 0.3]))      # rises again
+    rows.append(np.where(np.arange(kr.size) == 5, np.nan, r))
+    rows.append(np.full(kr.size, 0.7))                       # flat: argmin's first
+    VR = np.array(rows)
+    got = moffat._starts(kr, VR)
+    ref = moffat._starts(kr, VR, use_kernel=False)
+    assert np.array_equal(got, ref, equal_nan=True)
+    assert np.isfinite(got[:300]).all()
 
 
 @pytest.mark.parametrize("sigma", [0.8, 2.0])

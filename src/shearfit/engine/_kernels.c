@@ -2879,6 +2879,94 @@ static void moffat_jac(const double *kr, Py_ssize_t n, const double *q, const do
     }
 }
 
+/*
+ * moffat_start(kr, vr, nus, x50, ratio, out): moffat._start of each row of vr (the ring averages at kr) in one call
+ * (its numpy lines stay as the reference; a test checks they agree to the bit): out (rows of 2) holds what the start
+ * is the logarithm of (numpy's log is taken by the caller: it is not the C library's everywhere), (x50(nu) / k50,
+ * nu) where the running minimum of the row falls through 0.5 and 0.15 inside the band, else (1.2 / k_half, 2).
+ * np.interp's arithmetic (compiled without contraction, as numpy's baseline build).
+ */
+static NO_CONTRACT double np_interp1(double x, const double *xp, const double *fp, Py_ssize_t n, int reversed)
+{
+#define XP(i) (reversed ? xp[n - 1 - (i)] : xp[i])
+#define FP(i) (reversed ? fp[n - 1 - (i)] : fp[i])
+    if (x < XP(0)) return FP(0);
+    if (x > XP(n - 1)) return FP(n - 1);
+    if (x == XP(n - 1)) return FP(n - 1);
+    if (!(x >= XP(0))) return x;   /* NaN */
+    Py_ssize_t lo = 0, hi = n - 1;   /* XP(lo) <= x < XP(hi) */
+    while (hi - lo > 1) {
+        const Py_ssize_t mid = lo + (hi - lo) / 2;
+        if (XP(mid) <= x) lo = mid;
+        else hi = mid;
+    }
+    const Py_ssize_t j = lo;
+    if (XP(j) == x) return FP(j);
+    const double slope = (FP(j + 1) - FP(j)) / (XP(j + 1) - XP(j));
+    double r = slope * (x - XP(j)) + FP(j);
+    if (r != r) {
+        r = slope * (x - XP(j + 1)) + FP(j + 1);
+        if (r != r && FP(j) == FP(j + 1)) r = FP(j);
+    }
+    return r;
+#undef XP
+#undef FP
+}
+
+static PyObject *moffat_start(PyObject *self, PyObject *args)
+{
+    Py_buffer kb, vb, nb, xb, rb, ob;
+    if (!PyArg_ParseTuple(args, "y*y*y*y*y*w*", &kb, &vb, &nb, &xb, &rb, &ob)) return NULL;
+    const Py_ssize_t D = (Py_ssize_t)sizeof(double), nr = kb.len / D, nt = nb.len / D;
+    const Py_ssize_t nf = nr > 0 ? vb.len / (nr * D) : 0;
+    if (nr < 1 || nr > 4096 || vb.len != nf * nr * D || xb.len != nt * D || rb.len != nt * D || nt < 2
+        || ob.len != 2 * nf * D) {
+        RELEASE(&kb, &vb, &nb, &xb, &rb, &ob);
+        PyErr_SetString(PyExc_ValueError, "moffat_start: inconsistent buffers");
+        return NULL;
+    }
+    const double *kr = (const double *)kb.buf, *V = (const double *)vb.buf, *nus = (const double *)nb.buf;
+    const double *x50 = (const double *)xb.buf, *ratio = (const double *)rb.buf;
+    double *O = (double *)ob.buf, v[4096];
+    for (Py_ssize_t f = 0; f < nf; f++) {
+        const double *vr = V + f * nr;
+        int finite = 1;
+        for (Py_ssize_t i = 0; i < nr; i++) {   /* np.minimum.accumulate (NaN propagates) */
+            v[i] = i == 0 ? vr[0] : (vr[i] < v[i - 1] || vr[i] != vr[i] ? vr[i] : v[i - 1]);
+            if (!isfinite(v[i])) finite = 0;
+        }
+        if (nr >= 3 && v[0] > 0.5 && v[nr - 1] < 0.15 && finite) {
+            const double k50 = np_interp1(0.5, v, kr, nr, 1), k15 = np_interp1(0.15, v, kr, nr, 1);
+            if (k50 > 0 && k15 > k50) {
+                const double nu = np_interp1(k15 / k50, ratio, nus, nt, 1);
+                O[2 * f] = np_interp1(nu, nus, x50, nt, 0) / k50;
+                O[2 * f + 1] = nu;
+                continue;
+            }
+        }
+        int any = 0;
+        for (Py_ssize_t i = 0; i < nr; i++) any |= vr[i] < 0.5;
+        /* np.argmin of |vr - 0.5|: the first least, or the first NaN */
+        Py_ssize_t best = 0;
+        double bd = fabs(vr[0] - 0.5);
+        for (Py_ssize_t i = 1; bd == bd && i < nr; i++) {
+            const double d = fabs(vr[i] - 0.5);
+            if (d != d) {
+                best = i;
+                break;
+            }
+            if (d < bd) {
+                best = i;
+                bd = d;
+            }
+        }
+        O[2 * f] = 1.2 / (any ? kr[best] : 0.5);
+        O[2 * f + 1] = 2.0;
+    }
+    RELEASE(&kb, &vb, &nb, &xb, &rb, &ob);
+    Py_RETURN_NONE;
+}
+
 /* whether the step from p to q is below the tolerance in both parameters (numpy: np.all(|Q - P| <= ...)) */
 static int lm_small(const double *q, const double *p, double xtol)
 {
@@ -4401,6 +4489,39 @@ static PyObject *join_distinct(PyObject *self, PyObject *args)
 }
 
 /*
+ * masked_stamp(image, weight, y) -> (count, lo, hi): model._masked_stamp and the weights' figures that noise_variance
+ * and _data_modes take, in one pass (their numpy lines stay as the reference; a test checks they agree): y = image
+ * where weight > 0, else 0 (float64 each, one size); count, the weights > 0; lo and hi, their least and largest
+ * (NaN weights are not > 0).
+ */
+static PyObject *masked_stamp(PyObject *self, PyObject *args)
+{
+    Py_buffer ib, wb, yb;
+    if (!PyArg_ParseTuple(args, "y*y*w*", &ib, &wb, &yb)) return NULL;
+    const Py_ssize_t n = ib.len / (Py_ssize_t)sizeof(double);
+    if (wb.len != ib.len || yb.len != ib.len || ib.len % (Py_ssize_t)sizeof(double) != 0) {
+        RELEASE(&ib, &wb, &yb);
+        PyErr_SetString(PyExc_ValueError, "masked_stamp: inconsistent buffers");
+        return NULL;
+    }
+    const double *I = (const double *)ib.buf, *W = (const double *)wb.buf;
+    double *Y = (double *)yb.buf, lo = INFINITY, hi = -INFINITY;
+    Py_ssize_t count = 0;
+    for (Py_ssize_t i = 0; i < n; i++) {
+        const double w = W[i];
+        const int on = w > 0;
+        Y[i] = on ? I[i] : 0.0;
+        if (on) {
+            count++;
+            lo = w < lo ? w : lo;
+            hi = w > hi ? w : hi;
+        }
+    }
+    RELEASE(&ib, &wb, &yb);
+    return Py_BuildValue("(ndd)", count, lo, hi);
+}
+
+/*
  * coarse_modes(kx, ky, transfer, coarse, keep, data_ft, xp, fp, index, base, shift, r2, out) and
  * coarse_gather(h, nx, sigma2, jinv, grid, total): likelihood.coarse_peak's work per exposure, its numpy lines'
  * arithmetic without fused multiply-adds (numpy's complex product may fuse its own, so the cross-correlation's
@@ -5019,6 +5140,8 @@ static PyMethodDef methods[] = {
     {"locate_pass", locate_pass, METH_VARARGS,
      "locate_pass(bins, marg, e_index, rc, expx, xs, prior, shift, w, detail, r_peak, top, point)"},
     {"sample_chunk", sample_chunk, METH_VARARGS, "sample_chunk(args, e1, e2, rc, shift, out, rc_out, state) -> int"},
+    {"moffat_start", moffat_start, METH_VARARGS, "moffat_start(kr, vr, nus, x50, ratio, out)"},
+    {"masked_stamp", masked_stamp, METH_VARARGS, "masked_stamp(image, weight, y) -> (count, lo, hi)"},
     {"join_gather", join_gather, METH_VARARGS, "join_gather(items, keep) -> (kx, ky, zf, tscaled, group, data, goffset)"},
     {"join_distinct", join_distinct, METH_VARARGS, "join_distinct(kx, ky, order, zdat, group, goffset) -> (first, inv, z, grow)"},
     {"adaptive_samples", adaptive_samples_c, METH_VARARGS,

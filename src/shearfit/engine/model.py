@@ -547,8 +547,15 @@ def _fine_modes_moffat(psf, ny, nx, s, moffat=None, tolerance=0.0, Ps=None, offs
     return KYf[idx], KXf[idx], T, c
 
 
-def noise_variance(weight):
-    """Stationary noise variance of a stamp: 1 / median of the positive weights."""
+def noise_variance(weight, stats=None):
+    """Stationary noise variance of a stamp: 1 / median of the positive weights. ``stats``: (count, least, largest)
+    of the positive weights where already known (:func:`_masked_stamp`'s)."""
+    if stats is not None:
+        count, lo, hi = stats
+        if count == 0:
+            raise ShearfitValueError("stamp has no pixel with positive weight")
+        if lo == hi:
+            return 1.0 / float(lo)
     w = weight[weight > 0]
     if w.size == 0:
         raise ShearfitValueError("stamp has no pixel with positive weight")
@@ -563,20 +570,31 @@ def noise_variance(weight):
     return 1.0 / float((p[h - 1] + p[h]) / 2)
 
 
-def _masked_stamp(obs, ny, nx):
-    y = np.where(obs.weight > 0, obs.image, 0.0)
+def _masked_stamp(obs, ny, nx, stats=None):
+    """The stamp where its weight is positive, 0 elsewhere, on the (ny, nx) grid. With ``stats`` (a dict), the
+    compiled kernel (``masked_stamp``) makes it where it can, the same numbers, and stores the positive weights'
+    count, least and largest there as ``stats["weights"]`` (for :func:`_data_modes`)."""
+    im, w = obs.image, obs.weight
+    if (stats is not None and USE_KERNEL and im.shape == (ny, nx) and w.shape == im.shape
+            and im.dtype == np.float64 and w.dtype == np.float64):
+        y = np.empty((ny, nx))
+        stats["weights"] = KERNEL.masked_stamp(np.ascontiguousarray(im), np.ascontiguousarray(w), y)
+        return y
+    y = np.where(w > 0, im, 0.0)
     return y if y.shape == (ny, nx) else _pad_center(y, (ny, nx))
 
 
-def _data_modes(obs, ny, nx, y=None, data_ft=None):
+def _data_modes(obs, ny, nx, y=None, data_ft=None, wstats=None):
     """The stamp's noise variance, rfft (masked, centred on the grid), sum y^2 / sigma^2 and used pixels
-    (``y``, ``data_ft``: the masked stamp on the grid and its rfft, if already made)."""
-    sigma2 = noise_variance(obs.weight)
+    (``y``, ``data_ft``: the masked stamp on the grid and its rfft, if already made; ``wstats``: the positive
+    weights' count, least and largest, :func:`_masked_stamp`'s)."""
+    sigma2 = noise_variance(obs.weight, wstats)
     if y is None:
         y = _masked_stamp(obs, ny, nx)
     if data_ft is None:
         data_ft = _centred_rfft2(y)
-    return sigma2, data_ft.ravel(), float(np.sum(y * y) / sigma2), int(np.count_nonzero(obs.weight > 0))
+    npix = int(wstats[0]) if wstats is not None else int(np.count_nonzero(obs.weight > 0))
+    return sigma2, data_ft.ravel(), float(np.sum(y * y) / sigma2), npix
 
 
 def indices_by_shape(shapes):
@@ -599,7 +617,7 @@ def prepare_exposures(observations, cfg: FitConfig, likes=None) -> list:
     for (ny, nx), idx in indices_by_shape(o.shape for o in observations).items():
         if len(idx) < 2:
             continue
-        ys = [_masked_stamp(observations[i], ny, nx) for i in idx]
+        ys = [_masked_stamp(observations[i], ny, nx, pre[i]) for i in idx]
         for i, y, f in zip(idx, ys, _centred_rfft2(np.stack(ys))):
             pre[i]["y"], pre[i]["data_ft"] = y, f
         native = [i for i in idx if likes[i] is None and alias and observations[i].psf_oversampling == 1]
@@ -614,7 +632,9 @@ def prepare_exposures(observations, cfg: FitConfig, likes=None) -> list:
                 fits = fit_moffats([pre[i]["Ps"] for i in need], 2 * np.pi * np.fft.fftfreq(ny),
                                    2 * np.pi * np.fft.rfftfreq(nx))
                 for i, fit in zip(need, fits):
-                    _OWN_MOFFAT.put(observations[i].psf, (ny, nx), fit)
+                    # (and handed to its exposure: the memory's lookup of the same PSF, a fingerprint and a
+                    # comparison of the image, cost 1 % of a fit whose every PSF is new)
+                    pre[i]["moffat"] = _OWN_MOFFAT.put(observations[i].psf, (ny, nx), fit)
     return [prepare_exposure(o, cfg, like=lk, _pre=p) for o, lk, p in zip(observations, likes, pre)]
 
 
@@ -634,13 +654,14 @@ def prepare_exposure(obs: Observation, cfg: FitConfig, grid_shape=None, with_dat
     if like is not None:
         if like.shape != (ny, nx):
             raise ShearfitValueError(f"prepare_exposure: like= has shape {like.shape}, the stamp {(ny, nx)}")
-        sigma2, data_ft, yy, npix = _data_modes(obs, ny, nx, pre.get("y"), pre.get("data_ft"))
+        sigma2, data_ft, yy, npix = _data_modes(obs, ny, nx, pre.get("y"), pre.get("data_ft"), pre.get("weights"))
         return replace(like, data_ft=data_ft, sigma2=sigma2, yy=yy, npix=npix)
     s = obs.psf_oversampling
     if s == 1 and cfg.alias_correction == "moffat":
         # the modes below the tolerance are dropped as they are made; the object's nominal position sits
         # at (stamp centre + offset)
-        ky, kx, T, coarse = _fine_modes_moffat(obs.psf, ny, nx, cfg.alias_oversampling, obs.psf_moffat,
+        moffat = obs.psf_moffat if obs.psf_moffat is not None else pre.get("moffat")
+        ky, kx, T, coarse = _fine_modes_moffat(obs.psf, ny, nx, cfg.alias_oversampling, moffat,
                                                cfg.psf_mode_tolerance, Ps=pre.get("Ps"), offset=obs.offset)
     else:
         ky, kx, T, coarse = _fine_modes_from_psf(obs.psf, s, ny, nx, cfg.psf_mode_tolerance)
@@ -653,8 +674,8 @@ def prepare_exposure(obs: Observation, cfg: FitConfig, grid_shape=None, with_dat
     Kx = Jinv_T[0, 0] * kx + Jinv_T[0, 1] * ky
     Ky = Jinv_T[1, 0] * kx + Jinv_T[1, 1] * ky
     cweight = _rfft_weights(ny, nx).ravel()
-    sigma2, data_ft, yy, npix = _data_modes(obs, ny, nx, pre.get("y"), pre.get("data_ft")) if with_data \
-        else (1.0, None, 0.0, 0)
+    sigma2, data_ft, yy, npix = (_data_modes(obs, ny, nx, pre.get("y"), pre.get("data_ft"), pre.get("weights"))
+                                 if with_data else (1.0, None, 0.0, 0))
     return ExposureModes(shape=(ny, nx), kx=Kx, ky=Ky, transfer=T, coarse=coarse, cweight=cweight,
                          data_ft=data_ft, sigma2=sigma2, yy=yy, npix=npix, pixel_scale=obs.pixel_scale)
 

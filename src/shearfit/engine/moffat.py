@@ -13,7 +13,7 @@ import functools
 import numpy as np
 from scipy import special
 
-from .kernel import KERNEL, special_capsules
+from .kernel import KERNEL, USE_KERNEL, special_capsules
 
 __all__ = ["moffat_norm", "moffat_ft_x", "moffat_ft", "moffat_ft_dlogs", "fit_moffat", "fit_moffats"]
 
@@ -81,8 +81,7 @@ def fit_moffats(psf_fts, ky, kx, max_iter=100, ftol=1e-10, xtol=1e-8):
     sums = np.bincount((idx[None, :] + nb * np.arange(nf)[:, None]).ravel(), weights=vals.ravel(),
                        minlength=nf * nb).reshape(nf, nb)
     VR = (sums[:, 1:] / np.maximum(count, 1))[:, used]
-    P = _levenberg_marquardt(kr, VR, np.array([_start(kr, vr) for vr in VR]).reshape(-1, 2), (True, True),
-                             max_iter, ftol, xtol)
+    P = _levenberg_marquardt(kr, VR, _starts(kr, VR), (True, True), max_iter, ftol, xtol)
     out = []
     for vr, p in zip(VR, P.tolist()):
         # (np.clip's numbers in Python floats: min(max(x, lo), hi) keeps a NaN x as np.clip does)
@@ -159,6 +158,19 @@ def _start(kr, vr):
             return np.array([np.log(float(np.interp(nu, nus, x50)) / k50), np.log(nu)])
     khalf = kr[np.argmin(np.abs(vr - 0.5))] if np.any(vr < 0.5) else 0.5
     return np.array([np.log(1.2 / khalf), np.log(2.0)])
+
+
+def _starts(kr, VR, use_kernel=True):
+    """:func:`_start` of each row of VR, as rows of an array. The compiled kernel (``moffat_start``) finds what each
+    start is the logarithm of, and numpy takes the logarithms: the same numbers as the lines of :func:`_start`
+    (a test checks they agree to the bit)."""
+    if use_kernel and USE_KERNEL:
+        args = np.empty((VR.shape[0], 2))
+        nus, x50, ratio = _start_table()
+        KERNEL.moffat_start(np.ascontiguousarray(kr, dtype=float), np.ascontiguousarray(VR, dtype=float), nus, x50,
+                            ratio, args)
+        return np.log(args)
+    return np.array([_start(kr, vr) for vr in VR]).reshape(-1, 2)
 
 
 def _load_bessel():
