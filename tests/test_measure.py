@@ -263,6 +263,20 @@ def test_compiled_join_matches_its_numpy_lines():
                                         np.zeros(2, np.int64), 1)
 
 
+def test_compiled_shift_phase_is_numpys():
+    """shift_joint's phase exp(-i (kx du + ky dv)) from the compiled kernel (the C library's cos and sin) is numpy's
+    complex exp to the bit, for wavevectors up to 3 pi / pixel and shifts of up to a few pixels, zero ones too."""
+    from shearfit.engine import likelihood
+
+    rng = np.random.default_rng(8)
+    kx, ky = rng.uniform(-3 * np.pi / PIX, 3 * np.pi / PIX, (2, 5000))
+    kx[:3] = 0.0
+    for du, dv in ((0.013, -0.041), (0.0, 0.0), (-0.6, 0.45), (1e-9, -3e-9)):
+        a = likelihood.shift_phase(kx, ky, du, dv)
+        b = likelihood.shift_phase(kx, ky, du, dv, use_kernel=False)
+        assert np.array_equal(a.view(float), b.view(float)), (du, dv)
+
+
 def test_fold_groups_are_those_of_the_sparse_product():
     """join_exposures' distinct wavevectors and fold groups, made without sparse products, against np.unique
     and H = F^H F with scipy.sparse and its connected components: the same modes, groups and weights (to

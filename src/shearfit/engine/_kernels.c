@@ -4522,6 +4522,40 @@ static PyObject *masked_stamp(PyObject *self, PyObject *args)
 }
 
 /*
+ * shift_phase(kx, ky, du, dv, out): exp(-i (kx du + ky dv)) per mode (likelihood.shift_joint's numpy line stays as the
+ * reference; a test checks they agree to the bit): numpy's complex exp of the purely imaginary -i t is (cos t,
+ * sin(-t)) from the C library, t made without contraction as numpy makes it.
+ */
+#if defined(__GNUC__) && !defined(__clang__)
+#define SCALAR_LIBM __attribute__((optimize("fp-contract=off", "no-tree-vectorize")))
+#else
+#define SCALAR_LIBM NO_CONTRACT
+#endif
+/* (SCALAR_LIBM: not vectorised, so that cos and sin are the C library's scalar ones, numpy's: GCC's loop of them
+   called the vector library's, which differ in the last place) */
+static SCALAR_LIBM PyObject *shift_phase(PyObject *self, PyObject *args)
+{
+    Py_buffer xb, yb, ob;
+    double du, dv;
+    if (!PyArg_ParseTuple(args, "y*y*ddw*", &xb, &yb, &du, &dv, &ob)) return NULL;
+    const Py_ssize_t n = xb.len / (Py_ssize_t)sizeof(double);
+    if (yb.len != xb.len || ob.len != 2 * xb.len) {
+        RELEASE(&xb, &yb, &ob);
+        PyErr_SetString(PyExc_ValueError, "shift_phase: inconsistent buffers");
+        return NULL;
+    }
+    const double *X = (const double *)xb.buf, *Y = (const double *)yb.buf;
+    double *O = (double *)ob.buf;
+    for (Py_ssize_t j = 0; j < n; j++) {
+        const double a = X[j] * du, b = Y[j] * dv, t = a + b;
+        O[2 * j] = cos(t);
+        O[2 * j + 1] = sin(-t);
+    }
+    RELEASE(&xb, &yb, &ob);
+    Py_RETURN_NONE;
+}
+
+/*
  * coarse_modes(kx, ky, transfer, coarse, keep, data_ft, xp, fp, index, base, shift, r2, out) and
  * coarse_gather(h, nx, sigma2, jinv, grid, total): likelihood.coarse_peak's work per exposure, its numpy lines'
  * arithmetic without fused multiply-adds (numpy's complex product may fuse its own, so the cross-correlation's
@@ -5142,6 +5176,7 @@ static PyMethodDef methods[] = {
     {"sample_chunk", sample_chunk, METH_VARARGS, "sample_chunk(args, e1, e2, rc, shift, out, rc_out, state) -> int"},
     {"moffat_start", moffat_start, METH_VARARGS, "moffat_start(kr, vr, nus, x50, ratio, out)"},
     {"masked_stamp", masked_stamp, METH_VARARGS, "masked_stamp(image, weight, y) -> (count, lo, hi)"},
+    {"shift_phase", shift_phase, METH_VARARGS, "shift_phase(kx, ky, du, dv, out)"},
     {"join_gather", join_gather, METH_VARARGS, "join_gather(items, keep) -> (kx, ky, zf, tscaled, group, data, goffset)"},
     {"join_distinct", join_distinct, METH_VARARGS, "join_distinct(kx, ky, order, zdat, group, goffset) -> (first, inv, z, grow)"},
     {"adaptive_samples", adaptive_samples_c, METH_VARARGS,

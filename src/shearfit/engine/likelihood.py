@@ -635,9 +635,20 @@ def _joint_modes(exposures, kxu, kyu, zu, dmap, grow, inv, tscaled, yy, npix, ke
                       pair_skip=pair_tolerance / s2 if s2 else 0.0)
 
 
+def shift_phase(kx, ky, du, dv, use_kernel=True):
+    """exp(-i (kx du + ky dv)): the compiled kernel's (``shift_phase``: the C library's cos and sin, which numpy's
+    complex exp of a purely imaginary number is) or numpy's, the same numbers (a test checks them)."""
+    if use_kernel and USE_KERNEL:
+        out = np.empty(kx.size, complex)
+        KERNEL.shift_phase(np.ascontiguousarray(kx, dtype=float), np.ascontiguousarray(ky, dtype=float), float(du),
+                           float(dv), out)
+        return out
+    return np.exp(-1j * (kx * du + ky * dv))
+
+
 def shift_joint(jm: JointModes, du, dv) -> JointModes:
     """The same modes with the model origin moved by (du, dv) arcsec on the sky."""
-    phase = np.exp(-1j * (jm.kx * du + jm.ky * dv))
+    phase = shift_phase(jm.kx, jm.ky, du, dv)
     H = jm.H
     if jm.multi.size:
         # diag(conj(ph)) H diag(ph), on H's own pattern
