@@ -567,3 +567,29 @@ def test_catalogue_neighbours_are_the_objects_within_the_radius_on_a_shared_ccd(
                      y=np.array([50.0, 60.0, 50.0, 50.0, 60.0, 50.0]))
     ptr, idx = catalogue_neighbours(hits, 6, 20.0)
     assert [idx[ptr[i]:ptr[i + 1]].tolist() for i in range(6)] == [[1, 3], [0], [4], [0], [2], []]
+
+
+def test_compiled_nearest_map_is_numpys():
+    """The pixel maps between exposures' stamp grids (driver._nearest_map) from the compiled kernel are the numpy
+    lines': rotated, stretched and flipped grids on odd and even stamps, half-pixel ties rounded to even alike."""
+    from shearfit.engine.kernel import USE_KERNEL
+    from shearfit.pipeline.driver import _nearest_map
+
+    if not USE_KERNEL:
+        pytest.skip("compiled kernel not built")
+    rng = np.random.default_rng(1)
+    maps = 0
+    for t in range(400):
+        a = rng.uniform(-0.2, 0.2)
+        A = np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]]) * (1 + rng.normal(0, 0.02, (2, 2)))
+        if t % 7 == 0:
+            A = A[::-1]
+        if t % 11 == 0:
+            A = np.array([[0.5, 0.0], [0.0, 1.5]])   # ties at every other pixel
+        shape = (int(rng.integers(3, 60)), int(rng.integers(3, 60)))
+        got, ref = _nearest_map(A, shape), _nearest_map(A, shape, use_kernel=False)
+        assert (got is None) == (ref is None)
+        if got is not None:
+            maps += 1
+            assert np.array_equal(got[0], ref[0]) and np.array_equal(got[1], ref[1]) and got[1].dtype == bool
+    assert maps > 300

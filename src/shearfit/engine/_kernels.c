@@ -4556,6 +4556,41 @@ static SCALAR_LIBM PyObject *shift_phase(PyObject *self, PyObject *args)
 }
 
 /*
+ * nearest_map(a, ny, nx, index, inside): pipeline.driver._nearest_map's arrays in one pass (its numpy lines stay as
+ * the reference; a test checks they agree): each pixel's offset (dx, dy) from the centre pixel (ny // 2, nx // 2)
+ * mapped by the 2 x 2 matrix a (row-major) and rounded half to even (np.rint), a00 dx + a01 dy without contraction
+ * as numpy makes it; index (int64) the pixel it lands on, flat, where inside (uint8), else 0.
+ */
+static NO_CONTRACT PyObject *nearest_map(PyObject *self, PyObject *args)
+{
+    Py_buffer ab, ib, ob;
+    int ny, nx;
+    if (!PyArg_ParseTuple(args, "y*iiw*w*", &ab, &ny, &nx, &ib, &ob)) return NULL;
+    const Py_ssize_t n = (Py_ssize_t)ny * nx;
+    if (ny < 1 || nx < 1 || ab.len != 4 * (Py_ssize_t)sizeof(double) || ib.len != n * (Py_ssize_t)sizeof(long long)
+        || ob.len != n) {
+        RELEASE(&ab, &ib, &ob);
+        PyErr_SetString(PyExc_ValueError, "nearest_map: inconsistent buffers");
+        return NULL;
+    }
+    const double *A = (const double *)ab.buf;
+    long long *I = (long long *)ib.buf;
+    unsigned char *O = (unsigned char *)ob.buf;
+    const int cy = ny / 2, cx = nx / 2;
+    for (int y = 0; y < ny; y++)
+        for (int x = 0; x < nx; x++) {
+            const double dx = (double)(x - cx), dy = (double)(y - cy);
+            const double u = A[0] * dx, v = A[1] * dy, s = A[2] * dx, t = A[3] * dy;
+            const long long px = (long long)nearbyint(u + v) + cx, py = (long long)nearbyint(s + t) + cy;
+            const int in = px >= 0 && px < nx && py >= 0 && py < ny;
+            I[(Py_ssize_t)y * nx + x] = in ? py * nx + px : 0;
+            O[(Py_ssize_t)y * nx + x] = (unsigned char)in;
+        }
+    RELEASE(&ab, &ib, &ob);
+    Py_RETURN_NONE;
+}
+
+/*
  * coarse_modes(kx, ky, transfer, coarse, keep, data_ft, xp, fp, index, base, shift, r2, out) and
  * coarse_gather(h, nx, sigma2, jinv, grid, total): likelihood.coarse_peak's work per exposure, its numpy lines'
  * arithmetic without fused multiply-adds (numpy's complex product may fuse its own, so the cross-correlation's
@@ -5177,6 +5212,7 @@ static PyMethodDef methods[] = {
     {"moffat_start", moffat_start, METH_VARARGS, "moffat_start(kr, vr, nus, x50, ratio, out)"},
     {"masked_stamp", masked_stamp, METH_VARARGS, "masked_stamp(image, weight, y) -> (count, lo, hi)"},
     {"shift_phase", shift_phase, METH_VARARGS, "shift_phase(kx, ky, du, dv, out)"},
+    {"nearest_map", nearest_map, METH_VARARGS, "nearest_map(a, ny, nx, index, inside)"},
     {"join_gather", join_gather, METH_VARARGS, "join_gather(items, keep) -> (kx, ky, zf, tscaled, group, data, goffset)"},
     {"join_distinct", join_distinct, METH_VARARGS, "join_distinct(kx, ky, order, zdat, group, goffset) -> (first, inv, z, grow)"},
     {"adaptive_samples", adaptive_samples_c, METH_VARARGS,

@@ -48,6 +48,7 @@ from ..errors import (FITCLASS_BAD_INPUT, FITCLASS_BLENDED, FITCLASS_FEW_EXPOSUR
 from ..calib.calibrate import calibration_m, default_calibration, load_calibration
 from ..calib.weights import isotropic_bins, isotropic_weights
 from ..engine.measure import measure_object
+from ..engine.kernel import KERNEL, USE_KERNEL
 from ..engine.model import ContentMemo, inv2, psf_moffat
 from ..observation import Observation, is_immutable
 from ..io.fieldconfig import CALIBRATION_MODES, FieldConfig
@@ -373,7 +374,7 @@ def _centred_offsets(shape):
     return xx - nx // 2, yy - ny // 2
 
 
-def _nearest_map(A, shape):
+def _nearest_map(A, shape, use_kernel=True):
     """Where each pixel of a stamp lands on another stamp of the same shape under the linear map ``A``.
 
     Offsets from the centre pixel are mapped by ``A`` and rounded to the nearest pixel (no
@@ -384,6 +385,11 @@ def _nearest_map(A, shape):
     ny, nx = shape
     if np.abs(A - np.eye(2)).max() * (nx + ny) < 1.0:
         return None
+    if use_kernel and USE_KERNEL:
+        # (the compiled kernel: the same arrays in one pass)
+        index, inside = np.empty(shape, np.int64), np.empty(shape, bool)
+        KERNEL.nearest_map(np.ascontiguousarray(A, dtype=float), int(ny), int(nx), index, inside.view(np.uint8))
+        return index, inside
     dx, dy = _centred_offsets(shape)
     px = np.rint(A[0, 0] * dx + A[0, 1] * dy).astype(np.int64) + nx // 2
     py = np.rint(A[1, 0] * dx + A[1, 1] * dy).astype(np.int64) + ny // 2
