@@ -263,6 +263,25 @@ def test_compiled_join_matches_its_numpy_lines():
                                         np.zeros(2, np.int64), 1)
 
 
+def test_compiled_sky_modes_are_numpys():
+    """prepare_exposure's sky wavevectors K = J^-T k and transfer times the flux scale from the compiled kernel
+    (sky_modes) are the numpy lines': rotated and sheared Jacobians, flux scales other than 1."""
+    from shearfit.engine.likelihood import USE_KERNEL
+    from shearfit.engine.model import prepare_exposure
+
+    if not USE_KERNEL:
+        pytest.skip("compiled kernel not built")
+    cfg = shearfit.FitConfig()
+    a = 0.3
+    jac = [PIX * np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]]), PIX * np.array([[1.02, 0.03], [-0.01, 0.97]])]
+    obs = _observations(0.3, (0.2, 0.1), n_exp=2, jacobians=jac, flux_scales=[0.83, 1.27])
+    for o in obs:
+        x, y = prepare_exposure(o, cfg), prepare_exposure(o, cfg, use_kernel=False)
+        for f in ("kx", "ky", "transfer", "coarse"):
+            assert np.array_equal(getattr(x, f), getattr(y, f)), f
+        assert x.kx.size > 100
+
+
 def test_compiled_shift_phase_is_numpys():
     """shift_joint's phase exp(-i (kx du + ky dv)) from the compiled kernel (the C library's cos and sin) is numpy's
     complex exp to the bit, for wavevectors up to 3 pi / pixel and shifts of up to a few pixels, zero ones too."""
@@ -416,23 +435,25 @@ def test_noise_variance_and_the_offset_phase_are_the_direct_ones():
     from shearfit.engine.model import _data_modes, _masked_stamp
     from shearfit.observation import Observation
 
-    for trial in range(6):
-        im = rng.normal(0, 1, (24, 24))
-        w = np.full((24, 24), 2.5) if trial % 2 else rng.uniform(0.5, 2.0, (24, 24))
+    for trial in range(9):
+        n = (24, 48, 47, 5, 130)[trial % 5]
+        im = rng.normal(0, 1, (n, n)) * np.exp(rng.normal(0, 2, (n, n)))
+        w = np.full((n, n), 2.5) if trial % 2 else rng.uniform(0.5, 2.0, (n, n))
         w[rng.uniform(size=w.shape) < 0.1] = 0.0
-        if trial == 5:
+        if trial == 8:
             w[:] = 0.0
         o = Observation(image=im, weight=w, psf=np.ones((5, 5)) / 25, jacobian=PIX * np.eye(2))
         stats = {}
-        y = _masked_stamp(o, 24, 24, stats)
+        y = _masked_stamp(o, n, n, stats)
         assert np.array_equal(y, np.where(w > 0, im, 0.0))
         assert ("weights" in stats) == likelihood.USE_KERNEL
-        if trial == 5:
+        if trial == 8:
             for ws in (stats.get("weights"), None):
                 with pytest.raises(ShearfitValueError, match="positive weight"):
-                    _data_modes(o, 24, 24, y, None, ws)
+                    _data_modes(o, n, n, y, None, ws)
             continue
-        a, b = _data_modes(o, 24, 24, y, None, stats.get("weights")), _data_modes(o, 24, 24)
+        # (sum y^2 is numpy's pairwise sum's, to the bit)
+        a, b = _data_modes(o, n, n, y, None, stats.get("weights")), _data_modes(o, n, n)
         assert a[0] == b[0] and a[2] == b[2] and a[3] == b[3] and np.array_equal(a[1], b[1])
     obs = _observations(0.3, (0.2, 0.1), n_exp=1, noise=True, snr=40)[0]
     ny, nx = obs.shape

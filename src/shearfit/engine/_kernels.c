@@ -4489,11 +4489,36 @@ static PyObject *join_distinct(PyObject *self, PyObject *args)
 }
 
 /*
- * masked_stamp(image, weight, y) -> (count, lo, hi): model._masked_stamp and the weights' figures that noise_variance
+ * masked_stamp(image, weight, y) -> (count, lo, hi, sumsq): model._masked_stamp and the figures that noise_variance
  * and _data_modes take, in one pass (their numpy lines stay as the reference; a test checks they agree): y = image
  * where weight > 0, else 0 (float64 each, one size); count, the weights > 0; lo and hi, their least and largest
- * (NaN weights are not > 0).
+ * (NaN weights are not > 0); sumsq, np.sum(y * y) (numpy's pairwise summation).
  */
+/* numpy's pairwise sum of n doubles (its add.reduce of a contiguous array: blocks of up to 128 summed with eight
+   accumulators joined as ((r0 + r1) + (r2 + r3)) + ((r4 + r5) + (r6 + r7)), halves of larger ranges split at a
+   multiple of 8; numpy's np.sum is 0.0 plus this): the same additions in the same order */
+static NO_CONTRACT double np_pairwise_sum(const double *a, Py_ssize_t n)
+{
+    if (n < 8) {
+        double res = -0.0;
+        for (Py_ssize_t i = 0; i < n; i++) res += a[i];
+        return res;
+    }
+    if (n <= 128) {
+        double r[8];
+        for (int j = 0; j < 8; j++) r[j] = a[j];
+        Py_ssize_t i = 8;
+        for (; i < n - (n % 8); i += 8)
+            for (int j = 0; j < 8; j++) r[j] += a[i + j];
+        double res = ((r[0] + r[1]) + (r[2] + r[3])) + ((r[4] + r[5]) + (r[6] + r[7]));
+        for (; i < n; i++) res += a[i];
+        return res;
+    }
+    Py_ssize_t n2 = n / 2;
+    n2 -= n2 % 8;
+    return np_pairwise_sum(a, n2) + np_pairwise_sum(a + n2, n - n2);
+}
+
 static PyObject *masked_stamp(PyObject *self, PyObject *args)
 {
     Py_buffer ib, wb, yb;
@@ -4517,8 +4542,17 @@ static PyObject *masked_stamp(PyObject *self, PyObject *args)
             hi = w > hi ? w : hi;
         }
     }
+    /* np.sum(y * y): 0.0 plus the pairwise sum of the squares */
+    double *sq = (double *)malloc((n > 0 ? n : 1) * sizeof(double));
+    if (sq == NULL) {
+        RELEASE(&ib, &wb, &yb);
+        return PyErr_NoMemory();
+    }
+    for (Py_ssize_t i = 0; i < n; i++) sq[i] = Y[i] * Y[i];
+    const double sumsq = 0.0 + np_pairwise_sum(sq, n);
+    free(sq);
     RELEASE(&ib, &wb, &yb);
-    return Py_BuildValue("(ndd)", count, lo, hi);
+    return Py_BuildValue("(nddd)", count, lo, hi, sumsq);
 }
 
 /*
@@ -4587,6 +4621,38 @@ static NO_CONTRACT PyObject *nearest_map(PyObject *self, PyObject *args)
             O[(Py_ssize_t)y * nx + x] = (unsigned char)in;
         }
     RELEASE(&ab, &ib, &ob);
+    Py_RETURN_NONE;
+}
+
+/*
+ * sky_modes(kx, ky, T, m, flux_scale, Kx, Ky, Ts): model.prepare_exposure's last products in one pass (its numpy lines
+ * stay as the reference; a test checks they agree to the bit): the sky wavevectors K = m k (m: the 2 x 2 J^-T,
+ * row-major; m00 kx + m01 ky without contraction, as numpy makes it) and the transfer times the flux scale
+ * (complex times real, each part one product).
+ */
+static NO_CONTRACT PyObject *sky_modes(PyObject *self, PyObject *args)
+{
+    Py_buffer xb, yb, tb, mb, oxb, oyb, otb;
+    double fs;
+    if (!PyArg_ParseTuple(args, "y*y*y*y*dw*w*w*", &xb, &yb, &tb, &mb, &fs, &oxb, &oyb, &otb)) return NULL;
+    const Py_ssize_t D = (Py_ssize_t)sizeof(double), n = xb.len / D;
+    if (yb.len != xb.len || tb.len != 2 * xb.len || mb.len != 4 * D || oxb.len != xb.len || oyb.len != xb.len
+        || otb.len != tb.len) {
+        RELEASE(&xb, &yb, &tb, &mb, &oxb, &oyb, &otb);
+        PyErr_SetString(PyExc_ValueError, "sky_modes: inconsistent buffers");
+        return NULL;
+    }
+    const double *X = (const double *)xb.buf, *Y = (const double *)yb.buf, *T = (const double *)tb.buf;
+    const double *M = (const double *)mb.buf;
+    double *OX = (double *)oxb.buf, *OY = (double *)oyb.buf, *OT = (double *)otb.buf;
+    for (Py_ssize_t j = 0; j < n; j++) {
+        const double a = M[0] * X[j], b = M[1] * Y[j], c = M[2] * X[j], d = M[3] * Y[j];
+        OX[j] = a + b;
+        OY[j] = c + d;
+        OT[2 * j] = T[2 * j] * fs;
+        OT[2 * j + 1] = T[2 * j + 1] * fs;
+    }
+    RELEASE(&xb, &yb, &tb, &mb, &oxb, &oyb, &otb);
     Py_RETURN_NONE;
 }
 
@@ -5210,9 +5276,10 @@ static PyMethodDef methods[] = {
      "locate_pass(bins, marg, e_index, rc, expx, xs, prior, shift, w, detail, r_peak, top, point)"},
     {"sample_chunk", sample_chunk, METH_VARARGS, "sample_chunk(args, e1, e2, rc, shift, out, rc_out, state) -> int"},
     {"moffat_start", moffat_start, METH_VARARGS, "moffat_start(kr, vr, nus, x50, ratio, out)"},
-    {"masked_stamp", masked_stamp, METH_VARARGS, "masked_stamp(image, weight, y) -> (count, lo, hi)"},
+    {"masked_stamp", masked_stamp, METH_VARARGS, "masked_stamp(image, weight, y) -> (count, lo, hi, sumsq)"},
     {"shift_phase", shift_phase, METH_VARARGS, "shift_phase(kx, ky, du, dv, out)"},
     {"nearest_map", nearest_map, METH_VARARGS, "nearest_map(a, ny, nx, index, inside)"},
+    {"sky_modes", sky_modes, METH_VARARGS, "sky_modes(kx, ky, T, m, flux_scale, Kx, Ky, Ts)"},
     {"join_gather", join_gather, METH_VARARGS, "join_gather(items, keep) -> (kx, ky, zf, tscaled, group, data, goffset)"},
     {"join_distinct", join_distinct, METH_VARARGS, "join_distinct(kx, ky, order, zdat, group, goffset) -> (first, inv, z, grow)"},
     {"adaptive_samples", adaptive_samples_c, METH_VARARGS,

@@ -24,6 +24,7 @@ integral), the flux numerically with the S^-alpha prior (cubic spline).
 from __future__ import annotations
 
 import functools
+import math
 import threading
 from dataclasses import dataclass, field, fields, replace
 
@@ -931,6 +932,19 @@ def _model_sums_binned(jm, bins, e_index, r2, fast, ratio):
     return ModelSums.from_kernel(out)
 
 
+def _is_plus_zero(x):
+    return x == 0.0 and not math.copysign(1.0, x) < 0
+
+
+def _round_bins(jm, bins_per_octave):
+    """:func:`mode_bins` of these modes at e = (+0, +0), kept with them: the round models of the size range and the
+    likelihood's point source share it (one binning of every mode a fit)."""
+    cache = getattr(jm, "_round", None)
+    if cache is None or cache[0] != int(bins_per_octave):
+        cache = jm._round = (int(bins_per_octave), mode_bins(jm, np.zeros(1), np.zeros(1), bins_per_octave))
+    return cache[1]
+
+
 def model_sums(jm: JointModes, e1, e2, r, fast, bulge_size_ratio=1.0, lin=None, use_kernel=True,
                bins_per_octave=0, bins=None, bin_index=None) -> ModelSums:
     """Pixel sums for models (e1, e2, r) (1D arrays of equal length).
@@ -957,7 +971,10 @@ def model_sums(jm: JointModes, e1, e2, r, fast, bulge_size_ratio=1.0, lin=None, 
         new = np.ones(e1.size, bool)
         new[1:] = (e1[1:] != e1[:-1]) | (e2[1:] != e2[:-1])
         starts = np.nonzero(new)[0]
-        bins = mode_bins(jm, e1[starts], e2[starts], bins_per_octave)
+        if starts.size == 1 and _is_plus_zero(e1[0]) and _is_plus_zero(e2[0]):
+            bins = _round_bins(jm, bins_per_octave)
+        else:
+            bins = mode_bins(jm, e1[starts], e2[starts], bins_per_octave)
         return _model_sums_binned(jm, bins, np.cumsum(new) - 1, r2, fast, bulge_size_ratio)
     c11, c12, c22 = shape_matrix(e1, e2)
     coef = np.stack([c11 * r2, c12 * r2, c22 * r2], axis=1)

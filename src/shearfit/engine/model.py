@@ -548,10 +548,10 @@ def _fine_modes_moffat(psf, ny, nx, s, moffat=None, tolerance=0.0, Ps=None, offs
 
 
 def noise_variance(weight, stats=None):
-    """Stationary noise variance of a stamp: 1 / median of the positive weights. ``stats``: (count, least, largest)
-    of the positive weights where already known (:func:`_masked_stamp`'s)."""
+    """Stationary noise variance of a stamp: 1 / median of the positive weights. ``stats``: (count, least, largest,
+    ...) of the positive weights where already known (:func:`_masked_stamp`'s)."""
     if stats is not None:
-        count, lo, hi = stats
+        count, lo, hi = stats[:3]
         if count == 0:
             raise ShearfitValueError("stamp has no pixel with positive weight")
         if lo == hi:
@@ -573,7 +573,7 @@ def noise_variance(weight, stats=None):
 def _masked_stamp(obs, ny, nx, stats=None):
     """The stamp where its weight is positive, 0 elsewhere, on the (ny, nx) grid. With ``stats`` (a dict), the
     compiled kernel (``masked_stamp``) makes it where it can, the same numbers, and stores the positive weights'
-    count, least and largest there as ``stats["weights"]`` (for :func:`_data_modes`)."""
+    count, least and largest and the stamp's sum y^2 there as ``stats["weights"]`` (for :func:`_data_modes`)."""
     im, w = obs.image, obs.weight
     if (stats is not None and USE_KERNEL and im.shape == (ny, nx) and w.shape == im.shape
             and im.dtype == np.float64 and w.dtype == np.float64):
@@ -587,14 +587,16 @@ def _masked_stamp(obs, ny, nx, stats=None):
 def _data_modes(obs, ny, nx, y=None, data_ft=None, wstats=None):
     """The stamp's noise variance, rfft (masked, centred on the grid), sum y^2 / sigma^2 and used pixels
     (``y``, ``data_ft``: the masked stamp on the grid and its rfft, if already made; ``wstats``: the positive
-    weights' count, least and largest, :func:`_masked_stamp`'s)."""
+    weights' count, least and largest and y's sum of squares, :func:`_masked_stamp`'s for this ``y``)."""
     sigma2 = noise_variance(obs.weight, wstats)
     if y is None:
         y = _masked_stamp(obs, ny, nx)
     if data_ft is None:
         data_ft = _centred_rfft2(y)
-    npix = int(wstats[0]) if wstats is not None else int(np.count_nonzero(obs.weight > 0))
-    return sigma2, data_ft.ravel(), float(np.sum(y * y) / sigma2), npix
+    if wstats is not None:
+        # (the stamp's count of used pixels and sum y^2 as the compiled masked stamp made them with it)
+        return sigma2, data_ft.ravel(), float(wstats[3] / sigma2), int(wstats[0])
+    return sigma2, data_ft.ravel(), float(np.sum(y * y) / sigma2), int(np.count_nonzero(obs.weight > 0))
 
 
 def indices_by_shape(shapes):
@@ -639,7 +641,7 @@ def prepare_exposures(observations, cfg: FitConfig, likes=None) -> list:
 
 
 def prepare_exposure(obs: Observation, cfg: FitConfig, grid_shape=None, with_data=True, like=None,
-                     _pre=None) -> ExposureModes:
+                     _pre=None, use_kernel=True) -> ExposureModes:
     """Reduce one observation to its Fourier modes.
 
     ``grid_shape`` (default: the stamp's) is the periodic grid the model
@@ -647,7 +649,8 @@ def prepare_exposure(obs: Observation, cfg: FitConfig, grid_shape=None, with_dat
     ExposureModes of an observation with the same PSF, Moffat, Jacobian,
     offset, flux scale and shape (another version of the same stamp, as
     metacalibration's): its modes are reused and only the data transformed.
-    (``_pre``: transforms :func:`prepare_exposures` made for it.)
+    (``_pre``: transforms :func:`prepare_exposures` made for it; ``use_kernel=False``: the sky wavevectors and the
+    transfer's flux scale by the numpy lines, the reference of the compiled ``sky_modes``.)
     """
     ny, nx = grid_shape if grid_shape is not None else obs.shape
     pre = _pre or {}
@@ -668,11 +671,19 @@ def prepare_exposure(obs: Observation, cfg: FitConfig, grid_shape=None, with_dat
         # the object's nominal position sits at (stamp centre + offset)
         dx, dy = obs.offset
         T = T * np.exp(-1j * (kx * dx + ky * dy))
-    T = T * obs.flux_scale
-    # sky wavevector K = J^-T k
+    # sky wavevector K = J^-T k, and the transfer times the flux scale
     Jinv_T = inv2(obs.jacobian).T
-    Kx = Jinv_T[0, 0] * kx + Jinv_T[0, 1] * ky
-    Ky = Jinv_T[1, 0] * kx + Jinv_T[1, 1] * ky
+    if USE_KERNEL and use_kernel:
+        # (the compiled kernel: the same products in one pass)
+        Kx, Ky, Ts = np.empty(kx.size), np.empty(kx.size), np.empty(kx.size, complex)
+        KERNEL.sky_modes(np.ascontiguousarray(kx, dtype=float), np.ascontiguousarray(ky, dtype=float),
+                         np.ascontiguousarray(T, dtype=complex), np.ascontiguousarray(Jinv_T, dtype=float),
+                         float(obs.flux_scale), Kx, Ky, Ts)
+        T = Ts
+    else:
+        T = T * obs.flux_scale
+        Kx = Jinv_T[0, 0] * kx + Jinv_T[0, 1] * ky
+        Ky = Jinv_T[1, 0] * kx + Jinv_T[1, 1] * ky
     cweight = _rfft_weights(ny, nx).ravel()
     sigma2, data_ft, yy, npix = (_data_modes(obs, ny, nx, pre.get("y"), pre.get("data_ft"), pre.get("weights"))
                                  if with_data else (1.0, None, 0.0, 0))
