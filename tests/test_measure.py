@@ -263,6 +263,28 @@ def test_compiled_join_matches_its_numpy_lines():
                                         np.zeros(2, np.int64), 1)
 
 
+def test_join_distinct_own_sort_is_argsorts():
+    """KERNEL.join_distinct's own stable radix sort of kx (no order given) merges the modes as numpy's argsort of
+    kx does: runs of equal kx (+0.0 and -0.0 among them), repeated pairs, one mode and none."""
+    from shearfit.engine import likelihood
+
+    if not likelihood.USE_KERNEL:
+        pytest.skip("compiled kernel not built")
+    rng = np.random.default_rng(5)
+    for n in (0, 1, 2, 7, 300, 5000):
+        kx = rng.normal(size=n) * 10.0 ** rng.integers(-3, 3, n)
+        if n > 3:
+            kx[rng.integers(0, n, n // 3)] = 0.0
+            kx[rng.integers(0, n, 3)] = -0.0
+            kx[: n // 4] = np.round(kx[: n // 4], 1)
+        ky = rng.integers(0, 3, n).astype(float)
+        z = rng.normal(size=n) + 1j * rng.normal(size=n)
+        g = rng.integers(0, 40, n)
+        own = likelihood.KERNEL.join_distinct(kx, ky, b"", z, g, 40)
+        ref = likelihood.KERNEL.join_distinct(kx, ky, np.argsort(kx), z, g, 40)
+        assert all(a == b for a, b in zip(own, ref)), n
+
+
 def test_compiled_sky_modes_are_numpys():
     """prepare_exposure's sky wavevectors K = J^-T k and transfer times the flux scale from the compiled kernel
     (sky_modes) are the numpy lines': rotated and sheared Jacobians, flux scales other than 1."""

@@ -4294,7 +4294,7 @@ done:
  * exposure's offset among the concatenated sampled modes (int64), data = data_ft at the mode's sampled mode
  * (complex128); goffset, the sampled modes in all.
  * join_distinct: one mode per distinct (kx, ky) (exactly equal), in np.unique's order of kx + i ky (order: kx's
- * argsort; its runs of equal kx are ordered here by ky, then position): first, each distinct pair's first
+ * argsort, or empty for radix_order's; its runs of equal kx are ordered here by ky, then position): first, each distinct pair's first
  * occurrence; inv, each mode's pair; z, zdat summed per pair in the modes' order (complex_bincount's); grow, each
  * mode's sampled mode numbered among those present (int64 each; z complex128).
  */
@@ -4404,6 +4404,61 @@ done:
     return res;
 }
 
+/* the positions 0 .. n - 1 ordered by kx ascending, ties by position (a stable LSD radix sort on kx's bits mapped to
+   unsigned integers in the doubles' order, 11 bits a pass, a pass skipped where every key shares its digit): the
+   order np.argsort(kx, kind="stable") gives for finite kx, except that -0.0 comes before 0.0 (join_distinct orders
+   each run of equal kx, -0.0 == 0.0 there, by ky and position itself: the same canonical order). tmp: n slots. */
+static int radix_order(const double *KX, Py_ssize_t n, long long *ord, long long *tmp)
+{
+    enum { RX_BITS = 11, RX_NB = 1 << RX_BITS, RX_PASSES = 6 };
+    const Py_ssize_t n1 = n > 0 ? n : 1;
+    uint64_t *key = (uint64_t *)malloc(2 * n1 * sizeof(uint64_t)), *key2 = key + n1;
+    Py_ssize_t *cnt = (Py_ssize_t *)calloc((size_t)RX_PASSES * RX_NB, sizeof(Py_ssize_t));
+    if (key == NULL || cnt == NULL) {
+        free(key);
+        free(cnt);
+        return -1;
+    }
+    for (Py_ssize_t i = 0; i < n; i++) {
+        uint64_t u;
+        memcpy(&u, KX + i, sizeof u);
+        u = (u >> 63) ? ~u : (u | 0x8000000000000000ULL);
+        key[i] = u;
+        for (int p = 0; p < RX_PASSES; p++) cnt[p * RX_NB + ((u >> (p * RX_BITS)) & (RX_NB - 1))]++;
+        ord[i] = i;
+    }
+    /* the keys move with their positions (no indirection in the scatter) */
+    long long *src = ord, *dst = tmp;
+    uint64_t *ks = key, *kd = key2;
+    for (int p = 0; p < RX_PASSES; p++) {
+        Py_ssize_t *c = cnt + p * RX_NB;
+        const int sh = p * RX_BITS;
+        if (n > 0 && c[(ks[0] >> sh) & (RX_NB - 1)] == n) continue;   /* one digit for all: nothing moves */
+        Py_ssize_t sum = 0;
+        for (int d = 0; d < RX_NB; d++) {
+            const Py_ssize_t v = c[d];
+            c[d] = sum;
+            sum += v;
+        }
+        for (Py_ssize_t i = 0; i < n; i++) {
+            const uint64_t k = ks[i];
+            const Py_ssize_t at = c[(k >> sh) & (RX_NB - 1)]++;
+            kd[at] = k;
+            dst[at] = src[i];
+        }
+        long long *t = src;
+        src = dst;
+        dst = t;
+        uint64_t *tk = ks;
+        ks = kd;
+        kd = tk;
+    }
+    if (src != ord) memcpy(ord, src, n * sizeof(long long));
+    free(key);
+    free(cnt);
+    return 0;
+}
+
 static PyObject *join_distinct(PyObject *self, PyObject *args)
 {
     Py_buffer kb = {0}, yb = {0}, ob = {0}, zb = {0}, gb = {0};
@@ -4413,8 +4468,10 @@ static PyObject *join_distinct(PyObject *self, PyObject *args)
     const Py_ssize_t n = kb.len / D;
     const double *KX = (const double *)kb.buf, *KY = (const double *)yb.buf, *Z = (const double *)zb.buf;
     const long long *O = (const long long *)ob.buf, *G = (const long long *)gb.buf;
-    int bad = yb.len != n * D || ob.len != n * L || zb.len != 2 * n * D || gb.len != n * L || goffset < 0;
-    for (Py_ssize_t i = 0; !bad && i < n; i++) bad = O[i] < 0 || O[i] >= n || G[i] < 0 || G[i] >= goffset;
+    const int own_order = ob.len == 0 && n > 0;   /* no order given: kx's own (radix_order) */
+    int bad = yb.len != n * D || (ob.len != n * L && !own_order) || zb.len != 2 * n * D || gb.len != n * L
+              || goffset < 0;
+    for (Py_ssize_t i = 0; !bad && i < n; i++) bad = (!own_order && (O[i] < 0 || O[i] >= n)) || G[i] < 0 || G[i] >= goffset;
     if (bad) {
         RELEASE(&kb, &yb, &ob, &zb, &gb);
         PyErr_SetString(PyExc_ValueError, "join_distinct: inconsistent buffers");
@@ -4431,7 +4488,16 @@ static PyObject *join_distinct(PyObject *self, PyObject *args)
         RELEASE(&kb, &yb, &ob, &zb, &gb);
         return PyErr_NoMemory();
     }
-    memcpy(ord, O, n * L);
+    if (own_order) {
+        if (radix_order(KX, n, ord, first) != 0) {   /* (first: scratch until the pairs are found) */
+            free(ord);
+            free(pres);
+            free(acc);
+            RELEASE(&kb, &yb, &ob, &zb, &gb);
+            return PyErr_NoMemory();
+        }
+    }
+    else memcpy(ord, O, n * L);
     /* the runs of equal kx in kx's order, each ordered by ky, then position (insertion sort: the runs are the
        exposures' K = 0 and other exact coincidences, short) */
     for (Py_ssize_t i = 0; i < n;) {

@@ -141,7 +141,7 @@ def measure_object(observations: Sequence[Observation], mag: float, config=None,
     observations = list(observations)
     if any(not isinstance(o, Observation) for o in observations):
         raise ShearfitValueError("measure_object takes a sequence of shearfit.Observation")
-    obs = [o for o in observations if np.any(o.weight > 0)]
+    obs = [o for o in observations if o.weight.size and o.weight.max() > 0]   # (weights: finite, >= 0)
     if not obs:
         return FitResult(fitclass=FITCLASS_FEW_EXPOSURES, message="no usable exposure")
     try:
@@ -676,7 +676,7 @@ def measure_versions(versions: Sequence[Sequence[Observation]], mag: float, conf
         raise ShearfitValueError("measure_versions takes a sequence of sequences of shearfit.Observation")
     if len({len(v) for v in versions}) != 1:
         raise ShearfitValueError("measure_versions: every version needs the same exposures")
-    usable = [i for i, o in enumerate(versions[0]) if np.any(o.weight > 0)]
+    usable = [i for i, o in enumerate(versions[0]) if o.weight.size and o.weight.max() > 0]
     versions = [[v[i] for i in usable] for v in versions]
     if not usable:
         return [FitResult(fitclass=FITCLASS_FEW_EXPOSURES, message="no usable exposure") for _ in versions]
