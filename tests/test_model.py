@@ -431,3 +431,28 @@ def test_psf_moffats_fits_a_batch_as_one_by_one():
             for fwhm, beta, e1, e2 in [(0.6, 3.0, 0.05, 0.0), (0.8, 2.5, -0.03, 0.04), (0.7, 4.0, 0.0, 0.0)]]
     psfs.append(draw_psf_image(moffat_psf(0.7, 3.5, 0.0, 0.02), J, 24))   # another shape: its own batch
     assert psf_moffats(psfs) == [psf_moffat(p) for p in psfs]
+
+
+def test_content_memo_finds_kept_arrays_by_identity():
+    """ContentMemo finds an immutable array it keeps by its identity, without its fingerprint (whose scattered reads
+    miss the cache after a fit); per ``extra``; an equal array that is not it still hits by contents; an evicted
+    entry's identity goes with it."""
+    from shearfit.engine.model import ContentMemo
+
+    memo = ContentMemo(max_bytes=3 * 8 * 4096 + 100)
+    a = np.random.default_rng(2).normal(size=(64, 64))
+    a.setflags(write=False)
+    memo.put(a, (1,), "a1")
+    prints = []
+    fingerprint = memo._fingerprint
+    memo._fingerprint = lambda arr, extra: prints.append(1) or fingerprint(arr, extra)
+    assert memo.peek(a, (1,)) == "a1" and not prints              # by identity
+    assert memo.peek(a, (2,)) is None and len(prints) == 1        # another extra: by fingerprint, a miss
+    assert memo.peek(a.copy(), (1,)) == "a1" and len(prints) == 2  # equal contents
+    memo._fingerprint = fingerprint
+    for i in range(3):                    # each entry 32 KiB: a's goes
+        b = a + i + 1
+        b.setflags(write=False)
+        memo.put(b, (1,), i)
+    assert "a1" not in memo.values() and (id(a), (1,)) not in memo._by_id
+    assert memo.peek(a, (1,)) is None and len(memo._by_id) == len(memo) == 3

@@ -142,12 +142,14 @@ class ContentMemo:
     object its own copy), remembered by a fingerprint of the array (its shape, type and about 256 of its values) and
     checked against a copy of its whole contents on every hit, so that an array that differs anywhere is
     computed afresh: cheaper than hashing the contents, as safe (a read-only array owning its memory is kept
-    itself, and a hit on that very array needs no comparison). Least recently used entries go first beyond
-    ``max_bytes`` (copies and results) or ``max_entries``."""
+    itself, and a hit on that very array needs no comparison, nor a fingerprint: such arrays are found by their
+    identity first). Least recently used entries go first beyond ``max_bytes`` (copies and results) or
+    ``max_entries``."""
 
     def __init__(self, max_bytes, max_entries=4096):
         self._d = OrderedDict()          # (fingerprint, serial) -> (copy, result, bytes)
         self._by_fp = {}                 # fingerprint -> its keys in _d
+        self._by_id = {}                 # (id of a copy that is the array itself, extra) -> its key in _d
         self._serial = 0
         self.max_bytes = max_bytes
         self.max_entries = max_entries
@@ -162,6 +164,12 @@ class ContentMemo:
     def peek(self, a, extra, default=None):
         """The result remembered for array ``a`` and ``extra``, or ``default``."""
         a = np.asarray(a)
+        # the array itself (a CCD's objects share its PSF image): found without its fingerprint, whose 256
+        # scattered reads miss the cache after a fit (some 25 us; the entry holds the array, so its id is its own)
+        key = self._by_id.get((id(a), extra))
+        if key is not None and self._d[key][0] is a:
+            self._d.move_to_end(key)
+            return self._d[key][1]
         for key in self._by_fp.get(self._fingerprint(a, extra), ()):
             copy, value, _ = self._d[key]
             if copy is a or np.array_equal(copy, a):
@@ -182,14 +190,19 @@ class ContentMemo:
         key = (fp, self._serial)
         self._d[key] = (copy, value, size)
         self._by_fp.setdefault(fp, []).append(key)
+        if copy is a:
+            self._by_id[(id(a), extra)] = key
         self._nbytes += size
         while (self._nbytes > self.max_bytes or len(self._d) > self.max_entries) and len(self._d) > 1:
-            old, (_, _, nb) = self._d.popitem(last=False)
+            old, (gone, _, nb) = self._d.popitem(last=False)
             self._nbytes -= nb
             keys = self._by_fp[old[0]]
             keys.remove(old)
             if not keys:
                 del self._by_fp[old[0]]
+            ik = (id(gone), old[0][3])
+            if self._by_id.get(ik) == old:
+                del self._by_id[ik]
         return value
 
     def get(self, a, extra, make):
@@ -207,6 +220,7 @@ class ContentMemo:
     def clear(self):
         self._d.clear()
         self._by_fp.clear()
+        self._by_id.clear()
         self._nbytes = 0
 
 

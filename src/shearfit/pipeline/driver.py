@@ -383,7 +383,9 @@ def _nearest_map(A, shape, use_kernel=True):
     a pixel across the stamp, as for dithered exposures of one camera orientation).
     """
     ny, nx = shape
-    if np.abs(A - np.eye(2)).max() * (nx + ny) < 1.0:
+    # (np.abs(A - I).max() in Python floats, without its overhead; a NaN, which max may pass over, is no identity)
+    (a, b), (c, d) = np.asarray(A, float).tolist()
+    if max(abs(a - 1.0), abs(b), abs(c), abs(d - 1.0)) * (nx + ny) < 1.0 and a == a and b == b and c == c and d == d:
         return None
     if use_kernel and USE_KERNEL:
         # (the compiled kernel: the same arrays in one pass)
