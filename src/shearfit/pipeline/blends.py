@@ -260,7 +260,7 @@ def _validate(stamps, weights, offsets):
             raise ShearfitValueError(f"weight {i} of shape {np.shape(wi)} does not fit stamp shape {shape}") from None
         s[i], w[i] = si, wi
     off = np.asarray(offsets, dtype=np.float64)
-    if off.shape != (len(stamps), 2) or not np.all(np.isfinite(off)):
+    if off.shape != (len(stamps), 2) or not np.isfinite(off).all():
         raise ShearfitValueError("offsets must be one finite (dx, dy) per exposure")
     # A non-finite or negative-weight pixel carries no information: treat it as masked.
     good = np.isfinite(s) & np.isfinite(w) & (w > 0)
@@ -335,7 +335,7 @@ def _significant_maxima(v, region, nsigma, min_contrast):
     # nsigma + c can never stand c above its col
     for k in np.flatnonzero(h >= nsigma + min_contrast)[1:]:
         comp, _ = ndimage.label(region & (v >= h[k] - min_contrast), structure=_EIGHT)
-        if not np.any(comp.flat[first[:k]] == comp.flat[first[k]]):
+        if not (comp.flat[first[:k]] == comp.flat[first[k]]).any():
             out.flat[first[k]] = True
     return out
 
@@ -549,12 +549,12 @@ def analyse_stamps(stamps: Sequence[np.ndarray], weights: Sequence[np.ndarray], 
         # likelihood decides; its light lies within about a PSF FWHM.
         yy, xx = np.ogrid[:ny, :nx]
         core = (xx - x0) ** 2 + (yy - y0) ** 2 <= float(psf_fwhm_pixels) ** 2
-        keep = [not bool(np.any(b[core])) for b in bad]
+        keep = (~bad[:, core].any(axis=1)).tolist()
         return BlendResult(FITCLASS_GALAXY, "no significant isophote at the object", no_mask, keep,
                            np.zeros((ny, nx), dtype=bool), (float("nan"), float("nan")), 0)
 
     region = comp == target
-    keep = [not bool(np.any(b[region])) for b in bad]
+    keep = (~bad[:, region].any(axis=1)).tolist()
     if neighbour_mask:
         others = real[comp] & ~region
         if neighbour_grow > 0 and others.any():

@@ -436,13 +436,14 @@ def _isophote_analysis(cuts, pc, near=()) -> int:
                          centroid_max_shift=pc.isophote_centroid_max_shift, neighbour_mask=pc.neighbour_mask)
     if res.flag == 0 and len(near) and res.isophote.any() and _neighbour_inside(cuts, near, res.isophote, offsets, J0):
         return FITCLASS_BLENDED
+    any_isophote = bool(res.isophote.any())
     for c, mask, keep, m in zip(cuts, res.masks, res.keep_exposure, from_ref):
-        if m is not None and res.isophote.any():
+        if m is not None and any_isophote:
             # a bad pixel of this exposure's own stamp inside the isophote drops it (reference pixels
             # beyond a rotated stamp's corners hold no data from it, but are not its bad pixels)
-            keep = not bool(np.any(_carry(res.isophote, m) & (c["weight"] <= 0)))
+            keep = not bool((_carry(res.isophote, m) & (c["weight"] <= 0)).any())
         c["keep"] = True
-        if pc.neighbour_mask and mask is not None and np.any(mask):
+        if pc.neighbour_mask and mask is not None and mask.any():
             c["weight"] = np.where(_carry(mask, m), 0.0, c["weight"])
         if pc.drop_masked_exposures and not keep:
             c["keep"] = False
