@@ -4287,16 +4287,16 @@ done:
  * join_gather(items, keep) -> (kx, ky, zf, tscaled, group, data, goffset) and join_distinct(kx, ky, order, zdat,
  * group, goffset) -> (first, inv, z, grow): likelihood.join_exposures' concatenation and merging in two calls (its
  * numpy lines stay as the reference; a test checks they agree to the bit), numpy's argsort of kx and the product
- * conj(data) zf between them.
+ * conj(data) zf between them (or join_distinct's own sort of kx).
  * join_gather: items, per exposure (kx, ky, transfer, coarse, cweight, data_ft, ny, nx, sigma2); keep, per exposure
  * a uint8 mask of its modes or empty (all). The kept modes one exposure after the other: kx, ky, zf = T w / (ny nx
  * sigma2) and tscaled = T sqrt(w / (ny nx sigma2)) (w = cweight[coarse]; complex128), group = coarse + the
  * exposure's offset among the concatenated sampled modes (int64), data = data_ft at the mode's sampled mode
  * (complex128); goffset, the sampled modes in all.
  * join_distinct: one mode per distinct (kx, ky) (exactly equal), in np.unique's order of kx + i ky (order: kx's
- * argsort, or empty for radix_order's; its runs of equal kx are ordered here by ky, then position): first, each distinct pair's first
- * occurrence; inv, each mode's pair; z, zdat summed per pair in the modes' order (complex_bincount's); grow, each
- * mode's sampled mode numbered among those present (int64 each; z complex128).
+ * argsort, or empty for radix_order's; its runs of equal kx are ordered here by ky, then position): first, each
+ * distinct pair's first occurrence; inv, each mode's pair; z, zdat summed per pair in the modes' order
+ * (complex_bincount's); grow, each mode's sampled mode numbered among those present (int64 each; z complex128).
  */
 static PyObject *join_gather(PyObject *self, PyObject *args)
 {

@@ -200,7 +200,7 @@ class ContentMemo:
             keys.remove(old)
             if not keys:
                 del self._by_fp[old[0]]
-            ik = (id(gone), old[0][3])
+            ik = (id(gone), old[0][3])   # (the fingerprint's last item is extra)
             if self._by_id.get(ik) == old:
                 del self._by_id[ik]
         return value

@@ -434,9 +434,9 @@ def _isophote_analysis(cuts, pc, near=()) -> int:
                          [_carry(c["weight"], m) for c, m in zip(cuts, to_ref)], offsets, fwhm,
                          nsigma=pc.isophote_nsigma, min_region_pixels=pc.deblend_min_pixels,
                          centroid_max_shift=pc.isophote_centroid_max_shift, neighbour_mask=pc.neighbour_mask)
-    if res.flag == 0 and len(near) and res.isophote.any() and _neighbour_inside(cuts, near, res.isophote, offsets, J0):
-        return FITCLASS_BLENDED
     any_isophote = bool(res.isophote.any())
+    if res.flag == 0 and len(near) and any_isophote and _neighbour_inside(cuts, near, res.isophote, offsets, J0):
+        return FITCLASS_BLENDED
     for c, mask, keep, m in zip(cuts, res.masks, res.keep_exposure, from_ref):
         if m is not None and any_isophote:
             # a bad pixel of this exposure's own stamp inside the isophote drops it (reference pixels
