@@ -14,6 +14,7 @@ and the peak memory; then, under the profiler, the time of each pipeline stage a
     python benchmarks/pipeline_profile.py --psf fitted      # only PSF models fitted from the stars
     python benchmarks/pipeline_profile.py --keep A          # at one commit, then at another:
     python benchmarks/pipeline_profile.py --compare-with A  # how far the catalogues moved
+    python benchmarks/pipeline_profile.py --no-profile --psf true --stage-clock   # the pipeline's stages, timed directly
 """
 
 from __future__ import annotations
@@ -24,6 +25,7 @@ for _v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_v, "1")
 
 import argparse  # noqa: E402
+import contextlib  # noqa: E402
 import cProfile  # noqa: E402
 import pstats  # noqa: E402
 import resource  # noqa: E402
@@ -155,6 +157,44 @@ class _PsfClock(_CpuClock):
                 (drv._ExposurePSF, "at"), (drv._ExposurePSF, "fitted_at_many"), (drv._ExposurePSF, "moffat"),
                 (drv._ExposurePSF, "shift"), (drv._ExposurePSF, "model_uv"), (drv._ExposurePSF, "sigma_guess"),
                 (drv._ExposurePSF, "moments_at"), (drv._ExposurePSF, "moments_many")]
+
+
+#: the pipeline's own stages timed directly by ``--stage-clock`` (label, attribute of shearfit.pipeline.driver or of
+#: its _ExposurePSF, name): each call's CPU time, the calls it makes included, as a share of the engine's time
+CLOCKED_STAGES = [
+    ("isophotes, neighbours, blends (sec. 3.6)", "driver", "_isophote_analysis"),
+    ("cut stamps (memory-mapped pages)", "driver", "cut_stamp"),
+    ("read exposures and weights (FITS, WCS)", "driver", "_read_exposures"),
+    ("memory maps and WCS per chunk", "driver", "_attached"),
+    ("chunk geometry (Jacobians, PSF per CCD)", "driver", "_chunk_geometry"),
+    ("Observations (checks, read-only copies)", "driver", "Observation"),
+    ("object memory estimate", "driver", "object_memory_bytes"),
+    ("PSF moments at the object", "_ExposurePSF", "moments_at"),
+    ("PSF ellipticity at the object", "driver", "psf_ellipticity"),
+    ("catalogue neighbours (k-d trees)", "driver", "catalogue_neighbours"),
+    ("checkpoint (each chunk written)", "driver", "_store_chunk"),
+    ("write the catalogue", "driver", "write_catalog_atomic"),
+]
+
+
+def _stage_clock_run(cfg, out_path):
+    """One run of ``measure_field`` with the engine and each of CLOCKED_STAGES timed around its calls (CPU time,
+    no profiler): (total CPU, engine CPU, [(label, CPU), ...])."""
+    import shearfit.pipeline.driver as drv
+
+    clocks = []
+    for label, where, name in CLOCKED_STAGES:
+        owner = drv if where == "driver" else getattr(drv, where)
+        clock = type("_StageClock", (_CpuClock,), {"targets": lambda self, o=owner, n=name: [(o, n)]})()
+        clocks.append((label, clock))
+    _forget_psfs()
+    c0 = _cpu_seconds()
+    with contextlib.ExitStack() as stack:
+        engine = stack.enter_context(_EngineClock())
+        for _, clock in clocks:
+            stack.enter_context(clock)
+        measure_field(cfg, out_path=out_path, processes=1)
+    return _cpu_seconds() - c0, engine.cpu, [(label, clock.cpu) for label, clock in clocks]
 
 
 def _with_settings(cfg, items):
@@ -292,6 +332,10 @@ def main(argv=None):
     ap.add_argument("--seed", type=int, default=3)
     ap.add_argument("--psf", choices=["true", "fitted", "both"], default="both")
     ap.add_argument("--no-profile", action="store_true", help="skip the profiled run (stages)")
+    ap.add_argument("--stage-clock", action="store_true",
+                    help="one more run of the last PSF mode with the pipeline's own stages timed directly around "
+                         "their calls (CPU time, no profiler, whose cost per Python call inflates the pipeline's "
+                         "small calls), each as a share of the engine's time")
     ap.add_argument("--simultaneous", type=int, default=0, metavar="N",
                     help="also run N pairs with the given-PSF and the fitted-PSF run at the same time, one per core "
                          "(two processes): both meet the same load from the rest of the machine, so the PSF stage is "
@@ -386,6 +430,15 @@ def main(argv=None):
                                     os.path.join(d, f"shear_{mode}.fits"), mode)
         peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
         print(f"peak memory (max RSS of this process): {peak:.0f} MB")
+        if args.stage_clock:
+            mode = modes[-1]
+            cfg = _with_settings(load_field_config(os.path.join(d, "field_truepsf.yaml" if mode == "true"
+                                                                else "field.yaml")), args.set)
+            total, eng, parts = _stage_clock_run(cfg, os.path.join(d, "shear_clocked.fits"))
+            print(f"\nthe pipeline's stages timed directly (PSF {mode}; {total:.2f} CPU-s, the engine {eng:.2f}, the "
+                  f"rest adding {100 * (total - eng) / eng:.1f} % to it; each stage's calls included, % of the engine):")
+            for label, cpu in sorted(parts, key=lambda p: -p[1]):
+                print(f"    {label:44s} {cpu:6.3f} s  {100 * cpu / eng:5.1f} %")
         if args.no_profile:
             return
         mode = modes[-1]
