@@ -76,6 +76,7 @@ Choices not fixed by the paper
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass, field
 from typing import Sequence
@@ -214,15 +215,26 @@ def smooth_coadd(stamps, weights, psf_fwhm_pixels) -> SmoothedCoadd:
     return _coadd(s, w, psf_fwhm_pixels)
 
 
+@functools.lru_cache(maxsize=256)
+def _kernel_pair(fwhm_pixels: float):
+    """:func:`smoothing_kernel` and its square, read-only, remembered per FWHM (the objects of one set of CCDs share
+    their PSFs' mean FWHM)."""
+    kern = smoothing_kernel(fwhm_pixels)
+    kern2 = kern * kern
+    kern.setflags(write=False)
+    kern2.setflags(write=False)
+    return kern, kern2
+
+
 def _coadd(s, w, psf_fwhm_pixels):
-    kern = smoothing_kernel(psf_fwhm_pixels)
+    kern, kern2 = _kernel_pair(float(psf_fwhm_pixels))
     wsum = w.sum(axis=0)
     inv = np.divide(1.0, wsum, out=np.zeros_like(wsum), where=wsum > 0)
     coadd = (w * s).sum(axis=0) * inv
     smooth = _smooth(coadd, kern)
     # K^2 of the separable kernel is the outer product of k^2: the smoothed
     # variance is the co-add variance correlated with it.
-    noise = np.sqrt(_smooth(inv, kern * kern))
+    noise = np.sqrt(_smooth(inv, kern2))
     snr = np.divide(smooth, noise, out=np.zeros_like(smooth), where=noise > 0)
     return SmoothedCoadd(coadd, smooth, noise, snr)
 

@@ -996,7 +996,10 @@ def _measure_on_stamps(hits, exposures, mag, cfg, pc, obj_id, size, geometry=Non
         st = cut_stamp(ccd.image, ccd.pixel_weight, x + dx, y + dy, size)
         if st is None:
             continue
-        cuts.append(dict(e=e, c=c, x=x, y=y, ccd=ccd, image=np.array(st.image, float), weight=np.array(st.weight, float),
+        # (cut_stamp's own new float64 arrays, made read-only so that the Observation shares them instead of copying)
+        st.image.setflags(write=False)
+        st.weight.setflags(write=False)
+        cuts.append(dict(e=e, c=c, x=x, y=y, ccd=ccd, image=st.image, weight=st.weight,
                          offset=st.offset, J=local_jacobian(ccd.wcs, x, y) if J is None else J, psf=psf, k=k,
                          moments=mom if mom is not None else epsf.moments_at(c, ccd.image.shape, x, y, psf,
                                                                                pc.psf_moment_grid),
