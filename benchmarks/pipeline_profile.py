@@ -177,16 +177,23 @@ CLOCKED_STAGES = [
 ]
 
 
+class _AttrClock(_CpuClock):
+    """One attribute's calls (``owner.name``), timed."""
+
+    def __init__(self, owner, name):
+        self.owner, self.name = owner, name
+
+    def targets(self):
+        return [(self.owner, self.name)]
+
+
 def _stage_clock_run(cfg, out_path):
     """One run of ``measure_field`` with the engine and each of CLOCKED_STAGES timed around its calls (CPU time,
     no profiler): (total CPU, engine CPU, [(label, CPU), ...])."""
     import shearfit.pipeline.driver as drv
 
-    clocks = []
-    for label, where, name in CLOCKED_STAGES:
-        owner = drv if where == "driver" else getattr(drv, where)
-        clock = type("_StageClock", (_CpuClock,), {"targets": lambda self, o=owner, n=name: [(o, n)]})()
-        clocks.append((label, clock))
+    clocks = [(label, _AttrClock(drv if where == "driver" else getattr(drv, where), name))
+              for label, where, name in CLOCKED_STAGES]
     _forget_psfs()
     c0 = _cpu_seconds()
     with contextlib.ExitStack() as stack:
