@@ -593,3 +593,127 @@ def test_compiled_nearest_map_is_numpys():
             maps += 1
             assert np.array_equal(got[0], ref[0]) and np.array_equal(got[1], ref[1]) and got[1].dtype == bool
     assert maps > 300
+
+
+# --- the compiled isophote analysis against its numpy lines ---------------------------------
+
+def _blobs(rng, shape, n_blobs, quantise=False):
+    """Gaussian blobs of random heights and widths on unit noise (rounded to integers: plateaus and ties)."""
+    yy, xx = np.mgrid[:shape[0], :shape[1]]
+    img = rng.normal(0.0, 1.0, shape)
+    for _ in range(n_blobs):
+        cy, cx = rng.uniform(0, shape[0]), rng.uniform(0, shape[1])
+        s = rng.uniform(0.8, 4.0)
+        img += rng.uniform(3.0, 60.0) * np.exp(-((xx - cx) ** 2 + (yy - cy) ** 2) / (2 * s * s))
+    return np.round(img) if quantise else img
+
+
+def _kernel_or_skip():
+    from shearfit.engine.kernel import USE_KERNEL
+
+    if not USE_KERNEL:
+        pytest.skip("compiled kernel not built")
+
+
+def test_compiled_deblender_is_numpys():
+    """The deblender's compiled loops (significant maxima, growth level by level, amalgamation) give the numpy
+    lines' labels exactly: isophotes of one to six blobs on noise, values rounded to integers in a third of them
+    (plateaus and ties everywhere), linear and log levels, several region sizes and contrasts."""
+    _kernel_or_skip()
+    from shearfit.engine.kernel import KERNEL
+    from shearfit.pipeline.blends import _pad1
+
+    rng = np.random.default_rng(5)
+    multi = strong_many = 0
+    for t in range(400):
+        shape = (int(rng.integers(6, 40)), int(rng.integers(6, 40)))
+        snr = _blobs(rng, shape, int(rng.integers(1, 7)), quantise=t % 3 == 0)
+        comp, n = ndimage.label(snr >= 2.0, structure=np.ones((3, 3)))
+        if n == 0:
+            continue
+        region = comp == 1 + int(np.argmax(np.bincount(comp.ravel())[1:]))
+        box = ndimage.find_objects(region.astype(np.int8))[0]
+        contrast = float(rng.choice([0.0, 1.0, 2.0, 3.0]))
+        args = (snr[box], region[box], 2.0, int(rng.choice([2, 5, 32])), int(rng.choice([1, 4, 8])), contrast,
+                "log" if t % 4 == 0 else "linear")
+        lab, n_reg = _deblend(*args)
+        ref_lab, ref_n = _deblend(*args, use_kernel=False)
+        assert n_reg == ref_n and np.array_equal(lab, ref_lab), t
+        multi += ref_n > 1
+        reg = _pad1(region[box])
+        v = np.where(reg, _pad1(snr[box]), -np.inf)
+        strong = np.empty(reg.shape, dtype=bool)
+        count = KERNEL.sig_maxima(v, reg.view(np.uint8), reg.shape[1], 2.0, contrast, strong.view(np.uint8))
+        ref = _significant_maxima(v, reg, 2.0, contrast)
+        assert count == ref.sum() and np.array_equal(strong, ref), t
+        strong_many += count > 2
+    assert multi > 40 and strong_many > 20, (multi, strong_many)
+
+
+def test_compiled_isophote_analysis_is_numpys(monkeypatch):
+    """analyse_stamps with its compiled co-add, smoothing and isophote decisions gives the numpy and scipy lines'
+    BlendResult exactly: one to eight exposures of blobs on noise, some carried through rotated or stretched
+    nearest-pixel maps, bad, NaN, infinite and negative-weight pixels, targets at, beside and off the nominal
+    position, neighbour masks grown by 0 to 3 pixels or not asked for."""
+    _kernel_or_skip()
+    from shearfit.pipeline import blends
+    from shearfit.pipeline.driver import _nearest_map
+
+    rng = np.random.default_rng(9)
+    seen = {"none": 0, "masked": 0, "blended": 0, "dropped": 0, "mapped": 0}
+    for t in range(250):
+        n_exp = int(rng.integers(1, 9))
+        shape = (int(rng.integers(9, 50)), int(rng.integers(9, 50)))
+        base = _blobs(rng, shape, int(rng.integers(0, 5)))
+        if t % 2:   # an object near the centre
+            yy, xx = np.mgrid[:shape[0], :shape[1]]
+            base += rng.uniform(5, 80) * np.exp(-((xx - shape[1] // 2) ** 2 + (yy - shape[0] // 2) ** 2)
+                                                / (2 * rng.uniform(1, 3) ** 2))
+        stamps, weights, carry = [], [], []
+        for e in range(n_exp):
+            s = base + rng.normal(0.0, 1.0, shape)
+            w = np.full(shape, rng.uniform(0.5, 2.0))
+            k = rng.integers(0, 4)
+            if k == 1:
+                w[rng.random(shape) < 0.02] = 0.0
+            elif k == 2:
+                s[rng.random(shape) < 0.01] = np.nan
+                w[rng.random(shape) < 0.01] = -1.0
+            elif k == 3:
+                w[rng.random(shape) < 0.01] = np.inf
+            stamps.append(s)
+            weights.append(w)
+            m = None
+            if e and rng.random() < 0.4:
+                a = rng.uniform(-0.3, 0.3)
+                A = np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]]) * (1 + rng.normal(0, 0.03, (2, 2)))
+                m = _nearest_map(A, shape)
+                seen["mapped"] += m is not None
+            carry.append(m)
+        offsets = rng.uniform(-0.5, 0.5, (n_exp, 2)) + (rng.uniform(-3, 3, 2) if t % 5 == 0 else 0)
+        kw = dict(neighbour_mask=bool(t % 4), neighbour_grow=int(rng.integers(0, 4)),
+                  min_peak_snr=float(rng.choice([3.0, 5.0])), min_region_pixels=int(rng.choice([4, 8])))
+        fwhm = float(rng.uniform(1.5, 5.0))
+        got = analyse_stamps(stamps, weights, offsets, fwhm, carry=carry, **kw)
+        coadd, inv, bad, _ = blends._stack_coadd(stamps, weights, offsets, carry)
+        sc = blends._smoothed(coadd, inv, fwhm)
+        with monkeypatch.context() as mp:
+            mp.setattr(blends, "USE_KERNEL", False)
+            ref = analyse_stamps(stamps, weights, offsets, fwhm, carry=carry, **kw)
+            ref_coadd, ref_inv, ref_bad, _ = blends._stack_coadd(stamps, weights, offsets, carry)
+            ref_sc = blends._smoothed(ref_coadd, ref_inv, fwhm)
+        assert np.array_equal(coadd, ref_coadd) and np.array_equal(inv, ref_inv) and np.array_equal(bad, ref_bad)
+        # scipy's correlate1d sums a symmetric kernel's taps in pairs, outermost first; so does the kernel
+        for a, b in ((sc.smoothed, ref_sc.smoothed), (sc.noise, ref_sc.noise), (sc.snr, ref_sc.snr)):
+            assert np.array_equal(a, b), t
+        assert (got.flag, got.reason, got.keep_exposure, got.n_regions) == \
+               (ref.flag, ref.reason, ref.keep_exposure, ref.n_regions), t
+        assert np.array_equal(got.isophote, ref.isophote) and all(np.array_equal(a, b)
+                                                                  for a, b in zip(got.masks, ref.masks))
+        assert np.array_equal(got.centroid, ref.centroid, equal_nan=True)
+        assert got.peak_snr == ref.peak_snr or (math.isnan(got.peak_snr) and math.isnan(ref.peak_snr))
+        seen["none"] += not got.isophote.any()
+        seen["masked"] += any(m.any() for m in got.masks)
+        seen["blended"] += got.flag == FITCLASS_BLENDED
+        seen["dropped"] += not all(got.keep_exposure)
+    assert min(seen.values()) >= 10, seen

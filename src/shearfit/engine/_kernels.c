@@ -5318,6 +5318,599 @@ static PyObject *bins_channels(PyObject *self, PyObject *args)
     Py_RETURN_NONE;
 }
 
+/*
+ * The isophote analysis of pipeline.blends (paper sec. 3.6), its per-object loops in C. Each keeps its numpy lines in
+ * blends.py as the reference; tests check the pairs agree to the bit.
+ *
+ * iso_coadd(items, ny, nx, coadd, inv, bad): the co-add of _stack_coadd. items holds per exposure (image, weight,
+ * index, inside): float64 stamps of ny x nx and a nearest-pixel map onto the co-add's grid (int64 flat index into the
+ * stamp, uint8 inside; where not inside, value and weight 0) or two empty buffers (the stamp as it is). A pixel is
+ * good where its value and weight are finite and the weight positive; elsewhere both are 0 and bad (uint8,
+ * exposures x ny x nx) is 1. inv = 1 / sum w where that is positive, else 0; coadd = (sum w s) inv, each sum over the
+ * exposures in order from the first (numpy's reduction over the leading axis), without contraction.
+ */
+static NO_CONTRACT PyObject *iso_coadd(PyObject *self, PyObject *args)
+{
+    PyObject *items;
+    int ny, nx;
+    Py_buffer cb, ib, bb;
+    if (!PyArg_ParseTuple(args, "O!iiw*w*w*", &PyTuple_Type, &items, &ny, &nx, &cb, &ib, &bb)) return NULL;
+    const Py_ssize_t ne = PyTuple_GET_SIZE(items), n = (Py_ssize_t)ny * nx, D = (Py_ssize_t)sizeof(double);
+    int bad = ne < 1 || ny < 1 || nx < 1 || cb.len != n * D || ib.len != n * D || bb.len != ne * n;
+    double *C = (double *)cb.buf, *I = (double *)ib.buf;
+    unsigned char *B = (unsigned char *)bb.buf;
+    for (Py_ssize_t e = 0; e < ne && !bad; e++) {
+        Py_buffer x[4];
+        PyObject *it = PyTuple_GET_ITEM(items, e);
+        if (!PyTuple_Check(it) || !PyArg_ParseTuple(it, "y*y*y*y*", &x[0], &x[1], &x[2], &x[3])) {
+            bad = 2;
+            break;
+        }
+        const int mapped = x[2].len != 0;
+        bad = x[0].len != n * D || x[1].len != n * D
+              || (mapped ? x[2].len != n * (Py_ssize_t)sizeof(long long) || x[3].len != n : x[3].len != 0);
+        const double *S = (const double *)x[0].buf, *Wt = (const double *)x[1].buf;
+        const long long *M = (const long long *)x[2].buf;
+        const unsigned char *In = (const unsigned char *)x[3].buf;
+        for (Py_ssize_t p = 0; p < n && mapped && !bad; p++) bad = In[p] && (M[p] < 0 || M[p] >= n);
+        for (Py_ssize_t p = 0; p < n && !bad; p++) {
+            double s, w;
+            if (!mapped) {
+                s = S[p];
+                w = Wt[p];
+            } else if (In[p]) {
+                s = S[M[p]];
+                w = Wt[M[p]];
+            } else {
+                s = 0.0;
+                w = 0.0;
+            }
+            const int good = isfinite(s) && isfinite(w) && w > 0;
+            if (!good) s = w = 0.0;
+            B[e * n + p] = (unsigned char)!good;
+            const double ws = w * s;
+            if (e == 0) {
+                I[p] = w;
+                C[p] = ws;
+            } else {
+                I[p] += w;
+                C[p] += ws;
+            }
+        }
+        RELEASE(&x[0], &x[1], &x[2], &x[3]);
+    }
+    if (bad) {
+        RELEASE(&cb, &ib, &bb);
+        if (bad == 1 || !PyErr_Occurred()) {
+            PyErr_Clear();
+            PyErr_SetString(PyExc_ValueError, "iso_coadd: inconsistent buffers");
+        }
+        return NULL;
+    }
+    for (Py_ssize_t p = 0; p < n; p++) {
+        const double inv = I[p] > 0 ? 1.0 / I[p] : 0.0;
+        C[p] = C[p] * inv;
+        I[p] = inv;
+    }
+    RELEASE(&cb, &ib, &bb);
+    Py_RETURN_NONE;
+}
+
+/* the separable smoothing's passes: out = a correlated with the odd, symmetric kernel k of half-width r along columns
+   (iso_cols) or rows (iso_rows), zero beyond the box; per pixel the centre tap, then each pair of equal taps, the
+   outermost first, its two pixels added first (scipy.ndimage.correlate1d's order for a symmetric kernel). Whole rows
+   at a time, so the loops run across a row. zero: nx zeros; pad: nx + 2 r doubles of scratch */
+static NO_CONTRACT void iso_cols(const double *a, double *out, Py_ssize_t ny, Py_ssize_t nx, const double *k,
+                                 Py_ssize_t r, const double *zero)
+{
+    for (Py_ssize_t y = 0; y < ny; y++) {
+        double *o = out + y * nx;
+        const double *x = a + y * nx;
+        for (Py_ssize_t i = 0; i < nx; i++) o[i] = x[i] * k[r];
+        for (Py_ssize_t j = r; j >= 1; j--) {
+            const double *lo = y - j >= 0 ? a + (y - j) * nx : zero, *hi = y + j < ny ? a + (y + j) * nx : zero;
+            const double kj = k[r + j];
+            for (Py_ssize_t i = 0; i < nx; i++) o[i] += (lo[i] + hi[i]) * kj;
+        }
+    }
+}
+
+static NO_CONTRACT void iso_rows(const double *a, double *out, Py_ssize_t ny, Py_ssize_t nx, const double *k,
+                                 Py_ssize_t r, double *pad)
+{
+    for (Py_ssize_t i = 0; i < r; i++) pad[i] = pad[r + nx + i] = 0.0;
+    for (Py_ssize_t y = 0; y < ny; y++) {
+        double *o = out + y * nx;
+        memcpy(pad + r, a + y * nx, (size_t)nx * sizeof(double));
+        const double *x = pad + r;
+        for (Py_ssize_t i = 0; i < nx; i++) o[i] = x[i] * k[r];
+        for (Py_ssize_t j = r; j >= 1; j--) {
+            const double kj = k[r + j];
+            for (Py_ssize_t i = 0; i < nx; i++) o[i] += (x[i - j] + x[i + j]) * kj;
+        }
+    }
+}
+
+/*
+ * iso_smooth(coadd, inv, ny, nx, kern, kern2, smooth, noise, snr): blends._smoothed's arrays (its numpy and scipy
+ * lines stay as the reference; a test checks they agree to the bit): smooth = coadd correlated with the outer product
+ * of kern (columns, then rows; zero outside the box), noise = sqrt(inv correlated likewise with kern2), snr = smooth /
+ * noise where noise > 0, else 0. Both kernels odd-length and symmetric.
+ */
+static NO_CONTRACT PyObject *iso_smooth(PyObject *self, PyObject *args)
+{
+    Py_buffer cb, ib, kb, k2b, sb, nb, rb;
+    int ny, nx;
+    if (!PyArg_ParseTuple(args, "y*y*iiy*y*w*w*w*", &cb, &ib, &ny, &nx, &kb, &k2b, &sb, &nb, &rb)) return NULL;
+    const Py_ssize_t D = (Py_ssize_t)sizeof(double), n = (Py_ssize_t)ny * nx, nk = kb.len / D;
+    const double *K = (const double *)kb.buf, *K2 = (const double *)k2b.buf;
+    int bad = ny < 1 || nx < 1 || cb.len != n * D || ib.len != n * D || sb.len != n * D || nb.len != n * D
+              || rb.len != n * D || nk < 1 || nk % 2 != 1 || k2b.len != kb.len;
+    for (Py_ssize_t j = 0; !bad && j < nk; j++) bad = K[j] != K[nk - 1 - j] || K2[j] != K2[nk - 1 - j];
+    double *tmp = bad ? NULL : (double *)calloc((size_t)(n + 2 * nx + nk), sizeof(double));
+    if (bad || tmp == NULL) {
+        RELEASE(&cb, &ib, &kb, &k2b, &sb, &nb, &rb);
+        if (bad) PyErr_SetString(PyExc_ValueError, "iso_smooth: inconsistent buffers");
+        else PyErr_NoMemory();
+        return NULL;
+    }
+    const Py_ssize_t r = nk / 2;
+    double *S = (double *)sb.buf, *N = (double *)nb.buf, *Q = (double *)rb.buf;
+    double *zero = tmp + n, *pad = zero + nx;   /* (calloc: zero holds nx zeros) */
+    iso_cols((const double *)cb.buf, tmp, ny, nx, K, r, zero);   /* axis 0, then axis 1 */
+    iso_rows(tmp, S, ny, nx, K, r, pad);
+    iso_cols((const double *)ib.buf, tmp, ny, nx, K2, r, zero);
+    iso_rows(tmp, N, ny, nx, K2, r, pad);
+    for (Py_ssize_t p = 0; p < n; p++) {
+        N[p] = sqrt(N[p]);
+        Q[p] = N[p] > 0 ? S[p] / N[p] : 0.0;
+    }
+    free(tmp);
+    RELEASE(&cb, &ib, &kb, &k2b, &sb, &nb, &rb);
+    Py_RETURN_NONE;
+}
+
+/*
+ * iso_regions(snr, nx, bad, x0, y0, nsigma, min_peak, core2, grow, comp, region, others, keep)
+ *   -> (target, n_real, ya, yb, xa, xb, peak): blends._isophote's decisions in one pass (its numpy and scipy lines stay
+ * as the reference; a test checks they agree). The 8-connected components of snr >= nsigma (comp: int32 scratch),
+ * each real where its peak reaches min_peak; the target is the real component at the pixel nearest (x0, y0), else
+ * the one of the nearest pixel within 2 pixels (the first in raster order among equals), else none (0). With a
+ * target: region (uint8) its pixels, keep (uint8, one per exposure of bad: exposures x ny x nx, uint8) 0 where the
+ * exposure has a bad pixel in it, its bounding box [ya, yb) x [xa, xb) and peak; others (uint8, where grow >= 0) the
+ * other real components' pixels dilated by a square of half-width grow, less the region. Without one: keep judged on
+ * the pixels within sqrt(core2) of (x0, y0). n_real: the real components.
+ */
+static NO_CONTRACT PyObject *iso_regions(PyObject *self, PyObject *args)
+{
+    Py_buffer sb, bb, cb, rb, ob, kb;
+    int nx, grow;
+    double x0, y0, nsigma, min_peak, core2;
+    if (!PyArg_ParseTuple(args, "y*iy*dddddiw*w*w*w*", &sb, &nx, &bb, &x0, &y0, &nsigma, &min_peak, &core2, &grow,
+                          &cb, &rb, &ob, &kb))
+        return NULL;
+    const Py_ssize_t n = sb.len / (Py_ssize_t)sizeof(double), ny = nx > 0 ? n / nx : 0, ne = kb.len;
+    if (nx < 1 || ny * nx != n || n < 1 || ne < 1 || bb.len != ne * n || cb.len != n * (Py_ssize_t)sizeof(int)
+        || rb.len != n || ob.len != (grow >= 0 ? n : 0)) {
+        RELEASE(&sb, &bb, &cb, &rb, &ob, &kb);
+        PyErr_SetString(PyExc_ValueError, "iso_regions: inconsistent buffers");
+        return NULL;
+    }
+    const double *S = (const double *)sb.buf;
+    const unsigned char *Bd = (const unsigned char *)bb.buf;
+    int *comp = (int *)cb.buf;
+    unsigned char *R = (unsigned char *)rb.buf, *O = (unsigned char *)ob.buf, *K = (unsigned char *)kb.buf;
+    Py_ssize_t *stack = (Py_ssize_t *)malloc((size_t)n * sizeof(Py_ssize_t));
+    unsigned char *real = (unsigned char *)malloc((size_t)n + 1);
+    if (!stack || !real) {
+        free(stack);
+        free(real);
+        RELEASE(&sb, &bb, &cb, &rb, &ob, &kb);
+        return PyErr_NoMemory();
+    }
+    /* components, in raster order of their first pixel, and their peaks */
+    for (Py_ssize_t p = 0; p < n; p++) comp[p] = 0;
+    int nc = 0, n_real = 0;
+    real[0] = 0;
+    for (Py_ssize_t p = 0; p < n; p++) {
+        if (comp[p] || !(S[p] >= nsigma)) continue;
+        const int l = ++nc;
+        double peak = S[p];
+        Py_ssize_t top = 0;
+        stack[top++] = p;
+        comp[p] = l;
+        while (top) {
+            const Py_ssize_t q = stack[--top];
+            const Py_ssize_t qy = q / nx, qx = q % nx;
+            peak = S[q] > peak ? S[q] : peak;
+            for (Py_ssize_t y = qy - 1; y <= qy + 1; y++) {
+                if (y < 0 || y >= ny) continue;
+                for (Py_ssize_t x = qx - 1; x <= qx + 1; x++) {
+                    const Py_ssize_t r = y * nx + x;
+                    if (x < 0 || x >= nx || comp[r] || !(S[r] >= nsigma)) continue;
+                    comp[r] = l;
+                    stack[top++] = r;
+                }
+            }
+        }
+        real[l] = peak >= min_peak;
+        n_real += real[l];
+    }
+    /* the target (blends._find_target) */
+    int target = 0;
+    const long long ix = (long long)floor(x0 + 0.5), iy = (long long)floor(y0 + 0.5);
+    if (iy >= 0 && iy < ny && ix >= 0 && ix < nx && real[comp[iy * nx + ix]]) {
+        target = comp[iy * nx + ix];
+    } else {
+        const long long ya = iy - 3 > 0 ? iy - 3 : 0, yb = iy + 4 < ny ? iy + 4 : ny;
+        const long long xa = ix - 3 > 0 ? ix - 3 : 0, xb = ix + 4 < nx ? ix + 4 : nx;
+        double best = INFINITY;
+        for (long long y = ya; y < yb; y++)
+            for (long long x = xa; x < xb; x++) {
+                const double dx = (double)x - x0, dy = (double)y - y0;
+                const double a = dx * dx, b = dy * dy, d2 = a + b;
+                const int l = comp[y * nx + x];
+                if (real[l] && d2 <= 4.0 && d2 < best) {
+                    best = d2;
+                    target = l;
+                }
+            }
+    }
+    for (Py_ssize_t e = 0; e < ne; e++) K[e] = 1;
+    long long ya = ny, yb = 0, xa = nx, xb = 0;
+    double peak = -INFINITY;
+    if (target == 0) {
+        /* the pixels within sqrt(core2) of the position */
+        for (Py_ssize_t y = 0; y < ny; y++)
+            for (Py_ssize_t x = 0; x < nx; x++) {
+                const double dx = (double)x - x0, dy = (double)y - y0;
+                const double a = dx * dx, b = dy * dy;
+                R[y * nx + x] = 0;
+                if (a + b <= core2)
+                    for (Py_ssize_t e = 0; e < ne; e++)
+                        if (Bd[e * n + y * nx + x]) K[e] = 0;
+            }
+        if (grow >= 0) memset(O, 0, (size_t)n);
+    } else {
+        for (Py_ssize_t y = 0; y < ny; y++)
+            for (Py_ssize_t x = 0; x < nx; x++) {
+                const Py_ssize_t p = y * nx + x;
+                R[p] = comp[p] == target;
+                if (!R[p]) continue;
+                ya = y < ya ? y : ya;
+                yb = y + 1 > yb ? y + 1 : yb;
+                xa = x < xa ? x : xa;
+                xb = x + 1 > xb ? x + 1 : xb;
+                peak = S[p] > peak ? S[p] : peak;
+                for (Py_ssize_t e = 0; e < ne; e++)
+                    if (Bd[e * n + p]) K[e] = 0;
+            }
+        if (grow >= 0) {
+            /* the other real components, dilated: a pixel is masked where one lies within grow in x and y */
+            for (Py_ssize_t p = 0; p < n; p++) O[p] = 0;
+            for (Py_ssize_t y = 0; y < ny; y++)
+                for (Py_ssize_t x = 0; x < nx; x++) {
+                    const int l = comp[y * nx + x];
+                    if (l == 0 || l == target || !real[l]) continue;
+                    for (Py_ssize_t v = y - grow; v <= y + grow; v++) {
+                        if (v < 0 || v >= ny) continue;
+                        for (Py_ssize_t u = x - grow; u <= x + grow; u++)
+                            if (u >= 0 && u < nx) O[v * nx + u] = 1;
+                    }
+                }
+            for (Py_ssize_t p = 0; p < n; p++) O[p] &= !R[p];
+        }
+    }
+    free(stack);
+    free(real);
+    RELEASE(&sb, &bb, &cb, &rb, &ob, &kb);
+    return Py_BuildValue("iiLLLLd", target, n_real, ya, yb, xa, xb, peak);
+}
+
+/* the eight neighbours of a pixel of a row of w pixels, flat, in blends._SHIFTS' order */
+static void iso_steps(Py_ssize_t w, Py_ssize_t *st)
+{
+    int k = 0;
+    for (int dy = -1; dy <= 1; dy++)
+        for (int dx = -1; dx <= 1; dx++)
+            if (dy || dx) st[k++] = dy * w + dx;
+}
+
+/* the region's pixels are at least one pixel inside the box (the caller pads), so every neighbour is in it */
+static int iso_inside(const unsigned char *R, Py_ssize_t h, Py_ssize_t w)
+{
+    for (Py_ssize_t y = 0; y < h; y++)
+        for (Py_ssize_t x = 0; x < w; x++)
+            if (R[y * w + x] && (y == 0 || x == 0 || y == h - 1 || x == w - 1)) return 0;
+    return 1;
+}
+
+/* pixels by value, highest first, ties by position (a stable argsort of -v) */
+typedef struct {
+    double v;
+    Py_ssize_t p;
+} iso_key;
+static int iso_cmp(const void *a, const void *b)
+{
+    const iso_key *x = (const iso_key *)a, *y = (const iso_key *)b;
+    if (x->v > y->v) return -1;
+    if (x->v < y->v) return 1;
+    return (x->p > y->p) - (x->p < y->p);
+}
+
+/* sort the m pixels of idx so (keys: m of scratch) */
+static void iso_sort(const double *V, Py_ssize_t *idx, Py_ssize_t m, iso_key *keys)
+{
+    for (Py_ssize_t i = 0; i < m; i++) {
+        keys[i].v = V[idx[i]];
+        keys[i].p = idx[i];
+    }
+    qsort(keys, (size_t)m, sizeof(iso_key), iso_cmp);
+    for (Py_ssize_t i = 0; i < m; i++) idx[i] = keys[i].p;
+}
+
+static int pos_cmp(const void *a, const void *b)
+{
+    const Py_ssize_t i = *(const Py_ssize_t *)a, j = *(const Py_ssize_t *)b;
+    return (i > j) - (i < j);
+}
+
+/*
+ * sig_maxima(v, region, w, nsigma, min_contrast, strong) -> count: blends._significant_maxima. v (float64, -inf off
+ * the region) and region (uint8) of a box w pixels wide whose border holds no region pixel; strong (uint8, zeroed
+ * here) marks one pixel (the first in raster order) of each significant maximum. A local maximum equals the highest of
+ * its 3 x 3 neighbourhood; touching maxima form one plateau; plateaus rank by height, then position; the highest is
+ * significant, and a lower one at height h >= nsigma + c when no higher-ranked one is reached from it through region
+ * pixels of v >= h - c.
+ */
+static NO_CONTRACT PyObject *sig_maxima(PyObject *self, PyObject *args)
+{
+    Py_buffer vb, rb, ob;
+    int w;
+    double nsigma, c;
+    if (!PyArg_ParseTuple(args, "y*y*iddw*", &vb, &rb, &w, &nsigma, &c, &ob)) return NULL;
+    const Py_ssize_t n = rb.len, h = w > 0 ? n / w : 0;
+    const double *V = (const double *)vb.buf;
+    const unsigned char *R = (const unsigned char *)rb.buf;
+    unsigned char *O = (unsigned char *)ob.buf;
+    if (w < 1 || h * w != n || vb.len != n * (Py_ssize_t)sizeof(double) || ob.len != n || !iso_inside(R, h, w)) {
+        RELEASE(&vb, &rb, &ob);
+        PyErr_SetString(PyExc_ValueError, "sig_maxima: inconsistent buffers");
+        return NULL;
+    }
+    /* one block: sort keys, representatives, a stack, marks, ranks, the maxima (widest items first) */
+    const size_t m = (size_t)n + 1;
+    iso_key *keys = (iso_key *)malloc(m * (sizeof(iso_key) + 2 * sizeof(Py_ssize_t) + 2 * sizeof(int) + 1));
+    if (keys == NULL) {
+        RELEASE(&vb, &rb, &ob);
+        return PyErr_NoMemory();
+    }
+    Py_ssize_t *reps = (Py_ssize_t *)(keys + m), *stack = reps + m;
+    int *mark = (int *)(stack + m), *rank = mark + m;
+    unsigned char *ismax = (unsigned char *)(rank + m);
+    memset(ismax, 0, m);
+    Py_ssize_t st[8];
+    iso_steps(w, st);
+    memset(O, 0, (size_t)n);
+    for (Py_ssize_t p = 0; p < n; p++) {
+        mark[p] = 0;
+        rank[p] = -1;
+        if (!R[p]) continue;
+        double m = V[p];
+        for (int k = 0; k < 8; k++) m = V[p + st[k]] > m ? V[p + st[k]] : m;
+        ismax[p] = V[p] == m;
+    }
+    /* plateaus: one representative each, its first pixel in raster order */
+    Py_ssize_t nrep = 0;
+    for (Py_ssize_t p = 0; p < n; p++) {
+        if (!ismax[p] || mark[p]) continue;
+        reps[nrep++] = p;
+        Py_ssize_t top = 0;
+        stack[top++] = p;
+        mark[p] = -1;
+        while (top) {
+            const Py_ssize_t q = stack[--top];
+            for (int k = 0; k < 8; k++) {
+                const Py_ssize_t r = q + st[k];
+                if (ismax[r] && !mark[r]) {
+                    mark[r] = -1;
+                    stack[top++] = r;
+                }
+            }
+        }
+    }
+    int count = 0;
+    if (nrep) {
+        iso_sort(V, reps, nrep, keys);
+        for (Py_ssize_t k = 0; k < nrep; k++) rank[reps[k]] = (int)k;
+        O[reps[0]] = 1;
+        count = 1;
+        const double floor_ = nsigma + c;
+        for (Py_ssize_t k = 1; k < nrep && V[reps[k]] >= floor_; k++) {
+            /* the component of region & (v >= h - c) holding this maximum: a higher-ranked one in it? */
+            const double lo = V[reps[k]] - c;
+            const int tag = (int)k + 1;
+            int found = 0;
+            Py_ssize_t top = 0;
+            stack[top++] = reps[k];
+            mark[reps[k]] = tag;
+            while (top && !found) {
+                const Py_ssize_t q = stack[--top];
+                for (int j = 0; j < 8; j++) {
+                    const Py_ssize_t r = q + st[j];
+                    if (R[r] && mark[r] != tag && V[r] >= lo) {
+                        if (rank[r] >= 0 && rank[r] < k) {
+                            found = 1;
+                            break;
+                        }
+                        mark[r] = tag;
+                        stack[top++] = r;
+                    }
+                }
+            }
+            if (!found) {
+                O[reps[k]] = 1;
+                count++;
+            }
+        }
+    }
+    free(keys);
+    RELEASE(&vb, &rb, &ob);
+    return PyLong_FromLong(count);
+}
+
+/*
+ * deblend_grow(v, region, w, levels, min_pixels, strong, lab) -> regions: the rest of blends._deblend once more than
+ * one maximum is significant. The region's pixels, highest first (ties by position), enter level by level (the
+ * pixels of v >= each level in turn, the last level all of them); the new pixels of a level go, a pass at a time, to
+ * their brightest labelled neighbour (the first in blends._SHIFTS' order among equals), all of a pass judged on the
+ * labels before it; those no region reaches become regions of their own, one per 8-connected group, numbered in
+ * raster order. Then regions whose peak is not significant or that have fewer than min_pixels pixels are merged,
+ * smallest first (the lowest number among equals), into the region holding most of the pixels around them. lab
+ * (int32, the box) receives the labels; returns the regions left.
+ */
+static PyObject *deblend_grow(PyObject *self, PyObject *args)
+{
+    Py_buffer vb, rb, lvb, sb, lb;
+    int w, min_pixels;
+    if (!PyArg_ParseTuple(args, "y*y*iy*iy*w*", &vb, &rb, &w, &lvb, &min_pixels, &sb, &lb)) return NULL;
+    const Py_ssize_t n = rb.len, h = w > 0 ? n / w : 0, nl = lvb.len / (Py_ssize_t)sizeof(double);
+    const double *V = (const double *)vb.buf, *L = (const double *)lvb.buf;
+    const unsigned char *R = (const unsigned char *)rb.buf, *S = (const unsigned char *)sb.buf;
+    int *lab = (int *)lb.buf;
+    if (w < 1 || h * w != n || vb.len != n * (Py_ssize_t)sizeof(double) || nl < 1 || sb.len != n
+        || lb.len != n * (Py_ssize_t)sizeof(int) || !iso_inside(R, h, w)) {
+        RELEASE(&vb, &rb, &lvb, &sb, &lb);
+        PyErr_SetString(PyExc_ValueError, "deblend_grow: inconsistent buffers");
+        return NULL;
+    }
+    /* one block: sort keys; the pixels in order, to do, a stack, their labels got; counts and contacts per label;
+       the seeds and the significant labels (zeroed) */
+    const size_t m = (size_t)n + 2;
+    iso_key *keys = (iso_key *)malloc(m * (sizeof(iso_key) + 6 * sizeof(Py_ssize_t) + 2));
+    if (keys == NULL) {
+        RELEASE(&vb, &rb, &lvb, &sb, &lb);
+        return PyErr_NoMemory();
+    }
+    Py_ssize_t *order = (Py_ssize_t *)(keys + m), *todo = order + m, *stack = todo + m, *got = stack + m;
+    Py_ssize_t *cnt = got + m, *touch = cnt + m;
+    unsigned char *seed = (unsigned char *)(touch + m), *sig = seed + m;
+    memset(seed, 0, 2 * m);
+    Py_ssize_t st[8];
+    iso_steps(w, st);
+    Py_ssize_t no = 0;
+    for (Py_ssize_t p = 0; p < n; p++) {
+        lab[p] = 0;
+        if (R[p]) order[no++] = p;
+    }
+    iso_sort(V, order, no, keys);
+    int n_reg = 0;
+    Py_ssize_t start = 0;
+    for (Py_ssize_t i = 0; i < nl; i++) {
+        /* the pixels of v >= this level (np.searchsorted on -v, side='right'); the last level takes them all */
+        Py_ssize_t end = no;
+        if (i < nl - 1) {
+            Py_ssize_t a = 0, b = no;
+            while (a < b) {
+                const Py_ssize_t m = a + (b - a) / 2;
+                if (-V[order[m]] <= -L[i]) a = m + 1;
+                else b = m;
+            }
+            end = a;
+        }
+        if (end <= start) continue;
+        Py_ssize_t nt = end - start;
+        memcpy(todo, order + start, (size_t)nt * sizeof(Py_ssize_t));
+        start = end;
+        while (nt) {
+            int any = 0;
+            for (Py_ssize_t t = 0; t < nt; t++) {
+                const Py_ssize_t p = todo[t];
+                double best = -INFINITY;
+                int g = 0;
+                for (int k = 0; k < 8; k++) {
+                    const int l = lab[p + st[k]];
+                    const double nv = l > 0 ? V[p + st[k]] : -INFINITY;
+                    if (k == 0 || nv > best) {
+                        best = nv;
+                        g = l;
+                    }
+                }
+                got[t] = g;
+                any |= g > 0;
+            }
+            if (!any) break;
+            Py_ssize_t keep = 0;
+            for (Py_ssize_t t = 0; t < nt; t++) {
+                if (got[t] > 0) lab[todo[t]] = (int)got[t];
+                else todo[keep++] = todo[t];
+            }
+            nt = keep;
+        }
+        if (nt) {
+            /* the unreached: a region per 8-connected group, numbered in raster order */
+            for (Py_ssize_t t = 0; t < nt; t++) seed[todo[t]] = 1;
+            qsort(todo, (size_t)nt, sizeof(Py_ssize_t), pos_cmp);
+            for (Py_ssize_t t = 0; t < nt; t++) {
+                if (lab[todo[t]]) continue;
+                const int l = ++n_reg;
+                Py_ssize_t top = 0;
+                stack[top++] = todo[t];
+                lab[todo[t]] = l;
+                while (top) {
+                    const Py_ssize_t q = stack[--top];
+                    for (int k = 0; k < 8; k++) {
+                        const Py_ssize_t r = q + st[k];
+                        if (seed[r] && !lab[r]) {
+                            lab[r] = l;
+                            stack[top++] = r;
+                        }
+                    }
+                }
+            }
+            for (Py_ssize_t t = 0; t < nt; t++) seed[todo[t]] = 0;
+        }
+    }
+    /* amalgamate the regions that do not count */
+    for (Py_ssize_t p = 0; p < n; p++)
+        if (S[p] && lab[p] > 0) sig[lab[p]] = 1;
+    while (n_reg > 1) {
+        memset(cnt, 0, (size_t)(n_reg + 1) * sizeof(Py_ssize_t));
+        for (Py_ssize_t p = 0; p < n; p++) cnt[lab[p]]++;
+        int alive = 0, r = 0;
+        for (int l = 1; l <= n_reg; l++) {
+            if (cnt[l] <= 0) continue;
+            alive++;
+            if ((cnt[l] < min_pixels || !sig[l]) && (r == 0 || cnt[l] < cnt[r])) r = l;
+        }
+        if (alive <= 1 || r == 0) break;
+        memset(touch, 0, (size_t)(n_reg + 1) * sizeof(Py_ssize_t));
+        Py_ssize_t total = 0;
+        for (Py_ssize_t p = 0; p < n; p++) {
+            if (lab[p] <= 0 || lab[p] == r) continue;
+            for (int k = 0; k < 8; k++)
+                if (lab[p + st[k]] == r) {
+                    touch[lab[p]]++;
+                    total++;
+                    break;
+                }
+        }
+        if (total == 0) break;
+        int to = 0;
+        for (int l = 1; l <= n_reg; l++)
+            if (touch[l] > touch[to]) to = l;
+        for (Py_ssize_t p = 0; p < n; p++)
+            if (lab[p] == r) lab[p] = to;
+    }
+    int n_final = 0;
+    memset(cnt, 0, (size_t)(n_reg + 1) * sizeof(Py_ssize_t));
+    for (Py_ssize_t p = 0; p < n; p++)
+        if (lab[p] > 0 && !cnt[lab[p]]++) n_final++;
+    free(keys);
+    RELEASE(&vb, &rb, &lvb, &sb, &lb);
+    return PyLong_FromLong(n_final);
+}
+
 static PyMethodDef methods[] = {
     {"kernel_isa", kernel_isa, METH_NOARGS, "kernel_isa() -> the instruction-set level this module was built for"},
     {"cpu_levels", cpu_levels, METH_NOARGS, "cpu_levels() -> the instruction-set levels this CPU runs"},
@@ -5382,6 +5975,14 @@ static PyMethodDef methods[] = {
     {"locate_parabola", locate_parabola, METH_VARARGS, "locate_parabola(ld, lb, lpr, w, xs, top, xpk)"},
     {"fine_modes_select", fine_modes_select, METH_VARARGS,
      "fine_modes_select(Ps, A, ok, absG, Gs, absG2max, kyv, kxv, dx, dy, s, ny, nxh, tolerance, ky, kx, T, c) -> m"},
+    {"iso_coadd", iso_coadd, METH_VARARGS, "iso_coadd(items, ny, nx, coadd, inv, bad): the isophote analysis' co-add"},
+    {"iso_smooth", iso_smooth, METH_VARARGS,
+     "iso_smooth(coadd, inv, ny, nx, kern, kern2, smooth, noise, snr): the isophote analysis' smoothing"},
+    {"iso_regions", iso_regions, METH_VARARGS,
+     "iso_regions(snr, nx, bad, x0, y0, nsigma, min_peak, core2, grow, comp, region, others, keep) -> (target, "
+     "n_real, ya, yb, xa, xb, peak)"},
+    {"sig_maxima", sig_maxima, METH_VARARGS, "sig_maxima(v, region, w, nsigma, min_contrast, strong) -> count"},
+    {"deblend_grow", deblend_grow, METH_VARARGS, "deblend_grow(v, region, w, levels, min_pixels, strong, lab) -> regions"},
     {NULL, NULL, 0, NULL}};
 
 static struct PyModuleDef module = {PyModuleDef_HEAD_INIT, K_STR(KERNEL_MODULE),

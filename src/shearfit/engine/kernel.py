@@ -1,12 +1,13 @@
 """The compiled inner loops and the choice between them and numpy.
 
 The likelihood's hot loops (model sums, mode binning, the flux-position and
-size marginals) are written twice: in C (``_kernels.c``, built at install
-time) and in numpy. Both compute the same sums; the C loops are several times
-faster. The C module is built once per instruction-set level: ``_kernels``
-for the compiler's baseline and, on x86-64, ``_kernels_v3`` (x86-64-v3: AVX2,
-FMA) and ``_kernels_v4`` (x86-64-v4: AVX-512). This module is the one place
-that loads them:
+size marginals), and the pipeline's isophote analysis (sec. 3.6), are written
+twice: in C (``_kernels.c``, built at install time) and in numpy. Both
+compute the same sums; the C loops are several times faster. The C module
+is built once per instruction-set level: ``_kernels`` for the compiler's
+baseline and, on x86-64, ``_kernels_v3`` (x86-64-v3: AVX2, FMA) and
+``_kernels_v4`` (x86-64-v4: AVX-512). This module is the one place that
+loads them:
 
 - by default the highest level that the CPU runs and that was built;
 - ``SHEARFIT_ISA`` in the environment forces one: ``avx512`` (or

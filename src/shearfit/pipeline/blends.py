@@ -79,14 +79,15 @@ from __future__ import annotations
 import functools
 import math
 from dataclasses import dataclass, field
-from typing import Sequence
+from typing import NamedTuple, Optional, Sequence
 
 import numpy as np
 from scipy import ndimage
 
+from ..engine.kernel import KERNEL, USE_KERNEL
 from ..errors import FITCLASS_BLENDED, FITCLASS_CENTROID, FITCLASS_GALAXY, ShearfitValueError
 
-__all__ = ["BlendResult", "SmoothedCoadd", "analyse_stamps", "smooth_coadd", "smoothing_kernel"]
+__all__ = ["BlendResult", "SmoothedCoadd", "analyse_stamps", "carry_stamp", "smooth_coadd", "smoothing_kernel"]
 
 #: 8-connectivity: diagonal neighbours touch, as for isophotes drawn on a pixel grid.
 _EIGHT = np.ones((3, 3), dtype=bool)
@@ -211,8 +212,8 @@ def smooth_coadd(stamps, weights, psf_fwhm_pixels) -> SmoothedCoadd:
     SmoothedCoadd
     """
     n = len(stamps)
-    s, w, _ = _validate(stamps, weights, np.zeros((n, 2)))
-    return _coadd(s, w, psf_fwhm_pixels)
+    coadd, inv, _, _ = _stack_coadd(stamps, weights, np.zeros((n, 2)))
+    return _smoothed(coadd, inv, psf_fwhm_pixels)
 
 
 @functools.lru_cache(maxsize=256)
@@ -226,11 +227,87 @@ def _kernel_pair(fwhm_pixels: float):
     return kern, kern2
 
 
-def _coadd(s, w, psf_fwhm_pixels):
-    kern, kern2 = _kernel_pair(float(psf_fwhm_pixels))
+def _stack_coadd(stamps, weights, offsets, carry=None, use_kernel=True):
+    """The exposures' stamps on the co-add's grid, co-added: ``(coadd, inv, bad, offsets)``.
+
+    ``coadd`` is the inverse-variance weighted mean, ``inv`` the co-add's
+    variance :math:`1/\\sum_i w_i` (0 where no exposure has data), ``bad`` (exposures x ny x nx, bool) each
+    exposure's pixels without data (weight 0 or non-finite, or, through ``carry``, no pixel of its own).
+    ``carry`` (optional) holds per exposure None (the stamp is on the co-add's grid) or a nearest-pixel map
+    ``(index, inside)`` of the co-add's pixels: each takes the stamp's value and weight at flat pixel ``index``
+    where ``inside``, else none. The pipeline's float64 stamps are co-added by the compiled kernel
+    (``iso_coadd``) in one pass; these numpy lines stay as its reference (a test checks they agree to the bit).
+    """
+    n = len(stamps)
+    if carry is None:
+        carry = (None,) * n
+    elif len(carry) != n:
+        raise ShearfitValueError(f"{n} stamps and {len(carry)} pixel maps: one per exposure is needed")
+    if use_kernel and USE_KERNEL and 0 < n == len(weights) and _kernel_ready(stamps, weights, carry):
+        off = _check_offsets(offsets, n)
+        shape = stamps[0].shape
+        items = tuple((si, wi, b"", b"") if m is None else (si, wi, m[0], m[1])
+                      for si, wi, m in zip(stamps, weights, carry))
+        coadd, inv = np.empty(shape), np.empty(shape)
+        bad = np.empty((n,) + shape, dtype=bool)
+        KERNEL.iso_coadd(items, shape[0], shape[1], coadd, inv, bad.view(np.uint8))
+        return coadd, inv, bad, off
+    stamps = [carry_stamp(si, m) for si, m in zip(stamps, carry)]
+    weights = [carry_stamp(wi, m) for wi, m in zip(weights, carry)] if len(weights) == n else weights
+    s, w, off = _validate(stamps, weights, offsets)
     wsum = w.sum(axis=0)
     inv = np.divide(1.0, wsum, out=np.zeros_like(wsum), where=wsum > 0)
     coadd = (w * s).sum(axis=0) * inv
+    return coadd, inv, w <= 0, off
+
+
+def _kernel_ready(stamps, weights, carry):
+    """Whether every stamp, weight and map is in the compiled co-add's form: float64 C-ordered stamps of one 2-D
+    shape, maps of int64 indices and bool flags, one per pixel."""
+    first = stamps[0]
+    if not isinstance(first, np.ndarray) or first.ndim != 2 or first.size == 0:
+        return False
+    shape = first.shape
+    for a in (*stamps, *weights):
+        if not (isinstance(a, np.ndarray) and a.shape == shape and a.dtype == np.float64 and a.flags.c_contiguous):
+            return False
+    for m in carry:
+        if m is not None and not (m[0].dtype == np.int64 and m[1].dtype == np.bool_ and m[0].size == m[1].size
+                                  == first.size and m[0].flags.c_contiguous and m[1].flags.c_contiguous):
+            return False
+    return True
+
+
+def carry_stamp(a, m):
+    """Stamp ``a`` carried onto another pixel grid through a nearest-pixel map ``m = (index, inside)``.
+
+    Parameters
+    ----------
+    a : 2D array
+        The stamp (values, weights or a mask).
+    m : tuple of 2D arrays, or None
+        For each pixel of the other grid, the flat ``index`` of ``a``'s pixel nearest to it (int) and whether it
+        lies ``inside`` ``a`` (bool); None where the grids are the same.
+
+    Returns
+    -------
+    2D array
+        ``a[index]`` where ``inside``, else 0 (False); ``a`` itself when ``m`` is None.
+    """
+    return a if m is None else np.where(m[1], np.asarray(a).ravel()[m[0]], 0)
+
+
+def _smoothed(coadd, inv, psf_fwhm_pixels, use_kernel=True):
+    """The co-add smoothed, its noise and S/N (:class:`SmoothedCoadd`) from the co-add and its variance ``inv``.
+
+    The compiled kernel (``iso_smooth``) does the four passes and the ratio in one call on float64 C-ordered
+    arrays; scipy's ``correlate1d`` below stays as the reference (a test checks they agree)."""
+    kern, kern2 = _kernel_pair(float(psf_fwhm_pixels))
+    if (use_kernel and USE_KERNEL and coadd.dtype == inv.dtype == np.float64 and coadd.ndim == 2
+            and coadd.shape == inv.shape and coadd.flags.c_contiguous and inv.flags.c_contiguous):
+        smooth, noise, snr = np.empty_like(coadd), np.empty_like(coadd), np.empty_like(coadd)
+        KERNEL.iso_smooth(coadd, inv, coadd.shape[0], coadd.shape[1], kern, kern2, smooth, noise, snr)
+        return SmoothedCoadd(coadd, smooth, noise, snr)
     smooth = _smooth(coadd, kern)
     # K^2 of the separable kernel is the outer product of k^2: the smoothed
     # variance is the co-add variance correlated with it.
@@ -244,6 +321,16 @@ def _smooth(a, k):
     # assumption for the image and its variance, so S/N at the edges stays exact.
     a = ndimage.correlate1d(a, k, axis=0, mode="constant", cval=0.0)
     return ndimage.correlate1d(a, k, axis=1, mode="constant", cval=0.0)
+
+
+def _check_offsets(offsets, n):
+    if len(offsets) != n:
+        raise ShearfitValueError(f"{n} stamps, {n} weights and {len(offsets)} offsets: "
+                                 "one of each per exposure is needed")
+    off = np.asarray(offsets, dtype=np.float64)
+    if off.shape != (n, 2) or not np.isfinite(off).all():
+        raise ShearfitValueError("offsets must be one finite (dx, dy) per exposure")
+    return off
 
 
 def _validate(stamps, weights, offsets):
@@ -271,9 +358,7 @@ def _validate(stamps, weights, offsets):
         except ValueError:
             raise ShearfitValueError(f"weight {i} of shape {np.shape(wi)} does not fit stamp shape {shape}") from None
         s[i], w[i] = si, wi
-    off = np.asarray(offsets, dtype=np.float64)
-    if off.shape != (len(stamps), 2) or not np.isfinite(off).all():
-        raise ShearfitValueError("offsets must be one finite (dx, dy) per exposure")
+    off = _check_offsets(offsets, len(stamps))
     # A non-finite or negative-weight pixel carries no information: treat it as masked.
     good = np.isfinite(s) & np.isfinite(w) & (w > 0)
     if not good.all():
@@ -359,7 +444,7 @@ def _pad1(a):
     return out
 
 
-def _deblend(snr, region, nsigma, n_levels, min_pixels, min_contrast, spacing):
+def _deblend(snr, region, nsigma, n_levels, min_pixels, min_contrast, spacing, use_kernel=True):
     """Regions grown from the maxima of ``snr`` inside ``region`` (the footnote of sec. 3.6).
 
     Parameters
@@ -379,6 +464,10 @@ def _deblend(snr, region, nsigma, n_levels, min_pixels, min_contrast, spacing):
         (noise units, see :func:`_significant_maxima`) is merged too.
     spacing : {'linear', 'log'}
         How the thresholds are spaced.
+    use_kernel : bool
+        Run the compiled loops (``sig_maxima``, ``deblend_grow``) where
+        built; the numpy lines below stay as their reference (a test checks
+        they agree to the bit).
 
     Returns
     -------
@@ -388,12 +477,19 @@ def _deblend(snr, region, nsigma, n_levels, min_pixels, min_contrast, spacing):
     # can gather them by flat index without wrapping round a row
     region = _pad1(region)
     v = np.where(region, _pad1(snr), -np.inf)
-    strong = _significant_maxima(v, region, nsigma, min_contrast)
+    compiled = use_kernel and USE_KERNEL
+    if compiled:
+        strong = np.empty(region.shape, dtype=bool)
+        n_strong = KERNEL.sig_maxima(v, region.view(np.uint8), region.shape[1], float(nsigma), float(min_contrast),
+                                     strong.view(np.uint8))
+    else:
+        strong = _significant_maxima(v, region, nsigma, min_contrast)
+        n_strong = int(strong.sum())
     # Every region the growth makes starts at a local maximum and keeps it as
     # its peak; regions whose peak is not significant are merged below, so
     # with one significant maximum the answer is one region: skip the growth.
     # Most single galaxies end here.
-    if strong.sum() <= 1:
+    if n_strong <= 1:
         return region[1:-1, 1:-1].astype(np.int32), 1
 
     top = float(v.max())
@@ -401,6 +497,11 @@ def _deblend(snr, region, nsigma, n_levels, min_pixels, min_contrast, spacing):
         levels = np.geomspace(top, min(nsigma, top), n_levels)
     else:
         levels = np.linspace(top, min(nsigma, top), n_levels)
+    if compiled:
+        lab = np.empty(region.shape, dtype=np.int32)
+        n_final = KERNEL.deblend_grow(v, region.view(np.uint8), region.shape[1], levels, int(min_pixels),
+                                      strong.view(np.uint8), lab)
+        return lab[1:-1, 1:-1], n_final
     # Region pixels from the brightest down: the pixels a level adds are the
     # next slice of this list, so no level needs a pass over the whole box.
     flat_v = v.ravel()
@@ -455,7 +556,7 @@ def analyse_stamps(stamps: Sequence[np.ndarray], weights: Sequence[np.ndarray], 
                    nsigma: float = 2.0, min_region_pixels: int = 8, centroid_max_shift: float = 4.0,
                    neighbour_mask: bool = True, min_peak_snr: float = 5.0, n_levels: int = 32,
                    level_spacing: str = "linear", neighbour_grow: int = 2,
-                   min_contrast: float = 2.0) -> BlendResult:
+                   min_contrast: float = 2.0, carry=None) -> BlendResult:
     r"""Find neighbours to mask, exposures to drop, and blended or complex objects (paper sec. 3.6).
 
     The stamps are co-added with inverse-variance weights (they are cut at
@@ -503,6 +604,13 @@ def analyse_stamps(stamps: Sequence[np.ndarray], weights: Sequence[np.ndarray], 
     min_contrast : float
         Prominence, in smoothed-noise sigmas, a maximum needs for its
         deblended region to count (see the module notes).
+    carry : sequence, optional
+        Per exposure, None (its stamp is on the co-add's pixel grid, the
+        default) or a nearest-pixel map ``(index, inside)`` of the co-add's
+        pixels (int64 and bool arrays of the stamp's shape): a co-add pixel
+        takes the value and weight of the stamp's pixel at flat ``index``
+        where ``inside``, else none (weight 0). The pipeline carries rotated
+        or distorted exposures onto the first one's grid this way.
 
     Returns
     -------
@@ -536,50 +644,28 @@ def analyse_stamps(stamps: Sequence[np.ndarray], weights: Sequence[np.ndarray], 
         raise ShearfitValueError(f"min_contrast must be finite and >= 0, got {min_contrast!r}")
     if int(neighbour_grow) != neighbour_grow or neighbour_grow < 0:
         raise ShearfitValueError(f"neighbour_grow must be a non-negative integer, got {neighbour_grow!r}")
-    s, w, off = _validate(stamps, weights, offsets)
-    n_exp = s.shape[0]
-    ny, nx = s.shape[1:]
-    sc = _coadd(s, w, psf_fwhm_pixels)
+    coadd, inv, bad, off = _stack_coadd(stamps, weights, offsets, carry)
+    n_exp, ny, nx = bad.shape
+    sc = _smoothed(coadd, inv, psf_fwhm_pixels)
     smooth, snr = sc.smoothed, sc.snr
 
     x0 = nx // 2 + float(off[:, 0].mean())
     y0 = ny // 2 + float(off[:, 1].mean())
-    bad = w <= 0
 
-    comp, n_comp = ndimage.label(snr >= nsigma, structure=_EIGHT)
-    if n_comp:
-        peak = np.full(n_comp + 1, -np.inf)             # each component's highest SNR
-        np.maximum.at(peak, comp.ravel(), snr.ravel())
-        real = np.concatenate([[False], peak[1:] >= min_peak_snr])
-    else:
-        real = np.zeros(1, dtype=bool)
-    target = _find_target(comp, real, x0, y0)
-    no_mask = [np.zeros((ny, nx), dtype=bool) for _ in range(n_exp)]
-
-    if target == 0:
+    grow = int(neighbour_grow) if neighbour_mask else None
+    iso = _isophote(snr, bad, x0, y0, nsigma, min_peak_snr, float(psf_fwhm_pixels) ** 2, grow)
+    if iso.box is None:
         # No significant isophote: a faint object is still fitted, and the
         # likelihood decides; its light lies within about a PSF FWHM.
-        yy, xx = np.ogrid[:ny, :nx]
-        core = (xx - x0) ** 2 + (yy - y0) ** 2 <= float(psf_fwhm_pixels) ** 2
-        keep = (~bad[:, core].any(axis=1)).tolist()
-        return BlendResult(FITCLASS_GALAXY, "no significant isophote at the object", no_mask, keep,
-                           np.zeros((ny, nx), dtype=bool), (float("nan"), float("nan")), 0)
-
-    region = comp == target
-    keep = (~bad[:, region].any(axis=1)).tolist()
+        no_mask = [np.zeros((ny, nx), dtype=bool) for _ in range(n_exp)]
+        return BlendResult(FITCLASS_GALAXY, "no significant isophote at the object", no_mask, iso.keep,
+                           iso.region, (float("nan"), float("nan")), 0)
+    region, box, peak_snr, keep = iso.region, iso.box, iso.peak_snr, iso.keep
     if neighbour_mask:
-        others = real[comp] & ~region
-        if neighbour_grow > 0 and others.any():
-            size = 2 * int(neighbour_grow) + 1
-            others = ndimage.maximum_filter(others, size=size, mode="constant", cval=False)
-        others &= ~region
-        masks = [others.copy() for _ in range(n_exp)]
+        masks = [iso.others.copy() for _ in range(n_exp)]
     else:
-        masks = no_mask
-
-    box = ndimage.find_objects(region.astype(np.int8))[0]
+        masks = [np.zeros((ny, nx), dtype=bool) for _ in range(n_exp)]
     rsnr, rreg = snr[box], region[box]
-    peak_snr = float(rsnr[rreg].max())
     _, n_reg = _deblend(rsnr, rreg, nsigma, int(n_levels), int(min_region_pixels), float(min_contrast),
                         level_spacing)
 
@@ -598,9 +684,67 @@ def analyse_stamps(stamps: Sequence[np.ndarray], weights: Sequence[np.ndarray], 
         flag, reason = FITCLASS_CENTROID, (f"isophote centroid {shift:.2f} pixels from the nominal position "
                                            f"(limit {centroid_max_shift:g})")
     else:
-        n_nb = int(np.count_nonzero(real)) - 1
+        n_nb = iso.n_real - 1
         flag, reason = FITCLASS_GALAXY, f"ok; {n_nb} neighbour(s) outside the isophote"
     return BlendResult(flag, reason, masks, keep, region, (cx, cy), n_reg, peak_snr)
+
+
+class _Isophote(NamedTuple):
+    """What :func:`_isophote` found: the target's isophote ``region`` (bool, all False without one), ``others`` (the
+    neighbours' grown isophotes, None when not asked for), ``keep`` (per exposure), the region's bounding ``box``
+    (slices; None without a target), its ``peak_snr`` and ``n_real``, the components that count as objects."""
+
+    region: np.ndarray
+    others: Optional[np.ndarray]
+    keep: list
+    box: Optional[tuple]
+    peak_snr: float
+    n_real: int
+
+
+def _isophote(snr, bad, x0, y0, nsigma, min_peak_snr, core2, grow, use_kernel=True) -> _Isophote:
+    """The components of ``snr >= nsigma`` (8-connected), those whose peak reaches ``min_peak_snr``, and the target's
+    among them (:func:`_find_target`); an exposure is kept unless ``bad`` has a pixel in the target's isophote (or,
+    without one, within ``sqrt(core2)`` pixels of ``(x0, y0)``); the other objects' isophotes dilated by ``grow``
+    pixels (a square), less the target's (``grow`` None: not computed). The compiled kernel (``iso_regions``) does it
+    in one pass; the numpy and scipy lines below stay as its reference (a test checks they agree)."""
+    ny, nx = snr.shape
+    if use_kernel and USE_KERNEL and snr.dtype == np.float64 and snr.flags.c_contiguous and bad.flags.c_contiguous:
+        comp = np.empty((ny, nx), dtype=np.int32)
+        region = np.empty((ny, nx), dtype=bool)
+        others = np.empty((ny, nx), dtype=bool) if grow is not None else None
+        keep = np.empty(bad.shape[0], dtype=bool)
+        target, n_real, ya, yb, xa, xb, peak = KERNEL.iso_regions(
+            snr, nx, bad.view(np.uint8), float(x0), float(y0), float(nsigma), float(min_peak_snr), float(core2),
+            -1 if grow is None else int(grow), comp, region.view(np.uint8),
+            bytearray() if others is None else others.view(np.uint8), keep.view(np.uint8))
+        box = (slice(ya, yb), slice(xa, xb)) if target else None
+        return _Isophote(region, others, keep.tolist(), box, peak, n_real)
+    comp, n_comp = ndimage.label(snr >= nsigma, structure=_EIGHT)
+    if n_comp:
+        peak = np.full(n_comp + 1, -np.inf)             # each component's highest SNR
+        np.maximum.at(peak, comp.ravel(), snr.ravel())
+        real = np.concatenate([[False], peak[1:] >= min_peak_snr])
+    else:
+        real = np.zeros(1, dtype=bool)
+    n_real = int(np.count_nonzero(real))
+    target = _find_target(comp, real, x0, y0)
+    if target == 0:
+        yy, xx = np.ogrid[:ny, :nx]
+        core = (xx - x0) ** 2 + (yy - y0) ** 2 <= core2
+        keep = (~bad[:, core].any(axis=1)).tolist()
+        others = None if grow is None else np.zeros((ny, nx), dtype=bool)
+        return _Isophote(np.zeros((ny, nx), dtype=bool), others, keep, None, -np.inf, n_real)
+    region = comp == target
+    keep = (~bad[:, region].any(axis=1)).tolist()
+    others = None
+    if grow is not None:
+        others = real[comp] & ~region
+        if grow > 0 and others.any():
+            others = ndimage.maximum_filter(others, size=2 * grow + 1, mode="constant", cval=False)
+        others &= ~region
+    box = ndimage.find_objects(region.astype(np.int8))[0]
+    return _Isophote(region, others, keep, box, float(snr[box][region[box]].max()), n_real)
 
 
 def _find_target(comp, real, x0, y0, radius=2.0):

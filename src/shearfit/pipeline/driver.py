@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import functools
 import hashlib
+import math
 import json
 import logging
 import os
@@ -56,7 +57,7 @@ from ..io.fits import (METACAL_QUANTITIES, attach_pixels, bad_rows, detached, em
                        read_catalog, read_exposure, release_pages, write_catalog_atomic)
 from ..io.psfinput import PSFExModel, psf_image_hdus, read_psf_fits
 from ..io.stamps import cut_stamp, locate_all
-from .blends import analyse_stamps
+from .blends import analyse_stamps, carry_stamp
 from .memory import fit_memory_bytes
 from ..io.wcs import local_jacobian, pixel_to_sky
 from ..psf.build import (FieldFrame, TooFewStarsError, build_exposure_psf, is_psf_model_file, read_psf_model,
@@ -390,8 +391,9 @@ def _nearest_map(A, shape, use_kernel=True):
     if use_kernel and USE_KERNEL:
         # (the compiled kernel: the same arrays in one pass)
         index, inside = np.empty(shape, np.int64), np.empty(shape, bool)
-        KERNEL.nearest_map(np.ascontiguousarray(A, dtype=float), int(ny), int(nx), index, inside.view(np.uint8))
+        KERNEL.nearest_map(np.array((a, b, c, d)), int(ny), int(nx), index, inside.view(np.uint8))
         return index, inside
+    A = np.asarray(A, float)
     dx, dy = _centred_offsets(shape)
     px = np.rint(A[0, 0] * dx + A[0, 1] * dy).astype(np.int64) + nx // 2
     py = np.rint(A[1, 0] * dx + A[1, 1] * dy).astype(np.int64) + ny // 2
@@ -399,9 +401,53 @@ def _nearest_map(A, shape, use_kernel=True):
     return np.where(inside, py * nx + px, 0), inside
 
 
-def _carry(a, m):
-    """Stamp ``a`` carried through a :func:`_nearest_map` ``m`` (0 where it has no pixel); ``a`` if None."""
-    return a if m is None else np.where(m[1], a.ravel()[m[0]], 0)
+def _floats(J):
+    """A 2 x 2 matrix as the Python floats ``(a, b, c, d)`` of its rows."""
+    (a, b), (c, d) = np.asarray(J, float).tolist()
+    return a, b, c, d
+
+
+def _product(m, n):
+    """The 2 x 2 product ``m n`` of two :func:`_floats` matrices, in Python floats (each element two products
+    and a sum, the same on every CPU: numpy's ``@`` calls a BLAS whose fused multiply-adds depend on it)."""
+    a, b, c, d = m
+    e, f, g, h = n
+    return a * e + b * g, a * f + b * h, c * e + d * g, c * f + d * h
+
+
+def _inverse(m):
+    """The inverse of a :func:`_floats` matrix by its adjugate, or None where it is singular or not finite."""
+    a, b, c, d = m
+    det = a * d - b * c
+    if not (det != 0.0 and math.isfinite(det)):
+        return None
+    return d / det, -b / det, -c / det, a / det
+
+
+def _reference_maps(cuts, shape):
+    """For each stamp of an object: the nearest-pixel maps from the first stamp's grid (the reference) onto it and
+    back (:func:`_nearest_map`; None where the grids agree), and where its object lands on the reference grid.
+
+    ``A = J^-1 J0`` takes reference-pixel offsets to this exposure's, ``B = A^-1`` back. In Python floats for the
+    usual, invertible Jacobians; numpy's matrices (which may carry infinities or NaNs) otherwise."""
+    J0 = _floats(cuts[0]["J"])
+    to_ref, from_ref, offsets = [], [], []
+    for c in cuts:
+        Ji = _inverse(_floats(c["J"]))
+        A = _product(Ji, J0) if Ji is not None else None
+        B = _inverse(A) if A is not None else None
+        if B is None:
+            A = inv2(c["J"]) @ cuts[0]["J"]
+            B = inv2(A)
+            off = tuple((B @ np.asarray(c["offset"], float)).tolist())
+            A, B = _floats(A), _floats(B)
+        else:
+            ox, oy = (float(v) for v in c["offset"])
+            off = (B[0] * ox + B[1] * oy, B[2] * ox + B[3] * oy)
+        to_ref.append(_nearest_map((A[:2], A[2:]), shape))
+        from_ref.append(_nearest_map((B[:2], B[2:]), shape))
+        offsets.append(off)
+    return to_ref, from_ref, offsets
 
 
 def _isophote_analysis(cuts, pc, near=()) -> int:
@@ -421,30 +467,26 @@ def _isophote_analysis(cuts, pc, near=()) -> int:
     the object blended (-3), where the deblender found a single maximum.
     """
     J0 = cuts[0]["J"]
-    shape = cuts[0]["image"].shape
-    to_ref, from_ref, offsets = [], [], []
-    for c in cuts:
-        A = inv2(c["J"]) @ J0                    # reference-pixel offsets -> this exposure's (inv2: closed form)
-        B = inv2(A)
-        to_ref.append(_nearest_map(A, shape))
-        from_ref.append(_nearest_map(B, shape))
-        offsets.append(B @ np.asarray(c["offset"], float))   # where its object lands on the reference grid
+    to_ref, from_ref, offsets = _reference_maps(cuts, cuts[0]["image"].shape)
     fwhm = float(np.mean([_psf_fwhm_pixels(c["moments"], c["k"]) for c in cuts]))
-    res = analyse_stamps([_carry(c["image"], m) for c, m in zip(cuts, to_ref)],
-                         [_carry(c["weight"], m) for c, m in zip(cuts, to_ref)], offsets, fwhm,
+    res = analyse_stamps([c["image"] for c in cuts], [c["weight"] for c in cuts], offsets, fwhm,
                          nsigma=pc.isophote_nsigma, min_region_pixels=pc.deblend_min_pixels,
-                         centroid_max_shift=pc.isophote_centroid_max_shift, neighbour_mask=pc.neighbour_mask)
+                         centroid_max_shift=pc.isophote_centroid_max_shift, neighbour_mask=pc.neighbour_mask,
+                         carry=to_ref)
     any_isophote = bool(res.isophote.any())
     if res.flag == 0 and len(near) and any_isophote and _neighbour_inside(cuts, near, res.isophote, offsets, J0):
         return FITCLASS_BLENDED
+    iso = res.isophote.ravel()
     for c, mask, keep, m in zip(cuts, res.masks, res.keep_exposure, from_ref):
         if m is not None and any_isophote:
             # a bad pixel of this exposure's own stamp inside the isophote drops it (reference pixels
-            # beyond a rotated stamp's corners hold no data from it, but are not its bad pixels)
-            keep = not bool((_carry(res.isophote, m) & (c["weight"] <= 0)).any())
+            # beyond a rotated stamp's corners hold no data from it, but are not its bad pixels): the
+            # stamp's few bad pixels looked up on the isophote carried onto it
+            badpix = np.flatnonzero(c["weight"] <= 0)
+            keep = not bool((m[1].ravel()[badpix] & iso[m[0].ravel()[badpix]]).any())
         c["keep"] = True
         if pc.neighbour_mask and mask is not None and mask.any():
-            c["weight"] = np.where(_carry(mask, m), 0.0, c["weight"])
+            c["weight"] = np.where(carry_stamp(mask, m), 0.0, c["weight"])
         if pc.drop_masked_exposures and not keep:
             c["keep"] = False
     return int(res.flag)
@@ -455,16 +497,21 @@ def _neighbour_inside(cuts, near, isophote, offsets, J0) -> bool:
     :func:`_isophote_analysis`): its offset from the object on the first stamp's CCD it shares, carried onto the
     reference grid through the two exposures' local Jacobians and rounded to the nearest pixel."""
     ny, nx = isophote.shape
-    J0inv = inv2(J0)
+    J0inv = _inverse(_floats(J0))
     seen = set()
     for c, off in zip(cuts, offsets):
-        B = J0inv @ c["J"]                       # this exposure's pixel offsets -> the reference grid's
+        B = None
         for j, e, ccd, x, y in near:
             if j in seen or e != c["e"] or ccd != c["c"]:
                 continue
             seen.add(j)
-            px, py = B @ np.array([x - c["x"], y - c["y"]]) + off
-            ix, iy = int(np.rint(px)) + nx // 2, int(np.rint(py)) + ny // 2
+            if B is None:   # this exposure's pixel offsets -> the reference grid's (a singular J0: numpy's NaNs)
+                B = _product(J0inv, _floats(c["J"])) if J0inv is not None else _floats(inv2(J0) @ c["J"])
+            dx, dy = float(x - c["x"]), float(y - c["y"])
+            px, py = B[0] * dx + B[1] * dy + off[0], B[2] * dx + B[3] * dy + off[1]
+            if not (math.isfinite(px) and math.isfinite(py)):
+                continue
+            ix, iy = round(px) + nx // 2, round(py) + ny // 2
             if 0 <= ix < nx and 0 <= iy < ny and isophote[iy, ix]:
                 return True
     return False
