@@ -240,16 +240,22 @@ def setting_ab_report(sets, cfg, change):
           f"{de:.1e}")
 
 
-def workers_report(objs, cfg, n_workers):
-    """Galaxies per second with ``n_workers`` worker processes against one, on the same galaxies."""
-    t0 = time.perf_counter()
-    shearfit.measure_objects([o for o, _ in objs], [t["mag"] for _, t in objs], config=cfg, processes=1)
-    one = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    shearfit.measure_objects([o for o, _ in objs], [t["mag"] for _, t in objs], config=cfg, processes=n_workers)
-    many = time.perf_counter() - t0
-    print(f"\n{n_workers} worker processes against one, {len(objs)} galaxies (pool start-up included): "
-          f"{len(objs) / one:.2f} -> {len(objs) / many:.2f} galaxies / s, x{one / many:.2f}")
+def workers_report(objs, cfg, n_workers, rounds=3):
+    """Galaxies per second with ``n_workers`` worker processes against one, on the same galaxies: ``rounds`` times,
+    one process then the pool, so that a drift of the machine's speed shows in the spread, not in the median."""
+    ratios = []
+    for k in range(max(rounds, 1)):
+        t0 = time.perf_counter()
+        shearfit.measure_objects([o for o, _ in objs], [t["mag"] for _, t in objs], config=cfg, processes=1)
+        one = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        shearfit.measure_objects([o for o, _ in objs], [t["mag"] for _, t in objs], config=cfg, processes=n_workers)
+        many = time.perf_counter() - t0
+        ratios.append(one / many)
+        print(f"\n{n_workers} worker processes against one, {len(objs)} galaxies (pool start-up included), round "
+              f"{k + 1}: {len(objs) / one:.2f} -> {len(objs) / many:.2f} galaxies / s, x{one / many:.2f}")
+    print(f"  median of {len(ratios)} rounds: x{float(np.median(ratios)):.2f} "
+          f"({', '.join(f'{r:.2f}' for r in ratios)})")
 
 
 def one_moffat_per_exposure(objs):
