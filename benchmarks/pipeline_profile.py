@@ -15,6 +15,7 @@ and the peak memory; then, under the profiler, the time of each pipeline stage a
     python benchmarks/pipeline_profile.py --keep A          # at one commit, then at another:
     python benchmarks/pipeline_profile.py --compare-with A  # how far the catalogues moved
     python benchmarks/pipeline_profile.py --no-profile --psf true --stage-clock   # the pipeline's stages, timed directly
+    python benchmarks/pipeline_profile.py --no-profile --psf true --pairs 1 --metacal 3   # metacal's cost per object
 """
 
 from __future__ import annotations
@@ -204,6 +205,30 @@ def _stage_clock_run(cfg, out_path):
     return _cpu_seconds() - c0, engine.cpu, [(label, clock.cpu) for label, clock in clocks]
 
 
+def _metacal_pairs(d, settings, n_pairs):
+    """``calibration: metacal`` against the plain run, on the given PSF images, ``n_pairs`` times alternated in this
+    warm process (its imports and one-off tables excluded, which a whole command's CPU time would share between
+    the two and so understate the ratio): CPU seconds of ``measure_field`` each, per object, and their ratio."""
+    from dataclasses import replace
+
+    cfg = _with_settings(load_field_config(os.path.join(d, "field_truepsf.yaml")), settings)
+    print(f"\ncalibration: metacal against the plain run (PSF images given), {n_pairs} pairs alternated, CPU of "
+          "measure_field in this process:")
+    ratios = []
+    for k in range(max(n_pairs, 1)):
+        cpu = {}
+        for mode in ("plain", "metacal"):
+            run = cfg if mode == "plain" else replace(cfg, calibration="metacal")
+            _forget_psfs()
+            c0 = _cpu_seconds()
+            table = measure_field(run, out_path=os.path.join(d, f"shear_{mode}_pair.fits"), processes=1)
+            cpu[mode] = _cpu_seconds() - c0
+        ratios.append(cpu["metacal"] / cpu["plain"])
+        print(f"  pair {k + 1}: plain {1e3 * cpu['plain'] / len(table):.1f} ms, metacal "
+              f"{1e3 * cpu['metacal'] / len(table):.1f} ms an object ({len(table)} objects): **x{ratios[-1]:.2f}**")
+    print(f"  median x{float(np.median(ratios)):.2f} ({', '.join(f'{r:.2f}' for r in ratios)})")
+
+
 def _with_settings(cfg, items):
     """The field config with KEY=VALUE settings of the engine (cfg.fit) or the pipeline (cfg.pipeline)."""
     from dataclasses import replace
@@ -350,6 +375,9 @@ def main(argv=None):
     ap.add_argument("--pairs", type=int, default=3,
                     help="runs of each PSF mode, given and fitted alternately (a shared machine's speed drifts by "
                          "10-30 %% from minute to minute: the PSF stage is taken from each pair and from the medians)")
+    ap.add_argument("--metacal", type=int, default=0, metavar="N",
+                    help="also run N pairs of the plain run and calibration: metacal (PSF images given), alternated, "
+                         "and print metacal's CPU time per object as a multiple of the plain run's")
     ap.add_argument("--keep", default=None, help="keep the field in this directory")
     ap.add_argument("--sim", action="append", default=[], metavar="KEY=VALUE",
                     help="a simulation key of the field (e.g. exposure_rotation=0.5: every exposure its own "
@@ -431,6 +459,8 @@ def main(argv=None):
                   f"({', '.join(f'{100 * x / c:+.1f}' for x, c in zip(de, rates['fitted']))} % of the fitted runs)")
         if args.simultaneous > 0 and len(modes) == 2:
             _simultaneous_pairs(d, args.set, args.simultaneous)
+        if args.metacal > 0:
+            _metacal_pairs(d, args.set, args.metacal)
         if args.compare_with:
             for mode in modes:
                 _compare_catalogues(os.path.join(args.compare_with, f"shear_{mode}.fits"),
