@@ -16,6 +16,7 @@ and the peak memory; then, under the profiler, the time of each pipeline stage a
     python benchmarks/pipeline_profile.py --compare-with A  # how far the catalogues moved
     python benchmarks/pipeline_profile.py --no-profile --psf true --stage-clock   # the pipeline's stages, timed directly
     python benchmarks/pipeline_profile.py --no-profile --psf true --pairs 1 --metacal 3   # metacal's cost per object
+    python benchmarks/pipeline_profile.py --no-profile --psf true --pairs 1 --isophotes   # sec. 3.6, compiled vs numpy
 """
 
 from __future__ import annotations
@@ -229,6 +230,63 @@ def _metacal_pairs(d, settings, n_pairs):
     print(f"  median x{float(np.median(ratios)):.2f} ({', '.join(f'{r:.2f}' for r in ratios)})")
 
 
+def _isophote_loop(d, settings, n_objects=200, loops=5):
+    """The isophote analysis (sec. 3.6, ``driver._isophote_analysis``) of the first ``n_objects`` objects of a run
+    with the PSF images given, their inputs captured as the pipeline made them, then timed in a loop: with the
+    compiled loops and with their numpy and scipy lines (``USE_KERNEL`` off in ``pipeline.blends`` and the
+    driver's maps), CPU time per object (the least of ``loops`` passes, the machine's drift aside), and whether
+    every flag, kept exposure and weight is the same both ways."""
+    import shearfit.pipeline.blends as blends
+    import shearfit.pipeline.driver as drv
+
+    cfg = _with_settings(load_field_config(os.path.join(d, "field_truepsf.yaml")), settings)
+    captured = []
+    orig = drv._isophote_analysis
+
+    def capture(cuts, pc, near=()):
+        if len(captured) < n_objects:
+            # (a shallow copy: the stamps are read-only and the analysis puts new weights in the dicts it is given)
+            captured.append(([dict(c) for c in cuts], pc, near))
+        return orig(cuts, pc, near)
+
+    drv._isophote_analysis = capture
+    try:
+        _forget_psfs()
+        measure_field(cfg, out_path=os.path.join(d, "shear_isophotes.fits"), processes=1)
+    finally:
+        drv._isophote_analysis = orig
+
+    def one_pass():
+        out = []
+        for cuts, pc, near in captured:
+            cc = [dict(c) for c in cuts]
+            out.append((orig(cc, pc, near), [(c.get("keep"), c["weight"]) for c in cc]))
+        return out
+
+    def timed():
+        one_pass()
+        best = np.inf
+        for _ in range(max(loops, 1)):
+            c0 = _cpu_seconds()
+            one_pass()
+            best = min(best, _cpu_seconds() - c0)
+        return best / max(len(captured), 1), one_pass()
+
+    compiled, got = timed()
+    saved = blends.USE_KERNEL, drv.USE_KERNEL
+    blends.USE_KERNEL = drv.USE_KERNEL = False
+    try:
+        reference, ref = timed()
+    finally:
+        blends.USE_KERNEL, drv.USE_KERNEL = saved
+    same = all(a[0] == b[0] and all(ka == kb and np.array_equal(wa, wb) for (ka, wa), (kb, wb) in zip(a[1], b[1]))
+               for a, b in zip(got, ref))
+    print(f"\nisophote analysis (sec. 3.6) of {len(captured)} objects as the pipeline cut them, CPU per object, least "
+          f"of {loops} loops: compiled {1e3 * compiled:.3f} ms, numpy and scipy lines {1e3 * reference:.3f} ms "
+          f"(x{reference / compiled:.2f}); flags, kept exposures and weights "
+          f"{'identical' if same else 'DIFFERENT'}")
+
+
 def _with_settings(cfg, items):
     """The field config with KEY=VALUE settings of the engine (cfg.fit) or the pipeline (cfg.pipeline)."""
     from dataclasses import replace
@@ -378,6 +436,9 @@ def main(argv=None):
     ap.add_argument("--metacal", type=int, default=0, metavar="N",
                     help="also run N pairs of the plain run and calibration: metacal (PSF images given), alternated, "
                          "and print metacal's CPU time per object as a multiple of the plain run's")
+    ap.add_argument("--isophotes", action="store_true",
+                    help="also time the isophote analysis (sec. 3.6) of 200 objects as the pipeline cut them, in a "
+                         "loop, compiled against its numpy and scipy lines, and check that both decide the same")
     ap.add_argument("--keep", default=None, help="keep the field in this directory")
     ap.add_argument("--sim", action="append", default=[], metavar="KEY=VALUE",
                     help="a simulation key of the field (e.g. exposure_rotation=0.5: every exposure its own "
@@ -461,6 +522,8 @@ def main(argv=None):
             _simultaneous_pairs(d, args.set, args.simultaneous)
         if args.metacal > 0:
             _metacal_pairs(d, args.set, args.metacal)
+        if args.isophotes:
+            _isophote_loop(d, args.set)
         if args.compare_with:
             for mode in modes:
                 _compare_catalogues(os.path.join(args.compare_with, f"shear_{mode}.fits"),
