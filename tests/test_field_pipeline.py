@@ -438,3 +438,17 @@ def test_measure_field_holds_blas_to_one_thread(field, monkeypatch):
         after = [get() for get, _ in libs]
     assert seen and all(s == [1] * len(libs) for s in seen)
     assert after == [2] * len(libs)
+
+
+def test_local_dask_workers_start_without_the_trim_threshold():
+    """The local Dask cluster of `shearfit measure -j N` starts its workers without Dask's MALLOC_TRIM_THRESHOLD_
+    (which made every chunk fault its temporary arrays' pages in again), with one BLAS thread and no profiler."""
+    pytest.importorskip("distributed")
+    from shearfit.pipeline.driver import local_cluster_config
+    from shearfit.workers import SINGLE_THREAD_ENV
+
+    cfg = local_cluster_config()
+    env = cfg["distributed.nanny.pre-spawn-environ"]
+    assert "MALLOC_TRIM_THRESHOLD_" not in env
+    assert all(env[k] == v for k, v in SINGLE_THREAD_ENV.items())
+    assert cfg["distributed.worker.profile.enabled"] is False

@@ -42,7 +42,7 @@ import yaml
 from astropy.table import Table
 
 from ..version import __version__
-from ..workers import process_pool, single_threaded
+from ..workers import SINGLE_THREAD_ENV, process_pool, single_threaded
 from ..files import atomic_path
 from ..errors import (FITCLASS_BAD_INPUT, FITCLASS_BLENDED, FITCLASS_FEW_EXPOSURES, FITCLASS_FIT_FAILED, FITCLASS_GALAXY,
                       FITCLASS_MEMORY, FITCLASS_OFF_EXPOSURES, FITCLASS_TOO_LARGE, ShearfitIOError, ShearfitValueError)
@@ -65,7 +65,7 @@ from ..psf.build import (FieldFrame, TooFewStarsError, build_exposure_psf, is_ps
 
 log = logging.getLogger(__name__)
 
-__all__ = ["measure_field", "calibration_m", "psf_ellipticity", "psf_fwhm_arcsec"]
+__all__ = ["measure_field", "calibration_m", "local_cluster_config", "psf_ellipticity", "psf_fwhm_arcsec"]
 
 #: psf_moments' results by the PSF image (the objects of a CCD with one given PSF image share them)
 _PSF_MOMENTS = ContentMemo(32 * 2 ** 20)
@@ -857,9 +857,31 @@ def _dask_chunk(run, k, hits, mags, ids, near=None):
     return k, _measure_objects(exposures, hits, mags, ids, cfg, near)
 
 
+def local_cluster_config() -> dict:
+    """The Dask settings of the local cluster that ``shearfit measure -j N`` starts (for ``dask.config.set``).
+
+    Dask starts its workers with ``MALLOC_TRIM_THRESHOLD_=65536`` (``distributed.nanny.pre-spawn-environ``), so
+    that they hand freed memory back to the system at once; glibc then also stops raising its mmap threshold, and
+    the fits' temporary arrays are mapped and unmapped again and again (a chunk of 256 objects: 136 000 page
+    faults, against 368 in a process pool's worker). Here the workers start without it, as a process pool's do
+    (the pipeline bounds its memory itself: pages released every few objects, chunks of ``chunk_size``), with one
+    BLAS thread each, and without Dask's sampling profiler, whose thread takes the GIL from the fits every 10 ms:
+    on 1628 objects with ``-j 2``, 1.4-1.5 s of system time instead of 5.1-5.5 (``benchmarks/README.md``, session
+    86). Workers of a cluster of your own (``--scheduler``) are started by you: give them the same settings.
+    """
+    import dask
+    import distributed  # noqa: F401  (registers distributed's defaults with dask.config)
+
+    environ = {k: v for k, v in dask.config.get("distributed.nanny.pre-spawn-environ", {}).items()
+               if k != "MALLOC_TRIM_THRESHOLD_"}
+    environ.update(SINGLE_THREAD_ENV)
+    return {"distributed.nanny.pre-spawn-environ": environ, "distributed.worker.profile.enabled": False}
+
+
 def _run_dask(cfg, exposures, tasks, mags, ids, chunks, todo, table, ckpt, bar, processes, scheduler,
               memory_limit="auto", near=None):
     """Submit the chunks to Dask and checkpoint each as it completes."""
+    import dask
     from dask.distributed import Client, LocalCluster, as_completed
 
     # Dask's own progress messages are not the user's business at the default verbosity
@@ -867,8 +889,9 @@ def _run_dask(cfg, exposures, tasks, mags, ids, chunks, todo, table, ckpt, bar, 
     cluster = None
     if scheduler is None:
         try:
-            cluster = LocalCluster(n_workers=int(processes), threads_per_worker=1, processes=True,
-                                   dashboard_address=":0", silence_logs=logging.WARNING, memory_limit=memory_limit)
+            with dask.config.set(local_cluster_config()):
+                cluster = LocalCluster(n_workers=int(processes), threads_per_worker=1, processes=True,
+                                       dashboard_address=":0", silence_logs=logging.WARNING, memory_limit=memory_limit)
         except (ValueError, TypeError) as exc:
             raise ShearfitValueError(f"--memory-limit {memory_limit!r}: {exc}") from None
         client = Client(cluster)
