@@ -452,3 +452,21 @@ def test_local_dask_workers_start_without_the_trim_threshold():
     assert "MALLOC_TRIM_THRESHOLD_" not in env
     assert all(env[k] == v for k, v in SINGLE_THREAD_ENV.items())
     assert cfg["distributed.worker.profile.enabled"] is False
+
+
+def test_given_psf_images_stay_read_only_through_pickling():
+    """A Dask worker (or a spawned pool's) receives the exposures' PSFs pickled: the given images must come back as
+    read-only arrays of their own, so that what is remembered by PSF image (HSM's moments, the Moffat, transforms)
+    is found by it instead of being measured again for every object."""
+    import pickle
+
+    from shearfit.observation import is_immutable
+    from shearfit.pipeline.driver import _ExposurePSF, _immutable
+
+    psf = _ExposurePSF(images=[_immutable((np.eye(7), 1)), None])
+    for got in (pickle.loads(pickle.dumps(psf, protocol=5)), pickle.loads(pickle.dumps(psf, protocol=2))):
+        assert is_immutable(got.images[0][0]) and got.images[1] is None
+        assert np.array_equal(got.images[0][0], np.eye(7)) and got.images[0][1] == 1
+    distributed = pytest.importorskip("distributed.protocol")
+    got = distributed.deserialize(*distributed.serialize(psf))
+    assert is_immutable(got.images[0][0])

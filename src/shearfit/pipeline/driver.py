@@ -173,6 +173,17 @@ class _ExposurePSF:
     _sigma: dict = field(default_factory=dict)     # per-CCD PSF sizes at the centre (HSM's starting guess)
     _moment_splines: dict = field(default_factory=dict)   # per (CCD, grid): splines of the PSF's moments, or None
 
+    def __setstate__(self, state):
+        """Unpickled (on a Dask worker, in a spawned pool's worker), the given PSF images are read-only arrays of
+        their own again, as when they were read (:func:`_immutable`): an unpickled array is writable or a view of
+        the message's buffer, and what the pipeline and the engine remember by PSF image (its adaptive moments,
+        Moffat, transforms, alias tables) is remembered only for such images (:func:`shearfit.observation.
+        is_immutable`): without this a Dask worker ran GalSim's HSM on the PSF of every object and copied it into
+        every Observation."""
+        self.__dict__.update(state)
+        if self.images is not None:
+            self.images = [got if got is None or is_immutable(got[0]) else _immutable(got) for got in self.images]
+
     def moffat(self, ccd_index, shape):
         """The CCD's above-Nyquist Moffat (rs, beta), fitted once to its PSF at the CCD centre (App. A).
 
@@ -866,7 +877,7 @@ def local_cluster_config() -> dict:
     faults, against 368 in a process pool's worker). Here the workers start without it, as a process pool's do
     (the pipeline bounds its memory itself: pages released every few objects, chunks of ``chunk_size``), with one
     BLAS thread each, and without Dask's sampling profiler, whose thread takes the GIL from the fits every 10 ms:
-    on 1628 objects with ``-j 2``, 1.4-1.5 s of system time instead of 5.1-5.5 (``benchmarks/README.md``, session
+    on 1628 objects with ``-j 2``, 1.5-1.7 s of system time instead of 5.1-5.5 (``benchmarks/README.md``, session
     86). Workers of a cluster of your own (``--scheduler``) are started by you: give them the same settings.
     """
     import dask
