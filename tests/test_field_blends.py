@@ -717,3 +717,22 @@ def test_compiled_isophote_analysis_is_numpys(monkeypatch):
         seen["blended"] += got.flag == FITCLASS_BLENDED
         seen["dropped"] += not all(got.keep_exposure)
     assert min(seen.values()) >= 10, seen
+
+
+def test_carried_stamps_take_scalar_weights():
+    """Weights given as one value per exposure are carried through a map as the stamps are: the same result as
+    the full arrays; a weight of another shape is refused with the stamp's shape named."""
+    from shearfit.pipeline.driver import _nearest_map
+
+    rng = np.random.default_rng(4)
+    yy, xx = np.mgrid[:32, :32]
+    clean = 30 * np.exp(-((xx - 16) ** 2 + (yy - 16) ** 2) / 8.0)
+    stamps = [clean + rng.normal(0, 1, clean.shape) for _ in range(3)]
+    a = 0.2
+    carry = [None, _nearest_map(np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]]), clean.shape), None]
+    one = analyse_stamps(stamps, [1.0] * 3, [(0, 0)] * 3, 3.0, carry=carry)
+    full = analyse_stamps(stamps, [np.ones(clean.shape)] * 3, [(0, 0)] * 3, 3.0, carry=carry)
+    assert one.flag == full.flag == FITCLASS_GALAXY and one.keep_exposure == full.keep_exposure
+    assert np.array_equal(one.isophote, full.isophote) and one.centroid == full.centroid
+    with pytest.raises(ShearfitValueError, match="stamp shape"):
+        analyse_stamps(stamps, [np.ones(5)] * 3, [(0, 0)] * 3, 3.0, carry=carry)

@@ -252,8 +252,11 @@ def _stack_coadd(stamps, weights, offsets, carry=None, use_kernel=True):
         bad = np.empty((n,) + shape, dtype=bool)
         KERNEL.iso_coadd(items, shape[0], shape[1], coadd, inv, bad.view(np.uint8))
         return coadd, inv, bad, off
+    if len(weights) == n:
+        # a weight given as one value (or a row) is the stamp's weight everywhere: carried as the stamp is
+        weights = [carry_stamp(wi if m is None or np.ndim(wi) == 2 else _broadcast(wi, np.shape(si)), m)
+                   for si, wi, m in zip(stamps, weights, carry)]
     stamps = [carry_stamp(si, m) for si, m in zip(stamps, carry)]
-    weights = [carry_stamp(wi, m) for wi, m in zip(weights, carry)] if len(weights) == n else weights
     s, w, off = _validate(stamps, weights, offsets)
     wsum = w.sum(axis=0)
     inv = np.divide(1.0, wsum, out=np.zeros_like(wsum), where=wsum > 0)
@@ -276,6 +279,13 @@ def _kernel_ready(stamps, weights, carry):
                                   == first.size and m[0].flags.c_contiguous and m[1].flags.c_contiguous):
             return False
     return True
+
+
+def _broadcast(w, shape):
+    try:
+        return np.broadcast_to(np.asarray(w, dtype=np.float64), shape)
+    except ValueError:
+        raise ShearfitValueError(f"weight of shape {np.shape(w)} does not fit stamp shape {shape}") from None
 
 
 def carry_stamp(a, m):
