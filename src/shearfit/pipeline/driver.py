@@ -873,11 +873,12 @@ def local_cluster_config() -> dict:
 
     Dask starts its workers with ``MALLOC_TRIM_THRESHOLD_=65536`` (``distributed.nanny.pre-spawn-environ``), so
     that they hand freed memory back to the system at once; glibc then also stops raising its mmap threshold, and
-    the fits' temporary arrays are mapped and unmapped again and again (a chunk of 256 objects: 136 000 page
-    faults, against 368 in a process pool's worker). Here the workers start without it, as a process pool's do
-    (the pipeline bounds its memory itself: pages released every few objects, chunks of ``chunk_size``), with one
-    BLAS thread each, and without Dask's sampling profiler, whose thread takes the GIL from the fits every 10 ms:
-    on 1628 objects with ``-j 2``, 1.5-1.7 s of system time instead of 5.1-5.5 (``benchmarks/README.md``, session
+    the fits' temporary arrays are mapped and unmapped again and again. Here the workers start without it, as a
+    process pool's do (the pipeline bounds its memory itself: pages released every few objects, chunks of
+    ``chunk_size``), with one BLAS thread each, and without Dask's sampling profiler, whose thread takes the GIL from
+    the fits every 10 ms. Before this and the PSF images' fix (``_ExposurePSF.__setstate__``) a chunk of 256
+    objects took about 260 000 page faults in a Dask worker, against some 6000 in a process pool's
+    (``benchmarks/pipeline_workers.py --before``; ``benchmarks/README.md``, session
     86). Workers of a cluster of your own (``--scheduler``) are started by you: give them the same settings.
     """
     import dask
