@@ -254,8 +254,8 @@ def _stack_coadd(stamps, weights, offsets, carry=None, use_kernel=True):
         return coadd, inv, bad, off
     if len(weights) == n:
         # a weight given as one value (or a row) is the stamp's weight everywhere: carried as the stamp is
-        weights = [carry_stamp(wi if m is None or np.ndim(wi) == 2 else _broadcast(wi, np.shape(si)), m)
-                   for si, wi, m in zip(stamps, weights, carry)]
+        weights = [carry_stamp(wi if m is None or np.ndim(wi) == 2 else _broadcast(wi, np.shape(si), i), m)
+                   for i, (si, wi, m) in enumerate(zip(stamps, weights, carry))]
     stamps = [carry_stamp(si, m) for si, m in zip(stamps, carry)]
     s, w, off = _validate(stamps, weights, offsets)
     wsum = w.sum(axis=0)
@@ -281,11 +281,12 @@ def _kernel_ready(stamps, weights, carry):
     return True
 
 
-def _broadcast(w, shape):
+def _broadcast(w, shape, i):
+    """Weight ``i`` as float64 of the stamp's ``shape`` (one value, a row, or the stamp's own shape)."""
     try:
         return np.broadcast_to(np.asarray(w, dtype=np.float64), shape)
     except ValueError:
-        raise ShearfitValueError(f"weight of shape {np.shape(w)} does not fit stamp shape {shape}") from None
+        raise ShearfitValueError(f"weight {i} of shape {np.shape(w)} does not fit stamp shape {shape}") from None
 
 
 def carry_stamp(a, m):
@@ -363,11 +364,7 @@ def _validate(stamps, weights, offsets):
         si = np.asarray(si, dtype=np.float64)
         if si.shape != shape:
             raise ShearfitValueError(f"stamp {i} has shape {si.shape}, stamp 0 has {shape}")
-        try:
-            wi = np.broadcast_to(np.asarray(wi, dtype=np.float64), shape)
-        except ValueError:
-            raise ShearfitValueError(f"weight {i} of shape {np.shape(wi)} does not fit stamp shape {shape}") from None
-        s[i], w[i] = si, wi
+        s[i], w[i] = si, _broadcast(wi, shape, i)
     off = _check_offsets(offsets, len(stamps))
     # A non-finite or negative-weight pixel carries no information: treat it as masked.
     good = np.isfinite(s) & np.isfinite(w) & (w > 0)

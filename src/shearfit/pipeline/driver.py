@@ -394,9 +394,14 @@ def _nearest_map(A, shape, use_kernel=True):
     land inside it; None where every pixel lands on itself (the grids are aligned to well under half
     a pixel across the stamp, as for dithered exposures of one camera orientation).
     """
+    return _map_of(_floats(A), shape, use_kernel)
+
+
+def _map_of(m, shape, use_kernel=True):
+    """:func:`_nearest_map` of the matrix given as its :func:`_floats`."""
     ny, nx = shape
+    a, b, c, d = m
     # (np.abs(A - I).max() in Python floats, without its overhead; a NaN, which max may pass over, is no identity)
-    (a, b), (c, d) = np.asarray(A, float).tolist()
     if max(abs(a - 1.0), abs(b), abs(c), abs(d - 1.0)) * (nx + ny) < 1.0 and a == a and b == b and c == c and d == d:
         return None
     if use_kernel and USE_KERNEL:
@@ -404,10 +409,9 @@ def _nearest_map(A, shape, use_kernel=True):
         index, inside = np.empty(shape, np.int64), np.empty(shape, bool)
         KERNEL.nearest_map(np.array((a, b, c, d)), int(ny), int(nx), index, inside.view(np.uint8))
         return index, inside
-    A = np.asarray(A, float)
     dx, dy = _centred_offsets(shape)
-    px = np.rint(A[0, 0] * dx + A[0, 1] * dy).astype(np.int64) + nx // 2
-    py = np.rint(A[1, 0] * dx + A[1, 1] * dy).astype(np.int64) + ny // 2
+    px = np.rint(a * dx + b * dy).astype(np.int64) + nx // 2
+    py = np.rint(c * dx + d * dy).astype(np.int64) + ny // 2
     inside = (px >= 0) & (px < nx) & (py >= 0) & (py < ny)
     return np.where(inside, py * nx + px, 0), inside
 
@@ -455,8 +459,8 @@ def _reference_maps(cuts, shape):
         else:
             ox, oy = (float(v) for v in c["offset"])
             off = (B[0] * ox + B[1] * oy, B[2] * ox + B[3] * oy)
-        to_ref.append(_nearest_map((A[:2], A[2:]), shape))
-        from_ref.append(_nearest_map((B[:2], B[2:]), shape))
+        to_ref.append(_map_of(A, shape))
+        from_ref.append(_map_of(B, shape))
         offsets.append(off)
     return to_ref, from_ref, offsets
 
