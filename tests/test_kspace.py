@@ -259,6 +259,52 @@ def test_compiled_oversampled_bands_are_the_numpy_lines(k, monkeypatch):
                 assert np.abs(got[True] - got[False]).max() < 1e-9 * np.abs(got[False]).max()
 
 
+@pytest.mark.skipif(not USE_KERNEL, reason="the compiled loops are not built")
+@pytest.mark.parametrize("k", [2, 3])
+def test_bands_of_a_psf_k_times_the_stamp_read_both_tables_at_the_same_taps(k, monkeypatch):
+    """A PSF image k times the stamp's size (its padded grid k times the stamp's, as the simulated fields' given
+    PSF images are): the compiled band reads the stamp's and the PSF's rows at the same taps (quintic_band_rows, the
+    version without shear at the tables' own points), and gives the numpy lines' images to 1e-9 of their largest,
+    with and without the noise's turn, with either new PSF, on a reflected and on a rotated, sheared grid; the
+    stamp's transforms in rows are padded_transforms' to the bit."""
+    from shearfit.simulate.stamps import draw_psf_image, moffat_psf
+
+    called = []
+    real = kspace.KERNEL.quintic_band_rows
+
+    class Spy:
+        def __getattr__(self, name):
+            return getattr(kernel, name)
+
+        def quintic_band_rows(self, *a):
+            called.append(a[14])   # step
+            return real(*a)
+
+    kernel = kspace.KERNEL
+    names = tuple(metacal.VERSIONS)
+    for J, fwhm in zip(JACOBIANS, (0.9, 0.6)):
+        obs = _obs(0.3, (0.2, -0.1), snr=40, n_exp=1, seed=4, J=J)[0]
+        size = obs.image.shape[0]
+        pim = draw_psf_image(moffat_psf(fwhm, 3.0, 0.04, 0.03), J, size=size * k, oversampling=k)
+        assert kspace.padded_size(pim.shape) == k * kspace.padded_size(obs.image.shape)
+        noise = np.rot90(np.random.default_rng(6).normal(size=obs.image.shape), 1)
+        n_s = kspace.padded_size(obs.image.shape)
+        assert np.array_equal(kspace.padded_transforms_rows([obs.image, noise], n_s),
+                              kspace.padded_transforms([obs.image, noise], n_s).transpose(2, 1, 0))
+        for new in (None, metacal.round_psf(pim, J / k, 0.01, pim.shape)):
+            for turn in (False, True):
+                got = {}
+                for use in (True, False):
+                    monkeypatch.setattr(kspace, "USE_KERNEL", use)
+                    monkeypatch.setattr(kspace, "KERNEL", Spy())
+                    got[use] = np.asarray(metacal.own_kspace_images(obs.image, noise, pim, J, 0.01, names, k=k,
+                                                                    new_psf=new, turn_noise=turn))
+                assert np.abs(got[True] - got[False]).max() < 1e-9 * np.abs(got[False]).max()
+    # every band through the rows; the version without shear at the tables' own points where its band lies within
+    # half the stamp's period (the wider PSF's)
+    assert len(called) == 2 * 2 * 2 * len(names) and 0 < sum(s > 0 for s in called) <= len(called) // len(names)
+
+
 def test_other_interpolants_take_galsims_path(monkeypatch):
     """The own operations serve native and oversampled PSFs with the quintic k-interpolant; another interpolant
     or GalSim's own FFT grid goes through GalSim's objects."""

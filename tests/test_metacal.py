@@ -502,6 +502,37 @@ def test_versions_replayed_together_are_replayed_one_by_one(monkeypatch):
     assert joint and max(joint) == 4
 
 
+def test_versions_share_their_quadratic_sums_to_the_bit(monkeypatch):
+    """The replays' size nodes in one compiled call (KERNEL.size_nodes_versions) sum the modes' quadratic terms
+    and the fold groups' pairs once for the four versions (they are the modes', not the data's): each version's
+    estimate and every number of its fit are those of its own replay, to the bit, on exposures with their own
+    rotations, whose fold groups give pairs."""
+    from shearfit.calib.metacal import VERSIONS
+    from shearfit.engine import likelihood, sampling
+    from shearfit.engine.measure import _measure, measure_versions
+    from shearfit.simulate.stamps import ring_set
+
+    if not likelihood.USE_KERNEL:
+        pytest.skip("compiled kernel not built")
+    pairs = []
+    real = sampling.VersionLikelihoods._nodes_versions
+    monkeypatch.setattr(sampling.VersionLikelihoods, "_nodes_versions", lambda self, *a: pairs.append(
+        likelihood.packed_bins(self.likes[0].jm)[5].size) or real(self, *a))
+    cfg = shearfit.FitConfig()
+    sim = ring_set(2, (0.0, 0.0), np.random.default_rng(7), n_rotations=1, n_exposures=4, snr_range=(20, 40),
+                   stamp_size=40, rotate_exposures=True)
+    for k, (obs, _) in enumerate(sim):
+        per = [metacal_observations(o, 0.01, np.random.default_rng(k)) for o in obs]
+        versions = [[v[name] for v in per] for name in VERSIONS]
+        together = measure_versions(versions, 23.0, cfg, margin=10.0, first_margin=1.0)
+        ref, plan = _measure(versions[0], 23.0, cfg, False, margin=10.0)
+        for v, res in zip(versions[1:], together[1:]):
+            alone = _measure(v, 23.0, cfg, False, plan=plan, margin=10.0, first_margin=1.0)[0]
+            assert _fields(res) == _fields(alone)
+            assert (res.fitclass, res.n_samples, res.n_models) == (alone.fitclass, alone.n_samples, alone.n_models)
+    assert pairs and max(pairs) > 0
+
+
 def test_replay_needs_the_same_psfs():
     from shearfit.errors import ShearfitValueError
     from shearfit.engine.measure import measure_versions

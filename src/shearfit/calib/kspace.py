@@ -40,8 +40,8 @@ from scipy import fft as sfft
 
 from ..engine.kernel import KERNEL, USE_KERNEL
 
-__all__ = ["quintic", "padded_transforms", "kvalues", "band_maxk", "band_points", "band_maxk_of_points", "round_envelope",
-           "singular_values2", "PAD_FACTOR", "MAXK_THRESHOLD"]
+__all__ = ["quintic", "padded_transforms", "padded_transforms_rows", "kvalues", "band_maxk", "band_points",
+           "band_maxk_of_points", "round_envelope", "singular_values2", "PAD_FACTOR", "MAXK_THRESHOLD"]
 
 #: The padded grid of the discrete transforms, in widths of the larger image (GalSim's default pad_factor).
 PAD_FACTOR = 4
@@ -69,23 +69,29 @@ def padded_size(*shapes):
     return sfft.next_fast_len(PAD_FACTOR * max(max(s) for s in shapes), real=True)
 
 
-def padded_transforms(images, n):
-    """The discrete-time transforms of real images, each about its pixel (ny // 2, nx // 2), sampled on the
-    n x n grid of wavevectors 2 pi (i, j) / n (pixel units): an array (len(images), n // 2 + 1, n) complex,
-    image, then kx >= 0 (the others by Hermitian symmetry), then ky, as the transpose of ``rfft2`` of each
-    image zero-padded to n and rolled so that its origin pixel is at index 0."""
+def _row_transforms(images, n):
+    """The transforms over x of the images' rows, each zero-padded to n with its column w // 2 at index 0 (the
+    columns left of it at the grid's end): (len(images), largest height, n // 2 + 1) complex."""
     ny = max(im.shape[0] for im in images)
     rows = np.zeros((len(images), ny, n))
     for t, im in enumerate(images):
         h, w = im.shape
         if h > n or w > n:
             raise ValueError(f"an image of {h} x {w} pixels does not fit a padded grid of {n}")
-        c = w // 2   # column c at index 0, the columns left of it at the grid's end
+        c = w // 2
         rows[t, :h, :w - c] = im[:, c:]
         rows[t, :h, n - c:] = im[:, :c]
+    return sfft.rfft(rows, axis=2, workers=1)
+
+
+def padded_transforms(images, n):
+    """The discrete-time transforms of real images, each about its pixel (ny // 2, nx // 2), sampled on the
+    n x n grid of wavevectors 2 pi (i, j) / n (pixel units): an array (len(images), n // 2 + 1, n) complex,
+    image, then kx >= 0 (the others by Hermitian symmetry), then ky, as the transpose of ``rfft2`` of each
+    image zero-padded to n and rolled so that its origin pixel is at index 0."""
     # the transform over x of the images' rows only (the padding's rows are zero), then over y (the last
     # axis, contiguous)
-    part = sfft.rfft(rows, axis=2, workers=1)
+    part = _row_transforms(images, n)
     cols = np.zeros((len(images), n // 2 + 1, n), complex)
     for t, im in enumerate(images):
         h = im.shape[0]
@@ -93,6 +99,21 @@ def padded_transforms(images, n):
         cols[t, :, :h - c] = part[t, c:h].T
         cols[t, :, n - c:] = part[t, :c].T
     return sfft.fft(cols, axis=2, workers=1, overwrite_x=True)
+
+
+def padded_transforms_rows(images, n):
+    """:func:`padded_transforms` in rows: an array (n, n // 2 + 1, len(images)) complex, ky, then kx >= 0, then the
+    image (``rfft2``'s own order, the images innermost), so that a wavevector's taps along kx and its values for every
+    image are adjacent in memory (metacal's compiled band for a PSF grid k times the stamp's). The same values, to
+    the transforms' rounding."""
+    part = _row_transforms(images, n)
+    out = np.zeros((n, n // 2 + 1, len(images)), complex)
+    for t, im in enumerate(images):
+        h = im.shape[0]
+        c = h // 2
+        out[:h - c, :, t] = part[t, c:h]
+        out[n - c:, :, t] = part[t, :c]
+    return sfft.fft(out, axis=0, workers=1, overwrite_x=True)
 
 
 def _taps(p):

@@ -21,7 +21,10 @@ the PSF are taken once per exposure and every version interpolates them at
 its sheared wavevectors with one set of quintic weights (for a PSF given on
 the stamp's pixels, the usual case, in one compiled loop per version; for an
 oversampled PSF, whose transform is interpolated at its own pixels'
-wavevectors and remembered per PSF image, in numpy); the deconvolution
+wavevectors and remembered per PSF image, in another, which for a PSF image k
+times the stamp's size, whose padded grid is then k times the stamp's, reads
+both transforms in rows at the same taps with the same weights:
+``quintic_band_rows``, the same images to rounding); the deconvolution
 stops at the PSF's band (where its transform falls below 1e-3 of its flux,
 and at most the PSF pixels' Nyquist disc). With other interpolants
 (``K_INTERPOLANT``, ``PSF_K_INTERPOLANT``) or GalSim's own FFT grid
@@ -451,6 +454,21 @@ def _add_compiled_band(items, first, r, arr, turn_noise):
     return (r, arr[2]) if first is None else first
 
 
+def _psf_rows(ptab, memo, n_s):
+    """The PSF's padded table (``ptab``, its grid n_p = k n_s) at the stamp's grid's wavevectors within half the
+    stamp's period, in rows as :func:`shearfit.calib.kspace.padded_transforms_rows` gives the stamp's ((n_s, n_s / 2 +
+    1): ky = 0 .. n_s / 2 - 1, -n_s / 2 .. -1, then kx = 0 .. n_s / 2; read-only, remembered in the PSF's ``memo``):
+    the compiled band (``quintic_band_rows``) reads the stamp and the PSF at the same taps with the same weights."""
+    key = ("rows", n_s)
+    got = memo.get(key)
+    if got is None:
+        h, n_p = n_s // 2, ptab.shape[2]
+        got = np.ascontiguousarray(np.concatenate([ptab[0, :h + 1, :h], ptab[0, :h + 1, n_p - h:]], axis=1).T)
+        got.setflags(write=False)
+        memo[key] = got
+    return got
+
+
 def _oversampled_kspace_images(image, noise, psf, J, k, delta, names, n_small, new_psf, turn_noise):
     """:func:`own_kspace_images` for a PSF image oversampled k times (its pixels J / k): the stamp's and its noise's
     transforms as interpolated images on the stamp's pixels, the PSF's (and the new PSF's) on its own, each the
@@ -460,8 +478,12 @@ def _oversampled_kspace_images(image, noise, psf, J, k, delta, names, n_small, n
     shape = image.shape
     n_s = kspace.padded_size(shape)
     n_p = kspace.padded_size(psf.shape)
-    table = kspace.padded_transforms([image, noise], n_s)
     ptab, memo = _psf_table(psf, n_p)
+    # a PSF grid k times the stamp's (a PSF image k times the stamp's size): the compiled band reads both at the same
+    # taps, from the tables' rows (quintic_band_rows)
+    psf_rows = _psf_rows(ptab, memo, n_s) if kspace.USE_KERNEL and n_p == k * n_s else None
+    table = (kspace.padded_transforms_rows([image, noise], n_s) if psf_rows is not None
+             else kspace.padded_transforms([image, noise], n_s))
     gtab, gmemo = (ptab, memo) if new_psf is None else _psf_table(new_psf, n_p)
     J = np.asarray(J, float)
     jit = inv2(J).T
@@ -498,8 +520,15 @@ def _oversampled_kspace_images(image, noise, psf, J, k, delta, names, n_small, n
             arr = np.empty((3 if turn_noise else 2, kap.shape[1]), complex)
             phase = _turn_phase(r, n_small, shape[0]) if turn_noise else _NO_PHASE
             xtab, xh = _x_table(int(np.ceil(maxk * smax_j / np.pi)) + 1)
-            kspace.KERNEL.quintic_band_os(table, n_s, ptab, n_p, k, r, dk, np.ascontiguousarray(A),
-                                          np.ascontiguousarray(J.T), lim, gamma, xtab, xh, phase, arr)
+            if psf_rows is not None:
+                # the version without shear, whose wavevectors are the tables' own where the stamp's grid is a
+                # multiple of the band's, reads them there
+                step = n_s // n_small if (s1 == s2 == 0 and n_s % n_small == 0 and (n_s // n_small) * r < n_s // 2) else 0
+                kspace.KERNEL.quintic_band_rows(table, n_s, psf_rows, ptab, n_p, k, r, dk, np.ascontiguousarray(A),
+                                                np.ascontiguousarray(J.T), lim, gamma, xtab, xh, step, phase, arr)
+            else:
+                kspace.KERNEL.quintic_band_os(table, n_s, ptab, n_p, k, r, dk, np.ascontiguousarray(A),
+                                              np.ascontiguousarray(J.T), lim, gamma, xtab, xh, phase, arr)
             first = _add_compiled_band(items, first, r, arr.reshape(-1, 2 * r + 1, r + 1), turn_noise)
             continue
         sky = A @ kap

@@ -1087,27 +1087,32 @@ static inline double hsum4(v4u v)
 }
 
 static inline __attribute__((always_inline)) void sums_core(
-    const int ROWS, const double *restrict W, Py_ssize_t npad, const double *restrict rf, const double *restrict bf,
-    double tf, const double *restrict rg, const double *restrict bg, double tg, const double *dcw, double r0f,
-    double r0g, double *o)
+    const int ROWS, const int LIN, const double *restrict W, Py_ssize_t npad, const double *restrict rf,
+    const double *restrict bf, double tf, const double *restrict rg, const double *restrict bg, double tg,
+    const double *dcw, double r0f, double r0g, double *o)
 {
     const v4u zero = {0};
     v4u l[6], a = zero, b = zero;
     const double *Q = W + 6 * npad;
-    /* pass 1: the disk's linear sums, ff and fg */
+    /* pass 1: the disk's linear sums, ff and fg (LIN: the linear sums alone) */
     for (int t = 0; t < 6; t++) l[t] = zero;
     for (Py_ssize_t k = 0; k < npad; k += 4) {
-        v4u vf, vg;
+        v4u vf;
         TRANSFORM(vf, rf, bf, tf, k);
-        TRANSFORM(vg, rg, bg, tg, k);
         for (int t = 0; t < 6; t++) l[t] += vf * *(const v4u *)(W + t * npad + k);
-        v4u qf = *(const v4u *)(Q + k) * vf;
-        a += qf * vf;
-        b += qf * vg;
+        if (!LIN) {
+            v4u vg;
+            TRANSFORM(vg, rg, bg, tg, k);
+            v4u qf = *(const v4u *)(Q + k) * vf;
+            a += qf * vf;
+            b += qf * vg;
+        }
     }
     for (int t = 0; t < 6; t++) o[t] = hsum4(l[t]) + r0f * dcw[t];
-    o[12] = hsum4(a) + dcw[6] * r0f * r0f;
-    o[14] = hsum4(b) + dcw[6] * r0f * r0g;
+    if (!LIN) {
+        o[12] = hsum4(a) + dcw[6] * r0f * r0f;
+        o[14] = hsum4(b) + dcw[6] * r0f * r0g;
+    }
     /* pass 2: the bulge's linear sums and gg */
     for (int t = 0; t < 6; t++) l[t] = zero;
     a = zero;
@@ -1115,10 +1120,10 @@ static inline __attribute__((always_inline)) void sums_core(
         v4u vg;
         TRANSFORM(vg, rg, bg, tg, k);
         for (int t = 0; t < 6; t++) l[t] += vg * *(const v4u *)(W + t * npad + k);
-        a += *(const v4u *)(Q + k) * vg * vg;
+        if (!LIN) a += *(const v4u *)(Q + k) * vg * vg;
     }
     for (int t = 0; t < 6; t++) o[6 + t] = hsum4(l[t]) + r0g * dcw[t];
-    o[13] = hsum4(a) + dcw[6] * r0g * r0g;
+    if (!LIN) o[13] = hsum4(a) + dcw[6] * r0g * r0g;
 }
 #undef TRANSFORM
 #undef VT
@@ -1129,17 +1134,21 @@ static inline __attribute__((always_inline)) void sums_core(
 #define ROWS_IN_SUMS 0
 #endif
 
-static void sums_from_bins(const double *restrict W, Py_ssize_t npad, const double *restrict rf,
-                           const double *restrict rg, const double *dcw, double r0f, double r0g, double *o)
+/* sums_core from the bins' transforms written out (rf, rg) or from the tables' rows; LIN: the linear sums alone (o[12 ..
+   14] left as they are: a version whose quadratic sums are another's, size_nodes_versions) */
+static inline __attribute__((always_inline)) void sums_from_bins(
+    const int LIN, const double *restrict W, Py_ssize_t npad, const double *restrict rf, const double *restrict rg,
+    const double *dcw, double r0f, double r0g, double *o)
 {
-    sums_core(0, W, npad, rf, NULL, 0.0, rg, NULL, 0.0, dcw, r0f, r0g, o);
+    sums_core(0, LIN, W, npad, rf, NULL, 0.0, rg, NULL, 0.0, dcw, r0f, r0g, o);
 }
 
-static void sums_from_rows(const double *restrict W, Py_ssize_t npad, const double *restrict af,
-                           const double *restrict bf, double tf, const double *restrict ag, const double *restrict bg,
-                           double tg, const double *dcw, double r0f, double r0g, double *o)
+static inline __attribute__((always_inline)) void sums_from_rows(
+    const int LIN, const double *restrict W, Py_ssize_t npad, const double *restrict af, const double *restrict bf,
+    double tf, const double *restrict ag, const double *restrict bg, double tg, const double *dcw, double r0f,
+    double r0g, double *o)
 {
-    sums_core(1, W, npad, af, bf, tf, ag, bg, tg, dcw, r0f, r0g, o);
+    sums_core(1, LIN, W, npad, af, bf, tf, ag, bg, tg, dcw, r0f, r0g, o);
 }
 
 /*
@@ -1257,10 +1266,12 @@ static int bins_check(BinsCtx *c, const Py_buffer *shape, const Py_buffer *lob, 
 
 /* the sums of n_models models (R2: r^2, E: the ellipticity of each, checked within the context's) into O (rows of
    NOUT); 0, or -1 where memory ran out. Runs without the GIL. */
-static __attribute__((noinline)) int binned_sums_run(const BinsCtx *c, Py_ssize_t n_models, const long long *E,
-                                                     const double *R2, double *O)
+static inline __attribute__((always_inline)) int binned_sums_impl(const BinsCtx *c, Py_ssize_t n_models,
+                                                                  const long long *E, const double *R2, double *O,
+                                                                  const int LIN)
 {
-    const Py_ssize_t n_pairs = c->n_pairs, n_g = c->n_g, maxpad = c->maxpad, M = c->M, J = c->J;
+    /* LIN: the linear sums alone (sums_from_rows'), no fold pairs */
+    const Py_ssize_t n_pairs = LIN ? 0 : c->n_pairs, n_g = c->n_g, maxpad = c->maxpad, M = c->M, J = c->J;
     const long long *OFF = c->OFF, *LO = c->LO, *PA = c->PA, *PB = c->PB;
     const int nb = c->nb;
     double pair_tol = c->pair_tol;
@@ -1329,11 +1340,11 @@ static __attribute__((noinline)) int binned_sums_run(const BinsCtx *c, Py_ssize_
                          && table_rows(GG, M, J, pos + shift_g, npad, &AG, &BG, &tg, &glo, &ghi) == 0
                          && flo == 0 && fhi == npad && glo == 0 && ghi == npad;
         if (rows)
-            sums_from_rows(W, npad, AF, BF, tf, AG, BG, tg, DC + 8 * e, zero_f, zero_g, o);
+            sums_from_rows(LIN, W, npad, AF, BF, tf, AG, BG, tg, DC + 8 * e, zero_f, zero_g, o);
         else {
             log_table_row(GF, M, J, pos, npad, npad, low_f, zero_f, RF);
             log_table_row(GG, M, J, pos + shift_g, npad, npad, low_g, zero_g, RG);
-            sums_from_bins(W, npad, RF, RG, DC + 8 * e, zero_f, zero_g, o);
+            sums_from_bins(LIN, W, npad, RF, RG, DC + 8 * e, zero_f, zero_g, o);
         }
         if (n_pairs > 0) {
             if (e != cur_e) {   /* the pair modes' bins at this ellipticity, as make_bins placed them */
@@ -1436,6 +1447,19 @@ static __attribute__((noinline)) int binned_sums_run(const BinsCtx *c, Py_ssize_
     free(tbuf);
     free(CG);
     return 0;
+}
+
+static __attribute__((noinline)) int binned_sums_run(const BinsCtx *c, Py_ssize_t n_models, const long long *E,
+                                                     const double *R2, double *O)
+{
+    return binned_sums_impl(c, n_models, E, R2, O, 0);
+}
+
+/* binned_sums_run's linear sums alone (each row's o[12 .. 14] left as it is) */
+static __attribute__((noinline)) int binned_lin_run(const BinsCtx *c, Py_ssize_t n_models, const long long *E,
+                                                    const double *R2, double *O)
+{
+    return binned_sums_impl(c, n_models, E, R2, O, 1);
 }
 
 static PyObject *binned_sums(PyObject *self, PyObject *args)
@@ -2367,6 +2391,18 @@ static inline __attribute__((always_inline)) int band_sky(const double *A, doubl
     return 0;
 }
 
+/* band_sky's test, and the point's sheared wavevector in the stamp's pixels, q = JT (A kappa) */
+static inline __attribute__((always_inline)) int band_pixel(const double *A, const double *JT, double dk,
+                                                             Py_ssize_t i, Py_ssize_t j, double lim, double *q0,
+                                                             double *q1, double *o0, double *o1)
+{
+    double s0, s1;
+    if (!band_sky(A, dk, i, j, lim, &s0, &s1, o0, o1)) return 0;
+    *q0 = JT[0] * s0 + JT[1] * s1;
+    *q1 = JT[2] * s0 + JT[3] * s1;
+    return 1;
+}
+
 static PyObject *quintic_band(PyObject *self, PyObject *args)
 {
     Py_buffer tab, ab, jb, gb, phb, ob;
@@ -2459,9 +2495,8 @@ static PyObject *quintic_band_os(PyObject *self, PyObject *args)
     Py_BEGIN_ALLOW_THREADS
     for (Py_ssize_t j = -r, p = 0; j <= r; j++) {
         for (Py_ssize_t i = 0; i <= r; i++, p++) {
-            double s0, s1;
-            if (!band_sky(A, dk, i, j, lim, &s0, &s1, O0 + 2 * p, O1 + 2 * p)) continue;
-            const double q0 = JT[0] * s0 + JT[1] * s1, q1 = JT[2] * s0 + JT[3] * s1;
+            double q0, q1;
+            if (!band_pixel(A, JT, dk, i, j, lim, &q0, &q1, O0 + 2 * p, O1 + 2 * p)) continue;
             double v[4], w[2];
             kvalue_point(S, ns, 2, q0 * to_s, q1 * to_s, v);
             kvalue_point(P, np_, 1, q0 * to_p, q1 * to_p, w);
@@ -2473,6 +2508,153 @@ static PyObject *quintic_band_os(PyObject *self, PyObject *args)
     if (turn) turn_band(O0, O1, O1 + 2 * npts, PH, r);
     Py_END_ALLOW_THREADS
     RELEASE(&sb, &pb, &ab, &jb, &gb, &xb, &phb, &ob);
+    Py_RETURN_NONE;
+}
+
+/*
+ * quintic_band_rows(stamp, ns, psf_rows, psf, np, k, r, dk, A, JT, lim, gamma, xtab, xh, step, phase, out): quintic_band_os
+ * for a PSF whose padded grid is k times the stamp's (np = k ns), the stamp's and its noise's transforms given in
+ * rows (kspace.padded_transforms_rows: complex128 (ns, ns / 2 + 1, 2), ky, then kx, then the image) and the PSF's
+ * at the same wavevectors in the same rows (psf_rows: complex128 (ns, ns / 2 + 1), the PSF's padded table at
+ * wavevectors within half the stamp's period; psf: that table whole, as quintic_band_os takes it). A point's
+ * wavevector is then the same in both tables' units, so they share its taps and weights; the six taps of a row
+ * are adjacent in memory, and a band row's points, which step along kx, read the tables' rows in order. Points
+ * whose taps reach half the stamp's period read the stamp with its periodic and Hermitian wrap and the PSF from its
+ * whole table, as quintic_band_os does. With step > 0, the version without shear, whose points are the tables' own
+ * (step i, step j), reads them there (as quintic_band does). The numbers of quintic_band_os to rounding (the sums
+ * taken rows first, in pairs).
+ */
+typedef double v4r __attribute__((vector_size(32)));
+typedef double v2r __attribute__((vector_size(16)));
+
+/* the stamp's two values (re, im, re, im) at tap (kx, ky) of the rows, any integers: periodic in n, kx > n / 2 or
+   kx < 0 read from its Hermitian mirror */
+static inline v4r rows_tap_wrapped(const double *SR, Py_ssize_t n, Py_ssize_t kx, Py_ssize_t ky)
+{
+    const Py_ssize_t nc = n / 2 + 1;
+    kx = ((kx % n) + n) % n;
+    ky = ((ky % n) + n) % n;
+    v4r x;
+    if (kx <= n / 2) {
+        memcpy(&x, SR + 4 * (ky * nc + kx), sizeof x);
+        return x;
+    }
+    memcpy(&x, SR + 4 * (((n - ky) % n) * nc + (n - kx)), sizeof x);
+    const v4r conj = {1.0, -1.0, 1.0, -1.0};
+    return x * conj;
+}
+
+/* one point's stamp values (v[0 .. 3]) and PSF value (v[4], v[5]) from the rows, first taps ix, iy (floor - 2);
+   returns 0 where a tap lies outside (-n / 2, n / 2) (the PSF's rows do not hold it: the caller reads its table) */
+static inline __attribute__((always_inline)) int rows_point(const double *restrict SR, const double *restrict PR,
+                                                            Py_ssize_t n, Py_ssize_t ix, Py_ssize_t iy,
+                                                            const double *wx, const double *wy, double *v)
+{
+    const Py_ssize_t nc = n / 2 + 1, h = n / 2;
+    const int inside = ix > -h && ix + 5 < h && iy > -h && iy + 5 < h;
+    v4r rs[6];
+    v2r rp[6];
+    if (inside && ix >= 0) {
+        /* the usual point: each row's six taps adjacent, kx >= 0 */
+        for (int b = 0; b < 6; b++) {
+            const Py_ssize_t ky = iy + b, row = ky < 0 ? ky + n : ky;
+            const double *s = SR + 4 * (row * nc + ix), *p = PR + 2 * (row * nc + ix);
+            v4r x[6];
+            v2r y[6];
+            for (int a = 0; a < 6; a++) {
+                memcpy(&x[a], s + 4 * a, sizeof x[a]);
+                memcpy(&y[a], p + 2 * a, sizeof y[a]);
+            }
+            rs[b] = ((wx[0] * x[0] + wx[1] * x[1]) + (wx[2] * x[2] + wx[3] * x[3])) + (wx[4] * x[4] + wx[5] * x[5]);
+            rp[b] = ((wx[0] * y[0] + wx[1] * y[1]) + (wx[2] * y[2] + wx[3] * y[3])) + (wx[4] * y[4] + wx[5] * y[5]);
+        }
+    } else {
+        /* taps at kx < 0 (their Hermitian mirrors), or beyond half the period (the stamp periodic) */
+        const v2r conj2 = {1.0, -1.0};
+        for (int b = 0; b < 6; b++) {
+            const Py_ssize_t ky = iy + b;
+            v4r x[6];
+            v2r y[6];
+            for (int a = 0; a < 6; a++) {
+                const Py_ssize_t kx = ix + a;
+                x[a] = rows_tap_wrapped(SR, n, kx, ky);
+                if (inside) {
+                    const Py_ssize_t mx = kx < 0 ? -kx : kx, my = kx < 0 ? -ky : ky, row = my < 0 ? my + n : my;
+                    memcpy(&y[a], PR + 2 * (row * nc + mx), sizeof y[a]);
+                    if (kx < 0) y[a] = y[a] * conj2;
+                } else {
+                    y[a] = (v2r){0.0, 0.0};
+                }
+            }
+            rs[b] = ((wx[0] * x[0] + wx[1] * x[1]) + (wx[2] * x[2] + wx[3] * x[3])) + (wx[4] * x[4] + wx[5] * x[5]);
+            rp[b] = ((wx[0] * y[0] + wx[1] * y[1]) + (wx[2] * y[2] + wx[3] * y[3])) + (wx[4] * y[4] + wx[5] * y[5]);
+        }
+    }
+    const v4r st = ((wy[0] * rs[0] + wy[1] * rs[1]) + (wy[2] * rs[2] + wy[3] * rs[3])) + (wy[4] * rs[4] + wy[5] * rs[5]);
+    const v2r ps = ((wy[0] * rp[0] + wy[1] * rp[1]) + (wy[2] * rp[2] + wy[3] * rp[3])) + (wy[4] * rp[4] + wy[5] * rp[5]);
+    v[0] = st[0];
+    v[1] = st[1];
+    v[2] = st[2];
+    v[3] = st[3];
+    v[4] = ps[0];
+    v[5] = ps[1];
+    return inside;
+}
+
+static PyObject *quintic_band_rows(PyObject *self, PyObject *args)
+{
+    Py_buffer sb, cb, pb, ab, jb, gb, xb, phb, ob;
+    Py_ssize_t ns, np_, k, r, step;
+    double dk, lim, xh;
+    if (!PyArg_ParseTuple(args, "y*ny*y*nnndy*y*dy*y*dny*w*", &sb, &ns, &cb, &pb, &np_, &k, &r, &dk, &ab, &jb, &lim,
+                          &gb, &xb, &xh, &step, &phb, &ob))
+        return NULL;
+    const Py_ssize_t npts = (2 * r + 1) * (r + 1), cz = 2 * (Py_ssize_t)sizeof(double);
+    const Py_ssize_t nx = xb.len / (Py_ssize_t)sizeof(double), nc = ns / 2 + 1;
+    const int turn = ob.len == 3 * npts * cz;
+    if (ns < 12 || k < 1 || np_ != k * ns || r < 0 || sb.len != 2 * nc * ns * cz || cb.len != nc * ns * cz
+        || pb.len != (np_ / 2 + 1) * np_ * cz || ab.len != 4 * (Py_ssize_t)sizeof(double)
+        || jb.len != 4 * (Py_ssize_t)sizeof(double) || gb.len != npts * cz || nx < 4 || !(xh > 0)
+        || (!turn && ob.len != 2 * npts * cz) || (turn && phb.len != (r + 1) * cz) || step < 0
+        || step * r >= ns / 2) {
+        RELEASE(&sb, &cb, &pb, &ab, &jb, &gb, &xb, &phb, &ob);
+        PyErr_SetString(PyExc_ValueError, "quintic_band_rows: inconsistent buffers");
+        return NULL;
+    }
+    const double *SR = (const double *)sb.buf, *PR = (const double *)cb.buf, *P = (const double *)pb.buf,
+                 *A = (const double *)ab.buf, *JT = (const double *)jb.buf, *G = (const double *)gb.buf,
+                 *X = (const double *)xb.buf, *PH = (const double *)phb.buf;
+    double *O0 = (double *)ob.buf, *O1 = O0 + 2 * npts;
+    /* (np = k ns: a wavevector's position in the PSF's table units is the stamp's) */
+    const double to_s = (double)ns / (2 * M_PI), ik = 1.0 / (double)k;
+    Py_BEGIN_ALLOW_THREADS
+    for (Py_ssize_t j = -r, p = 0; j <= r; j++) {
+        for (Py_ssize_t i = 0; i <= r; i++, p++) {
+            double q0, q1;
+            if (!band_pixel(A, JT, dk, i, j, lim, &q0, &q1, O0 + 2 * p, O1 + 2 * p)) continue;
+            const double tx = q0 * to_s, ty = q1 * to_s;
+            double v[6];
+            if (step) {
+                /* the version without shear: its wavevectors are the tables' own (step i, step j), read there */
+                const Py_ssize_t row = step * j < 0 ? step * j + ns : step * j, e = row * nc + step * i;
+                memcpy(v, SR + 4 * e, 4 * sizeof(double));
+                memcpy(v + 4, PR + 2 * e, 2 * sizeof(double));
+            } else {
+                const double fx = floor(tx), fy = floor(ty);
+                double wx[6], wy[6];
+                quintic_weights(tx - fx, wx);
+                quintic_weights(ty - fy, wy);
+                if (!rows_point(SR, PR, ns, (Py_ssize_t)fx - 2, (Py_ssize_t)fy - 2, wx, wy, v))
+                    kvalue_point(P, np_, 1, tx, ty, v + 4);
+            }
+            const double xs = xtable(X, nx, xh, q0) * xtable(X, nx, xh, q1);
+            const double xp = xtable(X, nx, xh, q0 * ik) * xtable(X, nx, xh, q1 * ik);
+            band_products(v, v[4] * xp, v[5] * xp, G[2 * p] * xs, G[2 * p + 1] * xs, O0 + 2 * p, O1 + 2 * p);
+        }
+    }
+    if (turn) turn_band(O0, O1, O1 + 2 * npts, PH, r);
+    Py_END_ALLOW_THREADS
+    RELEASE(&sb, &cb, &pb, &ab, &jb, &gb, &xb, &phb, &ob);
     Py_RETURN_NONE;
 }
 
@@ -3396,38 +3578,70 @@ static inline double log_size_prior(double lnr, const double *pr)
     return (pr[0] - 2 * pr[1]) + 2 * lnr - exp(pr[2] * (lnr - pr[1]));
 }
 
+/* node_models of nv versions of one object on the same modes (size_nodes_versions): version v's bins at ellipticity
+   i are entry E[i] + v; version 0's sums are binned_sums_run's, the others' linear sums binned_lin_run's with
+   version 0's quadratic sums (ff, gg, fg: the modes' weights q and the fold pairs are the modes', not the data's,
+   so each version's own are these to the bit); mg: nv blocks of ne nx rows of 9, each version's marginals as
+   node_models makes them. 0, or -1 where memory ran out */
+static __attribute__((noinline)) int node_models_versions(const BinsCtx *bc, const MargCtx *mc, Py_ssize_t ne,
+                                                          const long long *E, Py_ssize_t nv, const double *rc,
+                                                          const double *ex, Py_ssize_t nx, double *R, double *mg)
+{
+    const Py_ssize_t nm = ne * nx, n1 = nm > 0 ? nm : 1;
+    double *sums = (double *)malloc((2 * NOUT + 1) * n1 * sizeof(double));
+    long long *em = (long long *)malloc(n1 * sizeof(long long));
+    if (sums == NULL || em == NULL) {
+        free(sums);
+        free(em);
+        return -1;
+    }
+    double *s1 = sums + NOUT * n1, *r2 = s1 + NOUT * n1;
+    for (Py_ssize_t i = 0; i < ne; i++)
+        for (Py_ssize_t n = 0; n < nx; n++) {
+            const double r = rc[i] * ex[n];
+            R[i * nx + n] = r;
+            r2[i * nx + n] = r * r;
+        }
+    int rc_ = 0;
+    for (Py_ssize_t v = 0; v < nv && rc_ == 0; v++) {
+        for (Py_ssize_t i = 0; i < ne; i++)
+            for (Py_ssize_t n = 0; n < nx; n++) em[i * nx + n] = E[i] + v;
+        if (v == 0) {
+            rc_ = binned_sums_run(bc, nm, em, r2, sums);
+            if (rc_ == 0) rc_ = marginal_run(mc, nm, sums, mg);
+            continue;
+        }
+        rc_ = binned_lin_run(bc, nm, em, r2, s1);
+        for (Py_ssize_t m = 0; m < nm; m++)
+            for (int t = 12; t < 15; t++) s1[NOUT * m + t] = sums[NOUT * m + t];
+        if (rc_ == 0) rc_ = marginal_run(mc, nm, s1, mg + 9 * nm * v);
+    }
+    free(sums);
+    free(em);
+    return rc_;
+}
+
+/* size_nodes of nv versions (nv > 1: node_models_versions, E[i] + v version v's entry; L0, O and best: nv blocks of
+   2, 5 ne and 2), each version's numbers those of its own call */
 static NO_CONTRACT NO_CLONE int size_nodes_run(const BinsCtx *bc, const MargCtx *mc, Py_ssize_t ne, const long long *E,
-                                      const double *rc, const double *ex, Py_ssize_t nr, double x0, const double *XF,
-                                      Py_ssize_t nf, const double *ITP, const double *SPL, const double *U,
-                                      const double *HLU, Py_ssize_t nu, const double *L0, const double *LM,
-                                      const double *PR, const double *SH, double *O, double *best)
+                                      Py_ssize_t nv, const double *rc, const double *ex, Py_ssize_t nr, double x0,
+                                      const double *XF, Py_ssize_t nf, const double *ITP, const double *SPL,
+                                      const double *U, const double *HLU, Py_ssize_t nu, const double *L0,
+                                      const double *LM, const double *PR, const double *SH, double *O, double *best)
 {
 #if defined(__clang__)
 #pragma clang fp contract(off)
 #endif
     const Py_ssize_t nm = ne * nr;
     const Py_ssize_t n1 = nm > 0 ? nm : 1, e1 = ne > 0 ? ne : 1;
-    double *buf = (double *)malloc((10 * n1 + (2 * nf + nu) * e1) * sizeof(double));
+    double *buf = (double *)malloc(((1 + 9 * nv) * n1 + (2 * nf + nu) * e1) * sizeof(double));
     if (buf == NULL) return -1;
-    double *R = buf, *mg = buf + n1, *col = mg + 9 * n1;
+    double *R = buf, *mgs = buf + n1, *col = mgs + 9 * nv * n1;
     double *LP = col + 0, *RF = LP + nf * e1, *LS = RF + nf * e1;
-    if (node_models(bc, mc, ne, E, rc, ex, nr, R, mg) != 0) {
+    if ((nv == 1 ? node_models(bc, mc, ne, E, rc, ex, nr, R, mgs)
+                 : node_models_versions(bc, mc, ne, E, nv, rc, ex, nr, R, mgs)) != 0) {
         free(buf);
         return -1;
-    }
-    /* the best single-component fit among the models (np.argmin of the lesser chi^2: its first minimum, or its
-       first NaN, which beats nothing) */
-    Py_ssize_t ib = -1;
-    double cb = 0.0;
-    for (Py_ssize_t m = 0; m < nm; m++) {
-        const double a = mg[9 * m + 5], b = mg[9 * m + 6];
-        const double c = (a != a || b != b) ? (a != a ? a : b) : (b < a ? b : a);   /* np.minimum */
-        if (c != c) { ib = -1; cb = c; break; }
-        if (ib < 0 || c < cb) { ib = m; cb = c; }
-    }
-    if (ib >= 0 && cb < best[0]) {
-        best[0] = cb;
-        best[1] = mg[9 * ib + 8] > mg[9 * ib + 7] ? mg[9 * ib + 8] : mg[9 * ib + 7];   /* Python's max(d, b) */
     }
     /* the size integral's inputs per ellipticity: the fine grid's r and prior, the first segment's prior */
     const double lo12 = log(1e-12);
@@ -3453,28 +3667,54 @@ static NO_CONTRACT NO_CLONE int size_nodes_run(const BinsCtx *bc, const MargCtx 
         return -1;
     }
     double *LB = LD + n1, *FD = LB + n1, *FB = FD + n1, *BD = FB + n1;
-    for (Py_ssize_t m = 0; m < nm; m++) {
-        LD[m] = mg[9 * m];
-        LB[m] = mg[9 * m + 1];
-        FD[m] = mg[9 * m + 2];
-        FB[m] = mg[9 * m + 3];
-        BD[m] = mg[9 * m + 4];
+    for (Py_ssize_t v = 0; v < nv; v++) {
+        const double *mg = mgs + 9 * nm * v;
+        double *bv = best + 2 * v;
+        /* the best single-component fit among the models (np.argmin of the lesser chi^2: its first minimum, or its
+           first NaN, which beats nothing) */
+        Py_ssize_t ib = -1;
+        double cb = 0.0;
+        for (Py_ssize_t m = 0; m < nm; m++) {
+            const double a = mg[9 * m + 5], b = mg[9 * m + 6];
+            const double c = (a != a || b != b) ? (a != a ? a : b) : (b < a ? b : a);   /* np.minimum */
+            if (c != c) { ib = -1; cb = c; break; }
+            if (ib < 0 || c < cb) { ib = m; cb = c; }
+        }
+        if (ib >= 0 && cb < bv[0]) {
+            bv[0] = cb;
+            bv[1] = mg[9 * ib + 8] > mg[9 * ib + 7] ? mg[9 * ib + 8] : mg[9 * ib + 7];   /* Python's max(d, b) */
+        }
+        for (Py_ssize_t m = 0; m < nm; m++) {
+            LD[m] = mg[9 * m];
+            LB[m] = mg[9 * m + 1];
+            FD[m] = mg[9 * m + 2];
+            FB[m] = mg[9 * m + 3];
+            BD[m] = mg[9 * m + 4];
+        }
+        size_marginal_run(ne, nr, nf, nu, LD, LB, FD, FB, BD, LP, LS, SPL, ITP, XF, U, RF, L0 + 2 * v, LM,
+                          O + 5 * ne * v);
     }
-    size_marginal_run(ne, nr, nf, nu, LD, LB, FD, FB, BD, LP, LS, SPL, ITP, XF, U, RF, L0, LM, O);
     free(LD);
     free(buf);
     return 0;
 }
 
-static PyObject *size_nodes(PyObject *self, PyObject *args)
+/* size_nodes and size_nodes_versions: with versions, nv (after e_index) versions binned together */
+static PyObject *size_nodes_call(PyObject *args, int versions)
 {
     CallCtx k = {0};
     Py_buffer *a = k.b + 16;   /* its own buffers */
     double x0;
-    if (!PyArg_ParseTuple(args, "O!O!y*y*y*dy*y*y*y*y*y*y*y*y*w*w*", &PyTuple_Type, &k.bt, &PyTuple_Type, &k.mt, &a[0],
-                          &a[1], &a[2], &x0, &a[3], &a[4], &a[5], &a[6], &a[7], &a[8], &a[9], &a[10], &a[11], &a[12],
-                          &a[13]))
-        return NULL;
+    Py_ssize_t nv = 1;
+    const char *name = versions ? "size_nodes_versions" : "size_nodes";
+    int ok = versions
+        ? PyArg_ParseTuple(args, "O!O!y*ny*y*dy*y*y*y*y*y*y*y*y*w*w*", &PyTuple_Type, &k.bt, &PyTuple_Type, &k.mt,
+                           &a[0], &nv, &a[1], &a[2], &x0, &a[3], &a[4], &a[5], &a[6], &a[7], &a[8], &a[9], &a[10],
+                           &a[11], &a[12], &a[13])
+        : PyArg_ParseTuple(args, "O!O!y*y*y*dy*y*y*y*y*y*y*y*y*w*w*", &PyTuple_Type, &k.bt, &PyTuple_Type, &k.mt,
+                           &a[0], &a[1], &a[2], &x0, &a[3], &a[4], &a[5], &a[6], &a[7], &a[8], &a[9], &a[10], &a[11],
+                           &a[12], &a[13]);
+    if (!ok) return NULL;
     if (parse_contexts(&k) != 0) {
         release_many(k.b, 32);
         return NULL;
@@ -3483,25 +3723,43 @@ static PyObject *size_nodes(PyObject *self, PyObject *args)
     const Py_ssize_t ne = a[0].len / (Py_ssize_t)sizeof(long long), nr = a[2].len / D, nf = a[3].len / D;
     const Py_ssize_t nu = a[6].len / D;
     const long long *E = (const long long *)a[0].buf;
-    int bad = ne < 0 || a[1].len != ne * D || nr < 2 || nf < 2 || nu < 2 || nr > MAXN || nf > MAXN || nu > MAXN
-              || a[4].len != nr * nf * D || a[5].len != nr * nf * D || a[7].len != nu * D || a[8].len != 2 * D
-              || a[9].len != 2 * D || a[10].len != 3 * D || (a[11].len != 0 && a[11].len != ne * D)
-              || a[12].len != 5 * ne * D || a[13].len != 2 * D;
-    for (Py_ssize_t i = 0; !bad && i < ne; i++) bad = E[i] < 0 || E[i] >= k.bc.n_e;
+    int bad = ne < 0 || nv < 1 || a[1].len != ne * D || nr < 2 || nf < 2 || nu < 2 || nr > MAXN || nf > MAXN
+              || nu > MAXN || a[4].len != nr * nf * D || a[5].len != nr * nf * D || a[7].len != nu * D
+              || a[8].len != 2 * nv * D || a[9].len != 2 * D || a[10].len != 3 * D
+              || (a[11].len != 0 && a[11].len != ne * D) || a[12].len != 5 * ne * nv * D || a[13].len != 2 * nv * D;
+    for (Py_ssize_t i = 0; !bad && i < ne; i++) bad = E[i] < 0 || E[i] > k.bc.n_e - nv;
     if (bad) {
         release_many(k.b, 32);
-        PyErr_SetString(PyExc_ValueError, "size_nodes: inconsistent buffers");
+        PyErr_Format(PyExc_ValueError, "%s: inconsistent buffers", name);
         return NULL;
     }
     int rc;
     Py_BEGIN_ALLOW_THREADS
-    rc = size_nodes_run(&k.bc, &k.mc, ne, E, (const double *)a[1].buf, (const double *)a[2].buf, nr, x0,
+    rc = size_nodes_run(&k.bc, &k.mc, ne, E, nv, (const double *)a[1].buf, (const double *)a[2].buf, nr, x0,
                         (const double *)a[3].buf, nf, (const double *)a[4].buf, (const double *)a[5].buf,
                         (const double *)a[6].buf, (const double *)a[7].buf, nu, (const double *)a[8].buf,
                         (const double *)a[9].buf, (const double *)a[10].buf,
                         a[11].len ? (const double *)a[11].buf : NULL, (double *)a[12].buf, (double *)a[13].buf);
     Py_END_ALLOW_THREADS
     return finish_call(rc, k.b, 32);
+}
+
+static PyObject *size_nodes(PyObject *self, PyObject *args)
+{
+    return size_nodes_call(args, 0);
+}
+
+/*
+ * size_nodes_versions(bins, marg, e_index, nv, rc, expx, x0, xf, interp, spline, u, half_log_u, l0, logmix, prior,
+ *                     shift, out, best): size_nodes of nv versions of one object, binned together
+ * (likelihood.mode_bins_versions: version v's bins at ellipticity i are entry e_index[i] + v) on the same modes and
+ * size nodes, each with its own point source (l0: nv x 2), output (out: nv x 5 x n_e) and best fit (best: nv x 2):
+ * the numbers of size_nodes on each version, with the quadratic sums and fold pairs, which are the modes' and not
+ * the data's, summed once for all (sampling.VersionLikelihoods).
+ */
+static PyObject *size_nodes_versions(PyObject *self, PyObject *args)
+{
+    return size_nodes_call(args, 1);
 }
 
 /*
@@ -3697,7 +3955,7 @@ static NO_CONTRACT int chunk_run(const BinsCtx *bc, const MargCtx *mc, Py_ssize_
             if (!(TOP[i] < state[0] - tail_skip)) EF[nfull++] = i;
     }
     if (rc_ == 0 && nfull == ne) {
-        rc_ = size_nodes_run(bc, mc, ne, E, RC, ex, nr, x0, XF, nf, ITP, SPL, U, HLU, nu, L0, LM, PR, SH, O, state + 1);
+        rc_ = size_nodes_run(bc, mc, ne, E, 1, RC, ex, nr, x0, XF, nf, ITP, SPL, U, HLU, nu, L0, LM, PR, SH, O, state + 1);
         state[3] += (double)(ne * nr);
     } else if (rc_ == 0) {
         /* the tail's crude values, the others' nodes */
@@ -3711,7 +3969,7 @@ static NO_CONTRACT int chunk_run(const BinsCtx *bc, const MargCtx *mc, Py_ssize_
             double *of = (double *)malloc(5 * nfull * sizeof(double));
             if (of == NULL) rc_ = -1;
             else {
-                rc_ = size_nodes_run(bc, mc, nfull, EF, RF, ex, nr, x0, XF, nf, ITP, SPL, U, HLU, nu, L0, LM, PR,
+                rc_ = size_nodes_run(bc, mc, nfull, EF, 1, RF, ex, nr, x0, XF, nf, ITP, SPL, U, HLU, nu, L0, LM, PR,
                                      SH != NULL ? SF : NULL, of, state + 1);
                 for (int f = 0; rc_ == 0 && f < 5; f++)
                     for (Py_ssize_t j = 0; j < nfull; j++) O[f * ne + EF[j]] = of[f * nfull + j];
@@ -5931,6 +6189,9 @@ static PyMethodDef methods[] = {
     {"size_nodes", size_nodes, METH_VARARGS,
      "size_nodes(bins, marg, e_index, rc, expx, x0, xf, interp, spline, u, half_log_u, l0, logmix, prior, shift, out, "
      "best)"},
+    {"size_nodes_versions", size_nodes_versions, METH_VARARGS,
+     "size_nodes_versions(bins, marg, e_index, nv, rc, expx, x0, xf, interp, spline, u, half_log_u, l0, logmix, "
+     "prior, shift, out, best): size_nodes of nv versions binned together, their quadratic sums made once"},
     {"locate_pass", locate_pass, METH_VARARGS,
      "locate_pass(bins, marg, e_index, rc, expx, xs, prior, shift, w, detail, r_peak, top, point)"},
     {"sample_chunk", sample_chunk, METH_VARARGS, "sample_chunk(args, e1, e2, rc, shift, out, rc_out, state) -> int"},
@@ -5966,6 +6227,9 @@ static PyMethodDef methods[] = {
      "quintic_band(table, n, r, dk, A, JT, to_table, lim, gamma, step, phase, out): one metacal version's band"},
     {"quintic_band_os", quintic_band_os, METH_VARARGS,
      "quintic_band_os(stamp, ns, psf, np, k, r, dk, A, JT, lim, gamma, xtab, xh, phase, out): an oversampled PSF's"},
+    {"quintic_band_rows", quintic_band_rows, METH_VARARGS,
+     "quintic_band_rows(stamp, ns, psf_rows, psf, np, k, r, dk, A, JT, lim, gamma, xtab, xh, step, phase, out): "
+     "quintic_band_os for a PSF grid k times the stamp's, from the tables' rows"},
     {"band_maxk", band_maxk, METH_VARARGS, "band_maxk(column, xx, kx, ky, thr, a, b, c) -> max k2 over the band"},
     {"hermite_log_table", hermite_log_table, METH_VARARGS, "hermite_log_table(k0, dk, nodes, lv, slope, curvature, out)"},
     {"set_bessel", set_bessel, METH_VARARGS, "set_bessel(kv_capsule, gamma_capsule)"},

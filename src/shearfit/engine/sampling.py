@@ -628,9 +628,11 @@ class VersionLikelihoods:
     Versions on the same Fourier modes (:meth:`shearfit.engine.likelihood.JointModes.with_data`: metacal's
     sheared versions of a noshear fit) whose likelihoods take their size centres from one fit
     (``fixed_centres``, the replays of :func:`replay_samples`) are binned together
-    (:func:`shearfit.engine.likelihood.mode_bins_versions`: each ellipticity's bins found once), and each
-    version's size nodes summed, marginalised and integrated in one compiled call (``KERNEL.size_nodes``): per
-    version the same numbers as its own ``like(e1, e2)``, which is what the others get.
+    (:func:`shearfit.engine.likelihood.mode_bins_versions`: each ellipticity's bins found once), and every
+    version's size nodes summed, marginalised and integrated in one compiled call (``KERNEL.size_nodes_versions``):
+    the models' quadratic sums (ff, gg, fg: the modes' weights and the fold groups' pairs, which are the modes', not
+    the data's) made once for all the versions, each version's linear sums and marginals its own. Per version the
+    same numbers, to the bit, as its own ``like(e1, e2)``, which is what the others get.
     """
 
     def __init__(self, likes):
@@ -641,6 +643,7 @@ class VersionLikelihoods:
                       and all(lk.fixed_centres is l0.fixed_centres and lk.locate_widths is None and lk.cfg == l0.cfg
                               and lk.fast is l0.fast and lk.mag == l0.mag and lk.chunk == l0.chunk
                               and np.array_equal(lk.x, l0.x) and lk.jm.pixel_scale == l0.jm.pixel_scale
+                              and lk.jm.pair_skip == l0.jm.pair_skip
                               for lk in self.likes[1:])
                       and shares_bins_geometry([lk.jm for lk in self.likes]))
         self.channels = versions_channels([lk.jm for lk in self.likes]) if self.joint else None
@@ -677,10 +680,10 @@ class VersionLikelihoods:
             lk.centres.add(e1, e2, rc)
         marg = marginal_context(l0.cfg, l0.jm.pixel_scale) if l0.x.size <= 512 else None
         if marg is not None:
-            # each version's size nodes in one compiled call (KERNEL.size_nodes, as its own like's): its bins at
-            # ellipticity i are entry i * nv + v
-            base = np.arange(ne, dtype=np.int64) * nv
-            return [lk._nodes_kernel(e1, e2, rc, bins, base + v, marg) for v, lk in enumerate(likes)]
+            # every version's size nodes in one compiled call (KERNEL.size_nodes_versions: each version's numbers
+            # those of its own like's KERNEL.size_nodes, the quadratic sums made once): its bins at ellipticity i are
+            # entry i * nv + v
+            return self._nodes_versions(e1, e2, rc, bins, np.arange(ne, dtype=np.int64) * nv, marg)
         R = rc[:, None] * np.exp(l0.x)[None, :]
         m = ne * nr
         # the models version after version; version v's bins at ellipticity i are entry i * nv + v
@@ -691,6 +694,32 @@ class VersionLikelihoods:
         return [lk._size_integral(e1, e2, R, Marginal(*[getattr(mg, f.name)[v * m:(v + 1) * m]
                                                         for f in fields(Marginal)]))
                 for v, lk in enumerate(likes)]
+
+
+    def _nodes_versions(self, e1, e2, rc, bins, base, marg):
+        """:meth:`EllipticityLikelihood._nodes_kernel` of every version in one call (version v's bins at ellipticity
+        i: entry base[i] + v); one EPoint per version."""
+        likes = self.likes
+        l0 = likes[0]
+        nv, ne = len(likes), e1.size
+        xf, interp_w, spl = l0._fine_grid()
+        shift = _prior_axis_shift(e1, e2, l0.cfg)
+        consts = [lk._node_constants() for lk in likes]
+        expx, _, prior, logmix = consts[0]
+        out = np.empty((nv, 5, ne))
+        best = np.array([[lk.best_chi2_gal, lk.best_snr] for lk in likes], float)
+        KERNEL.size_nodes_versions(bins_context(l0.jm, bins, l0.fast, l0.cfg.bulge_size_ratio), marg,
+                                   np.ascontiguousarray(base, dtype=np.int64), nv, np.ascontiguousarray(rc, dtype=float),
+                                   expx, float(l0.x[0]), xf, interp_w, spl, l0._SEG_U, l0._SEG_HALF_LOG_U,
+                                   np.ascontiguousarray([c[1] for c in consts], dtype=float), logmix, prior,
+                                   b"" if shift is None else np.ascontiguousarray(shift, dtype=float), out, best)
+        points = []
+        for v, lk in enumerate(likes):
+            lk.n_models += ne * lk.x.size
+            lk.best_chi2_gal, lk.best_snr = float(best[v, 0]), float(best[v, 1])
+            o = out[v]
+            points.append(EPoint(logl_disk=o[0], logl_bulge=o[1], mean_r=o[2], mean_b=o[3], mean_flux=o[4]))
+        return points
 
 
 @dataclass
