@@ -3543,59 +3543,30 @@ static int parse_contexts(CallCtx *k)
     return 0;
 }
 
-/* the sums and marginals of the models r = rc[i] ex[n] (n < nx) of ellipticities E[i]: mg (rows of 9) and their r;
-   scratch: sums (rows of NOUT), r2, the models' ellipticities. 0, or -1 where memory ran out */
-static __attribute__((noinline)) int node_models(const BinsCtx *bc, const MargCtx *mc, Py_ssize_t ne,
-                                                 const long long *E, const double *rc, const double *ex, Py_ssize_t nx,
-                                                 double *R, double *mg)
-{
-    const Py_ssize_t nm = ne * nx;
-    double *sums = (double *)malloc((NOUT + 1) * (nm > 0 ? nm : 1) * sizeof(double));
-    long long *em = (long long *)malloc((nm > 0 ? nm : 1) * sizeof(long long));
-    if (sums == NULL || em == NULL) {
-        free(sums);
-        free(em);
-        return -1;
-    }
-    double *r2 = sums + NOUT * nm;
-    for (Py_ssize_t i = 0; i < ne; i++)
-        for (Py_ssize_t n = 0; n < nx; n++) {
-            const double r = rc[i] * ex[n];
-            R[i * nx + n] = r;
-            r2[i * nx + n] = r * r;
-            em[i * nx + n] = E[i];
-        }
-    int rc_ = binned_sums_run(bc, nm, em, r2, sums);
-    if (rc_ == 0) rc_ = marginal_run(mc, nm, sums, mg);
-    free(sums);
-    free(em);
-    return rc_;
-}
-
 /* ln[p(r) r] of the size prior at ln r = lnr (sampling: priors.log_size_prior_per_lnr; pr: c, ln a, alpha) */
 static inline double log_size_prior(double lnr, const double *pr)
 {
     return (pr[0] - 2 * pr[1]) + 2 * lnr - exp(pr[2] * (lnr - pr[1]));
 }
 
-/* node_models of nv versions of one object on the same modes (size_nodes_versions): version v's bins at ellipticity
-   i are entry E[i] + v; version 0's sums are binned_sums_run's, the others' linear sums binned_lin_run's with
-   version 0's quadratic sums (ff, gg, fg: the modes' weights q and the fold pairs are the modes', not the data's,
-   so each version's own are these to the bit); mg: nv blocks of ne nx rows of 9, each version's marginals as
-   node_models makes them. 0, or -1 where memory ran out */
+/* the sums and marginals of the models r = rc[i] ex[n] (n < nx) of nv versions of one object on the same modes
+   (size_nodes_versions; nv = 1: one object): version v's bins at ellipticity i are entry E[i] + v; version 0's sums
+   are binned_sums_run's, the others' linear sums binned_lin_run's with version 0's quadratic sums (ff, gg, fg: the
+   modes' weights q and the fold pairs are the modes', not the data's, so each version's own are these to the bit);
+   R: the models' r; mg: nv blocks of ne nx rows of 9, each version's marginals. 0, or -1 where memory ran out */
 static __attribute__((noinline)) int node_models_versions(const BinsCtx *bc, const MargCtx *mc, Py_ssize_t ne,
                                                           const long long *E, Py_ssize_t nv, const double *rc,
                                                           const double *ex, Py_ssize_t nx, double *R, double *mg)
 {
-    const Py_ssize_t nm = ne * nx, n1 = nm > 0 ? nm : 1;
-    double *sums = (double *)malloc((2 * NOUT + 1) * n1 * sizeof(double));
+    const Py_ssize_t nm = ne * nx, n1 = nm > 0 ? nm : 1, ns = nv > 1 ? 2 : 1;
+    double *sums = (double *)malloc((ns * NOUT + 1) * n1 * sizeof(double));
     long long *em = (long long *)malloc(n1 * sizeof(long long));
     if (sums == NULL || em == NULL) {
         free(sums);
         free(em);
         return -1;
     }
-    double *s1 = sums + NOUT * n1, *r2 = s1 + NOUT * n1;
+    double *s1 = sums + NOUT * n1 * (ns - 1), *r2 = sums + ns * NOUT * n1;
     for (Py_ssize_t i = 0; i < ne; i++)
         for (Py_ssize_t n = 0; n < nx; n++) {
             const double r = rc[i] * ex[n];
@@ -3621,6 +3592,13 @@ static __attribute__((noinline)) int node_models_versions(const BinsCtx *bc, con
     return rc_;
 }
 
+/* node_models_versions of one object */
+static int node_models(const BinsCtx *bc, const MargCtx *mc, Py_ssize_t ne, const long long *E, const double *rc,
+                       const double *ex, Py_ssize_t nx, double *R, double *mg)
+{
+    return node_models_versions(bc, mc, ne, E, 1, rc, ex, nx, R, mg);
+}
+
 /* size_nodes of nv versions (nv > 1: node_models_versions, E[i] + v version v's entry; L0, O and best: nv blocks of
    2, 5 ne and 2), each version's numbers those of its own call */
 static NO_CONTRACT NO_CLONE int size_nodes_run(const BinsCtx *bc, const MargCtx *mc, Py_ssize_t ne, const long long *E,
@@ -3638,8 +3616,7 @@ static NO_CONTRACT NO_CLONE int size_nodes_run(const BinsCtx *bc, const MargCtx 
     if (buf == NULL) return -1;
     double *R = buf, *mgs = buf + n1, *col = mgs + 9 * nv * n1;
     double *LP = col + 0, *RF = LP + nf * e1, *LS = RF + nf * e1;
-    if ((nv == 1 ? node_models(bc, mc, ne, E, rc, ex, nr, R, mgs)
-                 : node_models_versions(bc, mc, ne, E, nv, rc, ex, nr, R, mgs)) != 0) {
+    if (node_models_versions(bc, mc, ne, E, nv, rc, ex, nr, R, mgs) != 0) {
         free(buf);
         return -1;
     }
