@@ -533,6 +533,57 @@ def test_versions_share_their_quadratic_sums_to_the_bit(monkeypatch):
     assert pairs and max(pairs) > 0
 
 
+def test_versions_round_bins_made_together_are_each_versions_own():
+    """The replays' point sources (and round models) bin the four versions' modes at e = 0 in one call
+    (likelihood.seed_round_bins): each version's bins are those of its own mode_bins, to the bit, and so are the
+    point source's sums."""
+    from copy import copy
+
+    from shearfit.calib.metacal import VERSIONS
+    from shearfit.engine import likelihood
+    from shearfit.engine.measure import _measure, _replay_exposures_versions, _replay_joint
+    from shearfit.engine.profiles import fast_pair
+    from shearfit.simulate.stamps import ring_set
+
+    if not likelihood.USE_KERNEL:
+        pytest.skip("compiled kernel not built")
+    cfg = shearfit.FitConfig()
+    obs, _ = next(iter(ring_set(1, (0.0, 0.0), np.random.default_rng(3), n_rotations=1, n_exposures=3,
+                                snr_range=(20, 40), stamp_size=40, rotate_exposures=True)))
+    per = [metacal_observations(o, 0.01, np.random.default_rng(5)) for o in obs]
+    versions = [[v[name] for v in per] for name in VERSIONS]
+    plan = _measure(versions[0], 23.0, cfg, False, margin=10.0)[1]
+    jms = [_replay_joint(ex, 23.0, cfg, plan)[0] for ex in _replay_exposures_versions(versions[1:], cfg, plan)]
+    alone = [copy(j) for j in jms]
+    likelihood.seed_round_bins(jms, cfg.mode_bins_per_octave)
+    fast = fast_pair(cfg.truncation)
+    for jm, own in zip(jms, alone):
+        seeded = jm._round[1]
+        made = likelihood.mode_bins(own, np.zeros(1), np.zeros(1), cfg.mode_bins_per_octave)
+        for f in ("lo", "offsets", "columns", "dc"):
+            assert bytes(getattr(seeded, f)) == bytes(np.asarray(getattr(made, f)).tobytes()), f
+        assert np.array_equal(seeded.shape, made.shape)
+        a = likelihood.model_sums(jm, [0.0], [0.0], [0.0], fast, cfg.bulge_size_ratio,
+                                  bins_per_octave=cfg.mode_bins_per_octave)
+        b = likelihood.model_sums(own, [0.0], [0.0], [0.0], fast, cfg.bulge_size_ratio,
+                                  bins_per_octave=cfg.mode_bins_per_octave)
+        assert all(np.array_equal(getattr(a, f), getattr(b, f)) for f in a.__dataclass_fields__)
+    assert len({bytes(j._round[1].columns) for j in jms}) == len(jms)   # the versions' data differ
+
+
+def test_masks_grow_as_scipys_binary_dilation():
+    from scipy import ndimage
+
+    from shearfit.calib.metacal import _grown
+
+    rng = np.random.default_rng(11)
+    for shape, frac in (((48, 48), 0.01), ((40, 56), 0.05), ((7, 5), 0.2), ((48, 48), 0.0)):
+        m = rng.random(shape) < frac
+        m[0, rng.integers(shape[1])] = True   # one on the edge
+        for steps in (1, 2, 3):
+            assert np.array_equal(_grown(m, steps), ndimage.binary_dilation(m, iterations=steps))
+
+
 def test_replay_needs_the_same_psfs():
     from shearfit.errors import ShearfitValueError
     from shearfit.engine.measure import measure_versions
@@ -556,9 +607,10 @@ def test_a_version_reuses_the_modes_of_the_first():
     cfg = shearfit.FitConfig()
     fresh = prepare_exposure(b, cfg)
     reused = prepare_exposure(b, cfg, like=prepare_exposure(a, cfg))
-    for f in ("kx", "ky", "transfer", "coarse", "cweight", "data_ft"):
-        assert np.array_equal(getattr(fresh, f), getattr(reused, f)), f
-    assert (fresh.sigma2, fresh.yy, fresh.npix, fresh.shape) == (reused.sigma2, reused.yy, reused.npix, reused.shape)
+    from dataclasses import fields
+
+    for f in fields(fresh):   # every field (prepare_exposure makes the reused one field by field)
+        assert np.array_equal(getattr(fresh, f.name), getattr(reused, f.name)), f.name
     assert not np.array_equal(fresh.data_ft, prepare_exposure(a, cfg).data_ft)
 
 

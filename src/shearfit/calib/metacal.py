@@ -80,7 +80,6 @@ from dataclasses import dataclass, field
 import galsim
 import numpy as np
 from scipy import fft as sfft
-from scipy import ndimage
 
 from ..errors import FITCLASS_GALAXY, ShearfitIOError, ShearfitValueError
 from ..engine.model import ContentMemo, inv2, psf_moffat, psf_moffats
@@ -340,7 +339,10 @@ def band_images(shape, n, items):
     edge = []
     for b, (r, arr) in enumerate(items):
         if r < half:
-            spec[b, np.arange(-r, r + 1) % n, :r + 1] = arr
+            # rows j = 0 .. r, then -r .. -1 at the grid's end
+            spec[b, :r + 1, :r + 1] = arr[r:]
+            if r:
+                spec[b, n - r:, :r + 1] = arr[:r]
         elif r == half and n % 2 == 0:
             # the band reaching the Nyquist row and column exactly (the usual wide case, its radius capped at
             # the new PSF's band): fold_band's folding done in place, rows j = -r + 1 .. r where they are, row
@@ -690,6 +692,19 @@ def round_psf(psf, J, delta, shape, fft_size=None):
     return image / image.sum()
 
 
+def _grown(mask, steps):
+    """``ndimage.binary_dilation(mask, iterations=steps)`` (its cross of four neighbours, nothing beyond the edge)
+    as shifted ORs: the same pixels, without scipy's setup, which cost four times the work on a stamp."""
+    for _ in range(steps):
+        out = mask.copy()
+        out[1:] |= mask[:-1]
+        out[:-1] |= mask[1:]
+        out[:, 1:] |= mask[:, :-1]
+        out[:, :-1] |= mask[:, 1:]
+        mask = out
+    return mask
+
+
 def metacal_observations(obs: Observation, delta=0.01, rng=None, versions=tuple(VERSIONS),
                          fit_moffat=True, psf="dilated") -> dict:
     """The metacal versions of one exposure's stamp: ``{version: Observation}`` (see the module doc).
@@ -740,7 +755,7 @@ def metacal_observations(obs: Observation, delta=0.01, rng=None, versions=tuple(
     turn = square and SYMMETRISE_NOISE
     nrot = np.rot90(noise, 1) if turn else noise
     # (a stamp without a masked pixel, the usual one, has nothing to grow)
-    mask = ndimage.binary_dilation(~good, iterations=_MASK_GROW) if not good.all() else np.zeros(good.shape, bool)
+    mask = _grown(~good, _MASK_GROW) if not good.all() else np.zeros(good.shape, bool)
     mask[:_EDGE, :] = mask[-_EDGE:, :] = True
     mask[:, :_EDGE] = mask[:, -_EDGE:] = True
     var_in = float(np.mean(sigma[~mask] ** 2)) if np.any(~mask) else 1.0

@@ -946,6 +946,25 @@ def _round_bins(jm, bins_per_octave):
     return cache[1]
 
 
+def seed_round_bins(jms, bins_per_octave):
+    """:func:`_round_bins` of versions of one object (JointModes on the same modes, :func:`shares_bins_geometry`)
+    made in one binning (:func:`mode_bins_versions` at e = (+0, +0)), each kept with its version: the same numbers
+    as its own (metacal's replays' point sources). Nothing where fewer than two need them, they do not share their
+    modes, or the compiled kernel is off."""
+    bpo = int(bins_per_octave)
+    need = [j for j in jms if getattr(j, "_round", (None,))[0] != bpo]
+    if len(need) < 2 or not USE_KERNEL or bpo <= 0 or not shares_bins_geometry(need):
+        return
+    both = mode_bins_versions(need, np.zeros(1), np.zeros(1), bpo)
+    lo, off = np.frombuffer(both.lo, np.int64), np.frombuffer(both.offsets, np.int64)
+    cols, dc = np.frombuffer(both.columns, np.float64), np.frombuffer(both.dc, np.float64)
+    for v, jm in enumerate(need):   # version v's entry: its bins' columns (seven channels), DC weights and start
+        a, b = int(off[v]), int(off[v + 1])
+        jm._round = (bpo, ModeBins(shape=np.ascontiguousarray(both.shape[v:v + 1]), bins_per_octave=bpo,
+                                   lo=lo[v:v + 1].tobytes(), offsets=np.array([0, b - a], np.int64).tobytes(),
+                                   columns=cols[7 * a:7 * b].tobytes(), dc=dc[8 * v:8 * v + 8].tobytes()))
+
+
 def model_sums(jm: JointModes, e1, e2, r, fast, bulge_size_ratio=1.0, lin=None, use_kernel=True,
                bins_per_octave=0, bins=None, bin_index=None) -> ModelSums:
     """Pixel sums for models (e1, e2, r) (1D arrays of equal length).

@@ -15,7 +15,8 @@ from . import priors
 from ..config import as_config
 from ..errors import (FITCLASS_CENTROID, FITCLASS_FEW_EXPOSURES, FITCLASS_FIT_FAILED, FITCLASS_GALAXY,
                      FITCLASS_STAR, FITCLASS_TOO_LARGE, ShearfitValueError)
-from .likelihood import coarse_peak, find_position, flux_position_marginal, join_exposures, model_sums, shift_joint
+from .likelihood import (coarse_peak, find_position, flux_position_marginal, join_exposures, model_sums,
+                         seed_round_bins, shift_joint)
 from .model import complex_bincount, prepare_exposures, shape_matrix
 from ..observation import FitResult, Observation
 from .profiles import de_vaucouleurs, exponential_disk, fast_pair
@@ -188,8 +189,9 @@ class FitPlan:
 def _same_modes(o: Observation, ref: Observation) -> bool:
     """Whether two observations reduce to the same Fourier modes (all but the pixel data equal)."""
     return (o.shape == ref.shape and o.psf_oversampling == ref.psf_oversampling and o.psf_moffat == ref.psf_moffat
-            and o.flux_scale == ref.flux_scale and np.array_equal(o.offset, ref.offset)
-            and np.array_equal(o.jacobian, ref.jacobian) and (o.psf is ref.psf or np.array_equal(o.psf, ref.psf)))
+            and o.flux_scale == ref.flux_scale and (o.offset is ref.offset or np.array_equal(o.offset, ref.offset))
+            and (o.jacobian is ref.jacobian or np.array_equal(o.jacobian, ref.jacobian))
+            and (o.psf is ref.psf or np.array_equal(o.psf, ref.psf)))
 
 
 def _position_search(mag, cfg, pix):
@@ -251,6 +253,24 @@ def _replay_exposures(obs, cfg, plan):
     return prepare_exposures(obs, cfg)
 
 
+def _replay_exposures_versions(versions, cfg, plan):
+    """:func:`_replay_exposures` of every version (lists of observations of one length), as one
+    :func:`shearfit.engine.model.prepare_exposures` call: their stamps' transforms made together (the same numbers).
+    None where that fails (each version then prepares its own, so that a failure is that version's)."""
+    n = len(versions[0])
+    if plan.exposures is None or len(plan.observations) != n:
+        return None
+    likes = [ex if _same_modes(o, r) else None for obs in versions
+             for o, r, ex in zip(obs, plan.observations, plan.exposures)]
+    try:
+        flat = prepare_exposures([o for obs in versions for o in obs], cfg, likes=likes)
+    except _FIT_ERRORS as exc:
+        if isinstance(exc, ShearfitValueError):
+            raise
+        return None
+    return [flat[i * n:(i + 1) * n] for i in range(len(versions))]
+
+
 def _off_centre(obs, shift, pix):
     return FitResult(fitclass=FITCLASS_CENTROID, n_exposures_used=len(obs), centroid_shift=shift / pix,
                      message="cross-correlation peak too far from the input position")
@@ -273,6 +293,15 @@ def _replay_likelihood(exposures, mag, cfg, plan, own_position=False, own_sizes=
     round model's size posterior (:func:`_size_range`, as the fit does), so that the estimate's response
     through the size integral's quadrature is part of the differences too (the plan's where that fails).
     """
+    jm, shift, ok = _replay_joint(exposures, mag, cfg, plan, own_position)
+    if not ok:
+        return jm, None, float(np.hypot(*shift))
+    return (jm,) + _replay_like(jm, mag, cfg, plan, own_sizes, shift)
+
+
+def _replay_joint(exposures, mag, cfg, plan, own_position=False):
+    """:func:`_replay_likelihood`'s joint modes: (jm, (du, dv) the position's shift, whether the version's own
+    peak lies near enough)."""
     if plan.keep is not None and [k.size for k in plan.keep] != [e.kx.size for e in exposures]:
         raise ShearfitValueError("a replayed fit needs the same PSFs (Fourier modes) as the fit it replays")
     # the same modes (PSFs, Jacobians, offsets and noise): only the data's weights z change
@@ -289,17 +318,24 @@ def _replay_likelihood(exposures, mag, cfg, plan, own_position=False, own_sizes=
         ddu, ddv, ok = find_position(jm, exponential_disk(cfg.truncation), r_ref, np.inf)
         shift = float(np.hypot(du + ddu, dv + ddv))
         if not ok or shift > max_shift:
-            return jm, None, shift
+            return jm, (du + ddu, dv + ddv), False
         if np.hypot(ddu, ddv) > SAME_POSITION * jm.pixel_scale:
             jm = shift_joint(jm, ddu, ddv)
             du, dv = du + ddu, dv + ddv
+    return jm, (du, dv), True
+
+
+def _replay_like(jm, mag, cfg, plan, own_sizes, shift):
+    """:func:`_replay_likelihood`'s likelihood and centroid shift (arcsec) on the version's joint modes ``jm``
+    (:func:`_replay_joint`'s, with its ``shift``)."""
+    du, dv = shift
     fast = fast_pair(cfg.truncation)
     rng = _size_range(jm, cfg, mag, fast) if own_sizes else None
     if rng is not None:
-        return jm, _size_likelihood(jm, cfg, mag, fast, rng), float(np.hypot(du, dv))
+        return _size_likelihood(jm, cfg, mag, fast, rng), float(np.hypot(du, dv))
     like = EllipticityLikelihood(jm, cfg, mag, fast, plan.size_nodes, plan.r_center)
     like.fixed_centres = plan.centres
-    return jm, like, float(np.hypot(du, dv))
+    return like, float(np.hypot(du, dv))
 
 
 def _replayed_result(obs, cfg, mag, jm, like, samples, shift, return_samples=False):
@@ -705,15 +741,26 @@ def _replay_all(versions, mag, cfg, plan, margin, first_margin, own_position, ow
     """The versions' replays of ``plan``, their likelihoods evaluated together
     (:class:`shearfit.engine.sampling.VersionLikelihoods`: the same numbers as one replay after another, which
     is what a version whose setup fails, and every version where the joint evaluation fails, gets)."""
-    ready, out = [], [None] * len(versions)
+    ready, joints, out = [], [], [None] * len(versions)
+    together = _replay_exposures_versions(versions, cfg, plan)
     for k, obs in enumerate(versions):
         try:
-            jm, like, shift = _replay_likelihood(_replay_exposures(obs, cfg, plan), mag, cfg, plan, own_position,
-                                                 own_sizes)
-            if like is None:
-                out[k] = _off_centre(obs, shift, jm.pixel_scale)
+            exposures = together[k] if together is not None else _replay_exposures(obs, cfg, plan)
+            jm, shift, ok = _replay_joint(exposures, mag, cfg, plan, own_position)
+            if ok:
+                joints.append((k, obs, jm, shift))
             else:
-                ready.append((k, obs, jm, like, shift))
+                out[k] = _off_centre(obs, float(np.hypot(*shift)), jm.pixel_scale)
+        except _FIT_ERRORS as exc:
+            if isinstance(exc, ShearfitValueError):
+                raise
+            out[k] = _failed(obs, exc)
+    # the versions' round bins (their point sources', and own_sizes' round models') made in one binning
+    seed_round_bins([j[2] for j in joints], cfg.mode_bins_per_octave)
+    for k, obs, jm, shift in joints:
+        try:
+            like, shift = _replay_like(jm, mag, cfg, plan, own_sizes, shift)
+            ready.append((k, obs, jm, like, shift))
         except _FIT_ERRORS as exc:
             if isinstance(exc, ShearfitValueError):
                 raise

@@ -27,7 +27,7 @@ from __future__ import annotations
 import functools
 from collections import OrderedDict
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 from scipy import fft as sfft
@@ -672,7 +672,10 @@ def prepare_exposure(obs: Observation, cfg: FitConfig, grid_shape=None, with_dat
         if like.shape != (ny, nx):
             raise ShearfitValueError(f"prepare_exposure: like= has shape {like.shape}, the stamp {(ny, nx)}")
         sigma2, data_ft, yy, npix = _data_modes(obs, ny, nx, pre.get("y"), pre.get("data_ft"), pre.get("weights"))
-        return replace(like, data_ft=data_ft, sigma2=sigma2, yy=yy, npix=npix)
+        # (``replace(like, data_ft=..., ...)``, made directly: a fifth of its cost, which metacal's replays pay for
+        # every version of every exposure)
+        return ExposureModes(like.shape, like.kx, like.ky, like.transfer, like.coarse, like.cweight, data_ft, sigma2,
+                             yy, npix, like.pixel_scale)
     s = obs.psf_oversampling
     if s == 1 and cfg.alias_correction == "moffat":
         # the modes below the tolerance are dropped as they are made; the object's nominal position sits

@@ -59,6 +59,11 @@ def e_key(e1, e2):
                     np.rint(np.asarray(e2) * 1e9).astype(np.int64).tolist()))
 
 
+def _packed_keys(k1, k2):
+    """:func:`e_key`'s two integers (|k| <= 2^31 for |e| <= 2) as one int64 each, in the same order as the pairs."""
+    return ((k1 + (1 << 31)) << 32) + (k2 + (1 << 31))
+
+
 def log_population_weights(cfg: FitConfig):
     """log(1 - f_B) and log f_B: the disk and bulge populations' weights (sec. 3.1)."""
     fB = cfg.bulge_population_fraction
@@ -79,9 +84,11 @@ class SizeCentres(Mapping):
     def __init__(self):
         self._d = {}
         self._pending = []
+        self._sorted = None   # (packed keys sorted, their centres): lookup's, made at its first call after an add
 
     def add(self, e1, e2, rc):
         self._pending.append((np.array(e1, float), np.array(e2, float), np.array(rc, float)))
+        self._sorted = None
 
     def _dict(self):
         if self._pending:
@@ -89,6 +96,29 @@ class SizeCentres(Mapping):
                 self._d.update(zip(e_key(e1, e2), rc.tolist()))
             self._pending = []
         return self._d
+
+    def lookup(self, e1, e2):
+        """The centres at (e1, e2) (arrays), NaN where none was added: ``[self.get(k, nan) for k in e_key(e1,
+        e2)]`` as one search of the sorted keys (a replay's chunk looks up a hundred at a time)."""
+        if self._sorted is None:
+            # the dict's entries, then the pending arrays in the order added (a key added again: its last centre)
+            k = np.array(list(self._d.keys()), np.int64).reshape(-1, 2)
+            parts = [(_packed_keys(k[:, 0], k[:, 1]), np.array(list(self._d.values()), float))]
+            parts += [(_packed_keys(np.rint(a * 1e9).astype(np.int64), np.rint(b * 1e9).astype(np.int64)), rc)
+                      for a, b, rc in self._pending]
+            packed = np.concatenate([p[0] for p in parts])
+            vals = np.concatenate([p[1] for p in parts])
+            order = np.argsort(packed, kind="stable")
+            packed, vals = packed[order], vals[order]
+            last = np.append(packed[1:] != packed[:-1], True)
+            self._sorted = (packed[last], vals[last])
+        keys, vals = self._sorted
+        q = _packed_keys(np.rint(np.asarray(e1, float) * 1e9).astype(np.int64),
+                         np.rint(np.asarray(e2, float) * 1e9).astype(np.int64))
+        if keys.size == 0:
+            return np.full(q.shape, np.nan)
+        i = np.minimum(np.searchsorted(keys, q), keys.size - 1)
+        return np.where(keys[i] == q, vals[i], np.nan)
 
     def __getitem__(self, key):
         return self._dict()[key]
@@ -214,13 +244,14 @@ class EllipticityLikelihood:
         q = (1 - e) / (1 + e)
         return self.r_center * np.minimum(q ** (-1.0 / 3.0), CENTRE_GROWTH_MAX)
 
-    def replayed_centres(self, e1, e2, keys):
-        """The size centres of ``fixed_centres`` at (e1, e2) (their ``keys``). An ellipticity the replayed fit
-        never sampled (a version's own ellipticity grid, :func:`adaptive_versions`) gets its nearest sampled
-        neighbour's ratio to the predicted centre, as a fit reuses a located neighbour's (``_located_centres``).
-        """
+    def replayed_centres(self, e1, e2, keys=None):
+        """The size centres of ``fixed_centres`` at (e1, e2) (``keys``: their :func:`e_key`, made here if None). An
+        ellipticity the replayed fit never sampled (a version's own ellipticity grid, :func:`adaptive_versions`) gets
+        its nearest sampled neighbour's ratio to the predicted centre, as a fit reuses a located neighbour's
+        (``_located_centres``)."""
         fc = self.fixed_centres
-        rc = np.array([fc.get(k, np.nan) for k in keys], float)
+        rc = (fc.lookup(e1, e2) if isinstance(fc, SizeCentres) else
+              np.array([fc.get(k, np.nan) for k in (e_key(e1, e2) if keys is None else keys)], float))
         miss = np.isnan(rc)
         if np.any(miss):
             ke = np.array(list(fc.keys()), float) * 1e-9
@@ -401,13 +432,12 @@ class EllipticityLikelihood:
         fused = self._chunk_args() if use_kernel else None
         if fused is not None:
             return self._chunk_kernel(e1, e2, fused)
-        keys = e_key(e1, e2)
         # the chunk's modes binned once per ellipticity, for the size-locating passes and the nodes
         bins = mode_bins(self.jm, e1, e2, cfg.mode_bins_per_octave, polar=polar_setting(cfg), reuse=True) if (
             USE_KERNEL and cfg.mode_bins_per_octave > 0) else None
         tail, tail_point = np.zeros(ne, bool), None
         if self.fixed_centres is not None:
-            rc = self.replayed_centres(e1, e2, keys)
+            rc = self.replayed_centres(e1, e2)
         else:
             rc = self.centre(e1, e2)
             if self.locate_widths is not None:
@@ -667,7 +697,6 @@ class VersionLikelihoods:
         likes = self.likes
         l0 = likes[0]
         nv, ne, nr = len(likes), e1.size, l0.x.size
-        keys = e_key(e1, e2)
         jms = [lk.jm for lk in likes]
         # the versions' grid made once (mode_bins_versions bins every mode where it does not pay)
         if self.grid is None and self.polar is not None and polar_pays(jms[0], l0.cfg.mode_bins_per_octave,
@@ -675,7 +704,7 @@ class VersionLikelihoods:
             self.grid = versions_polar_grid(jms, self.channels, l0.cfg.mode_bins_per_octave, self.polar[0])
         bins = mode_bins_versions(jms, e1, e2, l0.cfg.mode_bins_per_octave, channels=self.channels,
                                   polar=self.polar, grid=self.grid, reuse=True)
-        rc = l0.replayed_centres(e1, e2, keys)
+        rc = l0.replayed_centres(e1, e2)
         for lk in likes:
             lk.centres.add(e1, e2, rc)
         marg = marginal_context(l0.cfg, l0.jm.pixel_scale) if l0.x.size <= 512 else None
@@ -1149,8 +1178,10 @@ def replay_versions(likes: VersionLikelihoods, ref: Samples, cfg: FitConfig, mar
     cols = [{f: np.full(n, np.nan) for f in fields_} for _ in range(nv)]
 
     def evaluate(which, versions):
-        for v, pt in zip(versions, likes(ref.e1[which], ref.e2[which], versions=versions)):
-            logl[v][which], logpost[v][which] = _mix(pt, ref.e1[which], ref.e2[which], cfg)
+        e1, e2 = ref.e1[which], ref.e2[which]
+        priors_ = _log_e_priors(e1, e2, cfg)   # (the same for every version)
+        for v, pt in zip(versions, likes(e1, e2, versions=versions)):
+            logl[v][which], logpost[v][which] = _mix(pt, e1, e2, cfg, priors_)
             for f in fields_:
                 cols[v][f][which] = getattr(pt, f)
 
