@@ -361,8 +361,12 @@ def test_band_images_are_the_folded_planes_images(n):
     than the grid, reaching its Nyquist row and column exactly (folded in place, the usual wide band), wider."""
     rng = np.random.default_rng(100 + n)
     half = n // 2
-    shape = (min(n, 48), min(n, 40))
     rs = [max(half - 2, 0), half, half, half + 1, n + 3]
+    for shape in ((min(n, 48), min(n, 40)), (n + 7, n - 3)):   # (the second wider than the period: it wraps)
+        _band_images_match(n, shape, rs, rng)
+
+
+def _band_images_match(n, shape, rs, rng):
     items = [(r, rng.normal(size=(2 * r + 1, r + 1)) + 1j * rng.normal(size=(2 * r + 1, r + 1))) for r in rs]
     got = metacal.band_images(shape, n, items)
     iy = (np.arange(shape[0]) - shape[0] // 2) % n

@@ -360,12 +360,28 @@ def band_images(shape, n, items):
     # f(x) = (1 / 4 pi^2) sum_k F(k) exp(i k.x) dk^2 with dk = 2 pi / n, irfft2's own normalisation,
     # evaluated only at the stamp's rows and columns: the transform over ky of the band's columns,
     # the stamp's rows of it, then the real transform over kx
-    iy = (np.arange(ny) - ny // 2) % n
-    ix = (np.arange(nx) - nx // 2) % n
-    rows = sfft.ifft(spec, axis=1, workers=1)[:, iy, :]
-    if cols < half + 1:
-        rows = np.concatenate([rows, np.zeros(rows.shape[:2] + (half + 1 - cols,), rows.dtype)], axis=2)
-    return list(sfft.irfft(rows, n=n, axis=2, workers=1)[:, :, ix])
+    # (the stamp's rows y = -ny // 2 .. ny - 1 - ny // 2 and columns likewise, taken as two slices each: the images
+    # returned own their memory and are read-only, so that an Observation keeps them without a copy)
+    lo_y, lo_x = ny // 2, nx // 2
+    col = sfft.ifft(spec, axis=1, workers=1, overwrite_x=True)
+    if ny > n or nx > n:   # a stamp wider than the period: its rows and columns wrap
+        iy = (np.arange(ny) - lo_y) % n
+        ix = (np.arange(nx) - lo_x) % n
+        rows = np.zeros((len(items), ny, half + 1), np.complex128)
+        rows[:, :, :cols] = col[:, iy, :]
+        return list(sfft.irfft(rows, n=n, axis=2, workers=1)[:, :, ix])
+    rows = np.zeros((len(items), ny, half + 1), np.complex128)
+    rows[:, :lo_y, :cols] = col[:, n - lo_y:, :]
+    rows[:, lo_y:, :cols] = col[:, :ny - lo_y, :]
+    full = sfft.irfft(rows, n=n, axis=2, workers=1, overwrite_x=True)
+    out = []
+    for img in full:
+        a = np.empty((ny, nx))
+        a[:, :lo_x] = img[:, n - lo_x:]
+        a[:, lo_x:] = img[:, :nx - lo_x]
+        a.setflags(write=False)
+        out.append(a)
+    return out
 
 
 def _galsim_images(image, noise, psf_image, wcs, psf_wcs, delta, names, new_psf_image=None):
@@ -758,7 +774,9 @@ def metacal_observations(obs: Observation, delta=0.01, rng=None, versions=tuple(
     mask = _grown(~good, _MASK_GROW) if not good.all() else np.zeros(good.shape, bool)
     mask[:_EDGE, :] = mask[-_EDGE:, :] = True
     mask[:, :_EDGE] = mask[:, -_EDGE:] = True
-    var_in = float(np.mean(sigma[~mask] ** 2)) if np.any(~mask) else 1.0
+    keep = ~mask
+    some = bool(keep.any())
+    var_in = float(np.mean(sigma[keep] ** 2)) if some else 1.0
     names = ("noshear",) + tuple(v for v in versions if v != "noshear")
     new_psf = psf_img if psf == "round" else None
     if own and turn:
@@ -776,7 +794,7 @@ def metacal_observations(obs: Observation, delta=0.01, rng=None, versions=tuple(
     # the versions' noise: the original, processed, plus the added field: twice the added field's variance,
     # measured on the noshear version and used for all, so that every version is fitted with the same weights
     # (and the same Fourier modes)
-    var_out = float(np.mean(noise0[~mask] ** 2)) if np.any(~mask) else var_in
+    var_out = float(np.mean(noise0[keep] ** 2)) if some else var_in
     scale = var_in / max(2.0 * var_out, 1e-300)
     weight = np.where(mask, 0.0, w * scale)
     out = {}
