@@ -215,19 +215,54 @@ def _metacal_pairs(d, settings, n_pairs):
     cfg = _with_settings(load_field_config(os.path.join(d, "field_truepsf.yaml")), settings)
     print(f"\ncalibration: metacal against the plain run (PSF images given), {n_pairs} pairs alternated, CPU of "
           "measure_field in this process:")
-    ratios = []
+    ratios, by_class = [], {}
     for k in range(max(n_pairs, 1)):
-        cpu = {}
+        cpu, rows = {}, {}
         for mode in ("plain", "metacal"):
             run = cfg if mode == "plain" else replace(cfg, calibration="metacal")
             _forget_psfs()
             c0 = _cpu_seconds()
-            table = measure_field(run, out_path=os.path.join(d, f"shear_{mode}_pair.fits"), processes=1)
+            with _object_clock() as rows[mode]:
+                table = measure_field(run, out_path=os.path.join(d, f"shear_{mode}_pair.fits"), processes=1)
             cpu[mode] = _cpu_seconds() - c0
         ratios.append(cpu["metacal"] / cpu["plain"])
         print(f"  pair {k + 1}: plain {1e3 * cpu['plain'] / len(table):.1f} ms, metacal "
               f"{1e3 * cpu['metacal'] / len(table):.1f} ms an object ({len(table)} objects): **x{ratios[-1]:.2f}**")
+        # per class of the plain run's fit (the objects measured in the same order both times)
+        cls = np.array([c for c, _ in rows["plain"]])
+        tp, tm = np.array([t for _, t in rows["plain"]]), np.array([t for _, t in rows["metacal"]])
+        for name, sel in (("galaxies", cls == 0), ("stars", cls == 1),
+                          ("flagged (blended, off-centre, too large, ...)", cls < 0)):
+            if sel.any() and tm.size == tp.size:
+                by_class.setdefault(name, []).append((int(sel.sum()), tp[sel].mean(), tm[sel].mean()))
     print(f"  median x{float(np.median(ratios)):.2f} ({', '.join(f'{r:.2f}' for r in ratios)})")
+    print("  per object of the plain run's class (each object's own measurement, timed around it):")
+    for name, got in by_class.items():
+        r = [m / p for _, p, m in got]
+        print(f"    {name} ({got[0][0]}): plain {1e3 * np.median([p for _, p, _ in got]):.1f} ms, metacal "
+              f"{1e3 * np.median([m for _, _, m in got]):.1f} ms: median x{float(np.median(r)):.2f} "
+              f"({', '.join(f'{x:.2f}' for x in r)})")
+
+
+@contextlib.contextmanager
+def _object_clock():
+    """[(fitclass, CPU seconds)] of each object the driver measures while in the block (its ``_measure_one``
+    wrapped)."""
+    import shearfit.pipeline.driver as drv
+
+    rows, real = [], drv._measure_one
+
+    def timed(*args, **kwargs):
+        t0 = time.process_time()
+        row = real(*args, **kwargs)
+        rows.append((int(row.get("fitclass", -99)), time.process_time() - t0))
+        return row
+
+    drv._measure_one = timed
+    try:
+        yield rows
+    finally:
+        drv._measure_one = real
 
 
 def _isophote_loop(d, settings, n_objects=200, loops=5):
