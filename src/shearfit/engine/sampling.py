@@ -59,9 +59,15 @@ def e_key(e1, e2):
                     np.rint(np.asarray(e2) * 1e9).astype(np.int64).tolist()))
 
 
-def _packed_keys(k1, k2):
+def _pack(k1, k2):
     """:func:`e_key`'s two integers (|k| <= 2^31 for |e| <= 2) as one int64 each, in the same order as the pairs."""
     return ((k1 + (1 << 31)) << 32) + (k2 + (1 << 31))
+
+
+def _packed_keys(e1, e2):
+    """:func:`_pack` of the ellipticities' :func:`e_key` integers."""
+    return _pack(np.rint(np.asarray(e1, float) * 1e9).astype(np.int64),
+                 np.rint(np.asarray(e2, float) * 1e9).astype(np.int64))
 
 
 def log_population_weights(cfg: FitConfig):
@@ -103,9 +109,8 @@ class SizeCentres(Mapping):
         if self._sorted is None:
             # the dict's entries, then the pending arrays in the order added (a key added again: its last centre)
             k = np.array(list(self._d.keys()), np.int64).reshape(-1, 2)
-            parts = [(_packed_keys(k[:, 0], k[:, 1]), np.array(list(self._d.values()), float))]
-            parts += [(_packed_keys(np.rint(a * 1e9).astype(np.int64), np.rint(b * 1e9).astype(np.int64)), rc)
-                      for a, b, rc in self._pending]
+            parts = [(_pack(k[:, 0], k[:, 1]), np.array(list(self._d.values()), float))]
+            parts += [(_packed_keys(a, b), rc) for a, b, rc in self._pending]
             packed = np.concatenate([p[0] for p in parts])
             vals = np.concatenate([p[1] for p in parts])
             order = np.argsort(packed, kind="stable")
@@ -113,8 +118,7 @@ class SizeCentres(Mapping):
             last = np.append(packed[1:] != packed[:-1], True)
             self._sorted = (packed[last], vals[last])
         keys, vals = self._sorted
-        q = _packed_keys(np.rint(np.asarray(e1, float) * 1e9).astype(np.int64),
-                         np.rint(np.asarray(e2, float) * 1e9).astype(np.int64))
+        q = _packed_keys(e1, e2)
         if keys.size == 0:
             return np.full(q.shape, np.nan)
         i = np.minimum(np.searchsorted(keys, q), keys.size - 1)
