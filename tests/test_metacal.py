@@ -282,6 +282,12 @@ def test_pipeline_metacal_columns(tmp_path):
     assert gal.sum() >= 3
     assert 0.3 < np.nanmedian(np.asarray(t["R11"])[gal]) < 1.5
     assert np.all(np.asarray(t["m"])[gal] == 0)
+    # objects flagged before their fits (blended, too few exposures, ...) carry the flag in every version
+    fc = np.asarray(t["fitclass"])
+    early = (fc < 0) & (np.asarray(t["n_exposures_used"]) == 0)
+    assert early.any()
+    for v in ("1p", "1m", "2p", "2m"):
+        assert np.array_equal(np.asarray(t[f"fitclass_{v}"])[early], fc[early])
     # the same run again gives the same catalogue (the noise fields are seeded per object id)
     out2 = tmp_path / "mc2.fits"
     assert main(["measure", str(d / "field_truepsf.yaml"), "calibration=metacal", "--out", str(out2),

@@ -933,9 +933,15 @@ def _run_dask(cfg, exposures, tasks, mags, ids, chunks, todo, table, ckpt, bar, 
 
 
 def _store_chunk(table, idx, rows, ckpt, k, bar):
+    versions = [c for c in table.colnames if c.startswith("fitclass_")]   # a metacal catalogue's
     for i, row in zip(idx, rows):
         for key, val in row.items():
             table[key][i] = val
+        if versions and "fitclass" in row and versions[0] not in row:
+            # an object the pipeline stopped before its fits (blended, too few exposures, ...): every version
+            # carries its flag
+            for c in versions:
+                table[c][i] = row["fitclass"]
     ckpt.save(k, table, idx)
     if bar is not None:
         bar.update(len(idx))
