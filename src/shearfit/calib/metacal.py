@@ -364,16 +364,16 @@ def band_images(shape, n, items):
     # returned own their memory and are read-only, so that an Observation keeps them without a copy)
     lo_y, lo_x = ny // 2, nx // 2
     col = sfft.ifft(spec, axis=1, workers=1, overwrite_x=True)
-    if ny > n or nx > n:   # a stamp wider than the period: its rows and columns wrap
-        iy = (np.arange(ny) - lo_y) % n
-        ix = (np.arange(nx) - lo_x) % n
-        rows = np.zeros((len(items), ny, half + 1), np.complex128)
-        rows[:, :, :cols] = col[:, iy, :]
-        return list(sfft.irfft(rows, n=n, axis=2, workers=1)[:, :, ix])
+    wraps = ny > n or nx > n   # a stamp wider than the period: its rows and columns wrap
     rows = np.zeros((len(items), ny, half + 1), np.complex128)
-    rows[:, :lo_y, :cols] = col[:, n - lo_y:, :]
-    rows[:, lo_y:, :cols] = col[:, :ny - lo_y, :]
+    if wraps:
+        rows[:, :, :cols] = col[:, (np.arange(ny) - lo_y) % n, :]
+    else:
+        rows[:, :lo_y, :cols] = col[:, n - lo_y:, :]
+        rows[:, lo_y:, :cols] = col[:, :ny - lo_y, :]
     full = sfft.irfft(rows, n=n, axis=2, workers=1, overwrite_x=True)
+    if wraps:
+        return list(full[:, :, (np.arange(nx) - lo_x) % n])
     out = []
     for img in full:
         a = np.empty((ny, nx))
