@@ -919,7 +919,9 @@ def test_mode_bins_are_each_ellipticitys_own_whatever_the_batch():
 def test_mode_bins_of_versions_are_each_versions_own(polar):
     """mode_bins_versions bins versions of one object on the same modes (JointModes.with_data: metacal's) at
     once: entry i * V + v is version v's bins at ellipticity i, byte for byte mode_bins' of that version, and
-    models summed from them are that version's. make_bins refuses weights that are not V sets of the modes'."""
+    models summed from them are that version's; a subset of the versions binned from their blocks of the versions'
+    polar grid (versions_polar_subset) gets the bins of its own grid. make_bins refuses weights that are not V sets
+    of the modes'."""
     from shearfit.engine import likelihood
     from shearfit.engine.kernel import KERNEL
     from shearfit.engine.likelihood import (_packed_bins, join_exposures, mode_bins, mode_bins_versions, model_sums,
@@ -965,6 +967,18 @@ def test_mode_bins_of_versions_are_each_versions_own(polar):
         a = model_sums(jm, E1, E2, R, fast_pair(), 0.8, bins=own, bin_index=idx).packed()
         b = model_sums(jm0, E1, E2, R, fast_pair(), 0.8, bins=together, bin_index=idx * nv + v).packed()
         assert np.array_equal(a, b)
+    if polar is not None:
+        # a subset of the versions binned from their blocks of the versions' grid: the bytes of their own grid's bins
+        grid = likelihood.versions_polar_grid(jms, likelihood.versions_channels(jms), 16, polar[0])
+        for pick in ([2], [0, 2]):
+            sub = [jms[v] for v in pick]
+            part = likelihood.versions_polar_subset(grid, pick, nv)
+            own = likelihood.versions_polar_grid(sub, likelihood.versions_channels(sub), 16, polar[0])
+            assert part[:2] == own[:2] and part[3:] == own[3:] and np.array_equal(part[2], own[2])
+            a = mode_bins_versions(sub, e1, e2, 16, polar=polar, grid=part)
+            b = mode_bins_versions(sub, e1, e2, 16, polar=polar)
+            assert (a.lo, a.offsets, a.dc) == (b.lo, b.offsets, b.dc)
+            assert np.array_equal(np.frombuffer(a.columns), np.frombuffer(b.columns))
     b3, c8 = _packed_bins(jm0)[:2]
     with pytest.raises(ValueError, match="inconsistent"):
         KERNEL.make_bins(together.shape[:3], b3, c8, 16, 2)
@@ -1408,6 +1422,36 @@ def test_an_observation_with_other_pixels_shares_the_rest():
     assert np.array_equal(v.offset, o.offset) and v.flux_scale == o.flux_scale
     with pytest.raises(ShearfitValueError, match="image shape"):
         o.with_image(np.ones((40, 40)))
+
+
+def test_a_derived_observation_keeps_the_geometry_and_checks_its_arrays():
+    """Observation.derived (metacal's versions): other pixels, weights, PSF and Moffat on the same geometry, the
+    weights and PSF checked as the constructor checks them; immutable float64 arrays kept themselves."""
+    im = np.ones((48, 48))
+    psf = np.zeros((25, 25))
+    psf[12, 12] = 1.0
+    o = shearfit.Observation(image=im, psf=psf, jacobian=PIX * np.eye(2), weight=np.ones_like(im), offset=(0.2, -0.1),
+                             psf_moffat=(2.0, 3.0), flux_scale=1.5)
+    w = np.full(im.shape, 2.0)
+    w.setflags(write=False)
+    p2 = np.full((5, 5), 0.04)
+    d = o.derived(2 * im, w, p2, (2.04, 3.0))
+    assert d.weight is w and np.array_equal(d.image, 2 * im) and not d.image.flags.writeable
+    assert np.array_equal(d.psf, p2) and not d.psf.flags.writeable and d.psf_moffat == (2.04, 3.0)
+    assert d.jacobian is o.jacobian and np.array_equal(d.offset, o.offset) and d.flux_scale == 1.5
+    assert d.psf_oversampling == o.psf_oversampling and o.weight is not w and o.psf_moffat == (2.0, 3.0)
+    assert o.derived(im, w, p2).psf_moffat is None
+    for bad in (np.nan, np.inf, -1.0):
+        wb = np.ones(im.shape)
+        wb[3, 4] = bad
+        with pytest.raises(ShearfitValueError, match="finite and non-negative"):
+            o.derived(im, wb, p2)
+    with pytest.raises(ShearfitValueError, match="weight shape"):
+        o.derived(im, np.ones((40, 40)), p2)
+    with pytest.raises(ShearfitValueError, match="sum to 1"):
+        o.derived(im, w, 2 * p2)
+    with pytest.raises(ShearfitValueError, match="psf_moffat"):
+        o.derived(im, w, p2, (2.0, 0.5))
 
 
 def test_too_large_for_the_stamp_is_flagged():

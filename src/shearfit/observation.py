@@ -57,6 +57,25 @@ def _psf_sum(psf) -> float:
     return total
 
 
+def _checked_psf(psf):
+    """A PSF image as an Observation keeps it (read-only float64), checked to sum to 1."""
+    out = _readonly(psf, "psf")
+    psum = _psf_sum(out)
+    if not math.isfinite(psum) or abs(psum - 1.0) > 1e-3:
+        raise ShearfitValueError(f"Observation psf must sum to 1 (sums to {psum:.6g})")
+    return out
+
+
+def _checked_moffat(psf_moffat):
+    """An App. A Moffat (rs, beta) as an Observation keeps it (Python floats), checked; None stays None."""
+    if psf_moffat is None:
+        return None
+    rs, beta = (float(v) for v in psf_moffat)
+    if not (rs > 0 and beta > 1 and np.isfinite(rs) and np.isfinite(beta)):
+        raise ShearfitValueError(f"Observation psf_moffat must be (rs > 0, beta > 1), got {psf_moffat!r}")
+    return rs, beta
+
+
 def is_immutable(a) -> bool:
     """Whether ``a`` is a C-contiguous array that owns its memory and is read-only: no view of it can change
     its values (short of its owner making it writable again)."""
@@ -106,14 +125,11 @@ class Observation:
                 f"Observation weight shape {self.weight.shape} differs from image shape {self.image.shape}")
         if not np.all(np.isfinite(self.weight)) or np.any(self.weight < 0):
             raise ShearfitValueError("Observation weight must be finite and non-negative")
-        self.psf = _readonly(psf, "psf")
+        self.psf = _checked_psf(psf)
         k = int(psf_oversampling)
         if k < 1 or k != psf_oversampling:
             raise ShearfitValueError(f"Observation psf_oversampling must be a positive integer, got {psf_oversampling!r}")
         self.psf_oversampling = k
-        psum = _psf_sum(self.psf)
-        if not math.isfinite(psum) or abs(psum - 1.0) > 1e-3:
-            raise ShearfitValueError(f"Observation psf must sum to 1 (sums to {psum:.6g})")
         J = np.array(jacobian, dtype=np.float64)
         if not (J.shape == (2, 2) and _finite(J) and abs(J[0, 0] * J[1, 1] - J[0, 1] * J[1, 0]) > 0):
             raise ShearfitValueError("Observation jacobian must be a finite, invertible 2x2 array")
@@ -127,12 +143,7 @@ class Observation:
         self.flux_scale = float(flux_scale)
         if not self.flux_scale > 0:
             raise ShearfitValueError("Observation flux_scale must be positive")
-        if psf_moffat is not None:
-            rs, beta = (float(v) for v in psf_moffat)
-            if not (rs > 0 and beta > 1 and np.isfinite(rs) and np.isfinite(beta)):
-                raise ShearfitValueError(f"Observation psf_moffat must be (rs > 0, beta > 1), got {psf_moffat!r}")
-            psf_moffat = (rs, beta)
-        self.psf_moffat = psf_moffat
+        self.psf_moffat = _checked_moffat(psf_moffat)
 
     def with_image(self, image):
         """This observation with other pixels (same weight, PSF, Jacobian, offset, scale and Moffat, whose
@@ -143,6 +154,24 @@ class Observation:
         out = object.__new__(Observation)
         out.__dict__.update(self.__dict__)
         out.image = img
+        return out
+
+    def derived(self, image, weight, psf, psf_moffat=None):
+        """An observation of the same stamp geometry (Jacobian, offset, flux scale, PSF oversampling) with other
+        pixels, weights, PSF image and Moffat, made from this checked one (metacalibration's versions): the new
+        arrays checked as the constructor checks them, the geometry's taken as they are. Arrays that are immutable
+        float64 are kept themselves (read-only copies of the others)."""
+        img = _readonly(image, "image")
+        wgt = _readonly(weight, "weight")
+        if wgt.shape != img.shape:
+            raise ShearfitValueError(f"Observation weight shape {wgt.shape} differs from image shape {img.shape}")
+        if wgt.size and not (wgt.min() >= 0 and math.isfinite(wgt.max())):   # (NaN fails the first)
+            raise ShearfitValueError("Observation weight must be finite and non-negative")
+        out = object.__new__(Observation)
+        out.__dict__.update(self.__dict__)
+        out.image, out.weight = img, wgt
+        out.psf = _checked_psf(psf)
+        out.psf_moffat = _checked_moffat(psf_moffat)
         return out
 
     @property

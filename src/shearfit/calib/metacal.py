@@ -376,9 +376,7 @@ def band_images(shape, n, items):
         return list(full[:, :, (np.arange(nx) - lo_x) % n])
     out = []
     for img in full:
-        a = np.empty((ny, nx))
-        a[:, :lo_x] = img[:, n - lo_x:]
-        a[:, lo_x:] = img[:, :nx - lo_x]
+        a = np.concatenate((img[:, n - lo_x:], img[:, :nx - lo_x]), axis=1)
         a.setflags(write=False)
         out.append(a)
     return out
@@ -516,6 +514,9 @@ def _oversampled_kspace_images(image, noise, psf, J, k, delta, names, n_small, n
     scale = (1.0 if new_psf is not None else dilation) / k   # kappa -> the new PSF's wavevector in its pixels
     items = []
     first = None
+    if kspace.USE_KERNEL:   # (the same for every version)
+        jt = np.ascontiguousarray(J.T)
+        xtab, xh = _x_table(int(np.ceil(maxk * smax_j / np.pi)) + 1)
     for name in names:
         s1, s2 = VERSIONS[name]
         S = _shear_matrix(s1 * delta, s2 * delta)
@@ -537,16 +538,15 @@ def _oversampled_kspace_images(image, noise, psf, J, k, delta, names, n_small, n
             # (within 3e-10 of GalSim's, :func:`_x_table`)
             arr = np.empty((3 if turn_noise else 2, kap.shape[1]), complex)
             phase = _turn_phase(r, n_small, shape[0]) if turn_noise else _NO_PHASE
-            xtab, xh = _x_table(int(np.ceil(maxk * smax_j / np.pi)) + 1)
             if psf_rows is not None:
                 # the version without shear, whose wavevectors are the tables' own where the stamp's grid is a
                 # multiple of the band's, reads them there
                 step = n_s // n_small if (s1 == s2 == 0 and n_s % n_small == 0 and (n_s // n_small) * r < n_s // 2) else 0
-                kspace.KERNEL.quintic_band_rows(table, n_s, psf_rows, ptab, n_p, k, r, dk, np.ascontiguousarray(A),
-                                                np.ascontiguousarray(J.T), lim, gamma, xtab, xh, step, phase, arr)
+                kspace.KERNEL.quintic_band_rows(table, n_s, psf_rows, ptab, n_p, k, r, dk, A, jt, lim, gamma, xtab,
+                                                xh, step, phase, arr)
             else:
-                kspace.KERNEL.quintic_band_os(table, n_s, ptab, n_p, k, r, dk, np.ascontiguousarray(A),
-                                              np.ascontiguousarray(J.T), lim, gamma, xtab, xh, phase, arr)
+                kspace.KERNEL.quintic_band_os(table, n_s, ptab, n_p, k, r, dk, A, jt, lim, gamma, xtab, xh, phase,
+                                              arr)
             first = _add_compiled_band(items, first, r, arr.reshape(-1, 2 * r + 1, r + 1), turn_noise)
             continue
         sky = A @ kap
@@ -721,6 +721,24 @@ def _grown(mask, steps):
     return mask
 
 
+@functools.lru_cache(maxsize=16)
+def _edge_mask(shape):
+    """The pixels within ``_EDGE`` of a stamp's edge (read-only, shared): a stamp's mask without masked pixels."""
+    mask = np.zeros(shape, bool)
+    mask[:_EDGE, :] = mask[-_EDGE:, :] = True
+    mask[:, :_EDGE] = mask[:, -_EDGE:] = True
+    mask.setflags(write=False)
+    return mask
+
+
+def _interior(shape):
+    """The pixels :func:`_edge_mask` leaves, as a slice of the stamp (None: none)."""
+    ny, nx = shape
+    if ny <= 2 * _EDGE or nx <= 2 * _EDGE:
+        return None
+    return np.s_[_EDGE:ny - _EDGE, _EDGE:nx - _EDGE]
+
+
 def metacal_observations(obs: Observation, delta=0.01, rng=None, versions=tuple(VERSIONS),
                          fit_moffat=True, psf="dilated") -> dict:
     """The metacal versions of one exposure's stamp: ``{version: Observation}`` (see the module doc).
@@ -738,7 +756,10 @@ def metacal_observations(obs: Observation, delta=0.01, rng=None, versions=tuple(
     k = obs.psf_oversampling
     w = obs.weight
     good = w > 0
-    image = np.where(good, obs.image, 0.0)
+    # (a stamp without a masked pixel, the usual one, needs none of the masked pixels' handling below: the same
+    # arrays with fewer operations)
+    whole = bool(good.all())
+    image = obs.image if whole else np.where(good, obs.image, 0.0)
     dilation = 1.0 + 2.0 * abs(delta)
     own = OWN_KSPACE and WRAP_STAMPS and K_INTERPOLANT == PSF_K_INTERPOLANT == "quintic"
     if psf == "round":
@@ -761,22 +782,29 @@ def metacal_observations(obs: Observation, delta=0.01, rng=None, versions=tuple(
     else:
         moffat = psf_moffat(psf_img) if fit_moffat else None
     # the symmetrising noise: the stamp's variance, rotated by 90 degrees before the operations
-    sigma = np.where(good, 1.0 / np.sqrt(np.where(good, w, 1.0)), 0.0)
-    noise = rng.normal(0.0, 1.0, w.shape) * sigma
+    with np.errstate(divide="ignore"):
+        sigma = 1.0 / np.sqrt(w)   # (inf at the masked pixels, zero below)
+    if not whole:
+        sigma[~good] = 0.0
+    noise = rng.normal(0.0, 1.0, w.shape)
+    noise *= sigma
     square = w.shape[0] == w.shape[1]
     if not square:
         # a 90-degree rotation of a non-square stamp is another shape: the added noise is then not rotated,
         # and its correlation doubles the processed noise's instead of symmetrising it
         log.warning("metacal: a %d x %d stamp is not square; its noise is not symmetrised", *w.shape)
     turn = square and SYMMETRISE_NOISE
-    nrot = np.rot90(noise, 1) if turn else noise
-    # (a stamp without a masked pixel, the usual one, has nothing to grow)
-    mask = _grown(~good, _MASK_GROW) if not good.all() else np.zeros(good.shape, bool)
-    mask[:_EDGE, :] = mask[-_EDGE:, :] = True
-    mask[:, :_EDGE] = mask[:, -_EDGE:] = True
-    keep = ~mask
-    some = bool(keep.any())
-    var_in = float(np.mean(sigma[keep] ** 2)) if some else 1.0
+    nrot = noise[:, ::-1].T if turn else noise   # np.rot90(noise, 1)
+    if whole:   # only the edge is masked: its interior, in the same order as a mask would select it
+        mask, inner = _edge_mask(w.shape), _interior(w.shape)
+        some = inner is not None
+    else:
+        mask = _grown(~good, _MASK_GROW)
+        mask[:_EDGE, :] = mask[-_EDGE:, :] = True
+        mask[:, :_EDGE] = mask[:, -_EDGE:] = True
+        inner = ~mask
+        some = bool(inner.any())
+    var_in = float(np.mean(sigma[inner] ** 2)) if some else 1.0
     names = ("noshear",) + tuple(v for v in versions if v != "noshear")
     new_psf = psf_img if psf == "round" else None
     if own and turn:
@@ -794,17 +822,17 @@ def metacal_observations(obs: Observation, delta=0.01, rng=None, versions=tuple(
     # the versions' noise: the original, processed, plus the added field: twice the added field's variance,
     # measured on the noshear version and used for all, so that every version is fitted with the same weights
     # (and the same Fourier modes)
-    var_out = float(np.mean(noise0[keep] ** 2)) if some else var_in
+    var_out = float(np.mean(noise0[inner] ** 2)) if some else var_in
     scale = var_in / max(2.0 * var_out, 1e-300)
-    weight = np.where(mask, 0.0, w * scale)
+    weight = w * scale
+    weight[mask] = 0.0
+    weight.setflags(write=False)
     out = {}
     first = None
     for v, name in enumerate(names):
         if name in versions:
             if first is None:
-                first = Observation(image=sums[v], weight=weight, psf=psf_img, psf_oversampling=k, jacobian=J,
-                                    offset=tuple(obs.offset), flux_scale=obs.flux_scale, psf_moffat=moffat)
-                out[name] = first
+                first = out[name] = obs.derived(sums[v], weight, psf_img, moffat)
             else:   # the versions share the first one's weight, PSF and geometry
                 out[name] = first.with_image(sums[v])
     return out

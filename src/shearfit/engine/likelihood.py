@@ -886,6 +886,19 @@ def versions_polar_grid(jms, channels, bins_per_octave, angles):
                                            POLAR_NODE_MODES))
 
 
+def versions_polar_subset(grid, versions, nv):
+    """The polar grid of the versions ``versions`` (indices) of the ``nv`` whose :func:`versions_polar_grid` is
+    ``grid``: their blocks of it (each version's grid is spread from its own weights alone, on node rows and
+    columns that only the modes decide), as that function makes it for them."""
+    u0, n_u, g, dc, rows, direct = grid
+    vsz = g.size // nv
+    dsz = len(dc) // nv
+    pick = [int(v) for v in versions]
+    sub_g = np.concatenate([g[v * vsz:(v + 1) * vsz] for v in pick]).tobytes()
+    sub_dc = b"".join(dc[v * dsz:(v + 1) * dsz] for v in pick)
+    return _aligned_grid((u0, n_u, sub_g, sub_dc, rows, direct))
+
+
 def mode_bins_versions(jms, e1, e2, bins_per_octave, channels=None, polar=None, grid=None, reuse=False) -> ModeBins:
     """:func:`mode_bins` of several versions of one object at once (JointModes on the same modes, with other
     data: :func:`shares_bins_geometry`): entry ``i * V + v`` of the result is version v's bins at

@@ -31,7 +31,8 @@ from .kernel import KERNEL, USE_KERNEL
 from .likelihood import (Marginal, bins_context, bins_context_rest, column_buffer, grow_column_buffer, linear_vectors,
                          flux_position_marginal, marginal_context, mode_bins, mode_bins_versions, model_sums,
                          node_matrices, packed_bins, polar_args, polar_grid, polar_pays, polar_setting,
-                         shares_bins_geometry, versions_channels, versions_polar_grid)
+                         shares_bins_geometry, versions_channels, versions_polar_grid,
+                         versions_polar_subset)
 
 __all__ = ["EllipticityLikelihood", "VersionLikelihoods", "Samples", "adaptive_samples", "two_pass_samples",
            "replay_samples", "replay_versions", "adaptive_versions",
@@ -687,7 +688,10 @@ class VersionLikelihoods:
     def __call__(self, e1, e2, versions=None) -> list:
         """``[like(e1, e2) for like in likes]``, over the likelihoods ``versions`` (indices; None: all)."""
         if versions is not None and list(versions) != list(range(len(self.likes))):
-            return VersionLikelihoods([self.likes[v] for v in versions])(e1, e2)
+            sub = VersionLikelihoods([self.likes[v] for v in versions])
+            if sub.joint and self.grid is not None:   # their blocks of this grid: the grid they would make
+                sub.grid = versions_polar_subset(self.grid, versions, len(self.likes))
+            return sub(e1, e2)
         e1 = np.atleast_1d(np.asarray(e1, float))
         e2 = np.atleast_1d(np.asarray(e2, float))
         if not self.joint:
