@@ -16,6 +16,7 @@ and the peak memory; then, under the profiler, the time of each pipeline stage a
     python benchmarks/pipeline_profile.py --compare-with A  # how far the catalogues moved
     python benchmarks/pipeline_profile.py --no-profile --psf true --stage-clock   # the pipeline's stages, timed directly
     python benchmarks/pipeline_profile.py --no-profile --psf true --pairs 1 --metacal 3   # metacal's cost per object
+                                                          # (whole runs alternated, then each object both ways in turn)
     python benchmarks/pipeline_profile.py --no-profile --psf true --pairs 1 --isophotes   # sec. 3.6, compiled vs numpy
 """
 
@@ -242,6 +243,89 @@ def _metacal_pairs(d, settings, n_pairs):
         print(f"    {name} ({got[0][0]}): plain {1e3 * np.median([p for _, p, _ in got]):.1f} ms, metacal "
               f"{1e3 * np.median([m for _, _, m in got]):.1f} ms: median x{float(np.median(r)):.2f} "
               f"({', '.join(f'{x:.2f}' for x in r)})")
+    _metacal_interleaved(cfg, n_pairs, os.path.join(d, "shear_metacal_pair.fits"))
+
+
+def _metacal_interleaved(cfg, n_runs, metacal_path):
+    """Metacal's cost per object with the plain and the metacal measurement of each object made one after the
+    other (their order alternating from object to object), so that the machine's drift over a run, which moves
+    whole runs by 10-30 %, meets both alike: ``n_runs`` runs of ``calibration: metacal`` whose driver measures
+    every object both ways (``_measure_one`` wrapped) and writes the metacal rows. Prints, per class of the
+    plain fit and over all objects, the ratio of the summed CPU times (metacal's cost per object over the plain
+    one's) with its bootstrap error over the objects, and checks that the catalogue is the metacal run's."""
+    from dataclasses import replace
+
+    from astropy.table import Table
+
+    run = replace(cfg, calibration="metacal")
+    print(f"\ncalibration: metacal against the plain run, each object measured both ways in turn (order alternating), "
+          f"{n_runs} runs; CPU seconds of the driver's measurement of each object (stamps, PSF at the object, fits):")
+    per_class = {}
+    rng = np.random.default_rng(0)
+    for k in range(max(n_runs, 1)):
+        _forget_psfs()
+        out = metacal_path.replace(".fits", "_interleaved.fits")
+        with _interleaved_clock(cfg) as rows:
+            table = measure_field(run, out_path=out, processes=1)
+        same = _same_table(Table.read(metacal_path), Table.read(out)) if os.path.exists(metacal_path) else None
+        cls = np.array([c for c, _, _ in rows])
+        tp, tm = np.array([p for _, p, _ in rows]), np.array([m for _, _, m in rows])
+        parts = []
+        for name, sel in (("all objects", np.ones(cls.size, bool)), ("galaxies", cls == 0), ("stars", cls == 1),
+                          ("flagged", cls < 0)):
+            if not sel.any():
+                continue
+            p, m = tp[sel], tm[sel]
+            boot = [m[i].sum() / p[i].sum() for i in rng.integers(0, p.size, (400, p.size))]
+            ratio = m.sum() / p.sum()
+            per_class.setdefault(name, []).append(ratio)
+            parts.append(f"{name} ({int(sel.sum())}): plain {1e3 * p.mean():.1f} ms, metacal {1e3 * m.mean():.1f} ms, "
+                         f"**x{ratio:.2f}** +- {np.std(boot):.2f}")
+        check = "" if same is None else ", the catalogue " + ("identical to" if same else "DIFFERS from") + " the metacal run"
+        print(f"  run {k + 1} ({len(table)} rows{check}):")
+        for line in parts:
+            print(f"    {line}")
+    print("  median over runs: " + "; ".join(f"{name} x{float(np.median(r)):.2f}" for name, r in per_class.items()))
+
+
+def _same_table(a, b):
+    """Whether two catalogues hold the same columns with the same values (NaN equal to NaN)."""
+    if a.colnames != b.colnames or len(a) != len(b):
+        return False
+    for c in a.colnames:
+        x, y = np.asarray(a[c]), np.asarray(b[c])
+        if x.dtype.kind == "f":
+            if not np.array_equal(x, y, equal_nan=True):
+                return False
+        elif not np.array_equal(x, y):
+            return False
+    return True
+
+
+@contextlib.contextmanager
+def _interleaved_clock(cfg):
+    """[(plain fitclass, plain CPU s, metacal CPU s)] of each object the driver measures while in the block: its
+    ``_measure_one`` wrapped to measure the object with ``cfg`` (the plain run) and as the run asks (metacal), in
+    turn, the first of the two alternating from object to object; the run's own row is returned."""
+    import shearfit.pipeline.driver as drv
+
+    rows, real = [], drv._measure_one
+
+    def both(hits, exposures, mag, run_cfg, *args, **kwargs):
+        got, cpu = {}, {}
+        order = ((cfg, "plain"), (run_cfg, "metacal"))
+        for c, mode in (order if len(rows) % 2 == 0 else order[::-1]):
+            t0 = time.process_time()
+            got[mode] = real(hits, exposures, mag, c, *args, **kwargs)
+            cpu[mode] = time.process_time() - t0
+        rows.append((int(got["plain"].get("fitclass", -99)), cpu["plain"], cpu["metacal"]))
+        return got["metacal"]
+
+    drv._measure_one = both
+    try:
+        yield rows
+    finally:
+        drv._measure_one = real
 
 
 @contextlib.contextmanager
@@ -342,7 +426,8 @@ def _forget_psfs():
     """Empty what the pipeline and the engine remember by PSF image or Moffat (each image's adaptive moments,
     fine modes and Moffat, each Moffat's alias tables), so that every run pays for its PSFs as a fresh
     ``shearfit measure`` process does, instead of reusing the first run's: the same field's PSF images are
-    the same arrays' contents run after run."""
+    the same arrays' contents run after run (and a later run's new arrays of the same contents would find the
+    first run's entries only by comparing contents, at every object)."""
     import shearfit.engine.model as model
     import shearfit.pipeline.driver as drv
 
@@ -350,6 +435,10 @@ def _forget_psfs():
     model._FINE_PSF.clear()
     model._OWN_MOFFAT.clear()
     model._moffat_aliases.cache_clear()
+    mc = sys.modules.get("shearfit.calib.metacal")
+    if mc is not None:   # metacal's dilated PSFs and PSF tables (held by the PSF images' contents)
+        mc._DILATED.clear()
+        mc._PSF_TABLES.clear()
 
 
 def _cpu_seconds():
@@ -470,7 +559,9 @@ def main(argv=None):
                          "10-30 %% from minute to minute: the PSF stage is taken from each pair and from the medians)")
     ap.add_argument("--metacal", type=int, default=0, metavar="N",
                     help="also run N pairs of the plain run and calibration: metacal (PSF images given), alternated, "
-                         "and print metacal's CPU time per object as a multiple of the plain run's")
+                         "and print metacal's CPU time per object as a multiple of the plain run's; then N runs that "
+                         "measure each object both ways in turn (the machine's drift met by both alike), the ratio "
+                         "per class of the plain fit with its bootstrap error")
     ap.add_argument("--isophotes", action="store_true",
                     help="also time the isophote analysis (sec. 3.6) of 200 objects as the pipeline cut them, in a "
                          "loop, compiled against its numpy and scipy lines, and check that both decide the same")
