@@ -216,3 +216,72 @@ def test_located_size_peaks_compiled_and_numpy_agree_to_the_bit():
         ref = EllipticityLikelihood._parabola_peaks(mg, *w, lpr, xs, (nrow, n), use_kernel=False)
     for a, b in zip(got, ref):
         assert np.array_equal(a, b, equal_nan=True)
+
+
+def _near_cut_case(change, n=81, sigma=0.08):
+    """A reference's samples on a grid with a Gaussian log posterior, and an evaluate() giving ``nv`` versions the
+    reference's plus change(v, e1, e2), recording what was evaluated."""
+    from types import SimpleNamespace
+
+    g = np.linspace(-0.4, 0.4, n)
+    e1, e2 = [a.ravel() for a in np.meshgrid(g, g)]
+    ref = SimpleNamespace(e1=e1, e2=e2, logpost=-0.5 * (e1 ** 2 + e2 ** 2) / sigma ** 2)
+    vals = {}
+
+    def evaluate(which, versions):
+        for v in versions:
+            lp = vals.setdefault(v, np.full(e1.size, -np.inf))
+            lp[which] = ref.logpost[which] + change(v, e1[which], e2[which])
+
+    return ref, evaluate, (lambda v, which: vals[v][which]), vals
+
+
+@pytest.mark.parametrize("first_margin", [0.25, 0.5, 1.0])
+def test_replays_leave_out_only_samples_their_change_keeps_below_the_cut(first_margin):
+    """_evaluate_near_cut with a first margin: every sample above a version's own cut is evaluated, the samples its
+    smooth change keeps well below the cut are not; where the change is not what the first samples predict (a step
+    beyond them), the version evaluates the whole margin; with too few samples above the cut, the whole margin."""
+    from shearfit.engine.sampling import _evaluate_near_cut
+
+    cfg = FitConfig()
+    lnc = np.log(cfg.posterior_cut)
+
+    def check(change, nv, expect_whole):
+        ref, evaluate, logpost_of, vals = _near_cut_case(change)
+        ok = np.ones(ref.e1.size, bool)
+        full = ref.logpost > ref.logpost.max() + lnc - 10.0
+        sel = _evaluate_near_cut(ref, ok, cfg, 10.0, first_margin, nv, evaluate, logpost_of)
+        for v in range(nv):
+            true = ref.logpost + change(v, ref.e1, ref.e2)
+            above = full & (true > true[full].max() + lnc)
+            assert np.all(sel[v][above]), v                   # every sample of the version's estimate
+            assert np.isfinite(vals[v][sel[v]]).all() and not np.isfinite(vals[v][~sel[v]]).any()
+            if expect_whole[v]:
+                assert np.array_equal(sel[v], full), v
+            else:
+                assert sel[v].sum() < 0.6 * full.sum(), (v, sel[v].sum(), full.sum())
+        # no sample evaluated that no version needs: beyond the reference's own above its cut, which every version
+        # evaluates, each lies within the first margin (and the fits' allowance) of some version's cut
+        ref_above = ref.logpost > ref.logpost.max() + lnc
+        need = np.zeros(ref.e1.size, bool)
+        for v in range(nv):
+            true = ref.logpost + change(v, ref.e1, ref.e2)
+            need |= true > true[full].max() + lnc - first_margin - 3.0
+        for v in range(nv):
+            if not expect_whole[v]:
+                assert not np.any(sel[v] & ~ref_above & ~need), v
+
+    # metacal-like: a small shift of the peak, each version its own
+    smooth = lambda v, e1, e2: (-1) ** v * (8.0 * e1 + 3.0 * e2 * (v + 1)) + 0.5 * v * e1 * e2   # noqa: E731
+    check(smooth, 3, [False, False, False])
+    # version 1 lifts everything beyond the first samples by 4 nats, which their fit cannot see: the samples it
+    # evaluates next to them show it, and it takes the whole margin
+    step = lambda v, e1, e2: smooth(v, e1, e2) + (v == 1) * 4.0 * (np.hypot(e1, e2) > 0.244)   # noqa: E731
+    check(step, 2, [False, True])
+    # a narrow posterior: fewer samples above the cut than the prediction needs
+    ref, evaluate, logpost_of, vals = _near_cut_case(smooth, sigma=0.005)
+    ok = np.ones(ref.e1.size, bool)
+    full = ref.logpost > ref.logpost.max() + lnc - 10.0
+    assert (ref.logpost > ref.logpost.max() + lnc).sum() < 12
+    sel = _evaluate_near_cut(ref, ok, cfg, 10.0, first_margin, 2, evaluate, logpost_of)
+    assert all(np.array_equal(s, full) for s in sel)

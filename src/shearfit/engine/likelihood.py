@@ -801,6 +801,15 @@ def polar_grid(jm: JointModes, bins_per_octave, angles):
     return cache[1]
 
 
+def seed_polar_grid(jm: JointModes, bins_per_octave, angles, grid):
+    """Give these modes the polar grid :func:`polar_grid` would make for them, made elsewhere (a version's blocks of
+    its versions' grid, :func:`versions_polar_subset`), where they have none yet."""
+    key = (int(bins_per_octave), int(angles))
+    cache = getattr(jm, "_polar", None)
+    if cache is None or cache[0] != key:
+        jm._polar = (key, grid)
+
+
 #: a thread's memory for the columns of make_bins (:func:`mode_bins`' ``reuse``)
 _COLUMNS = threading.local()
 

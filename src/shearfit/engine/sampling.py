@@ -31,7 +31,7 @@ from .kernel import KERNEL, USE_KERNEL
 from .likelihood import (Marginal, bins_context, bins_context_rest, column_buffer, grow_column_buffer, linear_vectors,
                          flux_position_marginal, marginal_context, mode_bins, mode_bins_versions, model_sums,
                          node_matrices, packed_bins, polar_args, polar_grid, polar_pays, polar_setting,
-                         shares_bins_geometry, versions_channels, versions_polar_grid,
+                         seed_polar_grid, shares_bins_geometry, versions_channels, versions_polar_grid,
                          versions_polar_subset)
 
 __all__ = ["EllipticityLikelihood", "VersionLikelihoods", "Samples", "adaptive_samples", "two_pass_samples",
@@ -689,8 +689,12 @@ class VersionLikelihoods:
         """``[like(e1, e2) for like in likes]``, over the likelihoods ``versions`` (indices; None: all)."""
         if versions is not None and list(versions) != list(range(len(self.likes))):
             sub = VersionLikelihoods([self.likes[v] for v in versions])
-            if sub.joint and self.grid is not None:   # their blocks of this grid: the grid they would make
-                sub.grid = versions_polar_subset(self.grid, versions, len(self.likes))
+            if self.grid is not None:   # their blocks of this grid: the grid they would make
+                part = versions_polar_subset(self.grid, versions, len(self.likes))
+                if sub.joint:
+                    sub.grid = part
+                elif len(sub.likes) == 1:   # (one version's own likelihood bins from its modes' grid)
+                    seed_polar_grid(sub.likes[0].jm, self.likes[0].cfg.mode_bins_per_octave, self.polar[0], part)
             return sub(e1, e2)
         e1 = np.atleast_1d(np.asarray(e1, float))
         e2 = np.atleast_1d(np.asarray(e2, float))
@@ -1163,12 +1167,11 @@ def replay_samples(like: EllipticityLikelihood, ref: Samples, cfg: FitConfig, ma
     the version's posterior differs from the reference's by more than
     ``margin`` there.
 
-    With ``first_margin`` (< ``margin``), the samples within ``first_margin`` of the cut are evaluated first;
-    the rest of those within ``margin`` only where the version could lift one of them above its own cut: where
-    twice the largest change of the posterior (relative to its maximum) seen over the first samples reaches
-    ``first_margin``. The change from one version to another grows about linearly with the distance from the
-    peak (a small shear moves the posterior), so the samples left out stay below the cut and the estimate is
-    the one with ``margin`` alone.
+    With ``first_margin`` (< ``margin``), the samples above the reference's cut are evaluated first, and of the
+    rest within ``margin`` only those the version could lift to within ``first_margin`` of its own cut
+    (:func:`_evaluate_near_cut`): the version's change of the posterior from the reference's, smooth in e (a small
+    shear moves the posterior), is fitted over the first samples and predicts it at the others. The samples left
+    out stay below the version's cut, and the estimate is the one with ``margin`` alone, to rounding.
     """
     return replay_versions(VersionLikelihoods([like]), ref, cfg, margin, first_margin)[0]
 
@@ -1198,35 +1201,81 @@ def replay_versions(likes: VersionLikelihoods, ref: Samples, cfg: FitConfig, mar
                     point=EPoint(**cols[v]), evaluated=sel[v]) for v in range(nv)]
 
 
+#: :func:`_evaluate_near_cut` predicts a version's change of the posterior from at least this many samples (else
+#: it evaluates every sample within the margin)
+PREDICT_MIN_SAMPLES = 12
+
+
+def _change_design(e1, e2):
+    """The terms of the quadratic in (e1, e2) that :func:`_evaluate_near_cut` fits a version's change with."""
+    return np.stack([np.ones_like(e1), e1, e2, e1 * e1, e1 * e2, e2 * e2], axis=1)
+
+
 def _evaluate_near_cut(ref, ok, cfg, margin, first_margin, nv, evaluate, logpost_of):
     """Which of the reference's samples (``ok``) each of ``nv`` versions evaluates: those within ``margin`` nats
-    of the reference's posterior cut (``evaluate(which, versions)``); with ``first_margin`` (< ``margin``) those
-    within it first, and the rest only for the versions whose posterior, relative to its maximum, moved by half
-    ``first_margin`` or more over them (``logpost_of(v, which)``: version v's log posterior there). Returns
-    one mask per version."""
+    of the reference's posterior cut (``evaluate(which, versions)``). With ``first_margin`` (< ``margin``) the
+    samples above the reference's cut first (every version's estimate is mostly theirs); then, per version, its
+    change of the log posterior from the reference's (``logpost_of(v, which)``: version v's log posterior there)
+    fitted over them by a quadratic in (e1, e2), and of the other samples within ``margin`` only those whose
+    predicted log posterior lies within ``first_margin`` nats, plus three times the fit's largest residual, of the
+    version's own cut (the samples any version needs evaluated for all that need some, together: their bins placed
+    once). Where a sample a version needs differs from its prediction by more than half ``first_margin`` plus that
+    allowance, or where fewer than ``PREDICT_MIN_SAMPLES`` samples lie above the cut, the version evaluates every
+    sample within ``margin``.
+    The samples left out lie below the version's cut by more than the prediction's error seen: its estimate is
+    the one with ``margin`` alone. Returns one mask per version."""
     sel = [np.zeros(ref.e1.size, bool) for _ in range(nv)]
     if not np.any(ok):
         return sel
     top = np.max(ref.logpost[ok])
-    full = ok & (ref.logpost > top + np.log(cfg.posterior_cut) - margin)
+    cut = top + np.log(cfg.posterior_cut)
+    full = ok & (ref.logpost > cut - margin)
     if first_margin is None or first_margin >= margin:
         evaluate(full, list(range(nv)))
         return [full] * nv
-    first = ok & (ref.logpost > top + np.log(cfg.posterior_cut) - first_margin)
-    evaluate(first, list(range(nv)))
-    more = []
+    above = ok & (ref.logpost > cut)
+    evaluate(above, list(range(nv)))
+    rest = full & ~above
+    if not np.any(rest):
+        return [above] * nv
+    ia, ir = np.nonzero(above)[0], np.nonzero(rest)[0]
+    xa, xr = _change_design(ref.e1[ia], ref.e2[ia]), _change_design(ref.e1[ir], ref.e2[ir])
+    whole, fits = [], {}
     for v in range(nv):
-        sel[v] = first
-        lp = logpost_of(v, first)
+        lp = logpost_of(v, above)
         good = np.isfinite(lp)
-        change = (np.abs((lp[good] - lp[good].max()) - (ref.logpost[first][good] - top)) if np.any(good)
-                  else [np.inf])
-        if not (2 * np.max(change) < first_margin):
-            more.append(v)
-            sel[v] = full
-    rest = full & ~first
-    if more and np.any(rest):
-        evaluate(rest, more)
+        if np.count_nonzero(good) < PREDICT_MIN_SAMPLES:
+            whole.append(v)
+            continue
+        d = lp[good] - ref.logpost[ia[good]]
+        beta = np.linalg.lstsq(xa[good], d, rcond=None)[0]
+        slack = first_margin + 3.0 * float(np.max(np.abs(d - xa[good] @ beta)))
+        pred = ref.logpost[ir] + xr @ beta
+        need = pred > np.max(lp[good]) + np.log(cfg.posterior_cut) - slack
+        if np.any(need):
+            fits[v] = (pred, slack, need)
+    # the samples any version needs, evaluated for those versions together (their bins placed once)
+    near = np.zeros(ref.e1.size, bool)
+    for _, _, need in fits.values():
+        near[ir[need]] = True
+    some = list(fits)
+    if some:
+        evaluate(near, some)
+        for v in some:
+            # the prediction checked where the version needs it
+            pred, slack, need = fits[v]
+            got = logpost_of(v, near)[need[near[ir]]]
+            fin = np.isfinite(got)
+            if np.any(fin) and np.max(np.abs(got[fin] - pred[need][fin])) > slack - 0.5 * first_margin:
+                whole.append(v)
+    for v in range(nv):
+        sel[v] = above | near if v in fits else above.copy()
+    # the versions that evaluate every sample within the margin: those not yet evaluated
+    for group, others in (([v for v in whole if v in fits], rest & ~near), ([v for v in whole if v not in fits], rest)):
+        if group and np.any(others):
+            evaluate(others, group)
+            for v in group:
+                sel[v] = sel[v] | others
     return sel
 
 
@@ -1243,9 +1292,9 @@ def adaptive_versions(likes: VersionLikelihoods, ref: Samples, cfg: FitConfig, m
     moved by more than ``margin`` there (the replays' assumption), and below it they only decide where the
     coarse pre-pass is refined, far from any sample the estimator uses (they are moved by the difference of the
     version's and the reference's maxima, so that they stand as far below the version's maximum). With
-    ``first_margin`` (< ``margin``) the samples within ``first_margin`` of the cut are evaluated first, and the
-    rest within ``margin`` only for a version whose posterior moved, relative to its maximum, by half
-    ``first_margin`` or more there (as :func:`replay_versions` decides). A sample the reference never had (a
+    ``first_margin`` (< ``margin``) the samples above the reference's cut are evaluated first, and of the rest
+    within ``margin`` only those the version's predicted change could lift to within ``first_margin`` of its cut
+    (as :func:`replay_versions` decides, :func:`_evaluate_near_cut`). A sample the reference never had (a
     version refining where it did not) is evaluated for that version alone, its size centre carried from the
     nearest replayed one (:meth:`EllipticityLikelihood.replayed_centres`). Every version must replay the
     reference's size nodes and centres (``fixed_centres``).
