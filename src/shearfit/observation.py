@@ -57,6 +57,17 @@ def _psf_sum(psf) -> float:
     return total
 
 
+def _checked_weight(weight, image):
+    """A weight map as an Observation keeps it (read-only float64), checked: the image's shape, finite and
+    non-negative."""
+    w = _readonly(weight, "weight")
+    if w.shape != image.shape:
+        raise ShearfitValueError(f"Observation weight shape {w.shape} differs from image shape {image.shape}")
+    if w.size and not (w.min() >= 0 and math.isfinite(w.max())):   # (NaN fails the first)
+        raise ShearfitValueError("Observation weight must be finite and non-negative")
+    return w
+
+
 def _checked_psf(psf):
     """A PSF image as an Observation keeps it (read-only float64), checked to sum to 1."""
     out = _readonly(psf, "psf")
@@ -119,12 +130,7 @@ class Observation:
         if weight is None:
             sigma = _mad_sigma(self.image)
             weight = np.full(self.image.shape, 1.0 / sigma**2)
-        self.weight = _readonly(weight, "weight")
-        if self.weight.shape != self.image.shape:
-            raise ShearfitValueError(
-                f"Observation weight shape {self.weight.shape} differs from image shape {self.image.shape}")
-        if not np.all(np.isfinite(self.weight)) or np.any(self.weight < 0):
-            raise ShearfitValueError("Observation weight must be finite and non-negative")
+        self.weight = _checked_weight(weight, self.image)
         self.psf = _checked_psf(psf)
         k = int(psf_oversampling)
         if k < 1 or k != psf_oversampling:
@@ -162,11 +168,7 @@ class Observation:
         arrays checked as the constructor checks them, the geometry's taken as they are. Arrays that are immutable
         float64 are kept themselves (read-only copies of the others)."""
         img = _readonly(image, "image")
-        wgt = _readonly(weight, "weight")
-        if wgt.shape != img.shape:
-            raise ShearfitValueError(f"Observation weight shape {wgt.shape} differs from image shape {img.shape}")
-        if wgt.size and not (wgt.min() >= 0 and math.isfinite(wgt.max())):   # (NaN fails the first)
-            raise ShearfitValueError("Observation weight must be finite and non-negative")
+        wgt = _checked_weight(weight, img)
         out = object.__new__(Observation)
         out.__dict__.update(self.__dict__)
         out.image, out.weight = img, wgt

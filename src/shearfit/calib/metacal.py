@@ -732,14 +732,6 @@ def _edge_mask(shape):
     return mask
 
 
-def _interior(shape):
-    """The pixels :func:`_edge_mask` leaves, as a slice of the stamp (None: none)."""
-    ny, nx = shape
-    if ny <= 2 * _EDGE or nx <= 2 * _EDGE:
-        return None
-    return np.s_[_EDGE:ny - _EDGE, _EDGE:nx - _EDGE]
-
-
 def metacal_observations(obs: Observation, delta=0.01, rng=None, versions=tuple(VERSIONS),
                          fit_moffat=True, psf="dilated") -> dict:
     """The metacal versions of one exposure's stamp: ``{version: Observation}`` (see the module doc).
@@ -796,15 +788,10 @@ def metacal_observations(obs: Observation, delta=0.01, rng=None, versions=tuple(
         log.warning("metacal: a %d x %d stamp is not square; its noise is not symmetrised", *w.shape)
     turn = square and SYMMETRISE_NOISE
     nrot = noise[:, ::-1].T if turn else noise   # np.rot90(noise, 1)
-    if whole:   # only the edge is masked: its interior, in the same order as a mask would select it
-        mask, inner = _edge_mask(w.shape), _interior(w.shape)
-        some = inner is not None
-    else:
-        mask = _grown(~good, _MASK_GROW)
-        mask[:_EDGE, :] = mask[-_EDGE:, :] = True
-        mask[:, :_EDGE] = mask[:, -_EDGE:] = True
-        inner = ~mask
-        some = bool(inner.any())
+    # the masked pixels grown, and the edge
+    mask = _edge_mask(w.shape) if whole else _grown(~good, _MASK_GROW) | _edge_mask(w.shape)
+    inner = ~mask
+    some = bool(inner.any())
     var_in = float(np.mean(sigma[inner] ** 2)) if some else 1.0
     names = ("noshear",) + tuple(v for v in versions if v != "noshear")
     new_psf = psf_img if psf == "round" else None

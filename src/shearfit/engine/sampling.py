@@ -689,11 +689,13 @@ class VersionLikelihoods:
         """``[like(e1, e2) for like in likes]``, over the likelihoods ``versions`` (indices; None: all)."""
         if versions is not None and list(versions) != list(range(len(self.likes))):
             sub = VersionLikelihoods([self.likes[v] for v in versions])
-            if self.grid is not None:   # their blocks of this grid: the grid they would make
+            if self.grid is not None and (sub.joint or len(sub.likes) == 1):
+                # their blocks of this grid: the grid they would make (one version's own likelihood bins from its
+                # modes' grid)
                 part = versions_polar_subset(self.grid, versions, len(self.likes))
                 if sub.joint:
                     sub.grid = part
-                elif len(sub.likes) == 1:   # (one version's own likelihood bins from its modes' grid)
+                else:
                     seed_polar_grid(sub.likes[0].jm, self.likes[0].cfg.mode_bins_per_octave, self.polar[0], part)
             return sub(e1, e2)
         e1 = np.atleast_1d(np.asarray(e1, float))
@@ -1227,8 +1229,8 @@ def _evaluate_near_cut(ref, ok, cfg, margin, first_margin, nv, evaluate, logpost
     sel = [np.zeros(ref.e1.size, bool) for _ in range(nv)]
     if not np.any(ok):
         return sel
-    top = np.max(ref.logpost[ok])
-    cut = top + np.log(cfg.posterior_cut)
+    lnc = np.log(cfg.posterior_cut)
+    cut = np.max(ref.logpost[ok]) + lnc
     full = ok & (ref.logpost > cut - margin)
     if first_margin is None or first_margin >= margin:
         evaluate(full, list(range(nv)))
@@ -1251,7 +1253,7 @@ def _evaluate_near_cut(ref, ok, cfg, margin, first_margin, nv, evaluate, logpost
         beta = np.linalg.lstsq(xa[good], d, rcond=None)[0]
         slack = first_margin + 3.0 * float(np.max(np.abs(d - xa[good] @ beta)))
         pred = ref.logpost[ir] + xr @ beta
-        need = pred > np.max(lp[good]) + np.log(cfg.posterior_cut) - slack
+        need = pred > np.max(lp[good]) + lnc - slack
         if np.any(need):
             fits[v] = (pred, slack, need)
     # the samples any version needs, evaluated for those versions together (their bins placed once)
