@@ -17,6 +17,8 @@ and the peak memory; then, under the profiler, the time of each pipeline stage a
     python benchmarks/pipeline_profile.py --no-profile --psf true --stage-clock   # the pipeline's stages, timed directly
     python benchmarks/pipeline_profile.py --no-profile --psf true --pairs 1 --metacal 3   # metacal's cost per object
                                                           # (whole runs alternated, then each object both ways in turn)
+    python benchmarks/pipeline_profile.py --no-profile --psf true --pairs 1 --metacal 3 --metacal-psf fitted   # with the
+                                                          # PSF models fitted from the stars (each object its own)
     python benchmarks/pipeline_profile.py --no-profile --psf true --pairs 1 --isophotes   # sec. 3.6, compiled vs numpy
 """
 
@@ -207,14 +209,18 @@ def _stage_clock_run(cfg, out_path):
     return _cpu_seconds() - c0, engine.cpu, [(label, clock.cpu) for label, clock in clocks]
 
 
-def _metacal_pairs(d, settings, n_pairs):
-    """``calibration: metacal`` against the plain run, on the given PSF images, ``n_pairs`` times alternated in this
-    warm process (its imports and one-off tables excluded, which a whole command's CPU time would share between
-    the two and so understate the ratio): CPU seconds of ``measure_field`` each, per object, and their ratio."""
+def _metacal_pairs(d, settings, n_pairs, psf="true"):
+    """``calibration: metacal`` against the plain run, on the given PSF images (``psf`` 'true') or the PSF models
+    fitted from the stars ('fitted': each object its own PSF image at the stamp's pixels), ``n_pairs`` times
+    alternated in this warm process (its imports and one-off tables excluded, which a whole command's CPU time
+    would share between the two and so understate the ratio): CPU seconds of ``measure_field`` each, per object,
+    and their ratio."""
     from dataclasses import replace
 
-    cfg = _with_settings(load_field_config(os.path.join(d, "field_truepsf.yaml")), settings)
-    print(f"\ncalibration: metacal against the plain run (PSF images given), {n_pairs} pairs alternated, CPU of "
+    cfg = _with_settings(load_field_config(os.path.join(d, "field_truepsf.yaml" if psf == "true" else "field.yaml")),
+                         settings)
+    what = "PSF images given" if psf == "true" else "PSF models fitted from the stars"
+    print(f"\ncalibration: metacal against the plain run ({what}), {n_pairs} pairs alternated, CPU of "
           "measure_field in this process:")
     ratios, by_class = [], {}
     for k in range(max(n_pairs, 1)):
@@ -562,6 +568,8 @@ def main(argv=None):
                          "and print metacal's CPU time per object as a multiple of the plain run's; then N runs that "
                          "measure each object both ways in turn (the machine's drift met by both alike), the ratio "
                          "per class of the plain fit with its bootstrap error")
+    ap.add_argument("--metacal-psf", choices=("true", "fitted"), default="true",
+                    help="the PSFs of --metacal's runs: the given images (default) or the models fitted from the stars")
     ap.add_argument("--isophotes", action="store_true",
                     help="also time the isophote analysis (sec. 3.6) of 200 objects as the pipeline cut them, in a "
                          "loop, compiled against its numpy and scipy lines, and check that both decide the same")
@@ -647,7 +655,7 @@ def main(argv=None):
         if args.simultaneous > 0 and len(modes) == 2:
             _simultaneous_pairs(d, args.set, args.simultaneous)
         if args.metacal > 0:
-            _metacal_pairs(d, args.set, args.metacal)
+            _metacal_pairs(d, args.set, args.metacal, args.metacal_psf)
         if args.isophotes:
             _isophote_loop(d, args.set)
         if args.compare_with:

@@ -264,7 +264,8 @@ def test_compiled_oversampled_bands_are_the_numpy_lines(k, monkeypatch):
 def test_bands_of_a_psf_k_times_the_stamp_read_both_tables_at_the_same_taps(k, monkeypatch):
     """A PSF image k times the stamp's size (its padded grid k times the stamp's, as the simulated fields' given
     PSF images are): the compiled band reads the stamp's and the PSF's rows at the same taps (quintic_band_rows, the
-    version without shear at the tables' own points), and gives the numpy lines' images to 1e-9 of their largest,
+    version without shear at the tables' own points, the sheared ones in one call, each one's band that of its own
+    call to the bit), and gives the numpy lines' images to 1e-9 of their largest,
     with and without the noise's turn, with either new PSF, on a reflected and on a rotated, sheared grid; the
     stamp's transforms in rows are padded_transforms' to the bit."""
     from shearfit.simulate.stamps import draw_psf_image, moffat_psf
@@ -277,8 +278,14 @@ def test_bands_of_a_psf_k_times_the_stamp_read_both_tables_at_the_same_taps(k, m
             return getattr(kernel, name)
 
         def quintic_band_rows(self, *a):
-            called.append(a[14])   # step
-            return real(*a)
+            nv = np.asarray(a[8]).size // 4
+            called.append((a[14], nv))   # step, versions
+            real(*a)
+            # versions together: each one's band is the one it gets alone, to the bit
+            for v in range(nv if nv > 1 else 0):
+                alone = np.full(a[16].shape[1:], np.nan, complex)
+                real(*a[:8], np.ascontiguousarray(a[8][v]), *a[9:16], alone)
+                assert np.array_equal(alone, a[16][v])
 
     kernel = kspace.KERNEL
     names = tuple(metacal.VERSIONS)
@@ -301,8 +308,10 @@ def test_bands_of_a_psf_k_times_the_stamp_read_both_tables_at_the_same_taps(k, m
                                                                     new_psf=new, turn_noise=turn))
                 assert np.abs(got[True] - got[False]).max() < 1e-9 * np.abs(got[False]).max()
     # every band through the rows; the version without shear at the tables' own points where its band lies within
-    # half the stamp's period (the wider PSF's)
-    assert len(called) == 2 * 2 * 2 * len(names) and 0 < sum(s > 0 for s in called) <= len(called) // len(names)
+    # half the stamp's period (the wider PSF's); the sheared versions of one band radius in one call
+    n_bands = 2 * 2 * 2 * len(names)
+    assert sum(nv for _, nv in called) == n_bands and 0 < sum(s > 0 for s, _ in called) <= n_bands // len(names)
+    assert all(nv == 1 for s, nv in called if s > 0) and any(nv == len(names) - 1 for _, nv in called)
 
 
 def test_other_interpolants_take_galsims_path(monkeypatch):

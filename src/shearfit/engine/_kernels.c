@@ -2522,7 +2522,9 @@ static PyObject *quintic_band_os(PyObject *self, PyObject *args)
  * whose taps reach half the stamp's period read the stamp with its periodic and Hermitian wrap and the PSF from its
  * whole table, as quintic_band_os does. With step > 0, the version without shear, whose points are the tables' own
  * (step i, step j), reads them there (as quintic_band does). The numbers of quintic_band_os to rounding (the sums
- * taken rows first, in pairs).
+ * taken rows first, in pairs). A may hold nv versions' matrices (nv x 2 x 2, step 0) and out their bands one after
+ * another (nv blocks of 2 or 3): each version's band is that of its own call, to the bit, the versions taken point
+ * by point.
  */
 typedef double v4r __attribute__((vector_size(32)));
 typedef double v2r __attribute__((vector_size(16)));
@@ -2611,48 +2613,62 @@ static PyObject *quintic_band_rows(PyObject *self, PyObject *args)
         return NULL;
     const Py_ssize_t npts = (2 * r + 1) * (r + 1), cz = 2 * (Py_ssize_t)sizeof(double);
     const Py_ssize_t nx = xb.len / (Py_ssize_t)sizeof(double), nc = ns / 2 + 1;
-    const int turn = ob.len == 3 * npts * cz;
+    /* nv versions (A: nv 2 x 2 matrices, out: nv blocks of 2 or 3 bands) */
+    const Py_ssize_t nv = ab.len / (4 * (Py_ssize_t)sizeof(double));
+    const int turn = nv > 0 && ob.len == nv * 3 * npts * cz;
+    const Py_ssize_t nb = turn ? 3 : 2;
     if (ns < 12 || k < 1 || np_ != k * ns || r < 0 || sb.len != 2 * nc * ns * cz || cb.len != nc * ns * cz
-        || pb.len != (np_ / 2 + 1) * np_ * cz || ab.len != 4 * (Py_ssize_t)sizeof(double)
+        || pb.len != (np_ / 2 + 1) * np_ * cz || nv < 1 || ab.len != nv * 4 * (Py_ssize_t)sizeof(double)
         || jb.len != 4 * (Py_ssize_t)sizeof(double) || gb.len != npts * cz || nx < 4 || !(xh > 0)
-        || (!turn && ob.len != 2 * npts * cz) || (turn && phb.len != (r + 1) * cz) || step < 0
-        || step * r >= ns / 2) {
+        || (!turn && ob.len != nv * 2 * npts * cz) || (turn && phb.len != (r + 1) * cz) || step < 0
+        || step * r >= ns / 2 || (step > 0 && nv != 1)) {
         RELEASE(&sb, &cb, &pb, &ab, &jb, &gb, &xb, &phb, &ob);
         PyErr_SetString(PyExc_ValueError, "quintic_band_rows: inconsistent buffers");
         return NULL;
     }
     const double *SR = (const double *)sb.buf, *PR = (const double *)cb.buf, *P = (const double *)pb.buf,
-                 *A = (const double *)ab.buf, *JT = (const double *)jb.buf, *G = (const double *)gb.buf,
+                 *AV = (const double *)ab.buf, *JT = (const double *)jb.buf, *G = (const double *)gb.buf,
                  *X = (const double *)xb.buf, *PH = (const double *)phb.buf;
-    double *O0 = (double *)ob.buf, *O1 = O0 + 2 * npts;
+    double *OV = (double *)ob.buf;
     /* (np = k ns: a wavevector's position in the PSF's table units is the stamp's) */
     const double to_s = (double)ns / (2 * M_PI), ik = 1.0 / (double)k;
     Py_BEGIN_ALLOW_THREADS
+    /* the versions point by point: their sheared wavevectors lie close together, so that every version reads the
+       tables' rows while the first one's reading keeps them in the cache (one after another, each version fetched
+       the tables, larger than a core's L2 cache, again) */
     for (Py_ssize_t j = -r, p = 0; j <= r; j++) {
         for (Py_ssize_t i = 0; i <= r; i++, p++) {
-            double q0, q1;
-            if (!band_pixel(A, JT, dk, i, j, lim, &q0, &q1, O0 + 2 * p, O1 + 2 * p)) continue;
-            const double tx = q0 * to_s, ty = q1 * to_s;
-            double v[6];
-            if (step) {
-                /* the version without shear: its wavevectors are the tables' own (step i, step j), read there */
-                const Py_ssize_t row = step * j < 0 ? step * j + ns : step * j, e = row * nc + step * i;
-                memcpy(v, SR + 4 * e, 4 * sizeof(double));
-                memcpy(v + 4, PR + 2 * e, 2 * sizeof(double));
-            } else {
-                const double fx = floor(tx), fy = floor(ty);
-                double wx[6], wy[6];
-                quintic_weights(tx - fx, wx);
-                quintic_weights(ty - fy, wy);
-                if (!rows_point(SR, PR, ns, (Py_ssize_t)fx - 2, (Py_ssize_t)fy - 2, wx, wy, v))
-                    kvalue_point(P, np_, 1, tx, ty, v + 4);
+            for (Py_ssize_t u = 0; u < nv; u++) {
+                const double *A = AV + 4 * u;
+                double *O0 = OV + 2 * nb * npts * u, *O1 = O0 + 2 * npts;
+                double q0, q1;
+                if (!band_pixel(A, JT, dk, i, j, lim, &q0, &q1, O0 + 2 * p, O1 + 2 * p)) continue;
+                const double tx = q0 * to_s, ty = q1 * to_s;
+                double v[6];
+                if (step) {
+                    /* the version without shear: its wavevectors are the tables' own (step i, step j), read there */
+                    const Py_ssize_t row = step * j < 0 ? step * j + ns : step * j, e = row * nc + step * i;
+                    memcpy(v, SR + 4 * e, 4 * sizeof(double));
+                    memcpy(v + 4, PR + 2 * e, 2 * sizeof(double));
+                } else {
+                    const double fx = floor(tx), fy = floor(ty);
+                    double wx[6], wy[6];
+                    quintic_weights(tx - fx, wx);
+                    quintic_weights(ty - fy, wy);
+                    if (!rows_point(SR, PR, ns, (Py_ssize_t)fx - 2, (Py_ssize_t)fy - 2, wx, wy, v))
+                        kvalue_point(P, np_, 1, tx, ty, v + 4);
+                }
+                const double xs = xtable(X, nx, xh, q0) * xtable(X, nx, xh, q1);
+                const double xp = xtable(X, nx, xh, q0 * ik) * xtable(X, nx, xh, q1 * ik);
+                band_products(v, v[4] * xp, v[5] * xp, G[2 * p] * xs, G[2 * p + 1] * xs, O0 + 2 * p, O1 + 2 * p);
             }
-            const double xs = xtable(X, nx, xh, q0) * xtable(X, nx, xh, q1);
-            const double xp = xtable(X, nx, xh, q0 * ik) * xtable(X, nx, xh, q1 * ik);
-            band_products(v, v[4] * xp, v[5] * xp, G[2 * p] * xs, G[2 * p + 1] * xs, O0 + 2 * p, O1 + 2 * p);
         }
     }
-    if (turn) turn_band(O0, O1, O1 + 2 * npts, PH, r);
+    if (turn)
+        for (Py_ssize_t u = 0; u < nv; u++) {
+            double *O0 = OV + 2 * nb * npts * u, *O1 = O0 + 2 * npts;
+            turn_band(O0, O1, O1 + 2 * npts, PH, r);
+        }
     Py_END_ALLOW_THREADS
     RELEASE(&sb, &cb, &pb, &ab, &jb, &gb, &xb, &phb, &ob);
     Py_RETURN_NONE;
@@ -6206,7 +6222,7 @@ static PyMethodDef methods[] = {
      "quintic_band_os(stamp, ns, psf, np, k, r, dk, A, JT, lim, gamma, xtab, xh, phase, out): an oversampled PSF's"},
     {"quintic_band_rows", quintic_band_rows, METH_VARARGS,
      "quintic_band_rows(stamp, ns, psf_rows, psf, np, k, r, dk, A, JT, lim, gamma, xtab, xh, step, phase, out): "
-     "quintic_band_os for a PSF grid k times the stamp's, from the tables' rows"},
+     "quintic_band_os for a PSF grid k times the stamp's, from the tables' rows, for one or more versions"},
     {"band_maxk", band_maxk, METH_VARARGS, "band_maxk(column, xx, kx, ky, thr, a, b, c) -> max k2 over the band"},
     {"hermite_log_table", hermite_log_table, METH_VARARGS, "hermite_log_table(k0, dk, nodes, lv, slope, curvature, out)"},
     {"set_bessel", set_bessel, METH_VARARGS, "set_bessel(kv_capsule, gamma_capsule)"},
