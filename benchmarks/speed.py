@@ -353,6 +353,10 @@ def metacal_report(objs, cfg, passes, psf="dilated", own_position=False, own_sam
     ns, rp, bn = rows[k, 4:7]
     print(f"  the fits: noshear {1e3 * ns:.1f} ms ({ns / tp:.2f} x), the four replays {1e3 * rp:.1f} ms ({rp / tp:.2f} x; "
           f"their mode binning {1e3 * bn:.1f} ms)")
+    n_plain, n_noshear, n_replays = rows[:, 7:10].mean(axis=0)
+    print(f"  ellipticity samples a galaxy: the plain fit {n_plain:.0f}, the noshear fit {n_noshear:.0f}, the four "
+          f"replays {n_replays:.0f} together ({n_replays / 4:.0f} each: every sample above the noshear fit's "
+          f"posterior cut, and those its change could lift there)")
     print(f"  the same images by GalSim's objects (metacal.OWN_KSPACE = False): {1e3 * tg:.1f} ms "
           f"({tg / tp:.2f} x a plain fit, {tg / ti:.2f} x shearfit's own)")
 
@@ -364,9 +368,10 @@ def _metacal_passes(objs, cfg, passes, metacal, rng, split, psf="dilated", own_p
     for _ in range(max(passes, 1)):
         split.update(noshear=0.0, replays=0.0, binning=0.0)
         tp = ti = tg = tm = 0.0
+        counts = np.zeros(3)
         for o, t in objs:
             t0 = time.perf_counter()
-            shearfit.measure_object(o, mag=t["mag"], config=cfg)
+            plain = shearfit.measure_object(o, mag=t["mag"], config=cfg)
             t1 = time.perf_counter()
             # the images as measure_metacal makes them (the new PSFs' App. A Moffats are fitted there, as one
             # batch per object: counted with the fits)
@@ -382,13 +387,16 @@ def _metacal_passes(objs, cfg, passes, metacal, rng, split, psf="dilated", own_p
             t3 = time.perf_counter()
             split["on"] = True
             try:
-                metacal.measure_metacal(o, t["mag"], cfg, rng=rng, psf=psf, own_position=own_position,
-                                        own_samples=own_samples)
+                mc = metacal.measure_metacal(o, t["mag"], cfg, rng=rng, psf=psf, own_position=own_position,
+                                             own_samples=own_samples)
             finally:
                 split["on"] = False
             t4 = time.perf_counter()
             tp, ti, tg, tm = tp + t1 - t0, ti + t2 - t1, tg + t3 - t2, tm + t4 - t3
-        rows.append((tp, ti, tg, tm, split["noshear"], split["replays"], split["binning"]))
+            # the ellipticity samples each fit evaluated: the plain one's, the noshear one's, the replays' together
+            counts += (plain.n_samples, mc.noshear.n_samples,
+                       sum(mc.results[v].n_samples for v in metacal.SHEARED))
+        rows.append((tp, ti, tg, tm, split["noshear"], split["replays"], split["binning"]) + tuple(counts))
     return rows
 
 
