@@ -23,8 +23,8 @@ the stamp's pixels, the usual case, in one compiled loop per version; for an
 oversampled PSF, whose transform is interpolated at its own pixels'
 wavevectors and remembered per PSF image, in another, which for a PSF image k
 times the stamp's size, whose padded grid is then k times the stamp's, reads
-both transforms in rows at the same taps with the same weights:
-``quintic_band_rows``, the same images to rounding); the deconvolution
+both transforms in rows at the same taps with the same weights, the four
+sheared versions in one pass over them: ``quintic_band_rows``, the same images to rounding); the deconvolution
 stops at the PSF's band (where its transform falls below 1e-3 of its flux,
 and at most the PSF pixels' Nyquist disc). With other interpolants
 (``K_INTERPOLANT``, ``PSF_K_INTERPOLANT``) or GalSim's own FFT grid
