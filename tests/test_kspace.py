@@ -265,9 +265,9 @@ def test_bands_of_a_psf_k_times_the_stamp_read_both_tables_at_the_same_taps(k, m
     """A PSF image k times the stamp's size (its padded grid k times the stamp's, as the simulated fields' given
     PSF images are): the compiled band reads the stamp's and the PSF's rows at the same taps (quintic_band_rows, the
     version without shear at the tables' own points, the sheared ones in one call, each one's band that of its own
-    call to the bit), and gives the numpy lines' images to 1e-9 of their largest,
-    with and without the noise's turn, with either new PSF, on a reflected and on a rotated, sheared grid; the
-    stamp's transforms in rows are padded_transforms' to the bit."""
+    call to the bit), and gives the numpy lines' images to 1e-9 of their largest, with and without the noise's turn,
+    with either new PSF, on a reflected and on a rotated, sheared grid; the stamp's transforms in rows are
+    padded_transforms' to the bit."""
     from shearfit.simulate.stamps import draw_psf_image, moffat_psf
 
     called = []

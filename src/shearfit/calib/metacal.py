@@ -544,7 +544,8 @@ def _oversampled_kspace_images(image, noise, psf, J, k, delta, names, n_small, n
             # the version without shear, whose wavevectors are the tables' own where the stamp's grid is a multiple
             # of the band's, reads them there; the others of one band radius go together: one loop over the band
             # reads the tables for all of them, each point's versions at neighbouring taps (the tables are larger
-            # than a core's L2 cache, and version after version fetched them again: 30 % of the time)
+            # than a core's L2 cache: version after version, each fetched them again, a third of the loop's time
+            # where they had left the cache, a few per cent where the transforms just made them)
             step = n_s // n_small if (s1 == s2 == 0 and n_s % n_small == 0 and (n_s // n_small) * r < n_s // 2) else 0
             if psf_rows is not None and not step:
                 together.setdefault(r, (kap, gamma, []))[2].append((name, A))
