@@ -204,13 +204,13 @@ def band_points(psf_column, xkernel, threshold=MAXK_THRESHOLD):
 
 def band_maxk_of_points(points, jac):
     """:func:`band_maxk` from :func:`band_points`' points: the largest \\|J^-T kappa\\| over them, at most pi / s_max."""
-    jac = np.asarray(jac, float)
+    jac = np.asarray(jac, float).tolist()   # (on Python floats: the same numbers, less overhead)
     nyquist = np.pi / singular_values2(jac)[0]
     if points.shape[1] == 0:
         return 0.0
     a, b, c = _inverse_form(jac)
     kx, ky = points
-    return float(min(np.sqrt(np.max(a * kx * kx + 2 * b * kx * ky + c * ky * ky)), nyquist))
+    return float(min(math.sqrt((a * kx * kx + 2 * b * kx * ky + c * ky * ky).max()), nyquist))
 
 
 def round_envelope(psf_column, xkernel, jac, dilation, maxk):

@@ -348,7 +348,8 @@ def band_images(shape, n, items):
             # the band reaching the Nyquist row and column exactly (the usual wide case, its radius capped at
             # the new PSF's band): fold_band's folding done in place, rows j = -r + 1 .. r where they are, row
             # -r added onto row r, and the Nyquist column's mirrors conj F(r, -j) added onto it
-            spec[b, np.arange(-r + 1, r + 1) % n, :] = arr[1:]
+            spec[b, :r + 1] = arr[r:]
+            spec[b, n - r + 1:] = arr[1:r]
             spec[b, half, :] += arr[0]
             edge.append(b)
         else:
@@ -741,6 +742,12 @@ def _grown(mask, steps):
     return mask
 
 
+def _mean_square(x):
+    """``float(np.mean(x ** 2))`` of a 1D array made for it (squared in place: the same numbers)."""
+    np.multiply(x, x, out=x)
+    return float(x.mean())
+
+
 @functools.lru_cache(maxsize=16)
 def _edge_mask(shape):
     """The pixels within ``_EDGE`` of a stamp's edge (read-only, shared): a stamp's mask without masked pixels."""
@@ -793,10 +800,13 @@ def metacal_observations(obs: Observation, delta=0.01, rng=None, versions=tuple(
         moffat = (float(obs.psf_moffat[0]) * dilation, float(obs.psf_moffat[1]))
     else:
         moffat = psf_moffat(psf_img) if fit_moffat else None
-    # the symmetrising noise: the stamp's variance, rotated by 90 degrees before the operations
-    with np.errstate(divide="ignore"):
-        sigma = 1.0 / np.sqrt(w)   # (inf at the masked pixels, zero below)
-    if not whole:
+    # the symmetrising noise: the stamp's variance, rotated by 90 degrees before the operations (none at the
+    # masked pixels)
+    sigma = np.sqrt(w)
+    if whole:
+        np.divide(1.0, sigma, out=sigma)
+    else:
+        np.divide(1.0, sigma, out=sigma, where=good)
         sigma[~good] = 0.0
     noise = rng.normal(0.0, 1.0, w.shape)
     noise *= sigma
@@ -811,7 +821,7 @@ def metacal_observations(obs: Observation, delta=0.01, rng=None, versions=tuple(
     mask = _edge_mask(w.shape) if whole else _grown(~good, _MASK_GROW) | _edge_mask(w.shape)
     inner = ~mask
     some = bool(inner.any())
-    var_in = float(np.mean(sigma[inner] ** 2)) if some else 1.0
+    var_in = _mean_square(sigma[inner]) if some else 1.0
     names = ("noshear",) + tuple(v for v in versions if v != "noshear")
     new_psf = psf_img if psf == "round" else None
     if own and turn:
@@ -829,7 +839,7 @@ def metacal_observations(obs: Observation, delta=0.01, rng=None, versions=tuple(
     # the versions' noise: the original, processed, plus the added field: twice the added field's variance,
     # measured on the noshear version and used for all, so that every version is fitted with the same weights
     # (and the same Fourier modes)
-    var_out = float(np.mean(noise0[inner] ** 2)) if some else var_in
+    var_out = _mean_square(noise0[inner]) if some else var_in
     scale = var_in / max(2.0 * var_out, 1e-300)
     weight = w * scale
     weight[mask] = 0.0
