@@ -449,6 +449,85 @@ def metacal_image_profile(objs):
     print(f"    {'the rest (masks, noise, PSF image, Python)':40s} {1e3 * rest / n:6.1f} ms ({100 * rest / total:4.1f} %)")
 
 
+def metacal_kernel_split(objs, cfg, psf="dilated"):
+    """Where a galaxy's metacal time goes, in compiled loops or not: one pass of the plain fits, then one of the
+    metacal measurements, every call of the compiled loops and of scipy's FFTs clocked (no profiler) by stage: the
+    plain fit; metacal's images, noshear fit, four sheared replays and the rest of ``measure_metacal``. Prints per
+    stage the milliseconds a galaxy in the compiled loops, the FFTs and the rest (Python and numpy), and the ratio to
+    the plain fit that metacal would have without the rest of its own stages (the images and the replays; the
+    noshear fit is a fit as the plain one is): how much of metacal's cost over one fit is the interpreter's and the
+    arrays' overhead rather than arithmetic."""
+    from scipy import fft as sfft
+
+    from shearfit.calib import kspace, metacal
+    from shearfit.engine import likelihood, model, moffat, priors, profiles, sampling
+    from shearfit.engine import measure as engine_measure
+
+    mod = likelihood.KERNEL
+    if mod is None:
+        print("\n  metacal split: the numpy loops run (no compiled module); nothing to time")
+        return
+    proxy = _TimedKernel(mod)
+    holders = [m for m in (likelihood, sampling, model, moffat, priors, profiles, engine_measure, kspace)
+               if getattr(m, "KERNEL", None) is mod]
+    fft_names = [n for n in ("fft", "ifft", "rfft", "irfft", "rfft2", "irfft2") if hasattr(sfft, n)]
+    saved_fft = {n: getattr(sfft, n) for n in fft_names}
+    fft_seconds, totals = {}, {}
+
+    def clocked_fft(fn):
+        def run(*a, **k):
+            t0 = time.perf_counter()
+            try:
+                return fn(*a, **k)
+            finally:
+                key = proxy.stage[0]
+                fft_seconds[key] = fft_seconds.get(key, 0.0) + time.perf_counter() - t0
+        return run
+
+    # (a stage inside metacal only: a replay's own fallback fit is the replays', the plain fit's stages the plain's)
+    real = (engine_measure._measure, engine_measure._replay_all, metacal.metacal_observations,
+            metacal.measure_metacal, shearfit.measure_object)
+    engine_measure._measure = _staged(proxy, totals, "noshear fit", real[0], within="metacal")
+    engine_measure._replay_all = _staged(proxy, totals, "replays", real[1], within="metacal")
+    metacal.metacal_observations = _staged(proxy, totals, "images", real[2], within="metacal")
+    measure_mc, measure_plain = _staged(proxy, totals, "metacal", real[3]), _staged(proxy, totals, "plain", real[4])
+    for m in holders:
+        m.KERNEL = proxy
+    for n in fft_names:
+        setattr(sfft, n, clocked_fft(saved_fft[n]))
+    rng = np.random.default_rng(3)
+    try:
+        for o, t in objs:
+            measure_plain(o, mag=t["mag"], config=cfg)
+            measure_mc(o, t["mag"], cfg, rng=rng, psf=psf)
+    finally:
+        engine_measure._measure, engine_measure._replay_all, metacal.metacal_observations = real[:3]
+        for m in holders:
+            m.KERNEL = mod
+        for n in fft_names:
+            setattr(sfft, n, saved_fft[n])
+    n = len(objs)
+    inner = ("images", "noshear fit", "replays")
+    rows = {"plain": totals.get("plain", 0.0)}
+    rows.update((k, totals.get(k, 0.0)) for k in inner)
+    rows["metacal, the rest"] = totals.get("metacal", 0.0) - sum(rows[k] for k in inner)
+    keys = {"metacal, the rest": "metacal"}
+    print(f"\n  metacal's time by stage, every compiled loop and scipy FFT clocked ({n} galaxies, one pass each way; "
+          f"ms per galaxy):")
+    print(f"    {'stage':20s} {'total':>7s} {'compiled':>9s} {'FFTs':>6s} {'the rest':>9s}")
+    rest = {}
+    for name, tot in rows.items():
+        key = keys.get(name, name)
+        # (each call is counted in the innermost stage under way: the umbrella's own calls only under metacal)
+        k_s, f_s = proxy.by_stage.get(key, 0.0), fft_seconds.get(key, 0.0)
+        rest[name] = tot - k_s - f_s
+        print(f"    {name:20s} {1e3 * tot / n:7.2f} {1e3 * k_s / n:9.2f} {1e3 * f_s / n:6.2f} {1e3 * rest[name] / n:9.2f}")
+    tm, tp = totals.get("metacal", 0.0), rows["plain"]
+    own = rest["images"] + rest["replays"]
+    print(f"    metacal {tm / tp:.2f} x the plain fit on this pass; without the rest (Python and numpy) of its images and "
+          f"replays ({1e3 * own / n:.2f} ms a galaxy) {(tm - own) / tp:.2f} x")
+
+
 #: the settings that trade exactness for speed, at their exact values
 EXACT = {"mode_bins_per_octave": 0, "mode_polar_angles": 0, "n_flux": 11, "fold_chi2_tolerance": 0.0,
          "pair_chi2_tolerance": 0.0, "e_grid_prepass": 0.0, "tail_skip": 0.0, "size_reuse_distance": 0.0}
@@ -486,6 +565,24 @@ class _TimedKernel:
         return call
 
 
+def _staged(proxy, seconds, name, fn, within=None):
+    """``fn`` clocked as the stage ``name`` of ``proxy`` (its seconds into ``seconds[name]``, the compiled loops' within
+    it into ``proxy.by_stage[name]``); with ``within``, only while that stage is under way (elsewhere ``fn`` runs
+    unclocked, its time its caller's stage's)."""
+    def run(*a, **k):
+        outer = proxy.stage[0]
+        if within is not None and outer != within:
+            return fn(*a, **k)
+        proxy.stage[0] = name
+        t0 = time.perf_counter()
+        try:
+            return fn(*a, **k)
+        finally:
+            seconds[name] = seconds.get(name, 0.0) + time.perf_counter() - t0
+            proxy.stage[0] = outer
+    return run
+
+
 #: the stages of one fit (shearfit.engine.measure._measure's calls, in its order), timed by --kernel-times
 FIT_STAGES = ("prepare_exposures", "join_exposures", "coarse_peak", "find_position", "shift_joint", "_size_range",
               "_size_likelihood", "adaptive_samples", "_result")
@@ -497,21 +594,8 @@ def _timed_stages(proxy, seconds):
     from shearfit.engine import measure
 
     originals = {name: getattr(measure, name) for name in FIT_STAGES}
-
-    def clocked(name, fn):
-        def run(*a, **k):
-            outer = proxy.stage[0]
-            proxy.stage[0] = name
-            t0 = time.perf_counter()
-            try:
-                return fn(*a, **k)
-            finally:
-                seconds[name] = seconds.get(name, 0.0) + time.perf_counter() - t0
-                proxy.stage[0] = outer
-        return run
-
     for name, fn in originals.items():
-        setattr(measure, name, clocked(name, fn))
+        setattr(measure, name, _staged(proxy, seconds, name, fn))
     return originals
 
 
@@ -656,7 +740,8 @@ def main(argv=None):
     ap.add_argument("--kernel-times", action="store_true",
                     help="one more pass with a clock around every call of the compiled loops: the time in each, and "
                          "the rest (Python and numpy), without a profiler's overhead; and the same by stage of the fit "
-                         "(the exposures' preparation, their join, the peak searches, the sampling, ...)")
+                         "(the exposures' preparation, their join, the peak searches, the sampling, ...); with "
+                         "--metacal, metacal's stages (images, noshear fit, replays) split the same way")
     ap.add_argument("--isa-ab", metavar="LEVEL", default=None,
                     help="also time the loops in use against another level (avx512, avx2, baseline), galaxy by "
                          "galaxy in this process")
@@ -755,6 +840,8 @@ def main(argv=None):
         metacal_report(objs, cfg, args.passes, args.metacal_psf, args.metacal_own_position,
                        args.metacal_own_samples)
         metacal_image_profile(objs)
+        if args.kernel_times:
+            metacal_kernel_split(objs, cfg, args.metacal_psf)
     if args.census:
         census_report(objs, cfg)
     if args.check:
