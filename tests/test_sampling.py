@@ -152,6 +152,23 @@ def test_the_samplers_lattice_priors_are_the_priors_at_its_points(settings):
         assert not np.array_equal(pd, _lattice_log_priors(FitConfig(), unit, half)[0])
 
 
+def test_replays_take_the_lattice_priors_at_lattice_points_and_compute_the_others():
+    """A replay's samples (a fit's lattice points) take their priors from the lattice's table: the same numbers as
+    computed; ellipticities that are not exactly lattice points (or lie beyond the table) are computed."""
+    from shearfit.engine.sampling import _known_log_e_priors, _lattice_half, _log_e_priors
+
+    cfg = FitConfig(e_grid_min=0.005)
+    unit, half = cfg.e_grid_min, _lattice_half(cfg)
+    rng = np.random.default_rng(4)
+    i, j = rng.integers(-150, 151, (2, 300))
+    e1, e2 = i.astype(float) * unit, j.astype(float) * unit
+    got, want = _known_log_e_priors(e1, e2, cfg), _log_e_priors(e1, e2, cfg)
+    assert all(np.array_equal(g, w) for g, w in zip(got, want))
+    for a, b in ((e1 + 1e-12, e2), (e1, np.full_like(e2, (half + 1) * unit))):   # off the lattice; beyond it
+        got, want = _known_log_e_priors(a, b, cfg), _log_e_priors(a, b, cfg)
+        assert all(np.array_equal(g, w) for g, w in zip(got, want))
+
+
 def test_store_points_are_the_steps_lattice_points_in_the_mask():
     """_Store._points looks only at the step's rows and columns of a region's box: the same points, in the
     same order, as a search of every lattice point of the box (boxes at any corner, steps 1-64)."""

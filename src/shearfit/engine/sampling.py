@@ -704,6 +704,8 @@ class VersionLikelihoods:
             return [like(e1, e2) for like in self.likes]
         step = self.likes[0].chunk
         out = [self._chunk(e1[i:i + step], e2[i:i + step]) for i in range(0, e1.size, step)]
+        if len(out) == 1:   # (the chunk's own arrays: nothing to join)
+            return out[0]
         return [EPoint(*[np.concatenate([getattr(o[v], f) for o in out]) for f in EPoint.__dataclass_fields__])
                 for v in range(len(self.likes))]
 
@@ -795,6 +797,20 @@ def _mix(point: EPoint, e1, e2, cfg, log_priors=None):
 def _log_e_priors(e1, e2, cfg):
     with np.errstate(divide="ignore"):
         return np.log(priors.disk_e_density(e1, e2, cfg)), np.log(priors.bulge_e_density(e1, e2, cfg))
+
+
+def _known_log_e_priors(e1, e2, cfg):
+    """:func:`_log_e_priors` at samples of the sampler's lattice (a fit's, which its replays evaluate again) from
+    :func:`_lattice_log_priors`' table, where every sample is exactly a lattice point (i unit, j unit) within it: the
+    same numbers; computed otherwise."""
+    unit, half = float(cfg.e_grid_min), _lattice_half(cfg)
+    i, j = np.rint(e1 / unit), np.rint(e2 / unit)
+    if e1.size and np.array_equal(i * unit, e1) and np.array_equal(j * unit, e2) and \
+            max(np.abs(i).max(), np.abs(j).max()) <= half:
+        pd, pb = _lattice_log_priors(cfg, unit, half)
+        i, j = i.astype(np.int64) + half, j.astype(np.int64) + half
+        return pd[i, j], pb[i, j]
+    return _log_e_priors(e1, e2, cfg)
 
 
 def _lattice_log_priors(cfg, unit, half):
@@ -1192,7 +1208,7 @@ def replay_versions(likes: VersionLikelihoods, ref: Samples, cfg: FitConfig, mar
 
     def evaluate(which, versions):
         e1, e2 = ref.e1[which], ref.e2[which]
-        priors_ = _log_e_priors(e1, e2, cfg)   # (the same for every version)
+        priors_ = _known_log_e_priors(e1, e2, cfg)   # (the same for every version)
         for v, pt in zip(versions, likes(e1, e2, versions=versions)):
             logl[v][which], logpost[v][which] = _mix(pt, e1, e2, cfg, priors_)
             for f in fields_:
@@ -1243,14 +1259,21 @@ def _evaluate_near_cut(ref, ok, cfg, margin, first_margin, nv, evaluate, logpost
     ia, ir = np.nonzero(above)[0], np.nonzero(rest)[0]
     xa, xr = _change_design(ref.e1[ia], ref.e2[ia]), _change_design(ref.e1[ir], ref.e2[ir])
     whole, fits = [], {}
+    lps = [logpost_of(v, above) for v in range(nv)]
+    goods = [np.isfinite(lp) for lp in lps]
+    betas = {}
+    every = [v for v in range(nv) if goods[v].all()]
+    if len(every) > 1 and ia.size >= PREDICT_MIN_SAMPLES:
+        # the versions finite at every sample fitted in one least-squares call (one factorisation of the design)
+        d = np.stack([lps[v] for v in every], axis=1) - ref.logpost[ia][:, None]
+        betas = dict(zip(every, np.linalg.lstsq(xa, d, rcond=None)[0].T))
     for v in range(nv):
-        lp = logpost_of(v, above)
-        good = np.isfinite(lp)
+        lp, good = lps[v], goods[v]
         if np.count_nonzero(good) < PREDICT_MIN_SAMPLES:
             whole.append(v)
             continue
         d = lp[good] - ref.logpost[ia[good]]
-        beta = np.linalg.lstsq(xa[good], d, rcond=None)[0]
+        beta = betas[v] if v in betas else np.linalg.lstsq(xa[good], d, rcond=None)[0]
         slack = first_margin + 3.0 * float(np.max(np.abs(d - xa[good] @ beta)))
         pred = ref.logpost[ir] + xr @ beta
         need = pred > np.max(lp[good]) + lnc - slack
@@ -1376,20 +1399,23 @@ class Estimate:
 def estimate(s: Samples, cfg: FitConfig) -> Estimate:
     """Likelihood mean over samples above the posterior cut (sec. 3.4), variance, weight (3.5)."""
     ok = np.isfinite(s.logpost) & np.isfinite(s.logl) & (s.area > 0)
-    if not np.any(ok):
+    if not ok.any():
         return Estimate(np.nan, np.nan, np.nan, 0.0, np.nan, np.nan, np.nan, 0)
-    keep = ok & (s.logpost > np.max(s.logpost[ok]) + np.log(cfg.posterior_cut))
+    # (the samples kept as indices, each column gathered once: the same numbers)
+    keep = np.flatnonzero(ok & (s.logpost > s.logpost[ok].max() + np.log(cfg.posterior_cut)))
     lw = s.logl[keep]
     w = np.exp(lw - lw.max()) * s.area[keep]
     w /= w.sum()
-    e1 = float(np.sum(w * s.e1[keep]))
-    e2 = float(np.sum(w * s.e2[keep]))
-    var = float(0.5 * np.sum(w * ((s.e1[keep] - e1) ** 2 + (s.e2[keep] - e2) ** 2)))
+    e1k, e2k = s.e1[keep], s.e2[keep]
+    e1 = float((w * e1k).sum())
+    e2 = float((w * e2k).sum())
+    var = float(0.5 * (w * ((e1k - e1) ** 2 + (e2k - e2) ** 2)).sum())
     p = s.point
+    rk = p.mean_r[keep]
     # the round scalelength of each sample's model, of the same area: r sqrt(q), q = (1 - |e|) / (1 + |e|)
-    ae = np.minimum(np.hypot(s.e1[keep], s.e2[keep]), 1.0)
+    ae = np.minimum(np.hypot(e1k, e2k), 1.0)
     return Estimate(e1=e1, e2=e2, e_var=var, weight=float(lensing_weight(var, cfg)),
-                    scalelength=float(np.sum(w * p.mean_r[keep])),
-                    bulge_fraction=float(np.sum(w * p.mean_b[keep])),
-                    model_flux=float(np.sum(w * p.mean_flux[keep])), n_used=int(keep.sum()),
-                    round_scalelength=float(np.sum(w * p.mean_r[keep] * np.sqrt((1 - ae) / (1 + ae)))))
+                    scalelength=float((w * rk).sum()),
+                    bulge_fraction=float((w * p.mean_b[keep]).sum()),
+                    model_flux=float((w * p.mean_flux[keep]).sum()), n_used=int(keep.size),
+                    round_scalelength=float((w * rk * np.sqrt((1 - ae) / (1 + ae))).sum()))
