@@ -440,6 +440,31 @@ def turned_band(arr, n, size):
 _PSF_TABLES = ContentMemo(64 * 2 ** 20, max_entries=64)
 
 
+@functools.lru_cache(maxsize=16)
+def _shear_stack(names, delta):
+    """:func:`_shear_matrix` of each version of ``names`` (on sky positions, unit determinant): (versions, 2, 2),
+    read-only, shared."""
+    out = np.stack([_shear_matrix(VERSIONS[v][0] * delta, VERSIONS[v][1] * delta) for v in names])
+    out.setflags(write=False)
+    return out
+
+
+def _version_matrices(names, delta, jit, maxk, dk, dilation, smax_j):
+    """Per version of ``names``: A = S J^-T, which takes a band's point kappa to the deconvolved profile's sky
+    wavevector S^T K (S symmetric), and the band's half-width r in grid steps: the band's disc seen in the pixel frame
+    (maxk over A's smaller singular value), and no wider than the new PSF's band (beyond it the product is below the
+    threshold). The versions at once, each the same numbers as ``S @ jit`` and
+    :func:`shearfit.calib.kspace.singular_values2`'s arithmetic on its own. Returns (A per version, r per version)."""
+    A = _shear_stack(tuple(names), float(delta)) @ jit
+    a, b, c, d = A[:, 0, 0], A[:, 0, 1], A[:, 1, 0], A[:, 1, 1]
+    p = a * a + b * b + c * c + d * d
+    q = np.hypot(a * a + b * b - c * c - d * d, 2 * (a * c + b * d))
+    smin = np.sqrt(np.maximum(0.5 * (p - q), 0.0))
+    cap = int(np.ceil(maxk / dilation * smax_j / dk))
+    r = [min(int(x) + 1, cap) for x in np.ceil(maxk / (smin * dk))]
+    return list(A), r
+
+
 def _psf_table(psf, n):
     """(table, memo): the padded transform of a PSF image (:func:`shearfit.calib.kspace.padded_transforms`, one
     plane) and a dict for what is made from it alone, remembered by its contents (:data:`_PSF_TABLES`; read-only)."""
@@ -521,12 +546,8 @@ def _oversampled_kspace_images(image, noise, psf, J, k, delta, names, n_small, n
         xtab, xh = _x_table(int(np.ceil(maxk * smax_j / np.pi)) + 1)
     lim = maxk * maxk * (1 + 1e-12)
     plans = []
-    for name in names:
+    for name, A, r in zip(names, *_version_matrices(names, delta, jit, maxk, dk, dilation, smax_j)):
         s1, s2 = VERSIONS[name]
-        S = _shear_matrix(s1 * delta, s2 * delta)
-        A = S @ jit
-        r = int(np.ceil(maxk / (kspace.singular_values2(A)[1] * dk))) + 1
-        r = min(r, int(np.ceil(maxk / dilation * smax_j / dk)))
         gkey = ("gamma", r, dk, scale, to_p)
         got = gmemo.get(gkey)
         if got is None:
@@ -617,14 +638,8 @@ def own_kspace_images(image, noise, psf, J, delta, names, fft_size=None, new_psf
     items = []
     first = None
     smax_j = kspace.singular_values2(J)[0]
-    for name in names:
+    for name, A, r in zip(names, *_version_matrices(names, delta, jit, maxk, dk, dilation, smax_j)):
         s1, s2 = VERSIONS[name]
-        S = _shear_matrix(s1 * delta, s2 * delta)   # on sky positions, unit determinant
-        A = S @ jit     # kappa -> the deconvolved profile's sky wavevector S^T K (S symmetric)
-        # the grid's half-width: the band's disc seen in the pixel frame, and no wider than the new PSF's band
-        # (beyond it the product is below the threshold)
-        r = int(np.ceil(maxk / (kspace.singular_values2(A)[1] * dk))) + 1
-        r = min(r, int(np.ceil(maxk / dilation * smax_j / dk)))
         if r not in grids:
             kap, tx, ty, x0, x1 = _band_points(r, dk, None if new_psf is not None else dilation, to_table)
             grids[r] = (kap, kspace.kvalues(psf_table, tx, ty)[:, 0] * x0 * x1)
