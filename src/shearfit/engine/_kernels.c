@@ -2567,7 +2567,7 @@ static inline __attribute__((always_inline)) int rows_point(const double *restri
             const double *s = SR + 4 * (row * nc + ix), *p = PR + 2 * (row * nc + ix);
             /* (the taps loaded straight into the products: copied first into arrays of vectors, which GCC made
                for x86-64-v3 as a loop of 16-byte stores read back as 32-byte loads, every load stalled on its
-               two stores, the band a third slower than for v4) */
+               two stores: the loop took half as long again as for v4) */
             rs[b] = ((wx[0] * load4(s) + wx[1] * load4(s + 4)) + (wx[2] * load4(s + 8) + wx[3] * load4(s + 12)))
                     + (wx[4] * load4(s + 16) + wx[5] * load4(s + 20));
             rp[b] = ((wx[0] * load2(p) + wx[1] * load2(p + 2)) + (wx[2] * load2(p + 4) + wx[3] * load2(p + 6)))
