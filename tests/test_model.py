@@ -365,10 +365,21 @@ def test_content_memo_checks_every_value():
 
 
 def test_immutable_arrays_are_shared_and_writable_ones_copied():
-    """A read-only array that owns its memory (a given PSF image a CCD's objects share) is kept by the
-    Observation and the memo themselves, and a memo hit on it needs no comparison; a writable array, or a
-    read-only view of one, is copied, so that changing it afterwards changes neither."""
+    """A read-only array that owns its memory (a given PSF image a CCD's objects share), or a read-only view of
+    one (an image of metacal's read-only stack of versions), is kept by the Observation and the memo themselves,
+    and a memo hit on it needs no comparison; a writable array, or a read-only view of one, is copied, so that
+    changing it afterwards changes neither."""
     from shearfit.engine.model import ContentMemo
+    from shearfit.observation import is_immutable
+
+    stack = np.zeros((3, 32, 32))
+    stack.setflags(write=False)
+    assert all(is_immutable(a) for a in stack) and not is_immutable(stack[:, ::2])
+    img = stack[1]
+    assert shearfit.Observation(image=img, weight=np.ones((32, 32)), psf=np.full((5, 5), 0.04),
+                                jacobian=PIX * np.eye(2)).image is img
+    raw = np.frombuffer(bytes(8 * 32 * 32)).reshape(32, 32)   # read-only, its memory a bytes object's
+    assert not raw.flags.writeable and not is_immutable(raw)
 
     rng = np.random.default_rng(3)
     psf = rng.uniform(size=(25, 25))

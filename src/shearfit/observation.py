@@ -24,7 +24,7 @@ __all__ = ["Observation", "FitResult"]
 
 def _readonly(a, name, ndim=2):
     if is_immutable(a) and a.dtype == np.float64:
-        arr = a   # read-only and owning its memory (a PSF image a CCD's objects share): shared, not copied
+        arr = a   # immutable (is_immutable; a PSF image a CCD's objects share): shared, not copied
     else:
         arr = np.array(a, dtype=np.float64, copy=True)
     if arr.ndim != ndim:
@@ -88,9 +88,13 @@ def _checked_moffat(psf_moffat):
 
 
 def is_immutable(a) -> bool:
-    """Whether ``a`` is a C-contiguous array that owns its memory and is read-only: no view of it can change
-    its values (short of its owner making it writable again)."""
-    return isinstance(a, np.ndarray) and a.base is None and not a.flags.writeable and a.flags.c_contiguous
+    """Whether ``a`` is a read-only C-contiguous array that owns its memory, or a read-only C-contiguous view of
+    one (such as an image of a read-only stack): no view of it can change its values (short of the owner being
+    made writable again; numpy makes no view writable while its owner is read-only)."""
+    if not isinstance(a, np.ndarray) or a.flags.writeable or not a.flags.c_contiguous:
+        return False
+    base = a.base
+    return base is None or (type(base) is np.ndarray and base.base is None and not base.flags.writeable)
 
 
 class Observation:
@@ -120,8 +124,9 @@ class Observation:
         The pipeline fits one per CCD; by default one is fitted to ``psf``.
 
     The arrays are kept as read-only float64 copies, except a float64 array that is already read-only and
-    owns its memory (no view of it can change it): that one is kept itself, so that many observations sharing one
-    PSF image (a CCD's objects) share the array too.
+    owns its memory, or is a read-only view of one that does (no view of it can change it: ``is_immutable``):
+    that one is kept itself, so that many observations sharing one PSF image (a CCD's objects) share the array
+    too, as metacal's versions share their stack of images.
     """
 
     def __init__(self, image, psf, jacobian, weight=None, psf_oversampling=1, offset=(0.0, 0.0),

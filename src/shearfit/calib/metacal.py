@@ -363,7 +363,7 @@ def band_images(shape, n, items):
     # evaluated only at the stamp's rows and columns: the transform over ky of the band's columns,
     # the stamp's rows of it, then the real transform over kx
     # (the stamp's rows y = -ny // 2 .. ny - 1 - ny // 2 and columns likewise, taken as two slices each: the images
-    # returned own their memory and are read-only, so that an Observation keeps them without a copy)
+    # returned are read-only views of a read-only stack, so that an Observation keeps them without a copy)
     lo_y, lo_x = ny // 2, nx // 2
     col = sfft.ifft(spec, axis=1, workers=1, overwrite_x=True)
     wraps = ny > n or nx > n   # a stamp wider than the period: its rows and columns wrap
@@ -376,12 +376,12 @@ def band_images(shape, n, items):
     full = sfft.irfft(rows, n=n, axis=2, workers=1, overwrite_x=True)
     if wraps:
         return list(full[:, :, (np.arange(nx) - lo_x) % n])
-    out = []
-    for img in full:
-        a = np.concatenate((img[:, n - lo_x:], img[:, :nx - lo_x]), axis=1)
-        a.setflags(write=False)
-        out.append(a)
-    return out
+    # (one read-only stack of the images, each image a view of it: immutable, :func:`shearfit.observation.is_immutable`)
+    out = np.empty((len(items), ny, nx))
+    out[:, :, :lo_x] = full[:, :, n - lo_x:]
+    out[:, :, lo_x:] = full[:, :, :nx - lo_x]
+    out.setflags(write=False)
+    return list(out)
 
 
 def _galsim_images(image, noise, psf_image, wcs, psf_wcs, delta, names, new_psf_image=None):

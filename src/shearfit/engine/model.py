@@ -141,7 +141,7 @@ class ContentMemo:
     """Results computed from an array (a PSF image that the objects of a CCD share, as one array or each
     object its own copy), remembered by a fingerprint of the array (its shape, type and about 256 of its values) and
     checked against a copy of its whole contents on every hit, so that an array that differs anywhere is
-    computed afresh: cheaper than hashing the contents, as safe (a read-only array owning its memory is kept
+    computed afresh: cheaper than hashing the contents, as safe (an immutable array, ``is_immutable``, is kept
     itself, and a hit on that very array needs no comparison, nor a fingerprint: such arrays are found by their
     identity first). Least recently used entries go first beyond ``max_bytes`` (copies and results) or
     ``max_entries``."""
@@ -181,8 +181,8 @@ class ContentMemo:
         """Remember ``value`` for array ``a`` and ``extra`` (a copy of ``a`` is kept to check later hits)."""
         a = np.asarray(a)
         fp = self._fingerprint(a, extra)
-        # a read-only array that owns its memory cannot change: kept itself, so that its own later hits
-        # are recognised without comparing contents
+        # an immutable array (read-only, owning its memory or a view of one that does) cannot change: kept itself,
+        # so that its own later hits are recognised without comparing contents
         copy = a if is_immutable(a) else np.array(a, copy=True)
         size = copy.nbytes + sum(v.nbytes for v in (value if isinstance(value, tuple) else (value,))
                                  if isinstance(v, np.ndarray))
@@ -584,18 +584,23 @@ def noise_variance(weight, stats=None):
     return 1.0 / float((p[h - 1] + p[h]) / 2)
 
 
-def _masked_stamp(obs, ny, nx, stats=None):
-    """The stamp where its weight is positive, 0 elsewhere, on the (ny, nx) grid. With ``stats`` (a dict), the
-    compiled kernel (``masked_stamp``) makes it where it can, the same numbers, and stores the positive weights'
-    count, least and largest and the stamp's sum y^2 there as ``stats["weights"]`` (for :func:`_data_modes`)."""
+def _masked_stamp(obs, ny, nx, stats=None, out=None):
+    """The stamp where its weight is positive, 0 elsewhere, on the (ny, nx) grid (into ``out``, a (ny, nx) float64
+    C-contiguous array, where given). With ``stats`` (a dict), the compiled kernel (``masked_stamp``) makes it where
+    it can, the same numbers, and stores the positive weights' count, least and largest and the stamp's sum y^2
+    there as ``stats["weights"]`` (for :func:`_data_modes`)."""
     im, w = obs.image, obs.weight
     if (stats is not None and USE_KERNEL and im.shape == (ny, nx) and w.shape == im.shape
             and im.dtype == np.float64 and w.dtype == np.float64):
-        y = np.empty((ny, nx))
+        y = np.empty((ny, nx)) if out is None else out
         stats["weights"] = KERNEL.masked_stamp(np.ascontiguousarray(im), np.ascontiguousarray(w), y)
         return y
     y = np.where(w > 0, im, 0.0)
-    return y if y.shape == (ny, nx) else _pad_center(y, (ny, nx))
+    y = y if y.shape == (ny, nx) else _pad_center(y, (ny, nx))
+    if out is None:
+        return y
+    out[...] = y
+    return out
 
 
 def _data_modes(obs, ny, nx, y=None, data_ft=None, wstats=None):
@@ -633,8 +638,11 @@ def prepare_exposures(observations, cfg: FitConfig, likes=None) -> list:
     for (ny, nx), idx in indices_by_shape(o.shape for o in observations).items():
         if len(idx) < 2:
             continue
-        ys = [_masked_stamp(observations[i], ny, nx, pre[i]) for i in idx]
-        for i, y, f in zip(idx, ys, _centred_rfft2(np.stack(ys))):
+        # (the masked stamps made in one stack: the transforms' input without a copy)
+        ys = np.empty((len(idx), ny, nx))
+        for i, y in zip(idx, ys):
+            _masked_stamp(observations[i], ny, nx, pre[i], out=y)
+        for i, y, f in zip(idx, ys, _centred_rfft2(ys)):
             pre[i]["y"], pre[i]["data_ft"] = y, f
         native = [i for i in idx if likes[i] is None and alias and observations[i].psf_oversampling == 1]
         if len(native) >= 2:
