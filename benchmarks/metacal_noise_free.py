@@ -22,6 +22,7 @@ the ring tests of ``ring_test.py --metacal`` need a million objects).
     python benchmarks/metacal_noise_free.py --n-galaxies 60 --metacal-psf round
     python benchmarks/metacal_noise_free.py --n-galaxies 60 --variants 2:quintic:cubic,0:quintic:cubic
     python benchmarks/metacal_noise_free.py --n-galaxies 60 --variants 1.333:quintic:quintic:own,1.333:quintic:quintic:galsim
+    python benchmarks/metacal_noise_free.py --n-galaxies 60 --psf-oversampling 3 --pad-factor 3
 
 ``--variants`` compares image settings, each ``WRAP:STAMP_INTERPOLANT:PSF_INTERPOLANT[:own|galsim]``: the FFT
 grid in stamp widths (0: GalSim's own grid), GalSim's k-interpolants of the stamp (and its noise) and of the PSF
@@ -45,7 +46,7 @@ from dataclasses import replace  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-from shearfit.calib import metacal  # noqa: E402
+from shearfit.calib import kspace, metacal  # noqa: E402
 from shearfit.engine.measure import as_config  # noqa: E402
 from shearfit.simulate.metacal_check import fixed_sample_responses, shear_sets  # noqa: E402
 
@@ -89,7 +90,15 @@ def main(argv=None):
                          "own_samples=True)")
     ap.add_argument("--variants", default=None,
                     help="comma-separated WRAP:STAMP_INTERPOLANT:PSF_INTERPOLANT image settings to compare")
+    ap.add_argument("--pad-factor", type=int, default=None, metavar="P",
+                    help="shearfit's own operations' padded transforms P stamp (and PSF image) widths wide instead "
+                         f"of {kspace.PAD_FACTOR} (shearfit.calib.kspace.PAD_FACTOR; fewer: faster images, coarser "
+                         "k-space interpolation)")
     args = ap.parse_args(argv)
+    if args.pad_factor is not None:
+        if args.pad_factor < 2:
+            ap.error("--pad-factor must be at least 2")
+        kspace.PAD_FACTOR = args.pad_factor
     if args.hlr_range is not None and (args.population != "outside" or not 0 < args.hlr_range[0] < args.hlr_range[1]):
         ap.error("--hlr-range needs --population outside and 0 < MIN < MAX")
 
@@ -118,7 +127,8 @@ def main(argv=None):
           f"{' and their antithetic twins' if len(twins) > 1 else ''} ({args.population} population, SNR "
           f"{args.snr_min:g}-{args.snr_max:g}{'' if args.noisy else ' weights'}, mag {args.mag_min:g}-{args.mag_max:g}), "
           f"7 exposures, {args.stamp_size}-pixel stamps{', rotated pixel grids' if args.rotate_exposures else ''}"
-          f"{f', PSFs oversampled {args.psf_oversampling} times' if args.psf_oversampling > 1 else ''}; "
+          f"{f', PSFs oversampled {args.psf_oversampling} times' if args.psf_oversampling > 1 else ''}"
+          f"{f', padded transforms {kspace.PAD_FACTOR} widths wide' if args.pad_factor is not None else ''}; "
           f"true shears +-{h:g}, metacal delta {args.delta:g}, new PSF {args.metacal_psf}; rendered in "
           f"{time.perf_counter() - t0:.0f} s")
     shipped = (f"{metacal.WRAP_STAMPS:g}:{metacal.K_INTERPOLANT}:{metacal.PSF_K_INTERPOLANT}:"
