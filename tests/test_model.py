@@ -380,6 +380,9 @@ def test_immutable_arrays_are_shared_and_writable_ones_copied():
                                 jacobian=PIX * np.eye(2)).image is img
     raw = np.frombuffer(bytes(8 * 32 * 32)).reshape(32, 32)   # read-only, its memory a bytes object's
     assert not raw.flags.writeable and not is_immutable(raw)
+    held = ContentMemo(max_bytes=1 << 20)
+    held.put(img, (), "view")            # kept itself, and counted at its owner's size (it keeps the stack alive)
+    assert held.peek(img, ()) == "view" and held._nbytes == stack.nbytes
 
     rng = np.random.default_rng(3)
     psf = rng.uniform(size=(25, 25))

@@ -184,8 +184,9 @@ class ContentMemo:
         # an immutable array (read-only, owning its memory or a view of one that does) cannot change: kept itself,
         # so that its own later hits are recognised without comparing contents
         copy = a if is_immutable(a) else np.array(a, copy=True)
-        size = copy.nbytes + sum(v.nbytes for v in (value if isinstance(value, tuple) else (value,))
-                                 if isinstance(v, np.ndarray))
+        # (an immutable view keeps its whole owner alive: counted at the owner's size)
+        size = (copy.nbytes if copy.base is None else copy.base.nbytes) + sum(
+            v.nbytes for v in (value if isinstance(value, tuple) else (value,)) if isinstance(v, np.ndarray))
         self._serial += 1
         key = (fp, self._serial)
         self._d[key] = (copy, value, size)
