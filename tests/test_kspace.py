@@ -131,6 +131,39 @@ def test_noise_turned_back_on_the_bands_is_the_turned_image(size, psf, monkeypat
         metacal.own_kspace_images(image[:, :-1], noise[:, :-1], obs.psf, J, 0.01, names, turn_noise=True)
 
 
+@pytest.mark.skipif(not USE_KERNEL, reason="the compiled kernel is not built")
+def test_sheared_bands_of_a_native_psf_in_one_call_are_each_ones_own(monkeypatch):
+    """A PSF image on the stamp's pixels: the sheared versions of one band radius go through the compiled band in one
+    call (quintic_band with their matrices together), each version's band that of its own call to the bit, with and
+    without the noise's turn; the version without shear alone, at the table's own points."""
+    called = []
+    real = kspace.KERNEL.quintic_band
+
+    class Spy:
+        def __getattr__(self, name):
+            return getattr(kernel, name)
+
+        def quintic_band(self, *a):
+            nv = np.asarray(a[4]).size // 4
+            called.append((a[9], nv))   # step, versions
+            real(*a)
+            for v in range(nv if nv > 1 else 0):
+                alone = np.full(a[11].shape[1:], np.nan, complex)
+                real(*a[:4], np.ascontiguousarray(a[4][v]), *a[5:11], alone)
+                assert np.array_equal(alone, a[11][v])
+
+    kernel = kspace.KERNEL
+    monkeypatch.setattr(kspace, "KERNEL", Spy())
+    names = tuple(metacal.VERSIONS)
+    for J in JACOBIANS:
+        obs = _obs(0.3, (0.2, -0.1), snr=40, n_exp=1, seed=4, J=J)[0]
+        noise = np.rot90(np.random.default_rng(6).normal(size=obs.image.shape), 1)
+        for turn in (False, True):
+            metacal.own_kspace_images(obs.image, noise, obs.psf, J, 0.01, names, turn_noise=turn)
+    assert sum(nv for _, nv in called) == 2 * 2 * len(names)
+    assert all(nv == 1 for s, nv in called if s > 0) and any(nv == len(names) - 1 for _, nv in called)
+
+
 @pytest.mark.parametrize("J", JACOBIANS)
 def test_band_edge_is_where_galsims_psf_transform_falls_below_the_threshold(J):
     """The deconvolution's band: GalSim's transform of the same interpolated PSF exceeds 1e-3 of its flux

@@ -638,26 +638,43 @@ def own_kspace_images(image, noise, psf, J, delta, names, fft_size=None, new_psf
     items = []
     first = None
     smax_j = kspace.singular_values2(J)[0]
+    # the band's edge: maxk is the norm of one of the padded grid's wavevectors, which for the noshear version may be
+    # one of these too, so it is inside however rounding computes the two norms
+    lim = maxk * maxk * (1 + 1e-12)
+    plans = []
     for name, A, r in zip(names, *_version_matrices(names, delta, jit, maxk, dk, dilation, smax_j)):
-        s1, s2 = VERSIONS[name]
         if r not in grids:
             kap, tx, ty, x0, x1 = _band_points(r, dk, None if new_psf is not None else dilation, to_table)
             grids[r] = (kap, kspace.kvalues(psf_table, tx, ty)[:, 0] * x0 * x1)
-        kap, gamma = grids[r]
-        # the band's edge: maxk is the norm of one of the padded grid's wavevectors, which for the noshear
-        # version may be one of these too, so it is inside however rounding computes the two norms
-        lim = maxk * maxk * (1 + 1e-12)
-        if kspace.USE_KERNEL and table.shape[0] == 3:
-            # the lines below in one compiled loop over the band (the same values to rounding); the version
-            # without shear, whose wavevectors are the padded table's own where its grid is a multiple of the
-            # stamp's, reads them there
+        plans.append((name, A, r) + grids[r])
+    if kspace.USE_KERNEL:
+        # the lines of the numpy branch below in one compiled loop over the band (the same values to rounding); the
+        # version without shear, whose wavevectors are the padded table's own where its grid is a multiple of the
+        # stamp's, reads them there; the others of one band radius go together, point by point, so that the table
+        # (larger than a core's L2 cache) is read once for all of them instead of once each
+        nb = 3 if turn_noise else 2
+        jt = np.ascontiguousarray(J.T)
+        bands, together = {}, {}
+        for name, A, r, kap, gamma in plans:
+            s1, s2 = VERSIONS[name]
             step = n // n_small if (s1 == s2 == 0 and n % n_small == 0 and (n // n_small) * r <= n // 2) else 0
-            arr = np.empty((3 if turn_noise else 2, kap.shape[1]), complex)
+            if not step:
+                together.setdefault(r, (gamma, []))[1].append((name, A))
+                continue
+            arr = np.empty((nb, kap.shape[1]), complex)
             phase = _turn_phase(r, n_small, shape[0]) if turn_noise else _NO_PHASE
-            kspace.KERNEL.quintic_band(table, n, r, dk, np.ascontiguousarray(A), np.ascontiguousarray(J.T), to_table,
-                                       lim, gamma, step, phase, arr)
-            first = _add_compiled_band(items, first, r, arr.reshape(-1, 2 * r + 1, r + 1), turn_noise)
-            continue
+            kspace.KERNEL.quintic_band(table, n, r, dk, np.ascontiguousarray(A), jt, to_table, lim, gamma, step, phase,
+                                       arr)
+            bands[name] = arr
+        for r, (gamma, group) in together.items():
+            arr = np.empty((len(group), nb, gamma.size), complex)
+            phase = _turn_phase(r, n_small, shape[0]) if turn_noise else _NO_PHASE
+            kspace.KERNEL.quintic_band(table, n, r, dk, np.ascontiguousarray([A for _, A in group]), jt, to_table, lim,
+                                       gamma, 0, phase, arr)
+            bands.update((name, a) for (name, _), a in zip(group, arr))
+        for name, _, r, _, _ in plans:
+            first = _add_compiled_band(items, first, r, bands[name].reshape(-1, 2 * r + 1, r + 1), turn_noise)
+    for name, A, r, kap, gamma in (() if kspace.USE_KERNEL else plans):
         arr = np.zeros((2, kap.shape[1]), complex)
         sky = A @ kap
         inside = np.nonzero(np.sum(sky * sky, axis=0) <= lim)[0]
