@@ -131,29 +131,39 @@ def test_noise_turned_back_on_the_bands_is_the_turned_image(size, psf, monkeypat
         metacal.own_kspace_images(image[:, :-1], noise[:, :-1], obs.psf, J, 0.01, names, turn_noise=True)
 
 
+class _VersionsSpy:
+    """The compiled kernel, its band loop ``name`` watched: each call's (step, number of versions) appended to
+    ``called`` (the versions' matrices argument ``a_arg``, the step ``step_arg``, the output last), and where it
+    takes several versions, each one's band checked to be the one its own call gives, to the bit."""
+
+    def __init__(self, name, a_arg, step_arg, called):
+        self._kernel = kspace.KERNEL
+        self._real = getattr(self._kernel, name)
+        self._args = a_arg, step_arg
+        self._called = called
+        setattr(self, name, self._watched)
+
+    def __getattr__(self, name):
+        return getattr(self._kernel, name)
+
+    def _watched(self, *a):
+        ia, istep = self._args
+        nv = np.asarray(a[ia]).size // 4
+        self._called.append((a[istep], nv))
+        self._real(*a)
+        for v in range(nv if nv > 1 else 0):
+            alone = np.full(a[-1].shape[1:], np.nan, complex)
+            self._real(*a[:ia], np.ascontiguousarray(a[ia][v]), *a[ia + 1:-1], alone)
+            assert np.array_equal(alone, a[-1][v])
+
+
 @pytest.mark.skipif(not USE_KERNEL, reason="the compiled kernel is not built")
 def test_sheared_bands_of_a_native_psf_in_one_call_are_each_ones_own(monkeypatch):
     """A PSF image on the stamp's pixels: the sheared versions of one band radius go through the compiled band in one
     call (quintic_band with their matrices together), each version's band that of its own call to the bit, with and
     without the noise's turn; the version without shear alone, at the table's own points."""
     called = []
-    real = kspace.KERNEL.quintic_band
-
-    class Spy:
-        def __getattr__(self, name):
-            return getattr(kernel, name)
-
-        def quintic_band(self, *a):
-            nv = np.asarray(a[4]).size // 4
-            called.append((a[9], nv))   # step, versions
-            real(*a)
-            for v in range(nv if nv > 1 else 0):
-                alone = np.full(a[11].shape[1:], np.nan, complex)
-                real(*a[:4], np.ascontiguousarray(a[4][v]), *a[5:11], alone)
-                assert np.array_equal(alone, a[11][v])
-
-    kernel = kspace.KERNEL
-    monkeypatch.setattr(kspace, "KERNEL", Spy())
+    monkeypatch.setattr(kspace, "KERNEL", _VersionsSpy("quintic_band", 4, 9, called))
     names = tuple(metacal.VERSIONS)
     for J in JACOBIANS:
         obs = _obs(0.3, (0.2, -0.1), snr=40, n_exp=1, seed=4, J=J)[0]
@@ -304,23 +314,7 @@ def test_bands_of_a_psf_k_times_the_stamp_read_both_tables_at_the_same_taps(k, m
     from shearfit.simulate.stamps import draw_psf_image, moffat_psf
 
     called = []
-    real = kspace.KERNEL.quintic_band_rows
-
-    class Spy:
-        def __getattr__(self, name):
-            return getattr(kernel, name)
-
-        def quintic_band_rows(self, *a):
-            nv = np.asarray(a[8]).size // 4
-            called.append((a[14], nv))   # step, versions
-            real(*a)
-            # versions together: each one's band is the one it gets alone, to the bit
-            for v in range(nv if nv > 1 else 0):
-                alone = np.full(a[16].shape[1:], np.nan, complex)
-                real(*a[:8], np.ascontiguousarray(a[8][v]), *a[9:16], alone)
-                assert np.array_equal(alone, a[16][v])
-
-    kernel = kspace.KERNEL
+    spy = _VersionsSpy("quintic_band_rows", 8, 14, called)
     names = tuple(metacal.VERSIONS)
     for J, fwhm in zip(JACOBIANS, (0.9, 0.6)):
         obs = _obs(0.3, (0.2, -0.1), snr=40, n_exp=1, seed=4, J=J)[0]
@@ -336,7 +330,7 @@ def test_bands_of_a_psf_k_times_the_stamp_read_both_tables_at_the_same_taps(k, m
                 got = {}
                 for use in (True, False):
                     monkeypatch.setattr(kspace, "USE_KERNEL", use)
-                    monkeypatch.setattr(kspace, "KERNEL", Spy())
+                    monkeypatch.setattr(kspace, "KERNEL", spy)
                     got[use] = np.asarray(metacal.own_kspace_images(obs.image, noise, pim, J, 0.01, names, k=k,
                                                                     new_psf=new, turn_noise=turn))
                 assert np.abs(got[True] - got[False]).max() < 1e-9 * np.abs(got[False]).max()
