@@ -19,7 +19,9 @@ These operations are shearfit's own (:func:`own_kspace_images`,
 :mod:`shearfit.calib.kspace`): the transforms of the stamp, its noise and
 the PSF are taken once per exposure and every version interpolates them at
 its sheared wavevectors with one set of quintic weights (for a PSF given on
-the stamp's pixels, the usual case, in one compiled loop per version; for an
+the stamp's pixels, the usual case, in one compiled loop for the version
+without shear and one for the four sheared ones, point by point:
+``quintic_band``; for an
 oversampled PSF, whose transform is interpolated at its own pixels'
 wavevectors and remembered per PSF image, in another, which for a PSF image k
 times the stamp's size, whose padded grid is then k times the stamp's, reads
