@@ -1022,3 +1022,33 @@ def test_symmetrising_noise_cancels_the_noise_shear_under_elliptical_psfs_and_ro
     without, with_ = resp[:, 1], resp[:, 0]
     assert without.mean() > 3.0
     assert abs(with_.mean()) < max(5 * with_.std() / np.sqrt(with_.size), 0.05 * without.mean()), with_.mean()
+
+
+@pytest.mark.parametrize("shape", [(48, 48), (40, 33), (6, 6)])
+def test_compiled_noise_and_weights_are_the_numpy_lines(shape):
+    """metacal_observations' steps before and after the images (the masked stamp, the symmetrising noise times sigma,
+    the grown mask and its edge, var_in; the versions' weights from the processed noise's variance), compiled, give the
+    numpy lines' numbers to the bit: a stamp without masked pixels, one with a bad column, zero and varying weights
+    (a cosmic ray's pixels), and a stamp all edge (var_in 1, var_out var_in)."""
+    from shearfit.calib import kspace, metacal
+
+    if not kspace.USE_KERNEL:
+        pytest.skip("the compiled kernel is not built")
+    rng = np.random.default_rng(11)
+    for case in range(3):
+        w = np.full(shape, 2.5e3)
+        if case >= 1:
+            w[:, shape[1] // 3] = 0.0
+            w[shape[0] // 2, shape[1] // 2] = 0.0
+        if case == 2:
+            w *= rng.uniform(0.5, 2.0, shape)
+        image = rng.normal(size=shape)
+        units = rng.normal(size=shape)
+        a, b = units.copy(), units.copy()
+        want = metacal._noise_numpy(w, image, a)
+        got = metacal._noise_compiled(w, image, b)
+        assert np.array_equal(a, b) and np.array_equal(want[0], got[0]) and np.array_equal(want[1], got[1])
+        assert got[2] == want[2] and (got[2] == 1.0) == (not (~want[1]).any())
+        noise0 = rng.normal(scale=0.03, size=shape)
+        assert np.array_equal(metacal._weight_numpy(noise0, want[1], w, want[2]),
+                              metacal._weight_compiled(noise0, got[1], w, got[2]))

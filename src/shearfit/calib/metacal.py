@@ -792,6 +792,55 @@ def _edge_mask(shape):
     return mask
 
 
+def _noise_numpy(w, image, noise):
+    """The stamp's pixels with weight > 0 (0 elsewhere), the symmetrising noise (unit normals, scaled in place) times
+    sigma = 1 / sqrt(w) there (0 elsewhere), the mask (the pixels of weight 0 grown by ``_MASK_GROW``, and those within
+    ``_EDGE`` of the edge) and var_in, the mean of sigma^2 off the mask (1 where all is masked): (image, mask,
+    var_in). The reference of :func:`_noise_compiled`."""
+    good = w > 0
+    # (a stamp without a masked pixel, the usual one, needs none of the masked pixels' handling below: the same
+    # arrays with fewer operations)
+    whole = bool(good.all())
+    image = image if whole else np.where(good, image, 0.0)
+    sigma = np.sqrt(w)
+    if whole:
+        np.divide(1.0, sigma, out=sigma)
+    else:
+        np.divide(1.0, sigma, out=sigma, where=good)
+        sigma[~good] = 0.0
+    noise *= sigma
+    mask = _edge_mask(w.shape) if whole else _grown(~good, _MASK_GROW) | _edge_mask(w.shape)
+    inner = ~mask
+    return image, mask, (_mean_square(sigma[inner]) if inner.any() else 1.0)
+
+
+def _noise_compiled(w, image, noise):
+    """:func:`_noise_numpy` in one compiled pass (``metacal_noise``: the same numbers; ``noise`` C-contiguous)."""
+    out, mask = np.empty(w.shape), np.empty(w.shape, np.uint8)
+    _, var_in = kspace.KERNEL.metacal_noise(np.ascontiguousarray(w), np.ascontiguousarray(image), noise, w.shape[0],
+                                            w.shape[1], _EDGE, _MASK_GROW, out, mask)
+    return out, mask.view(bool), var_in
+
+
+def _weight_numpy(noise0, mask, w, var_in):
+    """The versions' weights: ``w`` times var_in / (2 var_out), var_out the mean of the processed noise's square
+    (``noise0``, the noshear version's) off the mask (var_in where all is masked), 0 on the mask. The reference of
+    :func:`_weight_compiled`."""
+    inner = ~mask
+    var_out = _mean_square(noise0[inner]) if inner.any() else var_in
+    weight = w * (var_in / max(2.0 * var_out, 1e-300))
+    weight[mask] = 0.0
+    return weight
+
+
+def _weight_compiled(noise0, mask, w, var_in):
+    """:func:`_weight_numpy` in one compiled pass (``metacal_weight``: the same numbers)."""
+    weight = np.empty(w.shape)
+    kspace.KERNEL.metacal_weight(np.ascontiguousarray(noise0), np.ascontiguousarray(mask), np.ascontiguousarray(w),
+                                 float(var_in), weight)
+    return weight
+
+
 def metacal_observations(obs: Observation, delta=0.01, rng=None, versions=tuple(VERSIONS),
                          fit_moffat=True, psf="dilated") -> dict:
     """The metacal versions of one exposure's stamp: ``{version: Observation}`` (see the module doc).
@@ -808,11 +857,6 @@ def metacal_observations(obs: Observation, delta=0.01, rng=None, versions=tuple(
     J = obs.jacobian
     k = obs.psf_oversampling
     w = obs.weight
-    good = w > 0
-    # (a stamp without a masked pixel, the usual one, needs none of the masked pixels' handling below: the same
-    # arrays with fewer operations)
-    whole = bool(good.all())
-    image = obs.image if whole else np.where(good, obs.image, 0.0)
     dilation = 1.0 + 2.0 * abs(delta)
     own = OWN_KSPACE and WRAP_STAMPS and K_INTERPOLANT == PSF_K_INTERPOLANT == "quintic"
     if psf == "round":
@@ -836,14 +880,9 @@ def metacal_observations(obs: Observation, delta=0.01, rng=None, versions=tuple(
         moffat = psf_moffat(psf_img) if fit_moffat else None
     # the symmetrising noise: the stamp's variance, rotated by 90 degrees before the operations (none at the
     # masked pixels)
-    sigma = np.sqrt(w)
-    if whole:
-        np.divide(1.0, sigma, out=sigma)
-    else:
-        np.divide(1.0, sigma, out=sigma, where=good)
-        sigma[~good] = 0.0
     noise = rng.normal(0.0, 1.0, w.shape)
-    noise *= sigma
+    compiled = kspace.USE_KERNEL and w.dtype == obs.image.dtype == np.float64
+    image, mask, var_in = (_noise_compiled if compiled else _noise_numpy)(w, obs.image, noise)
     square = w.shape[0] == w.shape[1]
     if not square:
         # a 90-degree rotation of a non-square stamp is another shape: the added noise is then not rotated,
@@ -851,11 +890,6 @@ def metacal_observations(obs: Observation, delta=0.01, rng=None, versions=tuple(
         log.warning("metacal: a %d x %d stamp is not square; its noise is not symmetrised", *w.shape)
     turn = square and SYMMETRISE_NOISE
     nrot = noise[:, ::-1].T if turn else noise   # np.rot90(noise, 1)
-    # the masked pixels grown, and the edge
-    mask = _edge_mask(w.shape) if whole else _grown(~good, _MASK_GROW) | _edge_mask(w.shape)
-    inner = ~mask
-    some = bool(inner.any())
-    var_in = _mean_square(sigma[inner]) if some else 1.0
     names = ("noshear",) + tuple(v for v in versions if v != "noshear")
     new_psf = psf_img if psf == "round" else None
     if own and turn:
@@ -873,10 +907,8 @@ def metacal_observations(obs: Observation, delta=0.01, rng=None, versions=tuple(
     # the versions' noise: the original, processed, plus the added field: twice the added field's variance,
     # measured on the noshear version and used for all, so that every version is fitted with the same weights
     # (and the same Fourier modes)
-    var_out = _mean_square(noise0[inner]) if some else var_in
-    scale = var_in / max(2.0 * var_out, 1e-300)
-    weight = w * scale
-    weight[mask] = 0.0
+    # (GalSim's drawImage path gives float32 images, whose variance numpy takes in float32)
+    weight = (_weight_compiled if compiled and noise0.dtype == np.float64 else _weight_numpy)(noise0, mask, w, var_in)
     weight.setflags(write=False)
     out = {}
     first = None

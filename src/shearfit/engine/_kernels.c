@@ -4892,6 +4892,122 @@ static PyObject *masked_stamp(PyObject *self, PyObject *args)
 }
 
 /*
+ * metacal_noise(weight, image, noise, ny, nx, edge, grow, y, mask) -> (whole, var_in): calib/metacal.py's
+ * metacal_observations before the images (its numpy lines stay as the reference; a test checks they agree to the
+ * bit), for a stamp of ny x nx float64 pixels: y = image where weight > 0, else 0; noise (the symmetrising field's
+ * unit normals, in place) times sigma = 1 / sqrt(weight) where weight > 0, else 0; mask (uint8) the pixels within
+ * edge of the stamp's border and, unless every weight is positive (whole), those within grow steps of a pixel whose
+ * weight is not (the four neighbours' cross, nothing beyond the border); var_in, numpy's mean of sigma^2 over the
+ * pixels not masked (in C order: 0.0 plus their pairwise sum, over their count), or 1.0 where none is.
+ */
+static NO_CONTRACT double np_mean_masked_square(const double *X, const unsigned char *M, Py_ssize_t n, int *some)
+{
+    double *sq = (double *)malloc((n > 0 ? n : 1) * sizeof(double));
+    if (sq == NULL) return NAN;
+    Py_ssize_t m = 0;
+    for (Py_ssize_t i = 0; i < n; i++)
+        if (!M[i]) {
+            sq[m] = X[i] * X[i];
+            m++;
+        }
+    const double out = m ? (0.0 + np_pairwise_sum(sq, m)) / (double)m : 0.0;
+    free(sq);
+    *some = m > 0;
+    return out;
+}
+
+static PyObject *metacal_noise(PyObject *self, PyObject *args)
+{
+    Py_buffer wb, ib, nb, yb, mb;
+    Py_ssize_t ny, nx, edge, grow;
+    if (!PyArg_ParseTuple(args, "y*y*w*nnnnw*w*", &wb, &ib, &nb, &ny, &nx, &edge, &grow, &yb, &mb)) return NULL;
+    const Py_ssize_t n = ny * nx, dz = (Py_ssize_t)sizeof(double);
+    if (ny < 1 || nx < 1 || edge < 0 || grow < 0 || wb.len != n * dz || ib.len != n * dz || nb.len != n * dz
+        || yb.len != n * dz || mb.len != n) {
+        RELEASE(&wb, &ib, &nb, &yb, &mb);
+        PyErr_SetString(PyExc_ValueError, "metacal_noise: inconsistent buffers");
+        return NULL;
+    }
+    const double *W = (const double *)wb.buf, *I = (const double *)ib.buf;
+    double *N = (double *)nb.buf, *Y = (double *)yb.buf;
+    unsigned char *M = (unsigned char *)mb.buf;
+    double *sigma = (double *)malloc(n * sizeof(double));
+    unsigned char *tmp = (unsigned char *)malloc(n);
+    if (sigma == NULL || tmp == NULL) {
+        free(sigma);
+        free(tmp);
+        RELEASE(&wb, &ib, &nb, &yb, &mb);
+        return PyErr_NoMemory();
+    }
+    int whole = 1;
+    for (Py_ssize_t i = 0; i < n; i++) {
+        const int good = W[i] > 0;
+        whole &= good;
+        sigma[i] = good ? 1.0 / sqrt(W[i]) : 0.0;
+        N[i] *= sigma[i];
+        Y[i] = good ? I[i] : 0.0;
+        M[i] = !good;
+    }
+    if (whole) {
+        memset(M, 0, n);
+    } else {
+        /* the masked pixels grown by the four neighbours' cross, grow times (metacal._grown) */
+        for (Py_ssize_t g = 0; g < grow; g++) {
+            memcpy(tmp, M, n);
+            for (Py_ssize_t y = 0; y < ny; y++)
+                for (Py_ssize_t x = 0; x < nx; x++) {
+                    const Py_ssize_t i = y * nx + x;
+                    M[i] = tmp[i] | (y > 0 && tmp[i - nx]) | (y + 1 < ny && tmp[i + nx]) | (x > 0 && tmp[i - 1])
+                           | (x + 1 < nx && tmp[i + 1]);
+                }
+        }
+    }
+    for (Py_ssize_t y = 0; y < ny; y++)
+        for (Py_ssize_t x = 0; x < nx; x++)
+            if (y < edge || y >= ny - edge || x < edge || x >= nx - edge) M[y * nx + x] = 1;
+    int some = 0;
+    const double ms = np_mean_masked_square(sigma, M, n, &some);
+    free(sigma);
+    free(tmp);
+    RELEASE(&wb, &ib, &nb, &yb, &mb);
+    if (ms != ms && some) return PyErr_NoMemory();
+    return Py_BuildValue("(Od)", whole ? Py_True : Py_False, some ? ms : 1.0);
+}
+
+/*
+ * metacal_weight(noise0, mask, weight, var_in, out) -> scale: metacal_observations after the images: var_out,
+ * numpy's mean of noise0^2 over the pixels not masked (var_in where none is), scale = var_in / max(2 var_out, 1e-300),
+ * and out = weight * scale, 0 where masked.
+ */
+static NO_CONTRACT PyObject *metacal_weight(PyObject *self, PyObject *args)
+{
+    Py_buffer ob, mb, wb, outb;
+    double var_in;
+    if (!PyArg_ParseTuple(args, "y*y*y*dw*", &ob, &mb, &wb, &var_in, &outb)) return NULL;
+    const Py_ssize_t n = mb.len, dz = (Py_ssize_t)sizeof(double);
+    if (ob.len != n * dz || wb.len != n * dz || outb.len != n * dz) {
+        RELEASE(&ob, &mb, &wb, &outb);
+        PyErr_SetString(PyExc_ValueError, "metacal_weight: inconsistent buffers");
+        return NULL;
+    }
+    const unsigned char *M = (const unsigned char *)mb.buf;
+    const double *W = (const double *)wb.buf;
+    double *O = (double *)outb.buf;
+    int some = 0;
+    double var_out = np_mean_masked_square((const double *)ob.buf, M, n, &some);
+    if (var_out != var_out && some) {
+        RELEASE(&ob, &mb, &wb, &outb);
+        return PyErr_NoMemory();
+    }
+    if (!some) var_out = var_in;
+    /* (Python's max(2 var_out, 1e-300): the first unless the second is larger) */
+    const double den = 2.0 * var_out, scale = var_in / (1e-300 > den ? 1e-300 : den);
+    for (Py_ssize_t i = 0; i < n; i++) O[i] = M[i] ? 0.0 : W[i] * scale;
+    RELEASE(&ob, &mb, &wb, &outb);
+    return PyFloat_FromDouble(scale);
+}
+
+/*
  * shift_phase(kx, ky, du, dv, out): exp(-i (kx du + ky dv)) per mode (likelihood.shift_joint's numpy line stays as the
  * reference; a test checks they agree to the bit): numpy's complex exp of the purely imaginary -i t is (cos t,
  * sin(-t)) from the C library, t made without contraction as numpy makes it.
@@ -6209,6 +6325,9 @@ static PyMethodDef methods[] = {
     {"sample_chunk", sample_chunk, METH_VARARGS, "sample_chunk(args, e1, e2, rc, shift, out, rc_out, state) -> int"},
     {"moffat_start", moffat_start, METH_VARARGS, "moffat_start(kr, vr, nus, x50, ratio, out)"},
     {"masked_stamp", masked_stamp, METH_VARARGS, "masked_stamp(image, weight, y) -> (count, lo, hi, sumsq)"},
+    {"metacal_noise", metacal_noise, METH_VARARGS,
+     "metacal_noise(weight, image, noise, ny, nx, edge, grow, y, mask) -> (whole, var_in)"},
+    {"metacal_weight", metacal_weight, METH_VARARGS, "metacal_weight(noise0, mask, weight, var_in, out) -> scale"},
     {"shift_phase", shift_phase, METH_VARARGS, "shift_phase(kx, ky, du, dv, out)"},
     {"nearest_map", nearest_map, METH_VARARGS, "nearest_map(a, ny, nx, index, inside)"},
     {"sky_modes", sky_modes, METH_VARARGS, "sky_modes(kx, ky, T, m, flux_scale, Kx, Ky, Ts)"},
