@@ -158,6 +158,20 @@ class _VersionsSpy:
 
 
 @pytest.mark.skipif(not USE_KERNEL, reason="the compiled kernel is not built")
+@pytest.mark.parametrize("shape", [(48, 48), (47, 47), (40, 33)])
+def test_compiled_padded_rows_are_the_numpy_lines(shape, monkeypatch):
+    """padded_transforms_rows of two images of one shape, laid out and placed by the compiled loops (padded_rows,
+    padded_place), is the numpy lines' array to the bit, and padded_transforms' transposed."""
+    rng = np.random.default_rng(8)
+    images = [rng.normal(size=shape), np.rot90(rng.normal(size=shape[::-1]), 1)]
+    n = kspace.padded_size(shape)
+    got = kspace.padded_transforms_rows(images, n)
+    monkeypatch.setattr(kspace, "USE_KERNEL", False)
+    assert np.array_equal(got, kspace.padded_transforms_rows(images, n))
+    assert np.array_equal(got, kspace.padded_transforms(images, n).transpose(2, 1, 0))
+
+
+@pytest.mark.skipif(not USE_KERNEL, reason="the compiled kernel is not built")
 def test_sheared_bands_of_a_native_psf_in_one_call_are_each_ones_own(monkeypatch):
     """A PSF image on the stamp's pixels: the sheared versions of one band radius go through the compiled band in one
     call (quintic_band with their matrices together), each version's band that of its own call to the bit, with and

@@ -106,7 +106,16 @@ def padded_transforms_rows(images, n):
     """:func:`padded_transforms` in rows: an array (n, n // 2 + 1, len(images)) complex, ky, then kx >= 0, then the
     image (``rfft2``'s own order, the images innermost), so that a wavevector's taps along kx and its values for every
     image are adjacent in memory (metacal's compiled band for a PSF grid k times the stamp's). The same values, to
-    the transforms' rounding."""
+    the transforms' rounding. Two float64 images of one shape are laid out and placed by the compiled loops
+    (``padded_rows``, ``padded_place``: the same arrays as the numpy lines)."""
+    if (USE_KERNEL and len(images) == 2 and images[0].shape == images[1].shape
+            and all(im.dtype == np.float64 for im in images) and max(images[0].shape) <= n):
+        h, w = images[0].shape
+        rows = np.empty((2, h, n))
+        KERNEL.padded_rows(np.ascontiguousarray(images[0]), np.ascontiguousarray(images[1]), h, w, n, rows)
+        out = np.empty((n, n // 2 + 1, 2), complex)
+        KERNEL.padded_place(sfft.rfft(rows, axis=2, workers=1), h, n, out)
+        return sfft.fft(out, axis=0, workers=1, overwrite_x=True)
     part = _row_transforms(images, n)
     out = np.zeros((n, n // 2 + 1, len(images)), complex)
     for t, im in enumerate(images):

@@ -4892,6 +4892,72 @@ static PyObject *masked_stamp(PyObject *self, PyObject *args)
 }
 
 /*
+ * padded_rows(a, b, h, w, n, rows): calib/kspace._row_transforms' input for two h x w float64 images (the numpy
+ * lines stay as the reference; a test checks they agree): rows (2, h, n) float64, each image's rows with column
+ * w // 2 at index 0 (the columns left of it at the row's end), zero between.
+ * padded_place(part, h, n, out): padded_transforms_rows' placement of the row transforms (part: complex128 (2, h,
+ * n // 2 + 1)) into out (complex128 (n, n // 2 + 1, 2)): row h // 2 at index 0, the rows above it at the end, zero
+ * between.
+ */
+static PyObject *padded_rows(PyObject *self, PyObject *args)
+{
+    Py_buffer ib, nb, rb;
+    Py_ssize_t h, w, n;
+    if (!PyArg_ParseTuple(args, "y*y*nnnw*", &ib, &nb, &h, &w, &n, &rb)) return NULL;
+    const Py_ssize_t dz = (Py_ssize_t)sizeof(double);
+    if (h < 1 || w < 1 || w > n || h > n || ib.len != h * w * dz || nb.len != h * w * dz
+        || rb.len != 2 * h * n * dz) {
+        RELEASE(&ib, &nb, &rb);
+        PyErr_SetString(PyExc_ValueError, "padded_rows: inconsistent buffers");
+        return NULL;
+    }
+    const double *I = (const double *)ib.buf, *N = (const double *)nb.buf;
+    double *R = (double *)rb.buf;
+    const Py_ssize_t c = w / 2;
+    memset(R, 0, 2 * h * n * sizeof(double));
+    for (Py_ssize_t y = 0; y < h; y++) {
+        double *r0 = R + y * n, *r1 = R + (h + y) * n;
+        for (Py_ssize_t x = 0; x < w; x++) {
+            const Py_ssize_t to = x >= c ? x - c : n - c + x;
+            r0[to] = I[y * w + x];
+            r1[to] = N[y * w + x];
+        }
+    }
+    RELEASE(&ib, &nb, &rb);
+    Py_RETURN_NONE;
+}
+
+static PyObject *padded_place(PyObject *self, PyObject *args)
+{
+    Py_buffer pb, ob;
+    Py_ssize_t h, n;
+    if (!PyArg_ParseTuple(args, "y*nnw*", &pb, &h, &n, &ob)) return NULL;
+    const Py_ssize_t nc = n / 2 + 1, cz = 2 * (Py_ssize_t)sizeof(double);
+    if (h < 1 || h > n || pb.len != 2 * h * nc * cz || ob.len != n * nc * 2 * cz) {
+        RELEASE(&pb, &ob);
+        PyErr_SetString(PyExc_ValueError, "padded_place: inconsistent buffers");
+        return NULL;
+    }
+    const double *P = (const double *)pb.buf;
+    double *O = (double *)ob.buf;
+    const Py_ssize_t c = h / 2;
+    memset(O, 0, n * nc * 2 * cz);
+    for (Py_ssize_t y = 0; y < h; y++) {
+        const Py_ssize_t row = y >= c ? y - c : n - c + y;
+        for (int t = 0; t < 2; t++) {
+            const double *src = P + 2 * ((t * h + y) * nc);
+            double *dst = O + 2 * (row * nc * 2 + t);
+            for (Py_ssize_t kx = 0; kx < nc; kx++) {
+                dst[4 * kx] = src[2 * kx];
+                dst[4 * kx + 1] = src[2 * kx + 1];
+            }
+        }
+    }
+    RELEASE(&pb, &ob);
+    Py_RETURN_NONE;
+}
+
+/*
  * metacal_noise(weight, image, noise, ny, nx, edge, grow, y, mask) -> (whole, var_in): calib/metacal.py's
  * metacal_observations before the images (its numpy lines stay as the reference; a test checks they agree to the
  * bit), for a stamp of ny x nx float64 pixels: y = image where weight > 0, else 0; noise (the symmetrising field's
@@ -6325,6 +6391,8 @@ static PyMethodDef methods[] = {
     {"sample_chunk", sample_chunk, METH_VARARGS, "sample_chunk(args, e1, e2, rc, shift, out, rc_out, state) -> int"},
     {"moffat_start", moffat_start, METH_VARARGS, "moffat_start(kr, vr, nus, x50, ratio, out)"},
     {"masked_stamp", masked_stamp, METH_VARARGS, "masked_stamp(image, weight, y) -> (count, lo, hi, sumsq)"},
+    {"padded_rows", padded_rows, METH_VARARGS, "padded_rows(a, b, h, w, n, rows)"},
+    {"padded_place", padded_place, METH_VARARGS, "padded_place(part, h, n, out)"},
     {"metacal_noise", metacal_noise, METH_VARARGS,
      "metacal_noise(weight, image, noise, ny, nx, edge, grow, y, mask) -> (whole, var_in)"},
     {"metacal_weight", metacal_weight, METH_VARARGS, "metacal_weight(noise0, mask, weight, var_in, out) -> scale"},
