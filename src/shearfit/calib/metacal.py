@@ -817,8 +817,8 @@ def _noise_numpy(w, image, noise):
 def _noise_compiled(w, image, noise):
     """:func:`_noise_numpy` in one compiled pass (``metacal_noise``: the same numbers; ``noise`` C-contiguous)."""
     out, mask = np.empty(w.shape), np.empty(w.shape, np.uint8)
-    _, var_in = kspace.KERNEL.metacal_noise(np.ascontiguousarray(w), np.ascontiguousarray(image), noise, w.shape[0],
-                                            w.shape[1], _EDGE, _MASK_GROW, out, mask)
+    var_in = kspace.KERNEL.metacal_noise(np.ascontiguousarray(w), np.ascontiguousarray(image), noise, w.shape[0],
+                                         w.shape[1], _EDGE, _MASK_GROW, out, mask)
     return out, mask.view(bool), var_in
 
 

@@ -4958,7 +4958,7 @@ static PyObject *padded_place(PyObject *self, PyObject *args)
 }
 
 /*
- * metacal_noise(weight, image, noise, ny, nx, edge, grow, y, mask) -> (whole, var_in): calib/metacal.py's
+ * metacal_noise(weight, image, noise, ny, nx, edge, grow, y, mask) -> var_in: calib/metacal.py's
  * metacal_observations before the images (its numpy lines stay as the reference; a test checks they agree to the
  * bit), for a stamp of ny x nx float64 pixels: y = image where weight > 0, else 0; noise (the symmetrising field's
  * unit normals, in place) times sigma = 1 / sqrt(weight) where weight > 0, else 0; mask (uint8) the pixels within
@@ -4966,20 +4966,21 @@ static PyObject *padded_place(PyObject *self, PyObject *args)
  * weight is not (the four neighbours' cross, nothing beyond the border); var_in, numpy's mean of sigma^2 over the
  * pixels not masked (in C order: 0.0 plus their pairwise sum, over their count), or 1.0 where none is.
  */
-static NO_CONTRACT double np_mean_masked_square(const double *X, const unsigned char *M, Py_ssize_t n, int *some)
+/* numpy's mean of X^2 over the pixels not masked (C order) into *out; returns how many there are, or -1 where memory
+   ran out */
+static NO_CONTRACT Py_ssize_t np_mean_masked_square(const double *X, const unsigned char *M, Py_ssize_t n, double *out)
 {
     double *sq = (double *)malloc((n > 0 ? n : 1) * sizeof(double));
-    if (sq == NULL) return NAN;
+    if (sq == NULL) return -1;
     Py_ssize_t m = 0;
     for (Py_ssize_t i = 0; i < n; i++)
         if (!M[i]) {
             sq[m] = X[i] * X[i];
             m++;
         }
-    const double out = m ? (0.0 + np_pairwise_sum(sq, m)) / (double)m : 0.0;
+    *out = m ? (0.0 + np_pairwise_sum(sq, m)) / (double)m : 0.0;
     free(sq);
-    *some = m > 0;
-    return out;
+    return m;
 }
 
 static PyObject *metacal_noise(PyObject *self, PyObject *args)
@@ -5031,13 +5032,13 @@ static PyObject *metacal_noise(PyObject *self, PyObject *args)
     for (Py_ssize_t y = 0; y < ny; y++)
         for (Py_ssize_t x = 0; x < nx; x++)
             if (y < edge || y >= ny - edge || x < edge || x >= nx - edge) M[y * nx + x] = 1;
-    int some = 0;
-    const double ms = np_mean_masked_square(sigma, M, n, &some);
+    double ms = 0.0;
+    const Py_ssize_t some = np_mean_masked_square(sigma, M, n, &ms);
     free(sigma);
     free(tmp);
     RELEASE(&wb, &ib, &nb, &yb, &mb);
-    if (ms != ms && some) return PyErr_NoMemory();
-    return Py_BuildValue("(Od)", whole ? Py_True : Py_False, some ? ms : 1.0);
+    if (some < 0) return PyErr_NoMemory();
+    return PyFloat_FromDouble(some ? ms : 1.0);
 }
 
 /*
@@ -5059,9 +5060,9 @@ static NO_CONTRACT PyObject *metacal_weight(PyObject *self, PyObject *args)
     const unsigned char *M = (const unsigned char *)mb.buf;
     const double *W = (const double *)wb.buf;
     double *O = (double *)outb.buf;
-    int some = 0;
-    double var_out = np_mean_masked_square((const double *)ob.buf, M, n, &some);
-    if (var_out != var_out && some) {
+    double var_out = 0.0;
+    const Py_ssize_t some = np_mean_masked_square((const double *)ob.buf, M, n, &var_out);
+    if (some < 0) {
         RELEASE(&ob, &mb, &wb, &outb);
         return PyErr_NoMemory();
     }
@@ -6394,7 +6395,7 @@ static PyMethodDef methods[] = {
     {"padded_rows", padded_rows, METH_VARARGS, "padded_rows(a, b, h, w, n, rows)"},
     {"padded_place", padded_place, METH_VARARGS, "padded_place(part, h, n, out)"},
     {"metacal_noise", metacal_noise, METH_VARARGS,
-     "metacal_noise(weight, image, noise, ny, nx, edge, grow, y, mask) -> (whole, var_in)"},
+     "metacal_noise(weight, image, noise, ny, nx, edge, grow, y, mask) -> var_in"},
     {"metacal_weight", metacal_weight, METH_VARARGS, "metacal_weight(noise0, mask, weight, var_in, out) -> scale"},
     {"shift_phase", shift_phase, METH_VARARGS, "shift_phase(kx, ky, du, dv, out)"},
     {"nearest_map", nearest_map, METH_VARARGS, "nearest_map(a, ny, nx, index, inside)"},
