@@ -4999,10 +4999,8 @@ static PyObject *metacal_noise(PyObject *self, PyObject *args)
     double *N = (double *)nb.buf, *Y = (double *)yb.buf;
     unsigned char *M = (unsigned char *)mb.buf;
     double *sigma = (double *)malloc(n * sizeof(double));
-    unsigned char *tmp = (unsigned char *)malloc(n);
-    if (sigma == NULL || tmp == NULL) {
-        free(sigma);
-        free(tmp);
+    unsigned char *tmp = NULL;   /* (the grown mask's scratch, only where a pixel is masked) */
+    if (sigma == NULL) {
         RELEASE(&wb, &ib, &nb, &yb, &mb);
         return PyErr_NoMemory();
     }
@@ -5017,7 +5015,13 @@ static PyObject *metacal_noise(PyObject *self, PyObject *args)
     }
     if (whole) {
         memset(M, 0, n);
-    } else {
+    } else if (grow > 0) {
+        tmp = (unsigned char *)malloc(n);
+        if (tmp == NULL) {
+            free(sigma);
+            RELEASE(&wb, &ib, &nb, &yb, &mb);
+            return PyErr_NoMemory();
+        }
         /* the masked pixels grown by the four neighbours' cross, grow times (metacal._grown) */
         for (Py_ssize_t g = 0; g < grow; g++) {
             memcpy(tmp, M, n);
