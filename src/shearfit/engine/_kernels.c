@@ -2182,22 +2182,31 @@ static PyObject *size_marginal(PyObject *self, PyObject *args)
  * conjugate of the mirrored one) with the weights of the quintic kernel (Bernstein & Gruen 2014), one set of
  * weights for the ntab images.
  */
-/* the six weights of the quintic kernel at distances f + 2, f + 1, f, 1 - f, 2 - f, 3 - f (f in [0, 1)):
-   each distance in a known piece of the kernel, so no branch */
-static inline __attribute__((always_inline)) void quintic_weights(double f, double *w)
+/* the six weights of the quintic kernel at distances f + 2, f + 1, f, 1 - f, 2 - f, 3 - f (f in [0, 1)), for two
+   offsets at once (fx, fy: into wx, wy): each distance in a known piece of the kernel, so no branch, and each
+   piece evaluated at its four distances (two of x, two of y) as one vector (one weight at a time, the twelve
+   polynomials' chains were a fifth of metacal's band loop; the same operations, the same numbers) */
+typedef double qw4 __attribute__((vector_size(4 * sizeof(double))));
+static inline __attribute__((always_inline)) void quintic_weights(double fx, double fy, double *wx, double *wy)
 {
-    double x = f + 2.0;
-    w[0] = (x - 2.0) * (x - 3.0) * (x - 3.0) * (-9.0 / 4.0 + x * (25.0 / 12.0 + x * (-11.0 / 24.0)));
-    x = f + 1.0;
-    w[1] = (x - 1.0) * (x - 2.0) * (-23.0 / 4.0 + x * (29.0 / 2.0 + x * (-83.0 / 8.0 + x * (55.0 / 24.0))));
-    x = f;
-    w[2] = 1.0 + x * x * x * (-95.0 / 12.0 + x * (23.0 / 2.0 + x * (-55.0 / 12.0)));
-    x = 1.0 - f;
-    w[3] = 1.0 + x * x * x * (-95.0 / 12.0 + x * (23.0 / 2.0 + x * (-55.0 / 12.0)));
-    x = 2.0 - f;
-    w[4] = (x - 1.0) * (x - 2.0) * (-23.0 / 4.0 + x * (29.0 / 2.0 + x * (-83.0 / 8.0 + x * (55.0 / 24.0))));
-    x = 3.0 - f;
-    w[5] = (x - 2.0) * (x - 3.0) * (x - 3.0) * (-9.0 / 4.0 + x * (25.0 / 12.0 + x * (-11.0 / 24.0)));
+    const qw4 f = {fx, -fx, fy, -fy};
+    /* x = f + 2 (tap 0) and 3 - f (tap 5); f + 1 (tap 1) and 2 - f (tap 4); f (tap 2) and 1 - f (tap 3) */
+    const qw4 c2 = {2.0, 3.0, 2.0, 3.0}, c1 = {1.0, 2.0, 1.0, 2.0}, c0 = {0.0, 1.0, 0.0, 1.0};
+    qw4 x = c2 + f;
+    const qw4 w3 = (x - 2.0) * (x - 3.0) * (x - 3.0) * (-9.0 / 4.0 + x * (25.0 / 12.0 + x * (-11.0 / 24.0)));
+    x = c1 + f;
+    const qw4 w2 = (x - 1.0) * (x - 2.0) * (-23.0 / 4.0 + x * (29.0 / 2.0 + x * (-83.0 / 8.0 + x * (55.0 / 24.0))));
+    x = c0 + f;
+    const qw4 w1 = 1.0 + x * x * x * (-95.0 / 12.0 + x * (23.0 / 2.0 + x * (-55.0 / 12.0)));
+    for (int a = 0; a < 4; a += 2) {   /* lanes 0, 1: x's; 2, 3: y's */
+        double *w = a ? wy : wx;
+        w[0] = w3[a];
+        w[1] = w2[a];
+        w[2] = w1[a];
+        w[3] = w1[a + 1];
+        w[4] = w2[a + 1];
+        w[5] = w3[a + 1];
+    }
 }
 
 #define KI_MAXTAB 8
@@ -2211,8 +2220,7 @@ static inline __attribute__((always_inline)) void kvalue_point(
     const Py_ssize_t nc = n / 2 + 1, plane = 2 * nc * n;
     const double fx = floor(tx), fy = floor(ty);
     double wx[6], wy[6];
-    quintic_weights(tx - fx, wx);
-    quintic_weights(ty - fy, wy);
+    quintic_weights(tx - fx, ty - fy, wx, wy);
     Py_ssize_t ix = (Py_ssize_t)fx - 2, iy = (Py_ssize_t)fy - 2;
     /* modulo n (a division only for points more than a period away) */
     if (ix < 0 || ix >= n) ix = ix >= -n && ix < 0 ? ix + n : (ix < 2 * n && ix >= n ? ix - n : (ix % n + n) % n);
@@ -2537,7 +2545,8 @@ static PyObject *quintic_band_os(PyObject *self, PyObject *args)
  * are adjacent in memory, and a band row's points, which step along kx, read the tables' rows in order. Points
  * whose taps reach half the stamp's period read the stamp with its periodic and Hermitian wrap and the PSF from its
  * whole table, as quintic_band_os does. With step > 0, the version without shear, whose points are the tables' own
- * (step i, step j), reads them there (as quintic_band does). The numbers of quintic_band_os to rounding (the sums
+ * (step i, step j), reads them there (as quintic_band does), and takes the x-interpolant's transforms at the band's
+ * own wavevectors dk (i, j) (its q = JT (A kappa) to rounding). The numbers of quintic_band_os to rounding (the sums
  * taken rows first, in pairs). A may hold nv versions' matrices (nv x 2 x 2, step 0) and out their bands one after
  * another (nv blocks of 2 or 3): each version's band is that of its own call, to the bit, the versions taken point
  * by point.
@@ -2651,11 +2660,44 @@ static PyObject *quintic_band_rows(PyObject *self, PyObject *args)
     double *OV = (double *)ob.buf;
     /* (np = k ns: a wavevector's position in the PSF's table units is the stamp's) */
     const double to_s = (double)ns / (2 * M_PI), ik = 1.0 / (double)k;
+    /* the version without shear: its points are the tables' own and its wavevectors the band's kappa = dk (i, j),
+       so the x-interpolant's transforms are products of one factor in i and one in |j| (X is even), taken once
+       per band from the table: X(dk i), X(dk |j|), and at them over k */
+    double *XB = NULL;
+    if (step) {
+        XB = (double *)malloc(2 * (r + 1) * sizeof(double));
+        if (XB == NULL) {
+            RELEASE(&sb, &cb, &pb, &ab, &jb, &gb, &xb, &phb, &ob);
+            return PyErr_NoMemory();
+        }
+        for (Py_ssize_t i = 0; i <= r; i++) {
+            const double ki = dk * (double)i;
+            XB[i] = xtable(X, nx, xh, ki);
+            XB[(r + 1) + i] = xtable(X, nx, xh, ki * ik);
+        }
+    }
     Py_BEGIN_ALLOW_THREADS
-    /* the versions point by point: their sheared wavevectors lie close together, so that every version reads the
-       tables' rows while the first one's reading keeps them in the cache (one after another, each version fetched
-       the tables, larger than a core's L2 cache, again) */
-    for (Py_ssize_t j = -r, p = 0; j <= r; j++) {
+    if (step) {
+        const double *A = AV, *XS = XB, *XP = XB + (r + 1);
+        double *O0 = OV, *O1 = O0 + 2 * npts;
+        for (Py_ssize_t j = -r, p = 0; j <= r; j++) {
+            const Py_ssize_t aj = j < 0 ? -j : j, row = step * j < 0 ? step * j + ns : step * j;
+            for (Py_ssize_t i = 0; i <= r; i++, p++) {
+                double s0, s1;
+                if (!band_sky(A, dk, i, j, lim, &s0, &s1, O0 + 2 * p, O1 + 2 * p)) continue;
+                const Py_ssize_t e = row * nc + step * i;
+                double v[4];
+                memcpy(v, SR + 4 * e, 4 * sizeof(double));
+                const double xs = XS[i] * XS[aj], xp = XP[i] * XP[aj];
+                band_products(v, PR[2 * e] * xp, PR[2 * e + 1] * xp, G[2 * p] * xs, G[2 * p + 1] * xs, O0 + 2 * p,
+                              O1 + 2 * p);
+            }
+        }
+    }
+    /* the sheared versions point by point: their sheared wavevectors lie close together, so that every version reads
+       the tables' rows while the first one's reading keeps them in the cache (one after another, each version
+       fetched the tables, larger than a core's L2 cache, again) */
+    for (Py_ssize_t j = -r, p = 0; j <= r && !step; j++) {
         for (Py_ssize_t i = 0; i <= r; i++, p++) {
             for (Py_ssize_t u = 0; u < nv; u++) {
                 const double *A = AV + 4 * u;
@@ -2664,19 +2706,11 @@ static PyObject *quintic_band_rows(PyObject *self, PyObject *args)
                 if (!band_pixel(A, JT, dk, i, j, lim, &q0, &q1, O0 + 2 * p, O1 + 2 * p)) continue;
                 const double tx = q0 * to_s, ty = q1 * to_s;
                 double v[6];
-                if (step) {
-                    /* the version without shear: its wavevectors are the tables' own (step i, step j), read there */
-                    const Py_ssize_t row = step * j < 0 ? step * j + ns : step * j, e = row * nc + step * i;
-                    memcpy(v, SR + 4 * e, 4 * sizeof(double));
-                    memcpy(v + 4, PR + 2 * e, 2 * sizeof(double));
-                } else {
-                    const double fx = floor(tx), fy = floor(ty);
-                    double wx[6], wy[6];
-                    quintic_weights(tx - fx, wx);
-                    quintic_weights(ty - fy, wy);
-                    if (!rows_point(SR, PR, ns, (Py_ssize_t)fx - 2, (Py_ssize_t)fy - 2, wx, wy, v))
-                        kvalue_point(P, np_, 1, tx, ty, v + 4);
-                }
+                const double fx = floor(tx), fy = floor(ty);
+                double wx[6], wy[6];
+                quintic_weights(tx - fx, ty - fy, wx, wy);
+                if (!rows_point(SR, PR, ns, (Py_ssize_t)fx - 2, (Py_ssize_t)fy - 2, wx, wy, v))
+                    kvalue_point(P, np_, 1, tx, ty, v + 4);
                 const double xs = xtable(X, nx, xh, q0) * xtable(X, nx, xh, q1);
                 const double xp = xtable(X, nx, xh, q0 * ik) * xtable(X, nx, xh, q1 * ik);
                 band_products(v, v[4] * xp, v[5] * xp, G[2 * p] * xs, G[2 * p + 1] * xs, O0 + 2 * p, O1 + 2 * p);
@@ -2689,6 +2723,7 @@ static PyObject *quintic_band_rows(PyObject *self, PyObject *args)
             turn_band(O0, O1, O1 + 2 * npts, PH, r);
         }
     Py_END_ALLOW_THREADS
+    free(XB);
     RELEASE(&sb, &cb, &pb, &ab, &jb, &gb, &xb, &phb, &ob);
     Py_RETURN_NONE;
 }
