@@ -201,3 +201,25 @@ def test_fine_modes_compiled_and_numpy_agree(monkeypatch, s, shape, offset):
     assert c1.size == c0.size and c1.size > ny * (nx // 2 + 1) // 2
     assert np.array_equal(ky1, ky0) and np.array_equal(kx1, kx0) and np.array_equal(c1, c0)
     assert np.abs(T1 - T0).max() < 1e-14 * np.abs(T0).max()
+
+
+def test_compiled_complex_bincount_is_the_numpy_lines():
+    """model.complex_bincount compiled (one pass, KERNEL.complex_bincount) gives its numpy lines' sums to the bit:
+    repeated and unordered indices, empty bins, bins of -0.0 values alone (+0.0: the sums start from 0.0), and an
+    index beyond n, which the compiled call refuses and the numpy lines widen the result for."""
+    if model.KERNEL is None or not model.USE_KERNEL:
+        pytest.skip("the compiled kernel is not in use")
+    rng = np.random.default_rng(5)
+    for n, m in [(1, 1), (50, 400), (5033, 5038)]:
+        idx = rng.integers(0, max(n - 1, 1), m)
+        vals = rng.normal(size=m) * 10.0 ** rng.uniform(-8, 8, m) + 1j * rng.normal(size=m)
+        vals[: m // 7] = -0.0 - 0.0j
+        got = model.complex_bincount(idx, vals, n)
+        want = model.complex_bincount(idx, vals, n, use_kernel=False)
+        assert got.shape == want.shape == (n,)
+        assert np.array_equal(got.view(float), want.view(float))
+        assert not np.signbit(got.view(float)[got.view(float) == 0]).any()
+    idx = np.array([0, 3, 9], np.int64)
+    vals = np.array([1.0, 2.0, 3.0], complex)
+    got = model.complex_bincount(idx, vals, 5)
+    assert np.array_equal(got, model.complex_bincount(idx, vals, 5, use_kernel=False)) and got.size == 10

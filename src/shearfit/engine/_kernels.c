@@ -4927,6 +4927,40 @@ static PyObject *masked_stamp(PyObject *self, PyObject *args)
 }
 
 /*
+ * complex_bincount(index, values, out) -> whether every index lay within out: model.complex_bincount's sums (its
+ * numpy lines stay as the reference; a test checks they agree to the bit): out (complex128, zeroed here) gets each
+ * value (complex128) at its index (int64), the real and imaginary parts summed from 0.0 in the values' order as
+ * numpy's bincount sums them. An index outside out leaves out unspecified and returns False (numpy's bincount would
+ * widen the result: the caller takes the numpy lines).
+ */
+static PyObject *complex_bincount(PyObject *self, PyObject *args)
+{
+    Py_buffer ib, vb, ob;
+    if (!PyArg_ParseTuple(args, "y*y*w*", &ib, &vb, &ob)) return NULL;
+    const Py_ssize_t z = 2 * (Py_ssize_t)sizeof(double), n = ib.len / (Py_ssize_t)sizeof(long long), m = ob.len / z;
+    int ok = vb.len == n * z && ib.len % (Py_ssize_t)sizeof(long long) == 0 && ob.len % z == 0;
+    if (!ok) {
+        RELEASE(&ib, &vb, &ob);
+        PyErr_SetString(PyExc_ValueError, "complex_bincount: inconsistent buffers");
+        return NULL;
+    }
+    const long long *I = ib.buf;   /* (the indices, the values as re, im pairs, out likewise: zeroed, then summed) */
+    const double *V = vb.buf;
+    double *O = memset(ob.buf, 0, (size_t)ob.len);
+    for (Py_ssize_t i = 0; i < n; i++) {
+        const long long j = I[i];
+        if (j < 0 || j >= m) {
+            ok = 0;
+            break;
+        }
+        O[2 * j] += V[2 * i];
+        O[2 * j + 1] += V[2 * i + 1];
+    }
+    RELEASE(&ib, &vb, &ob);
+    return PyBool_FromLong(ok);
+}
+
+/*
  * padded_rows(a, b, h, w, n, rows): calib/kspace._row_transforms' input for two h x w float64 images (the numpy
  * lines stay as the reference; a test checks they agree): rows (2, h, n) float64, each image's rows with column
  * w // 2 at index 0 (the columns left of it at the row's end), zero between.
@@ -6431,6 +6465,7 @@ static PyMethodDef methods[] = {
     {"sample_chunk", sample_chunk, METH_VARARGS, "sample_chunk(args, e1, e2, rc, shift, out, rc_out, state) -> int"},
     {"moffat_start", moffat_start, METH_VARARGS, "moffat_start(kr, vr, nus, x50, ratio, out)"},
     {"masked_stamp", masked_stamp, METH_VARARGS, "masked_stamp(image, weight, y) -> (count, lo, hi, sumsq)"},
+    {"complex_bincount", complex_bincount, METH_VARARGS, "complex_bincount(index, values, out) -> within"},
     {"padded_rows", padded_rows, METH_VARARGS, "padded_rows(a, b, h, w, n, rows)"},
     {"padded_place", padded_place, METH_VARARGS, "padded_place(part, h, n, out)"},
     {"metacal_noise", metacal_noise, METH_VARARGS,

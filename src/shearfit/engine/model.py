@@ -717,9 +717,16 @@ def prepare_exposure(obs: Observation, cfg: FitConfig, grid_shape=None, with_dat
                          data_ft=data_ft, sigma2=sigma2, yy=yy, npix=npix, pixel_scale=obs.pixel_scale)
 
 
-def complex_bincount(index, values, n):
+def complex_bincount(index, values, n, use_kernel=True):
     """The sum of complex ``values`` into ``n`` bins by ``index`` (numpy's bincount takes real weights); each bin's
-    sum in the order of ``values``, as ``np.add.at`` makes it."""
+    sum in the order of ``values``, as ``np.add.at`` makes it. (The compiled ``complex_bincount`` where the index is
+    int64 and the values complex128, the same numbers in one pass; these lines stay as its reference.)"""
+    if (use_kernel and USE_KERNEL and isinstance(index, np.ndarray) and index.dtype == np.int64
+            and isinstance(values, np.ndarray) and values.dtype == np.complex128 and index.ndim == values.ndim == 1
+            and index.size == values.size):
+        out = np.empty(int(n), complex)
+        if KERNEL.complex_bincount(np.ascontiguousarray(index), np.ascontiguousarray(values), out):
+            return out
     return np.bincount(index, values.real, n) + 1j * np.bincount(index, values.imag, n)
 
 

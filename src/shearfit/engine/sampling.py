@@ -878,8 +878,9 @@ class _Store:
         self.n = 0
         self.half = _lattice_half(cfg)
         # (step, i0, j0, mask): the region is mask's True entries, entry (a, b) the lattice point (i0 + a, j0 + b).
-        # Masks cover only their region's box: over the whole lattice, metacal's 0.005 step made each one
-        # 917 x 917 entries, and their allocation and search 6 % of its fits
+        # Masks cover only their region's box: over the whole lattice (then 917 x 917 entries at metacal's 0.005
+        # step, a margin of four coarsest steps around |e| < 1 that no box needs), their allocation and search were
+        # 6 % of its fits
         self.regions = []
 
     def add(self, ij):
@@ -1056,9 +1057,9 @@ def adaptive_samples(like: EllipticityLikelihood, cfg: FitConfig, use_kernel=Tru
 
 
 def _lattice_half(cfg):
-    """The half-width of the sampler's lattice (:class:`_Store`): every |e| < 1, and the coarsest boxes' margins."""
-    coarsest = int(round(max(cfg.e_grid_start, cfg.e_grid_prepass) / cfg.e_grid_min))
-    return int(np.ceil(1.0 / cfg.e_grid_min)) + 4 * coarsest + 2
+    """The half-width of the sampler's lattice (:class:`_Store`): every |e| < 1, which holds every sample (|e| below
+    model_e_limit < 1; the boxes are clipped to the lattice)."""
+    return int(np.ceil(1.0 / cfg.e_grid_min)) + 2
 
 
 @functools.lru_cache(maxsize=8)
