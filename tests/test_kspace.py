@@ -81,6 +81,27 @@ def test_band_from_the_hull_of_its_points_is_the_band(J):
 
 @pytest.mark.skipif(not USE_KERNEL, reason="the compiled loops are not built")
 @pytest.mark.parametrize("J", JACOBIANS)
+def test_compiled_band_points_are_the_numpy_lines_hull(J, monkeypatch):
+    """band_points from each ky's outermost points above the threshold (compiled, KERNEL.band_extent) is the hull
+    of all of them (the numpy lines): the same vertices, natively and oversampled, for PSFs of 0.45-0.9" and
+    thresholds that keep many points, a few and none."""
+    from shearfit.simulate.stamps import draw_psf_image, moffat_psf
+
+    xk = metacal._LANCZOS.kval
+    for k in (1, 3):
+        for fwhm in (0.45, 0.6, 0.9):
+            img = draw_psf_image(moffat_psf(fwhm, 3.0, 0.05, -0.03), J, size=25 * k, oversampling=k)
+            col = kspace.padded_transforms([img], kspace.padded_size(img.shape))[0]
+            for thr in (1e-3, 0.3, 0.97, 2.0):
+                got = kspace.band_points(col, xk, thr)
+                with monkeypatch.context() as m:
+                    m.setattr(kspace, "USE_KERNEL", False)
+                    want = kspace.band_points(col, xk, thr)
+                assert set(map(tuple, got.T.tolist())) == set(map(tuple, want.T.tolist())), (k, fwhm, thr)
+
+
+@pytest.mark.skipif(not USE_KERNEL, reason="the compiled loops are not built")
+@pytest.mark.parametrize("J", JACOBIANS)
 def test_compiled_band_edge_is_the_numpy_lines(J, monkeypatch):
     """band_maxk's compiled loop gives its numpy lines' value to the bit, for thresholds that keep most of the
     grid, a few points, and none (a band of 0)."""

@@ -201,7 +201,16 @@ def band_points(psf_column, xkernel, threshold=MAXK_THRESHOLD):
 
     n = psf_column.shape[1]
     kx, ky, xx = _band_grid(n, xkernel)
-    above = np.nonzero(np.abs(psf_column) * xx > threshold * abs(psf_column[0, 0]))
+    thr = threshold * abs(psf_column[0, 0])
+    if USE_KERNEL and psf_column.dtype == np.complex128 and psf_column.flags.c_contiguous:
+        # each ky's least and largest kx above (compiled, band_maxk's test): the hull's vertices are among them,
+        # and the hull of these few points is made in a tenth of the time of all of them
+        ext = np.empty((n, 2), np.int64)
+        KERNEL.band_extent(psf_column, xx, float(thr), ext)
+        j = np.nonzero(ext[:, 0] >= 0)[0]
+        above = (ext[j].T.ravel(), np.tile(j, 2))
+    else:
+        above = np.nonzero(np.abs(psf_column) * xx > thr)
     pts = np.stack([kx[above[0], 0], ky[0, above[1]]])
     if pts.shape[1] >= 3:
         try:

@@ -533,9 +533,15 @@ def _oversampled_kspace_images(image, noise, psf, J, k, delta, names, n_small, n
     J = np.asarray(J, float)
     jit = inv2(J).T
     xk = _LANCZOS.kval
-    if "hull" not in memo:
-        memo["hull"] = kspace.band_points(ptab[0], xk)
-    maxk = kspace.band_maxk_of_points(memo["hull"], J / k)
+    # the PSF's band for this Jacobian: from the hull of its points where the image has served before (the objects of
+    # a CCD given one PSF image: the hull made once, a few points for each Jacobian), else in one pass over its table
+    # (an image of its own at every object, as a PSFEx or Piff model gives, which a hull made for it would not serve
+    # again): the same value
+    hull = memo.get("hull")
+    if hull is None and memo.setdefault("uses", 0) > 0:
+        hull = memo["hull"] = kspace.band_points(ptab[0], xk)
+    memo["uses"] += 1
+    maxk = kspace.band_maxk(ptab[0], xk, J / k) if hull is None else kspace.band_maxk_of_points(hull, J / k)
     dk = 2 * np.pi / n_small
     dilation = 1.0 + 2.0 * abs(delta)
     to_s, to_p = n_s / (2 * np.pi), n_p / (2 * np.pi)

@@ -2769,6 +2769,41 @@ __attribute__((optimize("fp-contract=off"))) static PyObject *band_maxk(PyObject
 }
 
 /*
+ * band_extent(column, xx, thr, out): calib/kspace.band_points' threshold, per column of the padded grid: out (int64,
+ * n x 2) the least and the largest kx index i (column's rows, kx >= 0) where |column| xx > thr at ky index j (band_maxk's
+ * test: numpy's |z| within rounding of the threshold), or -1, -1 where none is. The band's convex hull is that of
+ * these points (a convex function's largest value over a row's points lies at its least or largest kx).
+ */
+static PyObject *band_extent(PyObject *self, PyObject *args)
+{
+    Py_buffer col, xxb, ob;
+    double thr;
+    if (!PyArg_ParseTuple(args, "y*y*dw*", &col, &xxb, &thr, &ob)) return NULL;
+    const Py_ssize_t n = ob.len / (2 * (Py_ssize_t)sizeof(long long)), nc = n > 0 ? xxb.len / (n * 8) : 0;
+    if (n < 1 || nc < 1 || xxb.len != nc * n * 8 || col.len != 2 * nc * n * 8 || ob.len != 2 * n * 8) {
+        RELEASE(&col, &xxb, &ob);
+        PyErr_SetString(PyExc_ValueError, "band_extent: inconsistent buffers");
+        return NULL;
+    }
+    const double *P = col.buf, *XX = xxb.buf;
+    long long *O = ob.buf;
+    const double hi = thr * thr * (1 + 1e-12), lo = thr * thr * (1 - 1e-12);
+    for (Py_ssize_t j = 0; j < 2 * n; j++) O[j] = -1;
+    for (Py_ssize_t i = 0; i < nc; i++) {
+        const double *p = P + 2 * n * i, *xx = XX + n * i;
+        for (Py_ssize_t j = 0; j < n; j++) {
+            const double s2 = (p[2 * j] * p[2 * j] + p[2 * j + 1] * p[2 * j + 1]) * (xx[j] * xx[j]);
+            if (s2 > hi || (s2 >= lo && hypot(p[2 * j], p[2 * j + 1]) * xx[j] > thr)) {
+                if (O[2 * j] < 0) O[2 * j] = i;
+                O[2 * j + 1] = i;
+            }
+        }
+    }
+    RELEASE(&col, &xxb, &ob);
+    Py_RETURN_NONE;
+}
+
+/*
  * The App. A Moffat's alias tables (model._moffat_table, model._moffat_aliases, whose numpy lines stay as the
  * reference and the fallback; tests check they agree).
  *
@@ -6465,6 +6500,7 @@ static PyMethodDef methods[] = {
     {"sample_chunk", sample_chunk, METH_VARARGS, "sample_chunk(args, e1, e2, rc, shift, out, rc_out, state) -> int"},
     {"moffat_start", moffat_start, METH_VARARGS, "moffat_start(kr, vr, nus, x50, ratio, out)"},
     {"masked_stamp", masked_stamp, METH_VARARGS, "masked_stamp(image, weight, y) -> (count, lo, hi, sumsq)"},
+    {"band_extent", band_extent, METH_VARARGS, "band_extent(column, xx, thr, out)"},
     {"complex_bincount", complex_bincount, METH_VARARGS, "complex_bincount(index, values, out) -> within"},
     {"padded_rows", padded_rows, METH_VARARGS, "padded_rows(a, b, h, w, n, rows)"},
     {"padded_place", padded_place, METH_VARARGS, "padded_place(part, h, n, out)"},
