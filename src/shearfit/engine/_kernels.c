@@ -2728,6 +2728,19 @@ static PyObject *quintic_band_rows(PyObject *self, PyObject *args)
     Py_RETURN_NONE;
 }
 
+/* whether |p| xx exceeds thr for a complex p (re, im) as numpy's |z| (hypot) decides it: its square decides, but
+   within rounding of the threshold (thr2_lo, thr2_hi: thr^2 times 1 -+ 1e-12), where hypot does (band_maxk's and
+   band_extent's test) */
+static inline NO_CONTRACT int above_threshold(const double *p, double xx, double thr, double thr2_lo,
+                                              double thr2_hi)
+{
+#if defined(__clang__)
+#pragma clang fp contract(off)
+#endif
+    const double s2 = (p[0] * p[0] + p[1] * p[1]) * (xx * xx);
+    return s2 > thr2_hi || (s2 >= thr2_lo && hypot(p[0], p[1]) * xx > thr);
+}
+
 /*
  * band_maxk(column, xx, kx, ky, thr, a, b, c) -> the largest a kx^2 + 2 b kx ky + c ky^2 over the points where
  * |column| xx > thr, or -inf where none is: calib/kspace.band_maxk's loop over the padded grid (column: complex128
@@ -2755,9 +2768,7 @@ __attribute__((optimize("fp-contract=off"))) static PyObject *band_maxk(PyObject
         const double t1 = a * KX[i] * KX[i], u = b2 * KX[i];
         const double *p = P + 2 * n * i, *xx = XX + n * i;
         for (Py_ssize_t j = 0; j < n; j++) {
-            /* the squares decide but within rounding of the threshold, where numpy's |z| (hypot) does */
-            const double s2 = (p[2 * j] * p[2 * j] + p[2 * j + 1] * p[2 * j + 1]) * (xx[j] * xx[j]);
-            if (s2 > hi || (s2 >= lo && hypot(p[2 * j], p[2 * j + 1]) * xx[j] > thr)) {
+            if (above_threshold(p + 2 * j, xx[j], thr, lo, hi)) {
                 const double k2 = t1 + u * KY[j] + c * KY[j] * KY[j];
                 best = k2 > best ? k2 : best;
             }
@@ -2774,13 +2785,15 @@ __attribute__((optimize("fp-contract=off"))) static PyObject *band_maxk(PyObject
  * test: numpy's |z| within rounding of the threshold), or -1, -1 where none is. The band's convex hull is that of
  * these points (a convex function's largest value over a row's points lies at its least or largest kx).
  */
-static PyObject *band_extent(PyObject *self, PyObject *args)
+__attribute__((optimize("fp-contract=off"))) static PyObject *band_extent(PyObject *self, PyObject *args)
 {
     Py_buffer col, xxb, ob;
     double thr;
     if (!PyArg_ParseTuple(args, "y*y*dw*", &col, &xxb, &thr, &ob)) return NULL;
-    const Py_ssize_t n = ob.len / (2 * (Py_ssize_t)sizeof(long long)), nc = n > 0 ? xxb.len / (n * 8) : 0;
-    if (n < 1 || nc < 1 || xxb.len != nc * n * 8 || col.len != 2 * nc * n * 8 || ob.len != 2 * n * 8) {
+    const Py_ssize_t d = (Py_ssize_t)sizeof(double), n = ob.len / (2 * (Py_ssize_t)sizeof(long long));
+    const Py_ssize_t nc = n > 0 ? xxb.len / (n * d) : 0;
+    if (n < 1 || nc < 1 || xxb.len != nc * n * d || col.len != 2 * nc * n * d
+        || ob.len != 2 * n * (Py_ssize_t)sizeof(long long)) {
         RELEASE(&col, &xxb, &ob);
         PyErr_SetString(PyExc_ValueError, "band_extent: inconsistent buffers");
         return NULL;
@@ -2792,8 +2805,7 @@ static PyObject *band_extent(PyObject *self, PyObject *args)
     for (Py_ssize_t i = 0; i < nc; i++) {
         const double *p = P + 2 * n * i, *xx = XX + n * i;
         for (Py_ssize_t j = 0; j < n; j++) {
-            const double s2 = (p[2 * j] * p[2 * j] + p[2 * j + 1] * p[2 * j + 1]) * (xx[j] * xx[j]);
-            if (s2 > hi || (s2 >= lo && hypot(p[2 * j], p[2 * j + 1]) * xx[j] > thr)) {
+            if (above_threshold(p + 2 * j, xx[j], thr, lo, hi)) {
                 if (O[2 * j] < 0) O[2 * j] = i;
                 O[2 * j + 1] = i;
             }
