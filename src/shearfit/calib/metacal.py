@@ -537,10 +537,11 @@ def _oversampled_kspace_images(image, noise, psf, J, k, delta, names, n_small, n
     # a CCD given one PSF image: the hull made once, a few points for each Jacobian), else in one pass over its table
     # (an image of its own at every object, as a PSFEx or Piff model gives, which a hull made for it would not serve
     # again): the same value
+    uses = memo.get("uses", 0)
+    memo["uses"] = uses + 1
     hull = memo.get("hull")
-    if hull is None and memo.setdefault("uses", 0) > 0:
+    if hull is None and uses > 0:
         hull = memo["hull"] = kspace.band_points(ptab[0], xk)
-    memo["uses"] += 1
     maxk = kspace.band_maxk(ptab[0], xk, J / k) if hull is None else kspace.band_maxk_of_points(hull, J / k)
     dk = 2 * np.pi / n_small
     dilation = 1.0 + 2.0 * abs(delta)
