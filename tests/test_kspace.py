@@ -100,6 +100,36 @@ def test_compiled_band_points_are_the_numpy_lines_hull(J, monkeypatch):
                 assert set(map(tuple, got.T.tolist())) == set(map(tuple, want.T.tolist())), (k, fwhm, thr)
 
 
+@pytest.mark.parametrize("J", JACOBIANS)
+def test_table_made_within_the_band_is_the_whole_tables(J):
+    """padded_transform_within makes the columns it keeps to the bit of the whole table's, leaves the others only
+    where every wavevector there lies below the band's threshold (so that band_maxk and band_points of the columns
+    made are the whole table's), and makes the whole table where the transform stays above it far out (a PSF image
+    with pixel noise) or where the columns asked for are all of them."""
+    from shearfit.simulate.stamps import draw_psf_image, moffat_psf
+
+    xk = metacal._LANCZOS.kval
+    rng = np.random.default_rng(3)
+    seen = set()
+    for k, fwhm, noise in ((3, 0.6, 0.0), (3, 0.9, 0.0), (3, 0.45, 0.0), (1, 0.6, 0.0), (3, 0.6, 1e-5)):
+        img = draw_psf_image(moffat_psf(fwhm, 3.0, 0.05, -0.03), J, size=48 * k, oversampling=k)
+        img = img + rng.normal(0.0, noise, img.shape)
+        n = kspace.padded_size(img.shape)
+        whole = kspace.padded_transforms([img], n)
+        for columns in (1, n // (2 * k) + 4, n // 2 + 1):
+            table, m = kspace.padded_transform_within(img, n, columns, xk)
+            assert table.shape == whole.shape and min(columns, n // 2 + 1) <= m <= n // 2 + 1
+            assert np.array_equal(table[0, :m], whole[0, :m]), (k, fwhm, noise, columns)
+            assert kspace.band_maxk(table[0, :m], xk, J / k) == kspace.band_maxk(whole[0], xk, J / k)
+            hull = lambda pts: set(map(tuple, pts.T.tolist()))   # noqa: E731
+            assert hull(kspace.band_points(table[0, :m], xk)) == hull(kspace.band_points(whole[0], xk))
+            seen.add((noise > 0, m == n // 2 + 1))
+            if noise > 0:
+                assert m == n // 2 + 1   # its transform is above the threshold out to the grid's edge
+    # some tables made in part, and the noisy image's whole
+    assert (False, False) in seen and (True, True) in seen
+
+
 @pytest.mark.skipif(not USE_KERNEL, reason="the compiled loops are not built")
 @pytest.mark.parametrize("J", JACOBIANS)
 def test_compiled_band_edge_is_the_numpy_lines(J, monkeypatch):

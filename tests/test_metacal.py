@@ -1052,3 +1052,38 @@ def test_compiled_noise_and_weights_are_the_numpy_lines(shape):
         noise0 = rng.normal(scale=0.03, size=shape)
         assert np.array_equal(metacal._weight_numpy(noise0, want[1], w, want[2]),
                               metacal._weight_compiled(noise0, got[1], w, got[2]))
+
+
+@pytest.mark.parametrize("psf", ["dilated", "round"])
+def test_psf_tables_made_in_part_are_read_only_where_made(psf, monkeypatch):
+    """An oversampled PSF image of its own at each object (PSFEx, Piff) has its padded table made only at the
+    columns the bands read (kspace.padded_transform_within): with the columns not made set to NaN, the versions'
+    images are those made from the whole tables, to the bit, for PSFs whose band lies within the stamp's Nyquist
+    square (a third of the table made) and for an undersampled one whose band reaches beyond it (the table then
+    made whole), on a rotated, sheared pixel grid."""
+    from shearfit.calib import kspace, metacal
+
+    J = PIX * np.array([[0.3, -0.95], [0.94, 0.31]])
+    gal = galaxy_profile(0.3, 0.1, 0.2, -0.1, flux=1000.0)
+    made = []
+    for fwhm in (0.7, 0.45, 0.25):
+        p = moffat_psf(fwhm, 3.0, 0.05, -0.03)
+        im = draw_stamp(gal, p, J, (0.2, -0.1), stamp_size=48)
+        obs = shearfit.Observation(image=im + np.random.default_rng(2).normal(0.0, 0.5, im.shape),
+                                   weight=np.full(im.shape, 4.0), psf=draw_psf_image(p, J, size=48 * 3, oversampling=3),
+                                   jacobian=J, psf_oversampling=3)
+        metacal._PSF_TABLES.clear()
+        with monkeypatch.context() as m:
+            m.setattr(kspace, "UNMADE", np.nan)
+            got = metacal_observations(obs, rng=np.random.default_rng(5), psf=psf)
+            made.append(min(memo["columns"] / memo["table"].shape[1] for _, memo in metacal._PSF_TABLES.values()))
+        metacal._PSF_TABLES.clear()
+        with monkeypatch.context() as m:   # the whole tables
+            m.setattr(metacal, "_psf_table", lambda im, n, columns, f=metacal._psf_table: f(im, n, n // 2 + 1))
+            want = metacal_observations(obs, rng=np.random.default_rng(5), psf=psf)
+        metacal._PSF_TABLES.clear()
+        for name in want:
+            assert np.all(np.isfinite(got[name].image)), (fwhm, name)
+            assert np.array_equal(got[name].image, want[name].image), (fwhm, name)
+            assert np.array_equal(got[name].weight, want[name].weight), (fwhm, name)
+    assert made[0] < 0.5 and made[-1] == 1.0, made

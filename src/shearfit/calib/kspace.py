@@ -102,6 +102,50 @@ def padded_transforms(images, n):
     return sfft.fft(cols, axis=2, workers=1, overwrite_x=True)
 
 
+#: What :func:`padded_transform_within` leaves in the columns it does not make: None, the memory as it was (tests set
+#: NaN: a read of one then shows in every result it reaches).
+UNMADE = None
+
+
+def padded_transform_within(image, n, columns, xkernel, threshold=MAXK_THRESHOLD):
+    """:func:`padded_transforms` of one image (``(1, n // 2 + 1, n)``), made only at the columns kx = 0 .. m - 1 (all
+    their ky), m at least ``columns``; the others hold :data:`UNMADE`. m is ``columns`` where every wavevector beyond
+    is proven to lie below the band's threshold (:func:`band_maxk`'s test, ``xkernel`` its x-interpolant): each column
+    beyond is the transform over y of the rows' transforms at its kx, so its values are at most the sum of their
+    moduli there, which is compared with the threshold (with a margin far above the transforms' rounding); where a
+    column fails, m reaches past it. The columns made are the whole table's to the bit (each column's transform is
+    its own), so that :func:`band_maxk` and :func:`band_points` of the first m rows are the whole table's, and a
+    read of the first m rows is its read. Returns (table, m).
+
+    (A PSF image oversampled k times, as a PSFEx or Piff model gives one at each object, has a table k times the
+    stamp's, of which metacal's bands read about the first third of the columns, :func:`shearfit.calib.metacal`: its
+    transform was half of the images' time.)"""
+    part = _row_transforms([image], n)[0]
+    nc = n // 2 + 1
+    m = min(max(int(columns), 1), nc)
+    if m < nc:
+        # |T(kx, ky)| <= sum_j |part[j, kx]|, against threshold |T(0, 0)| (the sum of column 0, with a margin for
+        # the transforms' rounding, ~1e-15 of these sums)
+        bound = np.abs(part[:, m:]).sum(axis=0) * _band_xmax(n, xkernel)[m:] * (1 + 1e-6)
+        thr = threshold * abs(part[:, 0].sum()) * (1 - 1e-6)
+        over = np.nonzero(bound > thr)[0]
+        if over.size:
+            m = m + int(over[-1]) + 1
+    # (the columns not made left as the memory was, unless a test asks for UNMADE: never read, and never touched, so
+    # that their pages are not faulted in; zeroing the whole table cost as much as the transform)
+    table = np.empty((1, nc, n), complex) if UNMADE is None else np.full((1, nc, n), UNMADE, complex)
+    h = image.shape[0]
+    c = h // 2
+    cols = table[0, :m]
+    cols[:] = 0.0
+    cols[:, :h - c] = part[c:h, :m].T
+    cols[:, n - c:] = part[:c, :m].T
+    got = sfft.fft(cols, axis=1, workers=1, overwrite_x=True)
+    if not np.shares_memory(got, cols):
+        cols[:] = got
+    return table, m
+
+
 def padded_transforms_rows(images, n):
     """:func:`padded_transforms` in rows: an array (n, n // 2 + 1, len(images)) complex, ky, then kx >= 0, then the
     image (``rfft2``'s own order, the images innermost), so that a wavevector's taps along kx and its values for every
@@ -175,6 +219,7 @@ def band_maxk(psf_column, xkernel, jac, threshold=MAXK_THRESHOLD):
     pixels' Nyquist square, beyond which a stamp's transform only repeats itself."""
     n = psf_column.shape[1]
     kx, ky, xx = _band_grid(n, xkernel)
+    kx, xx = kx[:psf_column.shape[0]], xx[:psf_column.shape[0]]   # (a column's first rows: padded_transform_within)
     thr = threshold * abs(psf_column[0, 0])
     jac = np.asarray(jac, float)
     nyquist = np.pi / singular_values2(jac)[0]
@@ -201,6 +246,7 @@ def band_points(psf_column, xkernel, threshold=MAXK_THRESHOLD):
 
     n = psf_column.shape[1]
     kx, ky, xx = _band_grid(n, xkernel)
+    kx, xx = kx[:psf_column.shape[0]], xx[:psf_column.shape[0]]   # (a column's first rows: padded_transform_within)
     thr = threshold * abs(psf_column[0, 0])
     if USE_KERNEL and psf_column.dtype == np.complex128 and psf_column.flags.c_contiguous:
         # each ky's least and largest kx above (compiled, band_maxk's test): the hull's vertices are among them,
@@ -286,6 +332,14 @@ def singular_values2(A):
     p = a * a + b * b + c * c + d * d
     q = float(np.hypot(a * a + b * b - c * c - d * d, 2 * (a * c + b * d)))
     return math.sqrt(0.5 * (p + q)), math.sqrt(max(0.5 * (p - q), 0.0))
+
+
+@functools.lru_cache(maxsize=8)
+def _band_xmax(n, xkernel):
+    """The largest of :func:`_band_grid`'s \\|X(kx) X(ky)\\| at each kx (read-only, shared)."""
+    out = _band_grid(n, xkernel)[2].max(axis=1)
+    out.setflags(write=False)
+    return out
 
 
 @functools.lru_cache(maxsize=8)

@@ -467,14 +467,27 @@ def _version_matrices(names, delta, jit, maxk, dk, dilation, smax_j):
     return list(A), r
 
 
-def _psf_table(psf, n):
-    """(table, memo): the padded transform of a PSF image (:func:`shearfit.calib.kspace.padded_transforms`, one
-    plane) and a dict for what is made from it alone, remembered by its contents (:data:`_PSF_TABLES`; read-only)."""
+def _psf_table(psf, n, columns):
+    """(table, memo): the padded transform of a PSF image (one plane, read-only) made at its first ``columns`` columns
+    at least (:func:`shearfit.calib.kspace.padded_transform_within`: every column beyond, proven below the band's
+    threshold, left unmade; memo["columns"] of them made), and a dict for what is made from it alone, remembered by
+    its contents (:data:`_PSF_TABLES`). :func:`_psf_columns` makes the table whole where a read needs more."""
     def make():
-        t = kspace.padded_transforms([psf], n)[0:1]
+        t, m = kspace.padded_transform_within(psf, n, columns, _LANCZOS.kval)
         t.setflags(write=False)
-        return t, {}
-    return _PSF_TABLES.get(psf, ("table", n), make)
+        return t, {"table": t, "columns": m}
+    _, memo = _PSF_TABLES.get(psf, ("table", n), make)
+    return memo["table"], memo
+
+
+def _psf_columns(psf, n, memo, need):
+    """:func:`_psf_table`'s table with at least its first ``need`` columns made: made whole (the same numbers in the
+    columns made before) where it lacks them, and kept so in ``memo``."""
+    if memo["columns"] < need:
+        t = kspace.padded_transforms([psf], n)
+        t.setflags(write=False)
+        memo["table"], memo["columns"] = t, t.shape[1]
+    return memo["table"]
 
 
 def _add_band(items, first, r, arr, n_small, size, turn_noise):
@@ -523,13 +536,18 @@ def _oversampled_kspace_images(image, noise, psf, J, k, delta, names, n_small, n
     shape = image.shape
     n_s = kspace.padded_size(shape)
     n_p = kspace.padded_size(psf.shape)
-    ptab, memo = _psf_table(psf, n_p)
+    to_s, to_p = n_s / (2 * np.pi), n_p / (2 * np.pi)
+    # the PSF's table made at the columns the bands read where the band lies within the stamp's Nyquist square (its
+    # wavevectors up to pi / k in the PSF's pixels, a tenth more for the shears and dilation, and the taps): a third
+    # of the columns at k = 3 (the band's reads are checked below, and the table made whole where they need more)
+    made = int(1.1 * np.pi / k * to_p) + 4
+    ptab, memo = _psf_table(psf, n_p, made)
     # a PSF grid k times the stamp's (a PSF image k times the stamp's size): the compiled band reads both at the same
     # taps, from the tables' rows (quintic_band_rows)
     psf_rows = _psf_rows(ptab, memo, n_s) if kspace.USE_KERNEL and n_p == k * n_s else None
     table = (kspace.padded_transforms_rows([image, noise], n_s) if psf_rows is not None
              else kspace.padded_transforms([image, noise], n_s))
-    gtab, gmemo = (ptab, memo) if new_psf is None else _psf_table(new_psf, n_p)
+    gtab, gmemo = (ptab, memo) if new_psf is None else _psf_table(new_psf, n_p, made)
     J = np.asarray(J, float)
     jit = inv2(J).T
     xk = _LANCZOS.kval
@@ -541,13 +559,20 @@ def _oversampled_kspace_images(image, noise, psf, J, k, delta, names, n_small, n
     memo["uses"] = uses + 1
     hull = memo.get("hull")
     if hull is None and uses > 0:
-        hull = memo["hull"] = kspace.band_points(ptab[0], xk)
-    maxk = kspace.band_maxk(ptab[0], xk, J / k) if hull is None else kspace.band_maxk_of_points(hull, J / k)
+        hull = memo["hull"] = kspace.band_points(ptab[0, :memo["columns"]], xk)
+    # (of the columns made: those beyond lie below the threshold, the same value)
+    maxk = (kspace.band_maxk(ptab[0, :memo["columns"]], xk, J / k) if hull is None
+            else kspace.band_maxk_of_points(hull, J / k))
     dk = 2 * np.pi / n_small
     dilation = 1.0 + 2.0 * abs(delta)
-    to_s, to_p = n_s / (2 * np.pi), n_p / (2 * np.pi)
     smax_j = kspace.singular_values2(J)[0]
     scale = (1.0 if new_psf is not None else dilation) / k   # kappa -> the new PSF's wavevector in its pixels
+    mats, radii = _version_matrices(names, delta, jit, maxk, dk, dilation, smax_j)
+    # the columns read: the bands' taps at the sheared wavevectors q / k (in the PSF's pixels) within the band, |q| at
+    # most smax_j maxk; the new PSF's at the band's points kappa scale, kx up to r dk (the taps reach 3 beyond)
+    ptab = _psf_columns(psf, n_p, memo, int(smax_j * maxk / k * to_p * (1 + 1e-9)) + 4)
+    gneed = int(max(radii) * dk * scale * to_p * (1 + 1e-9)) + 4
+    gtab = _psf_columns(psf, n_p, memo, gneed) if new_psf is None else _psf_columns(new_psf, n_p, gmemo, gneed)
     items = []
     first = None
     if kspace.USE_KERNEL:   # (the same for every version)
@@ -555,7 +580,7 @@ def _oversampled_kspace_images(image, noise, psf, J, k, delta, names, n_small, n
         xtab, xh = _x_table(int(np.ceil(maxk * smax_j / np.pi)) + 1)
     lim = maxk * maxk * (1 + 1e-12)
     plans = []
-    for name, A, r in zip(names, *_version_matrices(names, delta, jit, maxk, dk, dilation, smax_j)):
+    for name, A, r in zip(names, mats, radii):
         s1, s2 = VERSIONS[name]
         gkey = ("gamma", r, dk, scale, to_p)
         got = gmemo.get(gkey)
