@@ -223,3 +223,28 @@ def test_compiled_complex_bincount_is_the_numpy_lines():
     vals = np.array([1.0, 2.0, 3.0], complex)
     got = model.complex_bincount(idx, vals, 5)
     assert np.array_equal(got, model.complex_bincount(idx, vals, 5, use_kernel=False)) and got.size == 10
+
+
+def test_compiled_banded_product_is_the_dense_one():
+    """metacal.dilated_image over its matrices' bands (KERNEL.banded_rows, for images four times as wide as the band)
+    gives the dense matrix products' pixels to rounding: square and oblong PSF images oversampled 3 times, dilated
+    and shrunk; each band holds every non-zero value of its matrix. A band reaching past the matrix is refused."""
+    from shearfit.calib import metacal
+
+    if model.KERNEL is None or not model.USE_KERNEL:
+        pytest.skip("the compiled kernel is not in use")
+    rng = np.random.default_rng(2)
+    for shape, d in (((144, 144), 1.02), ((150, 126), 1.02), ((144, 144), 0.97)):
+        img = rng.normal(size=shape)
+        want = metacal._dilation_matrix(shape[0], d) @ img @ metacal._dilation_matrix(shape[1], d).T
+        got = metacal.dilated_image(img, d)
+        assert got.shape == want.shape and got.flags.c_contiguous
+        assert np.abs(got - want).max() < 1e-14 * np.abs(want).max(), (shape, d)
+        for n in shape:
+            values, start = metacal._dilation_band(n, d)
+            dense = np.zeros((n, n))
+            dense[np.arange(n)[:, None], start[:, None] + np.arange(values.shape[1])] = values
+            assert np.array_equal(dense, metacal._dilation_matrix(n, d)) and 4 * values.shape[1] <= n
+    values, start = metacal._dilation_band(144, 1.02)
+    with pytest.raises(ValueError, match="banded_rows"):
+        model.KERNEL.banded_rows(values, start + 1, np.ones((144, 3)), np.empty((144, 3)))

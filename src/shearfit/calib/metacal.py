@@ -153,13 +153,41 @@ def _dilation_matrix(n, dilation):
     return m
 
 
+@functools.lru_cache(maxsize=16)
+def _dilation_band(n, dilation):
+    """:func:`_dilation_matrix` as a banded matrix (``KERNEL.banded_rows``' values and start): each row's values from
+    its first non-zero one, as many as the widest row holds (the Lanczos kernel's support, 30 of an oversampled PSF
+    image's 144), so that every value left out is zero (read-only)."""
+    m = _dilation_matrix(n, dilation)
+    nz = m != 0
+    first = np.where(nz.any(axis=1), nz.argmax(axis=1), 0)
+    last = np.where(nz.any(axis=1), n - 1 - nz[:, ::-1].argmax(axis=1), 0)
+    w = int(max(1, (last - first).max() + 1))
+    start = np.minimum(first, n - w).astype(np.int64)
+    values = np.ascontiguousarray(m[np.arange(n)[:, None], start[:, None] + np.arange(w)[None, :]])
+    for a in (start, values):
+        a.setflags(write=False)
+    return values, start
+
+
 def dilated_image(image, dilation):
     """The image as an interpolated image (Lanczos-15) dilated by ``dilation`` about its pixel
     (ny // 2, nx // 2), at its pixel centres: what GalSim's ``drawImage(method='no_pixel')`` of
     ``InterpolatedImage(image).dilate(dilation)`` draws on the same pixels, as two matrix products (the
-    interpolant is separable)."""
+    interpolant is separable). For an image four times as wide as the band of the matrices or more (a PSF image
+    oversampled 3 times, 144 pixels wide), compiled, each product over its matrix's band alone (``banded_rows``:
+    the same numbers to rounding, the dense products' order of summation aside, in half their time; on narrower
+    images the dense products are the faster)."""
     ny, nx = image.shape
-    return _dilation_matrix(ny, float(dilation)) @ image @ _dilation_matrix(nx, float(dilation)).T
+    vy, sy = _dilation_band(ny, float(dilation))
+    vx, sx = _dilation_band(nx, float(dilation))
+    if not (kspace.USE_KERNEL and image.dtype == np.float64 and min(ny, nx) >= 4 * max(vy.shape[1], vx.shape[1])):
+        return _dilation_matrix(ny, float(dilation)) @ image @ _dilation_matrix(nx, float(dilation)).T
+    rows = np.empty((ny, nx))
+    kspace.KERNEL.banded_rows(vy, sy, np.ascontiguousarray(image), rows)   # L_y image
+    out = np.empty((nx, ny))
+    kspace.KERNEL.banded_rows(vx, sx, np.ascontiguousarray(rows.T), out)   # L_x (L_y image)^T
+    return np.ascontiguousarray(out.T)
 
 
 #: the versions' new PSF images (the exposures' PSFs dilated), remembered by the PSF image's contents: the objects

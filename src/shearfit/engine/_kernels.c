@@ -5227,6 +5227,73 @@ static NO_CONTRACT PyObject *metacal_weight(PyObject *self, PyObject *args)
 }
 
 /*
+ * banded_rows(values, start, x, out): out[i, :] = sum_t values[i, t] x[start[i] + t, :] over t = 0 .. w - 1, the
+ * product of a banded m x p matrix (row i's w stored values from column start[i], int64, start[i] + w <= p;
+ * values m x w float64) with x (p x q float64, C-contiguous) into out (m x q): metacal.dilated_image's products with
+ * the Lanczos-15 dilation matrix, whose rows hold at most 30 values (of 144 for an oversampled PSF image), without
+ * the zeros' products; each row's terms summed in order of t.
+ */
+static PyObject *banded_rows(PyObject *self, PyObject *args)
+{
+    Py_buffer vb, sb, xb, ob;
+    if (!PyArg_ParseTuple(args, "y*y*y*w*", &vb, &sb, &xb, &ob)) return NULL;
+    const Py_ssize_t dz = (Py_ssize_t)sizeof(double), m = sb.len / (Py_ssize_t)sizeof(long long);
+    const Py_ssize_t w = m > 0 ? vb.len / (m * dz) : 0, q = m > 0 ? ob.len / (m * dz) : 0;
+    const Py_ssize_t p = q > 0 ? xb.len / (q * dz) : 0;
+    const long long *S = (const long long *)sb.buf;
+    int bad = m < 1 || w < 1 || q < 1 || vb.len != m * w * dz || ob.len != m * q * dz || xb.len != p * q * dz;
+    for (Py_ssize_t i = 0; !bad && i < m; i++) bad = S[i] < 0 || S[i] + w > p;
+    if (bad) {
+        RELEASE(&vb, &sb, &xb, &ob);
+        PyErr_SetString(PyExc_ValueError, "banded_rows: inconsistent buffers");
+        return NULL;
+    }
+    const double *V = (const double *)vb.buf, *X = (const double *)xb.buf;
+    double *O = (double *)ob.buf;
+    Py_BEGIN_ALLOW_THREADS
+    /* (with AVX, BR_COLS columns of a row at a time, their sums in registers over t; SSE2's sixteen registers of two
+       doubles spill them, and it sums each row over t in memory, as fast there: the same order of summation) */
+    enum { BR_COLS = 16 };
+    for (Py_ssize_t i = 0; i < m; i++) {
+        const double *v = V + i * w, *x0 = X + S[i] * q;
+        double *o = O + i * q;
+        Py_ssize_t c0 = 0;
+#if !defined(__AVX__)
+        for (Py_ssize_t c = 0; c < q; c++) o[c] = 0.0;
+        for (Py_ssize_t t = 0; t < w; t++) {
+            const double vt = v[t], *restrict x = x0 + t * q;
+            double *restrict oo = o;
+            for (Py_ssize_t c = 0; c < q; c++) oo[c] += vt * x[c];
+        }
+        c0 = q;
+#endif
+        for (; c0 + BR_COLS <= q; c0 += BR_COLS) {
+            v4u a0 = {0.0}, a1 = {0.0}, a2 = {0.0}, a3 = {0.0};
+            for (Py_ssize_t t = 0; t < w; t++) {
+                const double *x = x0 + t * q + c0;
+                const double vt = v[t];
+                a0 += vt * *(const v4u *)x;
+                a1 += vt * *(const v4u *)(x + 4);
+                a2 += vt * *(const v4u *)(x + 8);
+                a3 += vt * *(const v4u *)(x + 12);
+            }
+            *(v4u *)(o + c0) = a0;
+            *(v4u *)(o + c0 + 4) = a1;
+            *(v4u *)(o + c0 + 8) = a2;
+            *(v4u *)(o + c0 + 12) = a3;
+        }
+        for (Py_ssize_t c = c0; c < q; c++) {
+            double acc = 0.0;
+            for (Py_ssize_t t = 0; t < w; t++) acc += v[t] * x0[t * q + c];
+            o[c] = acc;
+        }
+    }
+    Py_END_ALLOW_THREADS
+    RELEASE(&vb, &sb, &xb, &ob);
+    Py_RETURN_NONE;
+}
+
+/*
  * shift_phase(kx, ky, du, dv, out): exp(-i (kx du + ky dv)) per mode (likelihood.shift_joint's numpy line stays as the
  * reference; a test checks they agree to the bit): numpy's complex exp of the purely imaginary -i t is (cos t,
  * sin(-t)) from the C library, t made without contraction as numpy makes it.
@@ -6549,6 +6616,7 @@ static PyMethodDef methods[] = {
     {"metacal_noise", metacal_noise, METH_VARARGS,
      "metacal_noise(weight, image, noise, ny, nx, edge, grow, y, mask) -> var_in"},
     {"metacal_weight", metacal_weight, METH_VARARGS, "metacal_weight(noise0, mask, weight, var_in, out) -> scale"},
+    {"banded_rows", banded_rows, METH_VARARGS, "banded_rows(values, start, x, out): a banded matrix times x"},
     {"shift_phase", shift_phase, METH_VARARGS, "shift_phase(kx, ky, du, dv, out)"},
     {"nearest_map", nearest_map, METH_VARARGS, "nearest_map(a, ny, nx, index, inside)"},
     {"sky_modes", sky_modes, METH_VARARGS, "sky_modes(kx, ky, T, m, flux_scale, Kx, Ky, Ts)"},
