@@ -12,6 +12,12 @@ difference, with the CPU and the compiled loops' instruction set.
 
     python benchmarks/metacal_psf_cost.py                  # 7 exposures, 40 objects, 3 alternated passes
     python benchmarks/metacal_psf_cost.py --oversampling 1 # native PSF images
+    python benchmarks/metacal_psf_cost.py --fits 40        # also whole measurements: metacal against the plain fit
+
+``--fits N`` then measures N new galaxies of each case (7 exposures, SNR 20) with ``measure_object`` and with
+``measure_metacal``, one after the other for each galaxy (so that the machine's drift meets both alike), and prints
+the ratio of their summed CPU times with its bootstrap error: metacal's cost per galaxy in units of the plain fit's,
+with one PSF image per exposure and with an image of its own per galaxy.
 """
 
 from __future__ import annotations
@@ -84,6 +90,8 @@ def main(argv=None):
     ap.add_argument("--passes", type=int, default=3)
     ap.add_argument("--oversampling", type=int, default=3, help="the PSF images' oversampling k")
     ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--fits", type=int, default=0, metavar="N",
+                    help="also measure N galaxies of each case whole, plain and metacal (the ratio per galaxy)")
     args = ap.parse_args(argv)
     rng = np.random.default_rng(args.seed)
     info = kernel_info()
@@ -107,6 +115,33 @@ def main(argv=None):
     d = med["a PSF image of its own per object"] - med["one PSF image per exposure"]
     print(f"  a PSF image of its own costs {1e3 * d:.2f} ms an exposure more: {1e3 * d * args.exposures:.1f} ms an "
           f"object of {args.exposures} exposures")
+    if args.fits:
+        _fits(exposures, args, cases)
+
+
+def _fits(exposures, args, cases):
+    """metacal's cost per galaxy against the plain fit's, each galaxy measured both ways in turn."""
+    from shearfit.calib.metacal import measure_metacal
+    from shearfit.engine.measure import measure_object
+
+    print(f"measure_metacal against measure_object, {args.fits} galaxies x {args.exposures} exposures (CPU ms a "
+          "galaxy; ratio of the sums, +- bootstrap over the galaxies):")
+    boot = np.random.default_rng(0)
+    for name, own in cases.items():
+        objs = _objects(exposures, args.fits + 2, args.oversampling, own, np.random.default_rng(args.seed + 7 + own))
+        times = []
+        for i, obs in enumerate(objs):
+            t0 = time.process_time()
+            measure_object(obs, 22.0)
+            t1 = time.process_time()
+            measure_metacal(obs, 22.0, rng=np.random.default_rng(i))
+            t2 = time.process_time()
+            if i >= 2:   # (the first two: one-off tables)
+                times.append((t1 - t0, t2 - t1))
+        p, m = np.array(times).T
+        err = np.std([m[j].sum() / p[j].sum() for j in boot.integers(0, p.size, (400, p.size))])
+        print(f"  {name:36s} plain {1e3 * p.mean():5.1f}, metacal {1e3 * m.mean():5.1f}: **x{m.sum() / p.sum():.2f}** "
+              f"+- {err:.2f}")
 
 
 if __name__ == "__main__":
