@@ -216,10 +216,11 @@ def band_maxk(psf_column, xkernel, jac, threshold=MAXK_THRESHOLD):
     where the PSF's transform (``psf_column``, (n // 2 + 1, n): kx, then ky, times the x-interpolant's transform
     ``xkernel(kappa_x) xkernel(kappa_y)``) exceeds ``threshold`` of its flux, and at most pi / s_max (s_max the
     largest singular value of the Jacobian ``jac``): the largest sky disc whose wavevectors stay within the
-    pixels' Nyquist square, beyond which a stamp's transform only repeats itself."""
+    pixels' Nyquist square, beyond which a stamp's transform only repeats itself. ``psf_column`` may be the table's
+    first rows alone (:func:`padded_transform_within`'s columns made, beyond which no point is above)."""
     n = psf_column.shape[1]
     kx, ky, xx = _band_grid(n, xkernel)
-    kx, xx = kx[:psf_column.shape[0]], xx[:psf_column.shape[0]]   # (a column's first rows: padded_transform_within)
+    kx, xx = kx[:psf_column.shape[0]], xx[:psf_column.shape[0]]   # (the table's first rows alone: see above)
     thr = threshold * abs(psf_column[0, 0])
     jac = np.asarray(jac, float)
     nyquist = np.pi / singular_values2(jac)[0]
@@ -241,12 +242,13 @@ def band_points(psf_column, xkernel, threshold=MAXK_THRESHOLD):
     """The wavevectors (kx, ky) of the padded grid where the PSF's transform exceeds ``threshold`` of its flux
     (:func:`band_maxk`'s points), reduced to the vertices of their convex hull: the largest of a positive definite
     quadratic form over the points, which :func:`band_maxk_of_points` takes for a Jacobian, lies at a vertex, so
-    that a PSF image's band is found for any Jacobian from a few points. (2, m), or (2, 0) where no point is above."""
+    that a PSF image's band is found for any Jacobian from a few points. (2, m), or (2, 0) where no point is above.
+    ``psf_column`` may be the table's first rows alone, as :func:`band_maxk` takes it."""
     from scipy.spatial import ConvexHull, QhullError
 
     n = psf_column.shape[1]
     kx, ky, xx = _band_grid(n, xkernel)
-    kx, xx = kx[:psf_column.shape[0]], xx[:psf_column.shape[0]]   # (a column's first rows: padded_transform_within)
+    kx, xx = kx[:psf_column.shape[0]], xx[:psf_column.shape[0]]   # (the table's first rows alone: see above)
     thr = threshold * abs(psf_column[0, 0])
     if USE_KERNEL and psf_column.dtype == np.complex128 and psf_column.flags.c_contiguous:
         # each ky's least and largest kx above (compiled, band_maxk's test): the hull's vertices are among them,
