@@ -5251,22 +5251,14 @@ static PyObject *banded_rows(PyObject *self, PyObject *args)
     const double *V = (const double *)vb.buf, *X = (const double *)xb.buf;
     double *O = (double *)ob.buf;
     Py_BEGIN_ALLOW_THREADS
-    /* (with AVX, BR_COLS columns of a row at a time, their sums in registers over t; SSE2's sixteen registers of two
-       doubles spill them, and it sums each row over t in memory, as fast there: the same order of summation) */
+    /* each row's sums over t in order: with AVX, BR_COLS columns at a time in registers; SSE2's sixteen registers of
+       two doubles would spill them, and it sums the row in memory, as fast there */
     enum { BR_COLS = 16 };
     for (Py_ssize_t i = 0; i < m; i++) {
         const double *v = V + i * w, *x0 = X + S[i] * q;
         double *o = O + i * q;
+#if defined(__AVX__)
         Py_ssize_t c0 = 0;
-#if !defined(__AVX__)
-        for (Py_ssize_t c = 0; c < q; c++) o[c] = 0.0;
-        for (Py_ssize_t t = 0; t < w; t++) {
-            const double vt = v[t], *restrict x = x0 + t * q;
-            double *restrict oo = o;
-            for (Py_ssize_t c = 0; c < q; c++) oo[c] += vt * x[c];
-        }
-        c0 = q;
-#endif
         for (; c0 + BR_COLS <= q; c0 += BR_COLS) {
             v4u a0 = {0.0}, a1 = {0.0}, a2 = {0.0}, a3 = {0.0};
             for (Py_ssize_t t = 0; t < w; t++) {
@@ -5287,6 +5279,14 @@ static PyObject *banded_rows(PyObject *self, PyObject *args)
             for (Py_ssize_t t = 0; t < w; t++) acc += v[t] * x0[t * q + c];
             o[c] = acc;
         }
+#else
+        for (Py_ssize_t c = 0; c < q; c++) o[c] = 0.0;
+        for (Py_ssize_t t = 0; t < w; t++) {
+            const double vt = v[t], *restrict x = x0 + t * q;
+            double *restrict oo = o;
+            for (Py_ssize_t c = 0; c < q; c++) oo[c] += vt * x[c];
+        }
+#endif
     }
     Py_END_ALLOW_THREADS
     RELEASE(&vb, &sb, &xb, &ob);
