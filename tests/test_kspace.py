@@ -105,7 +105,8 @@ def test_table_made_within_the_band_is_the_whole_tables(J):
     """padded_transform_within makes the columns it keeps to the bit of the whole table's, leaves the others only
     where every wavevector there lies below the band's threshold (so that band_maxk and band_points of the columns
     made are the whole table's), and makes the whole table where the transform stays above it far out (a PSF image
-    with pixel noise) or where the columns asked for are all of them."""
+    with pixel noise) or where the columns asked for are all of them; padded_transform_rest makes the rest, the
+    whole table's to the bit."""
     from shearfit.simulate.stamps import draw_psf_image, moffat_psf
 
     xk = metacal._LANCZOS.kval
@@ -123,6 +124,9 @@ def test_table_made_within_the_band_is_the_whole_tables(J):
             assert kspace.band_maxk(table[0, :m], xk, J / k) == kspace.band_maxk(whole[0], xk, J / k)
             hull = lambda pts: set(map(tuple, pts.T.tolist()))   # noqa: E731
             assert hull(kspace.band_points(table[0, :m], xk)) == hull(kspace.band_points(whole[0], xk))
+            rest = table.copy()   # made whole in place: the whole table to the bit
+            kspace.padded_transform_rest(img, rest, m)
+            assert np.array_equal(rest, whole)
             seen.add((noise > 0, m == n // 2 + 1))
             if noise > 0:
                 assert m == n // 2 + 1   # its transform is above the threshold out to the grid's edge

@@ -134,16 +134,31 @@ def padded_transform_within(image, n, columns, xkernel, threshold=MAXK_THRESHOLD
     # (the columns not made left as the memory was, unless a test asks for UNMADE: never read, and never touched, so
     # that their pages are not faulted in; zeroing the whole table cost as much as the transform)
     table = np.empty((1, nc, n), complex) if UNMADE is None else np.full((1, nc, n), UNMADE, complex)
-    h = image.shape[0]
+    _column_transforms(part, image.shape[0], n, table[0, :m], 0)
+    return table, m
+
+
+def padded_transform_rest(image, table, m):
+    """A table of :func:`padded_transform_within` (of ``image``, made at its first m columns) made whole in place:
+    its columns from m on, the same numbers as :func:`padded_transforms`' (the columns made before untouched). The
+    table must be writeable."""
+    n = table.shape[2]
+    if m < n // 2 + 1:
+        _column_transforms(_row_transforms([image], n)[0], image.shape[0], n, table[0, m:], m)
+
+
+def _column_transforms(part, h, n, cols, lo):
+    """Into ``cols`` (rows of a table, in place: kx = lo, lo + 1, ...), the transforms over y of the rows'
+    transforms ``part`` ((h, n // 2 + 1): an image of h rows, each transformed over x) at those kx, the image's row
+    h // 2 at ky index 0."""
     c = h // 2
-    cols = table[0, :m]
+    hi = lo + cols.shape[0]
     cols[:] = 0.0
-    cols[:, :h - c] = part[c:h, :m].T
-    cols[:, n - c:] = part[:c, :m].T
+    cols[:, :h - c] = part[c:h, lo:hi].T
+    cols[:, n - c:] = part[:c, lo:hi].T
     got = sfft.fft(cols, axis=1, workers=1, overwrite_x=True)
     if not np.shares_memory(got, cols):
         cols[:] = got
-    return table, m
 
 
 def padded_transforms_rows(images, n):

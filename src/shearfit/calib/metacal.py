@@ -499,22 +499,24 @@ def _psf_table(psf, n, columns):
     """(table, memo): the padded transform of a PSF image (one plane, read-only) made at its first ``columns`` columns
     at least (:func:`shearfit.calib.kspace.padded_transform_within`: every column beyond, proven below the band's
     threshold, left unmade; memo["columns"] of them made), and a dict for what is made from it alone, remembered by
-    its contents (:data:`_PSF_TABLES`). :func:`_psf_columns` makes the table whole where a read needs more."""
+    its contents (:data:`_PSF_TABLES`). :func:`_psf_columns` makes the table whole, in place, where a read needs
+    more."""
     def make():
         t, m = kspace.padded_transform_within(psf, n, columns, _LANCZOS.kval)
         t.setflags(write=False)
         return t, {"table": t, "columns": m}
-    _, memo = _PSF_TABLES.get(psf, ("table", n), make)
-    return memo["table"], memo
+    return _PSF_TABLES.get(psf, ("table", n), make)
 
 
 def _psf_columns(psf, n, memo, need):
-    """:func:`_psf_table`'s table with at least its first ``need`` columns made: made whole (the same numbers in the
-    columns made before) where it lacks them, and kept so in ``memo``."""
+    """:func:`_psf_table`'s table with at least its first ``need`` columns made: made whole in place where it lacks
+    them (:func:`shearfit.calib.kspace.padded_transform_rest`: the columns made before untouched)."""
     if memo["columns"] < need:
-        t = kspace.padded_transforms([psf], n)
+        t = memo["table"]
+        t.setflags(write=True)
+        kspace.padded_transform_rest(psf, t, memo["columns"])
         t.setflags(write=False)
-        memo["table"], memo["columns"] = t, t.shape[1]
+        memo["columns"] = t.shape[1]
     return memo["table"]
 
 
