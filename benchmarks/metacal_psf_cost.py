@@ -13,6 +13,7 @@ difference, with the CPU and the compiled loops' instruction set.
     python benchmarks/metacal_psf_cost.py                  # 7 exposures, 40 objects, 3 alternated passes
     python benchmarks/metacal_psf_cost.py --oversampling 1 # native PSF images
     python benchmarks/metacal_psf_cost.py --fits 40        # also whole measurements: metacal against the plain fit
+    python benchmarks/metacal_psf_cost.py --fwhm 0.3       # undersampled PSFs (1.6 pixels), as from space
 
 ``--fits N`` then measures N new galaxies of each case (7 exposures, SNR 20) with ``measure_object`` and with
 ``measure_metacal``, one after the other for each galaxy (so that the machine's drift meets both alike), and prints
@@ -43,13 +44,14 @@ PIX = 0.187   # arcsec (CFHT MegaCam)
 STAMP = 48
 
 
-def _exposures(n_exp, rng):
-    """Per exposure its Jacobian (its own rotation of the pixel grid) and its Moffat PSF."""
+def _exposures(n_exp, rng, fwhm=0.6):
+    """Per exposure its Jacobian (its own rotation of the pixel grid) and its Moffat PSF (FWHM ``fwhm`` arcsec, 0.03"
+    more for each next exposure)."""
     out = []
     for i in range(n_exp):
         a = rng.uniform(-np.pi, np.pi)
         J = PIX * np.array([[-np.cos(a), np.sin(a)], [np.sin(a), np.cos(a)]])
-        out.append((J, (0.6 + 0.03 * i, 3.0, 0.04 * (-1) ** i, 0.02)))
+        out.append((J, (fwhm + 0.03 * i, 3.0, 0.04 * (-1) ** i, 0.02)))
     return out
 
 
@@ -90,13 +92,15 @@ def main(argv=None):
     ap.add_argument("--passes", type=int, default=3)
     ap.add_argument("--oversampling", type=int, default=3, help="the PSF images' oversampling k")
     ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--fwhm", type=float, default=0.6,
+                    help="the first exposure's PSF FWHM in arcsec (0.187\" pixels; 0.3: undersampled, as from space)")
     ap.add_argument("--fits", type=int, default=0, metavar="N",
                     help="also measure N galaxies of each case whole, plain and metacal (the ratio per galaxy)")
     args = ap.parse_args(argv)
     rng = np.random.default_rng(args.seed)
     info = kernel_info()
     print(f"CPU: {cpu_name()}; inner loops: {info['path']} ({info['isa']})")
-    exposures = _exposures(args.exposures, rng)
+    exposures = _exposures(args.exposures, rng, args.fwhm)
     k = args.oversampling
     cases = {"one PSF image per exposure": False, "a PSF image of its own per object": True}
     times = {name: [] for name in cases}
@@ -107,7 +111,8 @@ def main(argv=None):
                 _cpu_per_exposure(objs[:2], rng)   # (imports and one-off tables)
             times[name].append(_cpu_per_exposure(objs, rng))
     print(f"metacal_observations, {args.objects} objects x {args.exposures} exposures, 48-pixel stamps, PSF images "
-          f"oversampled {k} times, {args.passes} passes (CPU ms an exposure, median; the passes):")
+          f"oversampled {k} times, FWHM {args.fwhm:.2f}\"+, {args.passes} passes (CPU ms an exposure, median; the "
+          "passes):")
     med = {}
     for name, t in times.items():
         med[name] = float(np.median(t))
