@@ -95,10 +95,7 @@ def padded_transforms(images, n):
     part = _row_transforms(images, n)
     cols = np.zeros((len(images), n // 2 + 1, n), complex)
     for t, im in enumerate(images):
-        h = im.shape[0]
-        c = h // 2
-        cols[t, :, :h - c] = part[t, c:h].T
-        cols[t, :, n - c:] = part[t, :c].T
+        _place_columns(cols[t], part[t], im.shape[0], n, 0)
     return sfft.fft(cols, axis=2, workers=1, overwrite_x=True)
 
 
@@ -147,15 +144,21 @@ def padded_transform_rest(image, table, m):
         _column_transforms(_row_transforms([image], n)[0], image.shape[0], n, table[0, m:], m)
 
 
-def _column_transforms(part, h, n, cols, lo):
-    """Into ``cols`` (rows of a table, in place: kx = lo, lo + 1, ...), the transforms over y of the rows'
-    transforms ``part`` ((h, n // 2 + 1): an image of h rows, each transformed over x) at those kx, the image's row
-    h // 2 at ky index 0."""
+def _place_columns(cols, part, h, n, lo):
+    """Into ``cols`` (rows of a table, zero: kx = lo, lo + 1, ...), the rows' transforms ``part`` ((>= h, n // 2 + 1):
+    an image of h rows, each transformed over x) at those kx, as columns over ky, the image's row h // 2 at index 0
+    (the rows above it at the grid's end)."""
     c = h // 2
     hi = lo + cols.shape[0]
-    cols[:] = 0.0
     cols[:, :h - c] = part[c:h, lo:hi].T
     cols[:, n - c:] = part[:c, lo:hi].T
+
+
+def _column_transforms(part, h, n, cols, lo):
+    """Into ``cols`` (rows of a table, in place: kx = lo, lo + 1, ...), the transforms over y of the rows'
+    transforms ``part`` (:func:`_place_columns`) at those kx."""
+    cols[:] = 0.0
+    _place_columns(cols, part, h, n, lo)
     got = sfft.fft(cols, axis=1, workers=1, overwrite_x=True)
     if not np.shares_memory(got, cols):
         cols[:] = got

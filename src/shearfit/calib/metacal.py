@@ -600,9 +600,12 @@ def _oversampled_kspace_images(image, noise, psf, J, k, delta, names, n_small, n
     mats, radii = _version_matrices(names, delta, jit, maxk, dk, dilation, smax_j)
     # the columns read: the bands' taps at the sheared wavevectors q / k (in the PSF's pixels) within the band, |q| at
     # most smax_j maxk; the new PSF's at the band's points kappa scale, kx up to r dk (the taps reach 3 beyond)
-    ptab = _psf_columns(psf, n_p, memo, int(smax_j * maxk / k * to_p * (1 + 1e-9)) + 4)
+    need = int(smax_j * maxk / k * to_p * (1 + 1e-9)) + 4
     gneed = int(max(radii) * dk * scale * to_p * (1 + 1e-9)) + 4
-    gtab = _psf_columns(psf, n_p, memo, gneed) if new_psf is None else _psf_columns(new_psf, n_p, gmemo, gneed)
+    if new_psf is None:   # (one table for both)
+        ptab = gtab = _psf_columns(psf, n_p, memo, max(need, gneed))
+    else:
+        ptab, gtab = _psf_columns(psf, n_p, memo, need), _psf_columns(new_psf, n_p, gmemo, gneed)
     items = []
     first = None
     if kspace.USE_KERNEL:   # (the same for every version)
