@@ -470,3 +470,29 @@ def test_content_memo_finds_kept_arrays_by_identity():
         memo.put(b, (1,), i)
     assert "a1" not in memo.values() and (id(a), (1,)) not in memo._by_id
     assert memo.peek(a, (1,)) is None and len(memo._by_id) == len(memo) == 3
+
+
+@pytest.mark.parametrize("psf_shape,s,stamp", [((144, 144), 3, (48, 48)), ((25, 31), 2, (33, 47)),
+                                               ((151, 150), 3, (20, 26)), ((7, 9), 1, (15, 15))])
+def test_fine_psf_modes_are_the_complex_transforms(psf_shape, s, stamp):
+    """The fine modes read from the real transform (``rfft2``, the modes of kx < 0 as the conjugates of their
+    mirrors) are numpy's complex ``fft2`` of the PSF padded or cropped to the fine grid, at the modes that fold
+    onto the stamp's half-plane, in the grid's order; the offset's phase taken one axis at a time is the whole
+    exponent's."""
+    from shearfit.engine.model import _fine_modes_from_psf_made, _offset_phases, _pad_center
+
+    ny, nx = stamp
+    fy, fx = s * ny, s * nx
+    psf = np.random.default_rng(4).random(psf_shape)
+    ky, kx, T, coarse, iy, ix = _fine_modes_from_psf_made(psf, s, ny, nx)
+    full = np.fft.fft2(np.fft.ifftshift(_pad_center(psf, (fy, fx))))
+    my = np.fft.fftfreq(fy) * fy
+    mx = np.fft.fftfreq(fx) * fx
+    MY, MX = np.meshgrid(np.rint(my).astype(int), np.rint(mx).astype(int), indexing="ij")
+    keep = MX % nx <= nx // 2
+    np.testing.assert_array_equal(ky, 2 * np.pi * MY[keep] / ny)
+    np.testing.assert_array_equal(kx, 2 * np.pi * MX[keep] / nx)
+    np.testing.assert_array_equal(coarse, (MY % ny)[keep] * (nx // 2 + 1) + (MX % nx)[keep])
+    assert np.abs(T - full[keep]).max() < 1e-13 * np.abs(full).max()
+    dx, dy = 0.37, -0.21
+    assert np.abs(_offset_phases(iy, ix, fy, fx, ny, nx, dx, dy) - np.exp(-1j * (kx * dx + ky * dy))).max() < 1e-13

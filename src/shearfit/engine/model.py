@@ -230,40 +230,78 @@ _FINE_PSF = ContentMemo(64 * 2 ** 20)
 
 
 def _fine_modes_from_psf(psf, s, ny, nx, tolerance=0.0):
-    """Fine wavevectors (rad per stamp pixel), PSF transform and coarse index.
+    """Fine wavevectors (rad per stamp pixel), PSF transform, coarse index and each mode's place on the fine grid.
 
     The PSF array is taken on a grid s times finer than the stamp, padded or
     cropped to (s ny, s nx); its DFT gives the PSF at wavevectors up to
     s pi. Each fine mode folds onto the stamp's mode (m mod n). Only the modes
     where |T| exceeds ``tolerance`` times its largest value are kept.
+    Returns (ky, kx, T, coarse, iy, ix): iy, ix the modes' rows and columns of the fine grid (numpy's FFT order),
+    whose phases :func:`_offset_phases` takes one axis at a time.
     Remembered (read-only arrays, :class:`ContentMemo`): the objects of a CCD
     with one given PSF image share them (the same numbers as made afresh).
     """
     def make():
-        ky, kx, T, coarse = _fine_modes_from_psf_made(psf, s, ny, nx)
+        ky, kx, T, coarse, iy, ix = _fine_modes_from_psf_made(psf, s, ny, nx)
         aT = np.abs(T)
         keep = aT > tolerance * aT.max()
-        got = ky[keep], kx[keep], T[keep], coarse[keep]
+        got = ky[keep], kx[keep], T[keep], coarse[keep], iy[keep], ix[keep]
         for arr in got:
             arr.setflags(write=False)
         return got
     return _FINE_PSF.get(psf, (int(s), int(ny), int(nx), float(tolerance)), make)
 
 
-def _fine_modes_from_psf_made(psf, s, ny, nx):
+@functools.lru_cache(maxsize=16)
+def _fine_geometry(s, ny, nx):
+    """What :func:`_fine_modes_from_psf_made` takes from the grids alone (read-only, shared): the modes folding onto
+    the stamp's rfft half-plane, in the fine grid's row-major order, as (ky, kx, coarse, iy, ix, at, mirror): their
+    wavevectors, folded stamp mode, fine row and column (numpy's FFT order), their place in the fine grid's rfft2
+    (flat index) and whether they are the conjugate of the mode there (kx < 0, by the real image's Hermitian
+    symmetry)."""
     fy, fx = s * ny, s * nx
-    p = _pad_center(psf, (fy, fx))
-    P = np.fft.fft2(np.fft.ifftshift(p))
     my = np.rint(np.fft.fftfreq(fy) * fy).astype(int)   # signed integer frequencies
     mx = np.rint(np.fft.fftfreq(fx) * fx).astype(int)
-    MY, MX = np.meshgrid(my, mx, indexing="ij")
-    cy = MY % ny
-    cx = MX % nx
-    keep = cx <= nx // 2   # only modes folding onto the rfft half-plane
-    ky = 2 * np.pi * MY[keep] / ny
-    kx = 2 * np.pi * MX[keep] / nx
-    coarse = cy[keep] * (nx // 2 + 1) + cx[keep]
-    return ky, kx, P[keep], coarse
+    iy, ix = np.nonzero((mx % nx <= nx // 2)[None, :] & np.ones((fy, 1), bool))   # folding onto the half-plane
+    MY, MX = my[iy], mx[ix]
+    mirror = MX < 0
+    at = np.where(mirror, (-MY) % fy, MY % fy) * (fx // 2 + 1) + np.abs(MX)
+    got = (2 * np.pi * MY / ny, 2 * np.pi * MX / nx, (MY % ny) * (nx // 2 + 1) + MX % nx, iy, ix, at, mirror)
+    for arr in got:
+        arr.setflags(write=False)
+    return got
+
+
+def _fine_modes_from_psf_made(psf, s, ny, nx):
+    fy, fx = s * ny, s * nx
+    ky, kx, coarse, iy, ix, at, mirror = _fine_geometry(int(s), int(ny), int(nx))
+    # the real image's transform over the half-plane (rfft2), each kept mode read there or at its mirror -k
+    P = np.fft.rfft2(_pad_origin(psf, (fy, fx))).ravel()[at]
+    np.conjugate(P, out=P, where=mirror)
+    return ky, kx, P, coarse, iy, ix
+
+
+def _pad_origin(a, shape):
+    """``np.fft.ifftshift(_pad_center(a, shape))``: ``a`` cropped or zero-padded to ``shape``, its index (n // 2) at
+    index 0 (the rows and columns before it at the grid's end)."""
+    my, mx = shape
+    c = _pad_center(a, shape)
+    out = np.empty(shape)
+    hy, hx = my // 2, mx // 2
+    out[:my - hy, :mx - hx] = c[hy:, hx:]
+    out[:my - hy, mx - hx:] = c[hy:, :hx]
+    out[my - hy:, :mx - hx] = c[:hy, hx:]
+    out[my - hy:, mx - hx:] = c[:hy, :hx]
+    return out
+
+
+def _offset_phases(iy, ix, fy, fx, ny, nx, dx, dy):
+    """exp(-i (kx dx + ky dy)) of the fine modes (rows ``iy`` and columns ``ix`` of the (fy, fx) grid, kx = 2 pi mx /
+    nx, ky = 2 pi my / ny), one axis at a time: the product of a phase per column and one per row (the same to
+    rounding as the whole exponent)."""
+    px = np.exp(-1j * dx * (2 * np.pi / nx) * np.rint(np.fft.fftfreq(fx) * fx))
+    py = np.exp(-1j * dy * (2 * np.pi / ny) * np.rint(np.fft.fftfreq(fy) * fy))
+    return px[ix] * py[iy]
 
 
 def psf_moffat(psf):
@@ -693,10 +731,10 @@ def prepare_exposure(obs: Observation, cfg: FitConfig, grid_shape=None, with_dat
         ky, kx, T, coarse = _fine_modes_moffat(obs.psf, ny, nx, cfg.alias_oversampling, moffat,
                                                cfg.psf_mode_tolerance, Ps=pre.get("Ps"), offset=obs.offset)
     else:
-        ky, kx, T, coarse = _fine_modes_from_psf(obs.psf, s, ny, nx, cfg.psf_mode_tolerance)
+        ky, kx, T, coarse, iy, ix = _fine_modes_from_psf(obs.psf, s, ny, nx, cfg.psf_mode_tolerance)
         # the object's nominal position sits at (stamp centre + offset)
         dx, dy = obs.offset
-        T = T * np.exp(-1j * (kx * dx + ky * dy))
+        T = T * _offset_phases(iy, ix, s * ny, s * nx, ny, nx, dx, dy)
     # sky wavevector K = J^-T k, and the transfer times the flux scale
     Jinv_T = inv2(obs.jacobian).T
     if USE_KERNEL and use_kernel:
