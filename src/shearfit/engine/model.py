@@ -252,6 +252,14 @@ def _fine_modes_from_psf(psf, s, ny, nx, tolerance=0.0):
     return _FINE_PSF.get(psf, (int(s), int(ny), int(nx), float(tolerance)), make)
 
 
+@functools.lru_cache(maxsize=32)
+def _signed_freqs(n):
+    """numpy's FFT order's signed integer frequencies of an n-point grid (read-only, shared)."""
+    out = np.rint(np.fft.fftfreq(n) * n).astype(int)
+    out.setflags(write=False)
+    return out
+
+
 @functools.lru_cache(maxsize=16)
 def _fine_geometry(s, ny, nx):
     """What :func:`_fine_modes_from_psf_made` takes from the grids alone (read-only, shared): the modes folding onto
@@ -260,9 +268,9 @@ def _fine_geometry(s, ny, nx):
     (flat index) and whether they are the conjugate of the mode there (kx < 0, by the real image's Hermitian
     symmetry)."""
     fy, fx = s * ny, s * nx
-    my = np.rint(np.fft.fftfreq(fy) * fy).astype(int)   # signed integer frequencies
-    mx = np.rint(np.fft.fftfreq(fx) * fx).astype(int)
-    iy, ix = np.nonzero((mx % nx <= nx // 2)[None, :] & np.ones((fy, 1), bool))   # folding onto the half-plane
+    my, mx = _signed_freqs(fy), _signed_freqs(fx)
+    cols = np.nonzero(mx % nx <= nx // 2)[0]   # the columns folding onto the half-plane, in every row
+    iy, ix = np.repeat(np.arange(fy), cols.size), np.tile(cols, fy)
     MY, MX = my[iy], mx[ix]
     mirror = MX < 0
     at = np.where(mirror, (-MY) % fy, MY % fy) * (fx // 2 + 1) + np.abs(MX)
@@ -275,32 +283,19 @@ def _fine_geometry(s, ny, nx):
 def _fine_modes_from_psf_made(psf, s, ny, nx):
     fy, fx = s * ny, s * nx
     ky, kx, coarse, iy, ix, at, mirror = _fine_geometry(int(s), int(ny), int(nx))
-    # the real image's transform over the half-plane (rfft2), each kept mode read there or at its mirror -k
-    P = np.fft.rfft2(_pad_origin(psf, (fy, fx))).ravel()[at]
+    # the real image's transform over the half-plane (rfft2 of the image with its centre at the origin), each kept
+    # mode read there or at its mirror -k
+    P = np.fft.rfft2(_ifftshift2(_pad_center(psf, (fy, fx)))).ravel()[at]
     np.conjugate(P, out=P, where=mirror)
     return ky, kx, P, coarse, iy, ix
-
-
-def _pad_origin(a, shape):
-    """``np.fft.ifftshift(_pad_center(a, shape))``: ``a`` cropped or zero-padded to ``shape``, its index (n // 2) at
-    index 0 (the rows and columns before it at the grid's end)."""
-    my, mx = shape
-    c = _pad_center(a, shape)
-    out = np.empty(shape)
-    hy, hx = my // 2, mx // 2
-    out[:my - hy, :mx - hx] = c[hy:, hx:]
-    out[:my - hy, mx - hx:] = c[hy:, :hx]
-    out[my - hy:, :mx - hx] = c[:hy, hx:]
-    out[my - hy:, mx - hx:] = c[:hy, :hx]
-    return out
 
 
 def _offset_phases(iy, ix, fy, fx, ny, nx, dx, dy):
     """exp(-i (kx dx + ky dy)) of the fine modes (rows ``iy`` and columns ``ix`` of the (fy, fx) grid, kx = 2 pi mx /
     nx, ky = 2 pi my / ny), one axis at a time: the product of a phase per column and one per row (the same to
     rounding as the whole exponent)."""
-    px = np.exp(-1j * dx * (2 * np.pi / nx) * np.rint(np.fft.fftfreq(fx) * fx))
-    py = np.exp(-1j * dy * (2 * np.pi / ny) * np.rint(np.fft.fftfreq(fy) * fy))
+    px = np.exp(-1j * dx * (2 * np.pi / nx) * _signed_freqs(fx))
+    py = np.exp(-1j * dy * (2 * np.pi / ny) * _signed_freqs(fy))
     return px[ix] * py[iy]
 
 
