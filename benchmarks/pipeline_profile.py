@@ -263,8 +263,7 @@ def _metacal_interleaved(cfg, n_runs, metacal_path):
     every object both ways (``_measure_one`` wrapped) and writes the metacal rows. Prints, per class of the
     plain fit and over all objects, the ratio of the summed CPU times (metacal's cost per object over the plain
     one's) with its bootstrap error over the objects, and checks that the catalogue is the metacal run's; and the
-    galaxies' ratio by the plain fit's SNR (metacal's symmetrising noise doubles the variance, which broadens a faint
-    galaxy's posterior, and the noshear fit and its four replays evaluate more samples above the posterior cut)."""
+    galaxies' ratio in bins of the plain fit's SNR (why it falls with SNR: ``benchmarks/README.md``, session 96)."""
     from dataclasses import replace
 
     from astropy.table import Table
@@ -280,9 +279,7 @@ def _metacal_interleaved(cfg, n_runs, metacal_path):
         with _interleaved_clock(cfg) as rows:
             table = measure_field(run, out_path=out, processes=1)
         same = _same_table(Table.read(metacal_path), Table.read(out)) if os.path.exists(metacal_path) else None
-        cls = np.array([c for c, _, _, _ in rows])
-        tp, tm = np.array([p for _, p, _, _ in rows]), np.array([m for _, _, m, _ in rows])
-        snr = np.array([s for _, _, _, s in rows])
+        cls, tp, tm, snr = (np.array(col) for col in zip(*rows)) if rows else (np.zeros(0),) * 4
         gal = cls == 0
         parts = []
         bins = [("all objects", np.ones(cls.size, bool)), ("galaxies", gal), ("stars", cls == 1), ("flagged", cls < 0)]
@@ -320,9 +317,9 @@ def _same_table(a, b):
 
 @contextlib.contextmanager
 def _interleaved_clock(cfg):
-    """[(plain fitclass, plain CPU s, metacal CPU s, plain SNR)] of each object the driver measures while in the block: its
-    ``_measure_one`` wrapped to measure the object with ``cfg`` (the plain run) and as the run asks (metacal), in
-    turn, the first of the two alternating from object to object; the run's own row is returned."""
+    """[(plain fitclass, plain CPU s, metacal CPU s, plain SNR)] of each object the driver measures while in the
+    block: its ``_measure_one`` wrapped to measure the object with ``cfg`` (the plain run) and as the run asks
+    (metacal), in turn, the first of the two alternating from object to object; the run's own row is returned."""
     import shearfit.pipeline.driver as drv
 
     rows, real = [], drv._measure_one
