@@ -56,7 +56,7 @@ from shearfit.calib.bias import ring_sums, shear_bias
 from shearfit.simulate.field import truth_galaxies
 from shearfit.simulate.stamps import galaxy_profile, mag_to_flux
 # benchmarks/ring_test.py, beside this script: the metacal columns, estimator and bootstrap
-from ring_test import METACAL_FIELDS, report_metacal, stars_kept
+from ring_test import METACAL_FIELDS, MetacalRings, report_metacal, stars_kept
 
 PIX = 0.187
 RA0, DEC0 = 35.0, -4.0
@@ -401,14 +401,14 @@ def main(argv=None):
     results = {}
     for v in variants:
         fields = {k[1:]: t for k, t in tables.items() if k[0] == v}
-        results[label[v]] = report(fields, gals, args, label[v], v[0])
-        if args.table:
+        if args.table:   # (before the report: the measured objects kept whatever it does)
             path = args.table
             if len(variants) > 1:
                 root, ext = os.path.splitext(args.table)
                 path = f"{root}_{label[v].replace(' ', '').replace(',', '_')}{ext or '.fits'}"
             ring_table(fields, gals, args).write(path, overwrite=True)
             print(f"  objects written to {path} (benchmarks/ring_split.py reads it)")
+        results[label[v]] = report(fields, gals, args, label[v], v[0])
     if len(variants) > 1:
         # differences from the first variant, resampling the same rings for all
         rng_b = np.random.default_rng(0)
@@ -588,7 +588,7 @@ def report(tables, gals, args, name, wcs_mode):
         est_u, err_u = shear_bias(other_sums[-1], np.array(args.shear), args.n_bootstrap, np.random.default_rng(0))
         print(f"  with {label}: m1 = {est_u[0]:+.5f} +/- {err_u[0]:.5f}, m2 = {est_u[1]:+.5f} +/- {err_u[1]:.5f}")
     if args.metacal:
-        report_metacal(Table(tab), args, args.n_galaxies)
+        _report_metacal(Table(tab), args, args.n_galaxies)
     subsets = size_subsets(gals, args)
     if subsets:
         sums = ring_sums(tab, args.n_galaxies)
@@ -611,8 +611,15 @@ def report(tables, gals, args, name, wcs_mode):
                 sub = Table({k: v[rows] for k, v in tab.items()})
                 sub["galaxy"] = number[tab["galaxy"][rows]]
                 print(f"\n  rings of scalelength {lab} ({sel.size}), metacal:", end="")
-                report_metacal(sub, args, sel.size)
+                _report_metacal(sub, args, sel.size)
     return est, err
+
+
+def _report_metacal(tab, args, n_gal):
+    """ring_test.py's metacal report of a field's objects (``tab``, galaxies numbered 0 .. n_gal - 1): lensfit's
+    weights and selection, no split by SNR."""
+    margs = argparse.Namespace(**{**vars(args), "all_objects": False, "unweighted": False, "snr_bins": 1})
+    report_metacal(MetacalRings.from_table(tab, n_gal, margs), margs, by_snr=False)
 
 
 if __name__ == "__main__":

@@ -425,10 +425,10 @@ def metacal_image_profile(objs):
         def __getattr__(self, name):
             return getattr(self.real, name)
 
-    saved = (kspace.padded_transforms, kspace.kvalues, kspace.band_maxk, metacal.band_images, kspace.KERNEL)
+    saved = (kspace.padded_transforms, kspace.kvalues, kspace.band_edge, metacal.band_images, kspace.KERNEL)
     kspace.padded_transforms = timed("padded transforms (rfft, 4 x padding)", saved[0])
     kspace.kvalues = timed("the new PSF's quintic interpolation", saved[1])
-    kspace.band_maxk = timed("the PSF's band", saved[2])
+    kspace.band_edge = timed("the PSF's band", saved[2])
     metacal.band_images = timed("inverse transforms onto the stamps", saved[3])
     if saved[4] is not None:
         kspace.KERNEL = Kernel(saved[4])
@@ -440,7 +440,7 @@ def metacal_image_profile(objs):
                 metacal.metacal_observations(ob, 0.01, rng, fit_moffat=False)
         total = time.perf_counter() - t0
     finally:
-        kspace.padded_transforms, kspace.kvalues, kspace.band_maxk, metacal.band_images, kspace.KERNEL = saved
+        kspace.padded_transforms, kspace.kvalues, kspace.band_edge, metacal.band_images, kspace.KERNEL = saved
     n = len(objs)
     print(f"\n  metacal images: {1e3 * total / n:.1f} ms per galaxy, of which:")
     for name, dt in acc.items():

@@ -26,9 +26,13 @@ x-interpolant's transforms then no longer cancel, I = X(q) D_I(q) and
 P = X(q / k) D_P(q / k) at q = M kappa.
 
 The deconvolution is applied within the PSF's band, a disc in the sky frame
-of radius ``maxk`` (the largest sky wavenumber where the PSF's transform
-exceeds ``MAXK_THRESHOLD`` of its flux, GalSim's ``maxk_threshold``),
-beyond which the product is zero, as GalSim's ``Deconvolve`` sets it.
+of radius ``maxk``, beyond which the product is zero, as GalSim's
+``Deconvolve`` sets it beyond its PSF's maxk, where the PSF's transform
+stays below ``MAXK_THRESHOLD`` of its flux (GalSim's ``maxk_threshold``):
+here the radius where most of a ring's points have fallen below it
+(:func:`band_edge`), within the PSF's ellipticity of GalSim's for a smooth
+PSF, and not pushed out to the Nyquist radius by the scattered high
+wavenumbers of a PSF model fitted from stars.
 """
 
 from __future__ import annotations
@@ -41,8 +45,8 @@ from scipy import fft as sfft
 
 from ..engine.kernel import KERNEL, USE_KERNEL
 
-__all__ = ["quintic", "padded_transforms", "padded_transforms_rows", "kvalues", "band_maxk", "band_points",
-           "band_maxk_of_points", "round_envelope", "singular_values2", "PAD_FACTOR", "MAXK_THRESHOLD"]
+__all__ = ["quintic", "padded_transforms", "padded_transforms_rows", "kvalues", "band_edge", "maxk_of_edge",
+           "band_maxk", "round_envelope", "singular_values2", "PAD_FACTOR", "MAXK_THRESHOLD"]
 
 #: The padded grid of the discrete transforms, in widths of the larger image (GalSim's default pad_factor).
 PAD_FACTOR = 4
@@ -111,7 +115,7 @@ def padded_transform_within(image, n, columns, xkernel, threshold=MAXK_THRESHOLD
     beyond is the transform over y of the rows' transforms at its kx, so its values are at most the sum of their
     moduli there, which is compared with the threshold (with a margin far above the transforms' rounding); where a
     column fails, m reaches past it. The columns made are the whole table's to the bit (each column's transform is
-    its own), so that :func:`band_maxk` and :func:`band_points` of the first m rows are the whole table's, and a
+    its own), so that :func:`band_edge` of the first m rows is the whole table's, and a
     read of the first m rows is its read. Returns (table, m).
 
     (A PSF image oversampled k times, as a PSFEx or Piff model gives one at each object, has a table k times the
@@ -229,72 +233,66 @@ def kvalues(table, tx, ty):
     return out
 
 
-def band_maxk(psf_column, xkernel, jac, threshold=MAXK_THRESHOLD):
-    """The sky radius of the PSF's band: the largest norm of J^-T kappa over the padded grid's wavevectors kappa
-    where the PSF's transform (``psf_column``, (n // 2 + 1, n): kx, then ky, times the x-interpolant's transform
-    ``xkernel(kappa_x) xkernel(kappa_y)``) exceeds ``threshold`` of its flux, and at most pi / s_max (s_max the
-    largest singular value of the Jacobian ``jac``): the largest sky disc whose wavevectors stay within the
-    pixels' Nyquist square, beyond which a stamp's transform only repeats itself. ``psf_column`` may be the table's
+def band_edge(psf_column, xkernel, threshold=MAXK_THRESHOLD):
+    """The PSF's band in its image's own pixel frame: the radius 2 pi b / n of the first ring b of the padded grid
+    (its wavevectors kappa with b <= \\|kappa\\| n / (2 pi) < b + 1, rings one grid step wide about the origin) in
+    which at most half of the points carry a transform (``psf_column``, (n // 2 + 1, n): kx, then ky, times the
+    x-interpolant's transform ``xkernel(kappa_x) xkernel(kappa_y)``) above ``threshold`` of its flux; the grid's
+    outermost radius where no ring is such, 0 where the origin's is. The PSF's transform falls below the threshold
+    at this radius in most directions: a PSF image with noise of its own (a pixel model fitted from stars, as
+    PSFEx, Piff and shearfit's own give) lifts scattered points above it far beyond, out to the pixels' Nyquist
+    radius, which would set the band there if any one point did (GalSim's ``calculate_maxk`` test), and the band
+    there deconvolves those points' noise into every version (``benchmarks/README.md``, session 97). It depends on
+    the image alone: :func:`maxk_of_edge` gives the sky band for a Jacobian. ``psf_column`` may be the table's
     first rows alone (:func:`padded_transform_within`'s columns made, beyond which no point is above)."""
     n = psf_column.shape[1]
-    kx, ky, xx = _band_grid(n, xkernel)
-    kx, xx = kx[:psf_column.shape[0]], xx[:psf_column.shape[0]]   # (the table's first rows alone: see above)
+    rows = psf_column.shape[0]
+    total = _ring_totals(n)
     thr = threshold * abs(psf_column[0, 0])
-    jac = np.asarray(jac, float)
-    nyquist = np.pi / singular_values2(jac)[0]
-    a, b, c = _inverse_form(jac)
+    xx = _band_grid(n, xkernel)[2][:rows]   # (the table's first rows alone: see above)
     if USE_KERNEL and psf_column.dtype == np.complex128 and psf_column.flags.c_contiguous:
-        # the same loop compiled (the same value to the bit, in a tenth of the time)
-        k2max = KERNEL.band_maxk(psf_column, xx, kx, ky, float(thr), float(a), float(b), float(c))
+        # the same count compiled (the same points, in a tenth of the time)
+        above = np.zeros(total.size, np.int64)
+        KERNEL.band_rings(psf_column, xx, float(thr), int(n), above)
     else:
-        above = np.abs(psf_column) * xx > thr
-        k2 = a * kx * kx + 2 * b * kx * ky + c * ky * ky
-        # (the largest over the band by a select, not a boolean index: the same value in a quarter of the time)
-        k2max = np.max(np.where(above, k2, -np.inf))
-    if k2max == -np.inf:
-        return 0.0
-    return float(min(np.sqrt(k2max), nyquist))
+        lab = _ring_labels(n)[:rows]
+        above = np.bincount(lab[np.abs(psf_column) * xx > thr], minlength=total.size)
+    fail = np.nonzero(2 * above <= total)[0]
+    return 2 * np.pi * (int(fail[0]) if fail.size else total.size) / n
 
 
-def band_points(psf_column, xkernel, threshold=MAXK_THRESHOLD):
-    """The wavevectors (kx, ky) of the padded grid where the PSF's transform exceeds ``threshold`` of its flux
-    (:func:`band_maxk`'s points), reduced to the vertices of their convex hull: the largest of a positive definite
-    quadratic form over the points, which :func:`band_maxk_of_points` takes for a Jacobian, lies at a vertex, so
-    that a PSF image's band is found for any Jacobian from a few points. (2, m), or (2, 0) where no point is above.
-    ``psf_column`` may be the table's first rows alone, as :func:`band_maxk` takes it."""
-    from scipy.spatial import ConvexHull, QhullError
-
-    n = psf_column.shape[1]
-    kx, ky, xx = _band_grid(n, xkernel)
-    kx, xx = kx[:psf_column.shape[0]], xx[:psf_column.shape[0]]   # (the table's first rows alone: see above)
-    thr = threshold * abs(psf_column[0, 0])
-    if USE_KERNEL and psf_column.dtype == np.complex128 and psf_column.flags.c_contiguous:
-        # each ky's least and largest kx above (compiled, band_maxk's test): the hull's vertices are among them,
-        # and the hull of these few points is made in a tenth of the time of all of them
-        ext = np.empty((n, 2), np.int64)
-        KERNEL.band_extent(psf_column, xx, float(thr), ext)
-        j = np.nonzero(ext[:, 0] >= 0)[0]
-        above = (ext[j].T.ravel(), np.tile(j, 2))
-    else:
-        above = np.nonzero(np.abs(psf_column) * xx > thr)
-    pts = np.stack([kx[above[0], 0], ky[0, above[1]]])
-    if pts.shape[1] >= 3:
-        try:
-            pts = pts[:, ConvexHull(pts.T).vertices]
-        except QhullError:   # collinear points: all of them
-            pass
-    return np.ascontiguousarray(pts)
+def maxk_of_edge(edge, jac):
+    """The sky radius of the PSF's band for the Jacobian ``jac`` (of the PSF image's pixels) from its
+    :func:`band_edge`: the largest sky disc whose wavevectors kappa = J^T K in the pixel frame lie within that radius,
+    and within the pixels' Nyquist disc pi, beyond which a stamp's transform only repeats itself: min(edge, pi) /
+    s_max, s_max the Jacobian's larger singular value."""
+    return float(min(edge, np.pi) / singular_values2(jac)[0])
 
 
-def band_maxk_of_points(points, jac):
-    """:func:`band_maxk` from :func:`band_points`' points: the largest \\|J^-T kappa\\| over them, at most pi / s_max."""
-    jac = np.asarray(jac, float).tolist()   # (on Python floats: the same numbers, less overhead)
-    nyquist = np.pi / singular_values2(jac)[0]
-    if points.shape[1] == 0:
-        return 0.0
-    a, b, c = _inverse_form(jac)
-    kx, ky = points
-    return float(min(math.sqrt((a * kx * kx + 2 * b * kx * ky + c * ky * ky).max()), nyquist))
+def band_maxk(psf_column, xkernel, jac, threshold=MAXK_THRESHOLD):
+    """The sky radius of the PSF's band (:func:`maxk_of_edge` of :func:`band_edge`; ``psf_column`` as that takes
+    it)."""
+    return maxk_of_edge(band_edge(psf_column, xkernel, threshold), jac)
+
+
+@functools.lru_cache(maxsize=8)
+def _ring_labels(n):
+    """Each point's ring on the padded grid (:func:`band_edge`'s): floor(sqrt(i^2 + m^2)), i the kx index, m = min(j,
+    n - j) of the ky index j ((n // 2 + 1, n) int64, read-only, shared)."""
+    i = np.arange(n // 2 + 1)[:, None]
+    j = np.arange(n)
+    m = np.minimum(j, n - j)[None, :]
+    lab = np.sqrt((i * i + m * m).astype(float)).astype(np.int64)
+    lab.setflags(write=False)
+    return lab
+
+
+@functools.lru_cache(maxsize=8)
+def _ring_totals(n):
+    """The number of the padded grid's points in each of :func:`band_edge`'s rings (read-only, shared)."""
+    out = np.bincount(_ring_labels(n).ravel())
+    out.setflags(write=False)
+    return out
 
 
 def round_envelope(psf_column, xkernel, jac, dilation, maxk):
@@ -322,7 +320,9 @@ def round_envelope(psf_column, xkernel, jac, dilation, maxk):
     edge = maxk / dilation
     step = 2 * np.pi / n / singular_values2(jac)[0]   # the grid's step in sky |K| along its longer axis
     nbin = int(edge / step) + 1   # bins from i step, i = 0 .. nbin - 1, all below or at the band's edge
-    inside = ksky <= edge
+    # (the band's edge may be the norm of one of the grid's wavevectors, as the bands' own test takes it: inside
+    # however rounding computes the two norms)
+    inside = ksky <= edge * (1 + 1e-12)
     which = np.minimum((ksky[inside] / step).astype(np.int64), nbin - 1)
     least = np.full(nbin, np.inf)
     np.minimum.at(least, which, amp[inside])

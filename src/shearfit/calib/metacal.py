@@ -130,13 +130,15 @@ def _wcs(J, k=1):
     return galsim.JacobianWCS(J[0, 0], J[0, 1], J[1, 0], J[1, 1])
 
 
-def _interpolated(array, wcs, calculate_maxk=False, k_interpolant="quintic"):
+def _interpolated(array, wcs, calculate_maxk=False, k_interpolant="quintic", maxk=None):
     # use_true_center=False: the profile's origin is pixel (ny // 2, nx // 2), the convention of the stamps.
-    # The PSF's own maxk (calculate_maxk) bounds the k-space grids of every convolution with it: about
-    # 13 times faster than the interpolant's maxk, and the same images to 1e-4 of the peak.
+    # The PSF's own maxk (calculate_maxk, or ``maxk`` given: the own operations' band) bounds the k-space grids of
+    # every convolution with it: about 13 times faster than the interpolant's maxk, and the same images to 1e-4 of
+    # the peak.
     return galsim.InterpolatedImage(galsim.Image(np.ascontiguousarray(array, dtype=np.float64), wcs=wcs),
                                     x_interpolant="lanczos15", k_interpolant=k_interpolant, use_true_center=False,
-                                    calculate_stepk=False, calculate_maxk=calculate_maxk)
+                                    calculate_stepk=False, calculate_maxk=calculate_maxk and maxk is None,
+                                    _force_maxk=0.0 if maxk is None else float(maxk))
 
 
 _PIXEL = galsim.PixelScale(1.0)
@@ -422,7 +424,12 @@ def _galsim_images(image, noise, psf_image, wcs, psf_wcs, delta, names, new_psf_
     PSF."""
     gal = _interpolated(image, wcs, k_interpolant=K_INTERPOLANT)
     nint = _interpolated(noise, wcs, k_interpolant=K_INTERPOLANT)
-    psf = _interpolated(psf_image, psf_wcs, calculate_maxk=True, k_interpolant=PSF_K_INTERPOLANT)
+    # the PSF's band: the own operations' (:func:`shearfit.calib.kspace.band_edge`, on their padded grid: the
+    # stamp's and the PSF's for a native PSF, the PSF's own for an oversampled one), its maxk
+    n = kspace.padded_size(image.shape, psf_image.shape) if psf_wcs == wcs else kspace.padded_size(psf_image.shape)
+    maxk = kspace.band_maxk(kspace.padded_transforms([psf_image], n)[0], _LANCZOS.kval,
+                            psf_wcs.jacobian().getMatrix())
+    psf = _interpolated(psf_image, psf_wcs, k_interpolant=PSF_K_INTERPOLANT, maxk=maxk)
     inv_psf = galsim.Deconvolve(psf)
     new_psf = (psf.dilate(1.0 + 2.0 * abs(delta)) if new_psf_image is None else
                _interpolated(new_psf_image, psf_wcs, calculate_maxk=True, k_interpolant=PSF_K_INTERPOLANT))
@@ -581,18 +588,12 @@ def _oversampled_kspace_images(image, noise, psf, J, k, delta, names, n_small, n
     J = np.asarray(J, float)
     jit = inv2(J).T
     xk = _LANCZOS.kval
-    # the PSF's band for this Jacobian: from the hull of its points where the image has served before (the objects of
-    # a CCD given one PSF image: the hull made once, a few points for each Jacobian), else in one pass over its table
-    # (an image of its own at every object, as a PSFEx or Piff model gives, which a hull made for it would not serve
-    # again): the same value
-    uses = memo.get("uses", 0)
-    memo["uses"] = uses + 1
-    hull = memo.get("hull")
-    if hull is None and uses > 0:
-        hull = memo["hull"] = kspace.band_points(ptab[0, :memo["columns"]], xk)
-    # (of the columns made: those beyond lie below the threshold, the same value)
-    maxk = (kspace.band_maxk(ptab[0, :memo["columns"]], xk, J / k) if hull is None
-            else kspace.band_maxk_of_points(hull, J / k))
+    # the PSF's band for this Jacobian, from its edge in the image's own frame, found once per PSF image (the
+    # columns made: those beyond lie below the threshold, the same edge)
+    edge = memo.get("edge")
+    if edge is None:
+        edge = memo["edge"] = kspace.band_edge(ptab[0, :memo["columns"]], xk)
+    maxk = kspace.maxk_of_edge(edge, J / k)
     dk = 2 * np.pi / n_small
     dilation = 1.0 + 2.0 * abs(delta)
     smax_j = kspace.singular_values2(J)[0]
@@ -705,8 +706,9 @@ def own_kspace_images(image, noise, psf, J, delta, names, fft_size=None, new_psf
     items = []
     first = None
     smax_j = kspace.singular_values2(J)[0]
-    # the band's edge: maxk is the norm of one of the padded grid's wavevectors, which for the noshear version may be
-    # one of these too, so it is inside however rounding computes the two norms
+    # the band's edge: maxk may be the norm of one of the padded grid's wavevectors (a ring's radius over the
+    # Jacobian's singular value), which for the noshear version may be one of these too, so it is inside however
+    # rounding computes the two norms
     lim = maxk * maxk * (1 + 1e-12)
     plans = []
     for name, A, r in zip(names, *_version_matrices(names, delta, jit, maxk, dk, dilation, smax_j)):

@@ -2761,8 +2761,7 @@ static PyObject *quintic_band_rows(PyObject *self, PyObject *args)
 }
 
 /* whether |p| xx exceeds thr for a complex p (re, im) as numpy's |z| (hypot) decides it: its square decides, but
-   within rounding of the threshold (thr2_lo, thr2_hi: thr^2 times 1 -+ 1e-12), where hypot does (band_maxk's and
-   band_extent's test) */
+   within rounding of the threshold (thr2_lo, thr2_hi: thr^2 times 1 -+ 1e-12), where hypot does (band_rings' test) */
 static inline NO_CONTRACT int above_threshold(const double *p, double xx, double thr, double thr2_lo,
                                               double thr2_hi)
 {
@@ -2774,75 +2773,39 @@ static inline NO_CONTRACT int above_threshold(const double *p, double xx, double
 }
 
 /*
- * band_maxk(column, xx, kx, ky, thr, a, b, c) -> the largest a kx^2 + 2 b kx ky + c ky^2 over the points where
- * |column| xx > thr, or -inf where none is: calib/kspace.band_maxk's loop over the padded grid (column: complex128
- * (nc, n), kx then ky; xx: float64 (nc, n); kx: float64 (nc); ky: float64 (n)), the same operations in the same
- * order as its numpy lines (no fused multiply-adds), so the same value to the bit.
+ * band_rings(column, xx, thr, n, out): calib/kspace.band_edge's count, per ring of the padded grid: out[b] (int64) plus
+ * the number of points (i, j) of column's rows (complex128 (nc, n): kx index i >= 0, then ky index j, of signed
+ * index j or j - n) where |column| xx > thr (numpy's |z| within rounding of the threshold), b = floor(sqrt(i^2 +
+ * m^2)), m = min(j, n - j) (rings one grid step wide about the origin; none counted beyond out's length).
  */
-__attribute__((optimize("fp-contract=off"))) static PyObject *band_maxk(PyObject *self, PyObject *args)
-{
-    Py_buffer col, xxb, kxb, kyb;
-    double thr, a, b, c;
-    if (!PyArg_ParseTuple(args, "y*y*y*y*dddd", &col, &xxb, &kxb, &kyb, &thr, &a, &b, &c)) return NULL;
-    const Py_ssize_t nc = kxb.len / (Py_ssize_t)sizeof(double), n = kyb.len / (Py_ssize_t)sizeof(double);
-    if (nc < 1 || n < 1 || col.len != nc * n * 2 * (Py_ssize_t)sizeof(double)
-        || xxb.len != nc * n * (Py_ssize_t)sizeof(double)) {
-        RELEASE(&col, &xxb, &kxb, &kyb);
-        PyErr_SetString(PyExc_ValueError, "band_maxk: inconsistent buffers");
-        return NULL;
-    }
-    const double *P = (const double *)col.buf, *XX = (const double *)xxb.buf, *KX = (const double *)kxb.buf,
-                 *KY = (const double *)kyb.buf;
-    double best = -INFINITY;
-    Py_BEGIN_ALLOW_THREADS
-    const double b2 = 2 * b, hi = thr * thr * (1 + 1e-12), lo = thr * thr * (1 - 1e-12);
-    for (Py_ssize_t i = 0; i < nc; i++) {
-        const double t1 = a * KX[i] * KX[i], u = b2 * KX[i];
-        const double *p = P + 2 * n * i, *xx = XX + n * i;
-        for (Py_ssize_t j = 0; j < n; j++) {
-            if (above_threshold(p + 2 * j, xx[j], thr, lo, hi)) {
-                const double k2 = t1 + u * KY[j] + c * KY[j] * KY[j];
-                best = k2 > best ? k2 : best;
-            }
-        }
-    }
-    Py_END_ALLOW_THREADS
-    RELEASE(&col, &xxb, &kxb, &kyb);
-    return PyFloat_FromDouble(best);
-}
-
-/*
- * band_extent(column, xx, thr, out): calib/kspace.band_points' threshold, per column of the padded grid: out (int64,
- * n x 2) the least and the largest kx index i (column's rows, kx >= 0) where |column| xx > thr at ky index j (band_maxk's
- * test: numpy's |z| within rounding of the threshold), or -1, -1 where none is. The band's convex hull is that of
- * these points (a convex function's largest value over a row's points lies at its least or largest kx).
- */
-__attribute__((optimize("fp-contract=off"))) static PyObject *band_extent(PyObject *self, PyObject *args)
+__attribute__((optimize("fp-contract=off"))) static PyObject *band_rings(PyObject *self, PyObject *args)
 {
     Py_buffer col, xxb, ob;
     double thr;
-    if (!PyArg_ParseTuple(args, "y*y*dw*", &col, &xxb, &thr, &ob)) return NULL;
-    const Py_ssize_t d = (Py_ssize_t)sizeof(double), n = ob.len / (2 * (Py_ssize_t)sizeof(long long));
+    Py_ssize_t n;
+    if (!PyArg_ParseTuple(args, "y*y*dnw*", &col, &xxb, &thr, &n, &ob)) return NULL;
+    const Py_ssize_t d = (Py_ssize_t)sizeof(double), nb = ob.len / (Py_ssize_t)sizeof(long long);
     const Py_ssize_t nc = n > 0 ? xxb.len / (n * d) : 0;
-    if (n < 1 || nc < 1 || xxb.len != nc * n * d || col.len != 2 * nc * n * d
-        || ob.len != 2 * n * (Py_ssize_t)sizeof(long long)) {
+    if (n < 1 || nc < 1 || xxb.len != nc * n * d || col.len != 2 * nc * n * d) {
         RELEASE(&col, &xxb, &ob);
-        PyErr_SetString(PyExc_ValueError, "band_extent: inconsistent buffers");
+        PyErr_SetString(PyExc_ValueError, "band_rings: inconsistent buffers");
         return NULL;
     }
     const double *P = col.buf, *XX = xxb.buf;
     long long *O = ob.buf;
+    Py_BEGIN_ALLOW_THREADS
     const double hi = thr * thr * (1 + 1e-12), lo = thr * thr * (1 - 1e-12);
-    for (Py_ssize_t j = 0; j < 2 * n; j++) O[j] = -1;
     for (Py_ssize_t i = 0; i < nc; i++) {
         const double *p = P + 2 * n * i, *xx = XX + n * i;
         for (Py_ssize_t j = 0; j < n; j++) {
             if (above_threshold(p + 2 * j, xx[j], thr, lo, hi)) {
-                if (O[2 * j] < 0) O[2 * j] = i;
-                O[2 * j + 1] = i;
+                const Py_ssize_t m = j < n - j ? j : n - j;
+                const Py_ssize_t b = (Py_ssize_t)sqrt((double)(i * i + m * m));
+                if (b < nb) O[b] += 1;
             }
         }
     }
+    Py_END_ALLOW_THREADS
     RELEASE(&col, &xxb, &ob);
     Py_RETURN_NONE;
 }
@@ -6652,9 +6615,7 @@ static PyMethodDef methods[] = {
     {"quintic_band_rows", quintic_band_rows, METH_VARARGS,
      "quintic_band_rows(stamp, ns, psf_rows, psf, np, k, r, dk, A, JT, lim, gamma, xtab, xh, step, phase, out): "
      "quintic_band_os for a PSF grid k times the stamp's, from the tables' rows, for one or more versions"},
-    {"band_maxk", band_maxk, METH_VARARGS, "band_maxk(column, xx, kx, ky, thr, a, b, c) -> max k2 over the band"},
-    {"band_extent", band_extent, METH_VARARGS,
-     "band_extent(column, xx, thr, out): each ky's least and largest kx above the threshold"},
+    {"band_rings", band_rings, METH_VARARGS, "band_rings(column, xx, thr, n, out): points above the threshold per ring"},
     {"hermite_log_table", hermite_log_table, METH_VARARGS, "hermite_log_table(k0, dk, nodes, lv, slope, curvature, out)"},
     {"set_bessel", set_bessel, METH_VARARGS, "set_bessel(kv_capsule, gamma_capsule)"},
     {"moffat_lm", moffat_lm, METH_VARARGS, "moffat_lm(kr, VR, P, free0, free1, max_iter, ftol, xtol)"},
