@@ -95,12 +95,12 @@ def test_band_of_a_psf_model_with_noise_stays_at_the_psfs(J):
             assert _any_point_maxk(noisy, J) == pytest.approx(nyquist, rel=1e-9), (fwhm, seed)
 
 
-@pytest.mark.skipif(not USE_KERNEL, reason="the compiled loops are not built")
 @pytest.mark.parametrize("J", JACOBIANS)
-def test_compiled_band_rings_are_the_numpy_lines(J, monkeypatch):
-    """band_edge's compiled count of the points above the threshold per ring (KERNEL.band_rings) is its numpy
-    lines' to the point, natively and for a PSF oversampled 3 times, with and without noise, for thresholds that
-    keep many points, a few and none (a band of 0)."""
+def test_band_edge_is_the_first_ring_mostly_below_the_threshold(J):
+    """band_edge against a count made here point by point from the padded grid's wavevectors: the inner radius of
+    the first ring (one grid step wide) where at most half of the points lie above the threshold, natively and for a
+    PSF oversampled 3 times, with and without noise, for thresholds that keep many points, a few and none (a band of
+    0)."""
     from shearfit.simulate.stamps import draw_psf_image, moffat_psf
 
     xk = metacal._LANCZOS.kval
@@ -111,23 +111,25 @@ def test_compiled_band_rings_are_the_numpy_lines(J, monkeypatch):
             img = img + rng.normal(0.0, noise, img.shape)
             n = kspace.padded_size(img.shape)
             col = kspace.padded_transforms([img], n)[0]
-            lab = kspace._ring_labels(n)
-            xx = kspace._band_grid(n, xk)[2]
+            kx, ky, xx = kspace._band_grid(n, xk)
+            radius = np.hypot(kx, ky) * n / (2 * np.pi)
+            above = np.abs(col) * xx
             for thr in (1e-3, 0.3, 0.97, 2.0):
-                got = np.zeros(kspace._ring_totals(n).size, np.int64)
-                kspace.KERNEL.band_rings(col, xx, thr * abs(col[0, 0]), n, got)
-                want = np.bincount(lab[np.abs(col) * xx > thr * abs(col[0, 0])], minlength=got.size)
-                assert np.array_equal(got, want), (k, fwhm, noise, thr)
                 edge = kspace.band_edge(col, xk, thr)
-                with monkeypatch.context() as m:
-                    m.setattr(kspace, "USE_KERNEL", False)
-                    assert kspace.band_edge(col, xk, thr) == edge
+                b = int(round(edge * n / (2 * np.pi)))
+                assert abs(edge - 2 * np.pi * b / n) < 1e-12
+                for ring in range(b + 1):
+                    sel = (radius >= ring - 1e-9) & (radius < ring + 1 - 1e-9)
+                    if not sel.any():
+                        continue
+                    share = np.mean(above[sel] > thr * abs(col[0, 0]))
+                    assert (share <= 0.5) if ring == b else (share > 0.5), (k, fwhm, noise, thr, ring)
                 assert (edge > 0.0) if thr < 0.9 else (edge >= 0.0)
             assert kspace.band_edge(col, xk, 2.0) == 0.0 and kspace.band_maxk(col, xk, J / k, 2.0) == 0.0
 
 
 @pytest.mark.parametrize("J", JACOBIANS)
-def test_table_made_within_the_band_is_the_whole_tables(J, monkeypatch):
+def test_table_made_within_the_band_is_the_whole_tables(J):
     """padded_transform_within makes the columns it keeps to the bit of the whole table's, leaves the others only
     where every wavevector there lies below the band's threshold (so that band_edge of the columns made is the
     whole table's), and makes the whole table where the transform stays above it far out (a PSF image
@@ -148,9 +150,6 @@ def test_table_made_within_the_band_is_the_whole_tables(J, monkeypatch):
             assert table.shape == whole.shape and min(columns, n // 2 + 1) <= m <= n // 2 + 1
             assert np.array_equal(table[0, :m], whole[0, :m]), (k, fwhm, noise, columns)
             assert kspace.band_edge(table[0, :m], xk) == kspace.band_edge(whole[0], xk)
-            with monkeypatch.context() as mp:   # (the numpy lines, too)
-                mp.setattr(kspace, "USE_KERNEL", False)
-                assert kspace.band_edge(table[0, :m], xk) == kspace.band_edge(whole[0], xk)
             rest = table.copy()   # made whole in place: the whole table to the bit
             kspace.padded_transform_rest(img, rest, m)
             assert np.array_equal(rest, whole)

@@ -250,13 +250,8 @@ def band_edge(psf_column, xkernel, threshold=MAXK_THRESHOLD):
     total = _ring_totals(n)
     thr = threshold * abs(psf_column[0, 0])
     xx = _band_grid(n, xkernel)[2][:rows]   # (the table's first rows alone: see above)
-    if USE_KERNEL and psf_column.dtype == np.complex128 and psf_column.flags.c_contiguous:
-        # the same count compiled (the same points, in a tenth of the time)
-        above = np.zeros(total.size, np.int64)
-        KERNEL.band_rings(psf_column, xx, float(thr), int(n), above)
-    else:
-        lab = _ring_labels(n)[:rows]
-        above = np.bincount(lab[np.abs(psf_column) * xx > thr], minlength=total.size)
+    # (in numpy: a compiled count took 43 against 48 us on a 48-pixel stamp's grid, session 97)
+    above = np.bincount(_ring_labels(n)[:rows][np.abs(psf_column) * xx > thr], minlength=total.size)
     fail = np.nonzero(2 * above <= total)[0]
     return 2 * np.pi * (int(fail[0]) if fail.size else total.size) / n
 

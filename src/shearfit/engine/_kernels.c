@@ -2760,56 +2760,6 @@ static PyObject *quintic_band_rows(PyObject *self, PyObject *args)
     Py_RETURN_NONE;
 }
 
-/* whether |p| xx exceeds thr for a complex p (re, im) as numpy's |z| (hypot) decides it: its square decides, but
-   within rounding of the threshold (thr2_lo, thr2_hi: thr^2 times 1 -+ 1e-12), where hypot does (band_rings' test) */
-static inline NO_CONTRACT int above_threshold(const double *p, double xx, double thr, double thr2_lo,
-                                              double thr2_hi)
-{
-#if defined(__clang__)
-#pragma clang fp contract(off)
-#endif
-    const double s2 = (p[0] * p[0] + p[1] * p[1]) * (xx * xx);
-    return s2 > thr2_hi || (s2 >= thr2_lo && hypot(p[0], p[1]) * xx > thr);
-}
-
-/*
- * band_rings(column, xx, thr, n, out): calib/kspace.band_edge's count, per ring of the padded grid: out[b] (int64) plus
- * the number of points (i, j) of column's rows (complex128 (nc, n): kx index i >= 0, then ky index j, of signed
- * index j or j - n) where |column| xx > thr (numpy's |z| within rounding of the threshold), b = floor(sqrt(i^2 +
- * m^2)), m = min(j, n - j) (rings one grid step wide about the origin; none counted beyond out's length).
- */
-__attribute__((optimize("fp-contract=off"))) static PyObject *band_rings(PyObject *self, PyObject *args)
-{
-    Py_buffer col, xxb, ob;
-    double thr;
-    Py_ssize_t n;
-    if (!PyArg_ParseTuple(args, "y*y*dnw*", &col, &xxb, &thr, &n, &ob)) return NULL;
-    const Py_ssize_t d = (Py_ssize_t)sizeof(double), nb = ob.len / (Py_ssize_t)sizeof(long long);
-    const Py_ssize_t nc = n > 0 ? xxb.len / (n * d) : 0;
-    if (n < 1 || nc < 1 || xxb.len != nc * n * d || col.len != 2 * nc * n * d) {
-        RELEASE(&col, &xxb, &ob);
-        PyErr_SetString(PyExc_ValueError, "band_rings: inconsistent buffers");
-        return NULL;
-    }
-    const double *P = col.buf, *XX = xxb.buf;
-    long long *O = ob.buf;
-    Py_BEGIN_ALLOW_THREADS
-    const double hi = thr * thr * (1 + 1e-12), lo = thr * thr * (1 - 1e-12);
-    for (Py_ssize_t i = 0; i < nc; i++) {
-        const double *p = P + 2 * n * i, *xx = XX + n * i;
-        for (Py_ssize_t j = 0; j < n; j++) {
-            if (above_threshold(p + 2 * j, xx[j], thr, lo, hi)) {
-                const Py_ssize_t m = j < n - j ? j : n - j;
-                const Py_ssize_t b = (Py_ssize_t)sqrt((double)(i * i + m * m));
-                if (b < nb) O[b] += 1;
-            }
-        }
-    }
-    Py_END_ALLOW_THREADS
-    RELEASE(&col, &xxb, &ob);
-    Py_RETURN_NONE;
-}
-
 /*
  * The App. A Moffat's alias tables (model._moffat_table, model._moffat_aliases, whose numpy lines stay as the
  * reference and the fallback; tests check they agree).
@@ -6615,7 +6565,6 @@ static PyMethodDef methods[] = {
     {"quintic_band_rows", quintic_band_rows, METH_VARARGS,
      "quintic_band_rows(stamp, ns, psf_rows, psf, np, k, r, dk, A, JT, lim, gamma, xtab, xh, step, phase, out): "
      "quintic_band_os for a PSF grid k times the stamp's, from the tables' rows, for one or more versions"},
-    {"band_rings", band_rings, METH_VARARGS, "band_rings(column, xx, thr, n, out): points above the threshold per ring"},
     {"hermite_log_table", hermite_log_table, METH_VARARGS, "hermite_log_table(k0, dk, nodes, lv, slope, curvature, out)"},
     {"set_bessel", set_bessel, METH_VARARGS, "set_bessel(kv_capsule, gamma_capsule)"},
     {"moffat_lm", moffat_lm, METH_VARARGS, "moffat_lm(kr, VR, P, free0, free1, max_iter, ftol, xtol)"},
