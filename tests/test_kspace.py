@@ -128,6 +128,52 @@ def test_band_edge_is_the_first_ring_mostly_below_the_threshold(J):
             assert kspace.band_edge(col, xk, 2.0) == 0.0 and kspace.band_maxk(col, xk, J / k, 2.0) == 0.0
 
 
+@pytest.mark.skipif(not USE_KERNEL, reason="the compiled loops are not built")
+def test_compiled_ring_count_is_numpys():
+    """band_edge's compiled count (``band_rings``, its test on squares) gives numpy's counts ring by ring, also where
+    points lie within rounding of the threshold (planted at 1 -+ 1e-14 and 1 -+ 1e-13 of it, which the squares alone
+    cannot decide: numpy's test there), on a table's first rows alone, and where more such points than its room are
+    found (numpy's count instead); the edges of noisy PSF tables are numpy's."""
+    from shearfit.simulate.stamps import draw_psf_image, moffat_psf
+
+    xk = metacal._LANCZOS.kval
+    rng = np.random.default_rng(9)
+    img = draw_psf_image(moffat_psf(0.6, 3.0, 0.05, -0.03), JACOBIANS[1], size=25)
+    img = img / img.sum() + rng.normal(0.0, 1e-4, img.shape)
+    n = kspace.padded_size(img.shape, (48, 48))
+    col = np.array(kspace.padded_transforms([img], n)[0])
+    xx = kspace._band_grid(n, xk)[2]
+    thr = kspace.MAXK_THRESHOLD * abs(col[0, 0])
+    # points moved onto the threshold, within rounding of it (their phase kept)
+    pick = rng.choice(col.size, 40, replace=False)
+    f = np.array([1 - 1e-14, 1 + 1e-14, 1 - 1e-13, 1 + 1e-13] * 10)
+    flat, xflat = col.ravel(), xx.ravel()
+    flat[pick] = flat[pick] / np.abs(flat[pick]) * (thr / xflat[pick]) * f
+    xx2, labels = kspace._ring_tables(n, xk)
+    total = kspace._ring_totals(n)
+    for rows in (col.shape[0], 40):
+        part = np.ascontiguousarray(col[:rows])
+        ref = np.bincount(kspace._ring_labels(n)[:rows][np.abs(part) * xx[:rows] > thr], minlength=total.size)
+        above = np.empty(total.size, np.int64)
+        near = np.empty(256, np.int64)
+        got = kspace.KERNEL.band_rings(part, xx2, labels, thr, above, near)
+        assert got >= 1   # the planted points inside these rows come back for numpy's test
+        q = near[:got]
+        np.add.at(above, labels.ravel()[q][np.abs(part.ravel()[q]) * xx.ravel()[q] > thr], 1)
+        assert np.array_equal(above, ref), rows
+        assert kspace.KERNEL.band_rings(part, xx2, labels, thr, np.empty(total.size, np.int64),
+                                        np.empty(0, np.int64)) == -1
+    edges = {}
+    tables = (col, col[:40], kspace.padded_transforms([img + rng.normal(0.0, 2e-4, img.shape)], n)[0])
+    for use in (True, False):
+        kspace.USE_KERNEL = use
+        try:
+            edges[use] = [kspace.band_edge(c, xk) for c in tables]
+        finally:
+            kspace.USE_KERNEL = USE_KERNEL
+    assert edges[True] == edges[False]
+
+
 @pytest.mark.parametrize("J", JACOBIANS)
 def test_table_made_within_the_band_is_the_whole_tables(J):
     """padded_transform_within makes the columns it keeps to the bit of the whole table's, leaves the others only

@@ -1087,3 +1087,20 @@ def test_psf_tables_made_in_part_are_read_only_where_made(psf, monkeypatch):
             assert np.array_equal(got[name].image, want[name].image), (fwhm, name)
             assert np.array_equal(got[name].weight, want[name].weight), (fwhm, name)
     assert made[0] < 0.5 and made[-1] == 1.0, made
+
+
+def test_small_psf_images_are_dilated_afresh_as_the_memory_would_give_them(monkeypatch):
+    """A PSF image of at most DILATE_DIRECT_MAX pixels a side is dilated afresh (not looked up by its contents), the
+    same pixels as the remembered path's, normalised to unit sum and read-only; a wider one is remembered (the same
+    array for an equal image)."""
+    from shearfit.calib import metacal
+
+    img = draw_psf_image(moffat_psf(0.7, 3.0, 0.05, -0.03), PIX * np.eye(2), size=25)
+    img.setflags(write=False)
+    fresh = metacal._dilated_psf(img, 1.02)
+    assert not fresh.flags.writeable and abs(fresh.sum() - 1) < 1e-12
+    assert metacal._dilated_psf(img, 1.02) is not fresh   # not remembered
+    monkeypatch.setattr(metacal, "DILATE_DIRECT_MAX", 0)
+    metacal._DILATED.clear()
+    kept = metacal._dilated_psf(img, 1.02)
+    assert np.array_equal(kept, fresh) and metacal._dilated_psf(img.copy(), 1.02) is kept

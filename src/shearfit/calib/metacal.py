@@ -195,15 +195,22 @@ def dilated_image(image, dilation):
 #: the versions' new PSF images (the exposures' PSFs dilated), remembered by the PSF image's contents: the objects
 #: of a CCD given one PSF image share it
 _DILATED = ContentMemo(16 * 2 ** 20, max_entries=64)
+#: PSF images up to this many pixels a side are dilated afresh, not looked up: their two matrix products (6 us at 25
+#: pixels) cost less than the memory's lookup and entry (some 25 us an exposure where each object has a PSF image of
+#: its own, as a PSF model fitted from the stars gives, session 98)
+DILATE_DIRECT_MAX = 40
 
 
 def _dilated_psf(psf, dilation):
-    """:func:`dilated_image` of a PSF image, normalised to unit sum (read-only, remembered: :data:`_DILATED`)."""
+    """:func:`dilated_image` of a PSF image, normalised to unit sum (read-only; remembered, :data:`_DILATED`, for
+    images wider than :data:`DILATE_DIRECT_MAX`)."""
     def make():
         img = dilated_image(psf, dilation)
         img /= img.sum()
         img.setflags(write=False)
         return img
+    if max(psf.shape) <= DILATE_DIRECT_MAX:
+        return make()
     return _DILATED.get(psf, float(dilation), make)
 
 

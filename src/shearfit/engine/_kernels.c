@@ -2761,6 +2761,48 @@ static PyObject *quintic_band_rows(PyObject *self, PyObject *args)
 }
 
 /*
+ * band_rings(column, xx2, labels, thr, out, near): calib/kspace.band_edge's count per ring: out[b] (int64, zeroed here)
+ * the number of the points q of column (complex128, flat: kx index, then ky index) of labels[q] = b (int32, the rings
+ * of band_edge; none counted at or beyond out's length) where |column[q]| xx[q] > thr, numpy's test (its |z| is
+ * hypot), decided by |column[q]|^2 xx2[q] against thr^2 (xx2: xx^2, float64) where these differ by more than 1e-12
+ * of it (their rounding is some 1e-16). The points within 1e-12 are left to the caller for numpy's own test: their
+ * flat indices written into near (int64; their number returned, -1 where near had too little room).
+ */
+static PyObject *band_rings(PyObject *self, PyObject *args)
+{
+    Py_buffer col, xb, lb, ob, nb_;
+    double thr;
+    if (!PyArg_ParseTuple(args, "y*y*y*dw*w*", &col, &xb, &lb, &thr, &ob, &nb_)) return NULL;
+    const Py_ssize_t d = (Py_ssize_t)sizeof(double), nbin = ob.len / (Py_ssize_t)sizeof(long long);
+    const Py_ssize_t npts = col.len / (2 * d), nnear = nb_.len / (Py_ssize_t)sizeof(long long);
+    if (npts < 1 || xb.len < npts * d || lb.len < npts * (Py_ssize_t)sizeof(int) || nbin < 1) {
+        RELEASE(&col, &xb, &lb, &ob, &nb_);
+        PyErr_SetString(PyExc_ValueError, "band_rings: inconsistent buffers");
+        return NULL;
+    }
+    const double *P = col.buf, *XX2 = xb.buf;
+    const int *L = lb.buf;
+    long long *O = ob.buf, *NEAR = nb_.buf;
+    Py_ssize_t found = 0;
+    Py_BEGIN_ALLOW_THREADS
+    const double t2 = thr * thr, hi = t2 * (1 + 1e-12), lo = t2 * (1 - 1e-12);
+    for (Py_ssize_t b = 0; b < nbin; b++) O[b] = 0;
+    for (Py_ssize_t q = 0; q < npts; q++) {
+        const double s2 = (P[2 * q] * P[2 * q] + P[2 * q + 1] * P[2 * q + 1]) * XX2[q];
+        if (s2 > hi) {
+            const int b = L[q];
+            if (b < nbin) O[b] += 1;
+        } else if (s2 >= lo) {
+            if (found < nnear) NEAR[found] = q;
+            found++;
+        }
+    }
+    Py_END_ALLOW_THREADS
+    RELEASE(&col, &xb, &lb, &ob, &nb_);
+    return PyLong_FromSsize_t(found <= nnear ? found : -1);
+}
+
+/*
  * The App. A Moffat's alias tables (model._moffat_table, model._moffat_aliases, whose numpy lines stay as the
  * reference and the fallback; tests check they agree).
  *
@@ -6565,6 +6607,8 @@ static PyMethodDef methods[] = {
     {"quintic_band_rows", quintic_band_rows, METH_VARARGS,
      "quintic_band_rows(stamp, ns, psf_rows, psf, np, k, r, dk, A, JT, lim, gamma, xtab, xh, step, phase, out): "
      "quintic_band_os for a PSF grid k times the stamp's, from the tables' rows, for one or more versions"},
+    {"band_rings", band_rings, METH_VARARGS,
+     "band_rings(column, xx2, labels, thr, out, near) -> the points left to numpy's test; out: those above, per ring"},
     {"hermite_log_table", hermite_log_table, METH_VARARGS, "hermite_log_table(k0, dk, nodes, lv, slope, curvature, out)"},
     {"set_bessel", set_bessel, METH_VARARGS, "set_bessel(kv_capsule, gamma_capsule)"},
     {"moffat_lm", moffat_lm, METH_VARARGS, "moffat_lm(kr, VR, P, free0, free1, max_iter, ftol, xtol)"},
