@@ -449,7 +449,9 @@ def _rows(tables, gals):
 def ring_table(tables, gals, args):
     """The objects of every field in ``benchmarks/ring_test.py --out``'s form: ring (``galaxy``), the shear's
     ``sign``, ``rotation`` (0-3, the twin's 4-7), the shear (``g1``, ``g2``, signed), the truth and the
-    catalogue's measurement, so that ``ring_split.py`` reads the runs of several seeds as one."""
+    catalogue's measurement (with a metacal run's versions and R columns), so that ``ring_split.py`` reads the runs
+    of several seeds as one, and ``ring_test.py --from-tables ... --metacal`` their metacal m (``--paired-with``
+    another run's tables of the same fields: the two runs' difference)."""
     tab = _rows(tables, gals)
     index = np.concatenate([np.arange(len(gals))] * len(tables))
     truth = {key: np.array([gals[i][src] for i in index]) for key, src in
@@ -465,6 +467,12 @@ def ring_table(tables, gals, args):
     for key in ("flux_snr", "snr", "scalelength", "round_scalelength"):
         if all(key in t.colnames for t in fields):
             out[key] = np.concatenate([np.asarray(t[key], float) for t in fields])
+    # a metacal run's versions and responses (``ring_test.py --from-tables ... --metacal``, and ``--paired-with``
+    # another run of the same fields)
+    if all(all(key in t.colnames for key in METACAL_FIELDS) for t in fields):
+        for key in METACAL_FIELDS:
+            out[key] = (np.nan_to_num(tab[key], nan=-1).astype(np.int64) if key.startswith("fitclass")
+                        else np.asarray(tab[key], float))
     return out
 
 

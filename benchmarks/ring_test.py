@@ -386,12 +386,13 @@ def report_bias(tab, args, n_gal):
     print(f"  fitclass != 0: {fail.mean():.3%} of {len(tab)} objects"
           + "".join(f"; {int((tab['fitclass'] == k).sum())} x fitclass {k}" for k in np.unique(tab["fitclass"])
                     if k != 0))
-    errs = [e for e in tab["error"] if e]
+    errs = [e for e in tab["error"] if e] if "error" in tab.dtype.names else []   # (a field's table has none)
     if errs:
         print(f"  {len(errs)} objects raised; first: {errs[0]}")
     good = ~fail
     if good.any():
-        print(f"  mean SNR measured {np.nanmean(tab['snr'][good]):.1f} (target {np.mean(tab['snr_target']):.1f}); "
+        target = f"{np.mean(tab['snr_target']):.1f}" if "snr_target" in tab.dtype.names else "none"
+        print(f"  mean SNR measured {np.nanmean(tab['snr'][good]):.1f} (target {target}); "
               f"sum of weights {np.nansum(tab['weight'][good]):.4g}; mean weight {np.nanmean(tab['weight'][good]):.4g}")
         if weighted and not np.nansum(tab["weight"][good]) > 0:
             print("  all weights are zero: rerun with --unweighted to see the unweighted bias")

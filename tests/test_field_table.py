@@ -119,3 +119,45 @@ def test_report_gives_m_on_whole_rings_where_an_object_was_flagged(capsys):
     assert np.allclose([float(whole.group(1)), float(whole.group(2))], 0.004, atol=1e-4)
     broken = [float(x) for x in re.findall(r"^  m[12] = ([+-][0-9.]+)", out, re.M)]
     assert np.max(np.abs(np.subtract(broken, 0.004))) > 1e-3
+
+
+def _metacal_field(m, n_rings, seed, r=0.8, delta=0.01):
+    """``_field``'s catalogues as a metacal run's: the noshear estimates respond to the shear by r (1 + m), each
+    sheared version's by r to metacal's step, R = r times the identity, no selection."""
+    tables, gals = _field(0.0, n_rings, seed)
+    g = np.array(G)
+    for (sign, _), t in tables.items():
+        for c in (0, 1):
+            t[f"e{c + 1}"] = t[f"e{c + 1}"] + (r * (1 + m) - 1) * sign * g[c]
+        for v, (d1, d2) in {"1p": (delta, 0.0), "1m": (-delta, 0.0), "2p": (0.0, delta), "2m": (0.0, -delta)}.items():
+            t[f"e1_{v}"], t[f"e2_{v}"] = t["e1"] + r * d1, t["e2"] + r * d2
+            t[f"weight_{v}"], t[f"fitclass_{v}"] = t["weight"], t["fitclass"]
+        t["R11"], t["R22"] = np.full(len(t), r), np.full(len(t), r)
+        t["R12"], t["R21"] = np.zeros(len(t)), np.zeros(len(t))
+        t["snr"], t["scalelength"] = t["flux_snr"], np.full(len(t), 0.11)
+    return tables, gals
+
+
+def test_metacal_field_tables_give_metacal_m_and_paired_differences(tmp_path, capsys):
+    """A metacal field's table carries the versions and R (ring_test.py's metacal columns): ring_test.py
+    --from-tables ... --metacal reads it for metacal's m (unit weights: each ring's twins cancel exactly), and
+    --paired-with another run of the same fields gives the two runs' difference of m."""
+    ring_test = load_script("benchmarks/ring_test.py")
+    paths = {}
+    for name, m in (("a", 0.004), ("b", 0.001)):
+        tables, gals = _metacal_field(m, 30, 7)
+        t = field_test.ring_table(tables, gals, _Args())
+        assert all(key in t.colnames for key in ring_test.METACAL_FIELDS)
+        assert t["fitclass_1p"].dtype.kind == "i"
+        paths[name] = str(tmp_path / f"{name}.fits")
+        t.write(paths[name])
+    assert ring_test.main(["--from-tables", paths["a"], "--metacal", "--unweighted"]) in (0, None)
+    out = capsys.readouterr().out
+    metacal = out[out.index("metacal shear bias"):]
+    m = [float(x) for x in re.findall(r"m[12] = +([+-][0-9.]+)", metacal)[:2]]
+    assert np.allclose(m, 0.004, atol=1e-5), metacal
+    assert ring_test.main(["--from-tables", paths["a"], "--metacal", "--paired-with", paths["b"]]) in (0, None)
+    out = capsys.readouterr().out
+    paired = out[out.index("these tables less --paired-with's"):]
+    d = [float(x) for x in re.findall(r"delta m[12] = +([+-][0-9.]+)", paired)[:2]]
+    assert np.allclose(d, 0.003, atol=1e-5), paired
