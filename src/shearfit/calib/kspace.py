@@ -272,18 +272,18 @@ def band_edge(psf_column, xkernel, threshold=MAXK_THRESHOLD):
     return 2 * np.pi * (int(fail[0]) if fail.size else total.size) / n
 
 
-def maxk_of_edge(edge, jac):
+def maxk_of_edge(edge, jac, smax=None):
     """The sky radius of the PSF's band for the Jacobian ``jac`` (of the PSF image's pixels) from its
     :func:`band_edge`: the largest sky disc whose wavevectors kappa = J^T K in the pixel frame lie within that radius,
     and within the pixels' Nyquist disc pi, beyond which a stamp's transform only repeats itself: min(edge, pi) /
-    s_max, s_max the Jacobian's larger singular value."""
-    return float(min(edge, np.pi) / singular_values2(jac)[0])
+    s_max, s_max the Jacobian's larger singular value (``smax``, where the caller has it already)."""
+    return float(min(edge, np.pi) / (singular_values2(jac)[0] if smax is None else smax))
 
 
-def band_maxk(psf_column, xkernel, jac, threshold=MAXK_THRESHOLD):
+def band_maxk(psf_column, xkernel, jac, threshold=MAXK_THRESHOLD, smax=None):
     """The sky radius of the PSF's band (:func:`maxk_of_edge` of :func:`band_edge`; ``psf_column`` as that takes
-    it)."""
-    return maxk_of_edge(band_edge(psf_column, xkernel, threshold), jac)
+    it, ``smax`` as the former)."""
+    return maxk_of_edge(band_edge(psf_column, xkernel, threshold), jac, smax)
 
 
 @functools.lru_cache(maxsize=8)

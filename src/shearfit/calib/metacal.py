@@ -705,14 +705,14 @@ def own_kspace_images(image, noise, psf, J, delta, names, fft_size=None, new_psf
     table = table[:3]
     J = np.asarray(J, float)
     jit = inv2(J).T
-    maxk = kspace.band_maxk(table[2], _LANCZOS.kval, J)
+    smax_j = kspace.singular_values2(J)[0]
+    maxk = kspace.band_maxk(table[2], _LANCZOS.kval, J, smax=smax_j)
     dk = 2 * np.pi / n_small
     dilation = 1.0 + 2.0 * abs(delta)
     to_table = n / (2 * np.pi)
     grids = {}
     items = []
     first = None
-    smax_j = kspace.singular_values2(J)[0]
     # the band's edge: maxk may be the norm of one of the padded grid's wavevectors (a ring's radius over the
     # Jacobian's singular value), which for the noshear version may be one of these too, so it is inside however
     # rounding computes the two norms
