@@ -483,9 +483,10 @@ def test_replays_that_evaluate_near_the_cut_first_give_the_same_estimates():
 def test_versions_replayed_together_are_replayed_one_by_one(monkeypatch):
     """measure_versions evaluates the sheared versions' replays together (VersionLikelihoods: one binning per
     ellipticity for all four, each version's size nodes in one compiled call as its own like's): the estimates
-    of replaying each version on its own, to the bit without a first margin; with one, where each version also
-    evaluates the samples the others need (at least its own), to rounding; and with versions at their own
-    positions (which without fold groups among the modes still bin together)."""
+    of replaying each version on its own, to the bit without a first margin; with one, where each version
+    evaluates the samples it needs alone (the others' binned with them, its models made only at its own: the same
+    samples and models as alone), to rounding; and with versions at their own positions (which without fold
+    groups among the modes still bin together)."""
     from shearfit.calib.metacal import VERSIONS
     from shearfit.engine import likelihood, sampling
     from shearfit.engine.measure import _measure, measure_versions
@@ -512,7 +513,7 @@ def test_versions_replayed_together_are_replayed_one_by_one(monkeypatch):
             else:
                 np.testing.assert_allclose(np.delete(np.array(_fields(res), float), 2),
                                            np.delete(np.array(_fields(alone), float), 2), rtol=1e-12, atol=0)
-                assert res.fitclass == alone.fitclass and res.n_samples >= alone.n_samples
+                assert (res.fitclass, res.n_samples, res.n_models) == (alone.fitclass, alone.n_samples, alone.n_models)
     assert joint and max(joint) == 4
 
 
@@ -547,6 +548,57 @@ def test_versions_share_their_quadratic_sums_to_the_bit(monkeypatch):
             assert _fields(res) == _fields(alone)
             assert (res.fitclass, res.n_samples, res.n_models) == (alone.fitclass, alone.n_samples, alone.n_models)
     assert pairs and max(pairs) > 0
+
+
+def test_versions_evaluated_where_each_needs_are_their_numbers_there(monkeypatch):
+    """VersionLikelihoods with ``need`` (each version's own samples of the ellipticities evaluated together: metacal's
+    near-cut replays, sampling._evaluate_near_cut): at a version's own samples its numbers to rounding, NaN at the
+    others (the flux and bulge-fraction marginals and the size integral not made there), its best fit (the
+    star/galaxy test's chi^2 and the SNR) still the one over every model, and only its own models counted; the
+    same with one likelihood after another (no joint evaluation) to rounding."""
+    import copy
+
+    from shearfit.calib.metacal import VERSIONS
+    from shearfit.engine import likelihood, measure
+    from shearfit.engine.measure import measure_versions
+
+    if not likelihood.USE_KERNEL:
+        pytest.skip("compiled kernel not built")
+    got = []
+    real = measure.replay_versions
+    monkeypatch.setattr(measure, "replay_versions", lambda likes, ref, *a: got.append((copy.deepcopy(likes), ref))
+                        or real(likes, ref, *a))
+    obs = _obs(0.25, (0.3, -0.1), snr=15, seed=4)
+    per = [metacal_observations(o, 0.01, np.random.default_rng(4)) for o in obs]
+    measure_versions([[v[name] for v in per] for name in VERSIONS], 23.0, margin=10.0)
+    likes, ref = got[0]
+    assert likes.joint and len(likes.likes) == 4
+    keep = np.isfinite(ref.logpost)
+    e1, e2 = ref.e1[keep], ref.e2[keep]
+    need = np.random.default_rng(5).random((e1.size, 4)) < 0.4
+    need[:, 2] = False                       # a version that needs none of them
+    need[np.argmax(ref.logpost[keep])] = [False, True, False, True]   # its best model among the others' samples
+    every, some = copy.deepcopy(likes), copy.deepcopy(likes)
+    n0 = [lk.n_models for lk in some.likes]
+    full, part = every(e1, e2), some(e1, e2, need=need)
+    nr = likes.likes[0].x.size
+    fields = ("logl_disk", "logl_bulge", "mean_r", "mean_b", "mean_flux")
+    for v in range(4):
+        k = need[:, v]
+        for f in fields:
+            a, b = getattr(full[v], f), getattr(part[v], f)
+            # (the same arithmetic on other batches of models: its vector loops' remainders may round otherwise)
+            np.testing.assert_allclose(b[k], a[k], rtol=1e-13, atol=0, err_msg=f"{v} {f}")
+            assert np.isnan(b[~k]).all(), (v, f)
+        assert (some.likes[v].best_chi2_gal, some.likes[v].best_snr) == (every.likes[v].best_chi2_gal,
+                                                                         every.likes[v].best_snr), v
+        assert some.likes[v].n_models - n0[v] == np.count_nonzero(k) * nr
+    one = copy.deepcopy(likes)
+    one.joint = False
+    alone = one(e1, e2, need=need)
+    for v in range(4):
+        for f in fields:
+            np.testing.assert_allclose(getattr(alone[v], f), getattr(part[v], f), rtol=1e-12, atol=0, equal_nan=True)
 
 
 def test_versions_round_bins_made_together_are_each_versions_own():

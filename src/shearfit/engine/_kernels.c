@@ -1865,6 +1865,32 @@ static inline double max_from_first(const double *v, Py_ssize_t n)
     return m;
 }
 
+/* the best-fit chi^2 and SNR of population pop's single-component model at its best flux and position (x: the
+   model's sums, rows of 15; o: its row of marginal_run's 9, entries 5 + pop and 7 + pop); one function, so that
+   marginal_run's and best_fit_rows' numbers are the same */
+static __attribute__((noinline)) void best_fit_one(const double *x, int pop, const MargPar *P, double *o)
+{
+    const double *L = x + 6 * pop;
+    const double h = L[0], hh = x[12 + pop];
+    const int good = (hh > 0) && (h > 0);
+    const double hh_s = good ? hh : 1.0, s_ml = good ? h / hh_s : 1.0;
+    double dl, cml;
+    int ok;
+    position_geometry(L[1] * s_ml, L[2] * s_ml, L[3] * s_ml, L[4] * s_ml, L[5] * s_ml, P, &dl, &cml, &ok);
+    o[5 + pop] = good ? -(h * h / hh_s) - 2 * cml : 0.0;
+    o[7 + pop] = good ? h / sqrt(hh_s) : 0.0;
+}
+
+/* marginal_run's best fits alone (its rows' entries 5 - 8; 0 - 4 NaN) of n models */
+static void best_fit_rows(const MargCtx *c, Py_ssize_t n, const double *X, double *O)
+{
+    for (Py_ssize_t j = 0; j < n; j++) {
+        double *o = O + 9 * j;
+        for (int t = 0; t < 5; t++) o[t] = NAN;
+        for (int pop = 0; pop < 2; pop++) best_fit_one(X + 15 * j, pop, &c->P, o);
+    }
+}
+
 static __attribute__((noinline)) int marginal_run(const MargCtx *c, Py_ssize_t n, const double *X, double *O)
 {
     const Py_ssize_t nf = c->nf, nfine = c->nfine;
@@ -1943,16 +1969,10 @@ static __attribute__((noinline)) int marginal_run(const MargCtx *c, Py_ssize_t n
                 if (!(wsum > 0)) wsum = 1.0;
                 double logint = good_row ? m + log(integral) : -INFINITY;
                 logint += log(hi - lo);
-                /* best-fit chi^2 of the single-component model at its best flux and position */
-                double dl, cml;
-                int ok;
-                position_geometry(L[1] * s_ml, L[2] * s_ml, L[3] * s_ml, L[4] * s_ml, L[5] * s_ml, &P, &dl, &cml, &ok);
-                double chi2 = good ? -(h * h / hh_s) - 2 * cml : 0.0;
                 o[pop] = good ? logint : -INFINITY;
                 o[2 + pop] = ws / wsum;
                 if (pop == 0) o[4] = wb / wsum;
-                o[5 + pop] = chi2;
-                o[7 + pop] = good ? h / sqrt(hh_s) : 0.0;
+                best_fit_one(x, pop, &P, o);
             }
         }
     }
@@ -2080,9 +2100,14 @@ static PyObject *locate_parabola(PyObject *self, PyObject *args)
 static __attribute__((noinline)) void size_marginal_run(
     Py_ssize_t ne, Py_ssize_t nr, Py_ssize_t nf, Py_ssize_t nu, const double *LD, const double *LB, const double *FD,
     const double *FB, const double *BD, const double *LP, const double *LS, const double *SPL, const double *ITP,
-    const double *XF, const double *U, const double *RF, const double *L0, const double *LM, double *O)
+    const double *XF, const double *U, const double *RF, const double *L0, const double *LM, double *O,
+    const unsigned char *need, Py_ssize_t stride)
 {
     for (Py_ssize_t e = 0; e < ne; e++) {
+        if (need != NULL && !need[e * stride]) {   /* not made (node_models_versions' need) */
+            for (int t = 0; t < 5; t++) O[t * ne + e] = NAN;
+            continue;
+        }
         const double *rf = RF + e * nf;
         double lm[2], mr[2], mf[2], mb = 0.0;
         for (int pop = 0; pop < 2; pop++) {
@@ -2167,7 +2192,7 @@ static PyObject *size_marginal(PyObject *self, PyObject *args)
     const double *RF = b[11].buf, *L0 = b[12].buf, *LM = b[13].buf;
     double *O = b[14].buf;
     Py_BEGIN_ALLOW_THREADS
-    size_marginal_run(ne, nr, nf, nu, LD, LB, FD, FB, BD, LP, LS, SPL, ITP, XF, U, RF, L0, LM, O);
+    size_marginal_run(ne, nr, nf, nu, LD, LB, FD, FB, BD, LP, LS, SPL, ITP, XF, U, RF, L0, LM, O, NULL, 0);
     Py_END_ALLOW_THREADS
     RELEASE(&b[0], &b[1], &b[2], &b[3], &b[4], &b[5], &b[6], &b[7], &b[8], &b[9], &b[10], &b[11], &b[12], &b[13],
             &b[14]);
@@ -3657,17 +3682,24 @@ static inline double log_size_prior(double lnr, const double *pr)
    (size_nodes_versions; nv = 1: one object): version v's bins at ellipticity i are entry E[i] + v; version 0's sums
    are binned_sums_run's, the others' linear sums binned_lin_run's with version 0's quadratic sums (ff, gg, fg: the
    modes' weights q and the fold pairs are the modes', not the data's, so each version's own are these to the bit);
-   R: the models' r; mg: nv blocks of ne nx rows of 9, each version's marginals. 0, or -1 where memory ran out */
+   R: the models' r; mg: nv blocks of ne nx rows of 9, each version's marginals. need (NULL: every one): ne x nv
+   flags, version v's models at ellipticity i marginalised only where need[i nv + v], elsewhere their best fits
+   alone (best_fit_rows: their sums are made, the flux and bulge-fraction marginals not; entries 0 - 4 NaN), so that
+   each version's best fit is the one over every model, as without need. 0, or -1 where memory ran out */
 static __attribute__((noinline)) int node_models_versions(const BinsCtx *bc, const MargCtx *mc, Py_ssize_t ne,
                                                           const long long *E, Py_ssize_t nv, const double *rc,
-                                                          const double *ex, Py_ssize_t nx, double *R, double *mg)
+                                                          const double *ex, Py_ssize_t nx, double *R, double *mg,
+                                                          const unsigned char *need)
 {
     const Py_ssize_t nm = ne * nx, n1 = nm > 0 ? nm : 1, ns = nv > 1 ? 2 : 1;
     double *sums = (double *)malloc((ns * NOUT + 1) * n1 * sizeof(double));
     long long *em = (long long *)malloc(n1 * sizeof(long long));
-    if (sums == NULL || em == NULL) {
+    /* with need: the rows of sums of the models a version marginalises, gathered, and their marginals */
+    double *cw = need != NULL ? (double *)malloc((NOUT + 9) * n1 * sizeof(double)) : NULL;
+    if (sums == NULL || em == NULL || (need != NULL && cw == NULL)) {
         free(sums);
         free(em);
+        free(cw);
         return -1;
     }
     double *s1 = sums + NOUT * n1 * (ns - 1), *r2 = sums + ns * NOUT * n1;
@@ -3681,18 +3713,41 @@ static __attribute__((noinline)) int node_models_versions(const BinsCtx *bc, con
     for (Py_ssize_t v = 0; v < nv && rc_ == 0; v++) {
         for (Py_ssize_t i = 0; i < ne; i++)
             for (Py_ssize_t n = 0; n < nx; n++) em[i * nx + n] = E[i] + v;
+        const double *sv = sums;
         if (v == 0) {
             rc_ = binned_sums_run(bc, nm, em, r2, sums);
-            if (rc_ == 0) rc_ = marginal_run(mc, nm, sums, mg);
+        } else {
+            rc_ = binned_lin_run(bc, nm, em, r2, s1);
+            for (Py_ssize_t m = 0; m < nm; m++)
+                for (int t = 12; t < 15; t++) s1[NOUT * m + t] = sums[NOUT * m + t];
+            sv = s1;
+        }
+        if (rc_ != 0) break;
+        double *mv = mg + 9 * nm * v;
+        if (need == NULL) {
+            rc_ = marginal_run(mc, nm, sv, mv);
             continue;
         }
-        rc_ = binned_lin_run(bc, nm, em, r2, s1);
-        for (Py_ssize_t m = 0; m < nm; m++)
-            for (int t = 12; t < 15; t++) s1[NOUT * m + t] = sums[NOUT * m + t];
-        if (rc_ == 0) rc_ = marginal_run(mc, nm, s1, mg + 9 * nm * v);
+        double *cs = cw, *co = cw + NOUT * n1;
+        Py_ssize_t k = 0;
+        for (Py_ssize_t i = 0; i < ne; i++) {
+            if (need[i * nv + v]) {
+                memcpy(cs + NOUT * k, sv + NOUT * i * nx, NOUT * nx * sizeof(double));
+                k += nx;
+            } else {
+                best_fit_rows(mc, nx, sv + NOUT * i * nx, mv + 9 * i * nx);
+            }
+        }
+        rc_ = marginal_run(mc, k, cs, co);
+        for (Py_ssize_t i = 0, j = 0; i < ne; i++)
+            if (need[i * nv + v]) {
+                memcpy(mv + 9 * i * nx, co + 9 * j, 9 * nx * sizeof(double));
+                j += nx;
+            }
     }
     free(sums);
     free(em);
+    free(cw);
     return rc_;
 }
 
@@ -3700,16 +3755,18 @@ static __attribute__((noinline)) int node_models_versions(const BinsCtx *bc, con
 static int node_models(const BinsCtx *bc, const MargCtx *mc, Py_ssize_t ne, const long long *E, const double *rc,
                        const double *ex, Py_ssize_t nx, double *R, double *mg)
 {
-    return node_models_versions(bc, mc, ne, E, 1, rc, ex, nx, R, mg);
+    return node_models_versions(bc, mc, ne, E, 1, rc, ex, nx, R, mg, NULL);
 }
 
 /* size_nodes of nv versions (nv > 1: node_models_versions, E[i] + v version v's entry; L0, O and best: nv blocks of
-   2, 5 ne and 2), each version's numbers those of its own call */
+   2, 5 ne and 2), each version's numbers those of its own call; need (NULL: every one) as node_models_versions'
+   (version v's outputs at ellipticity i NaN where it is not set; its best fit over every model, as without need) */
 static NO_CONTRACT NO_CLONE int size_nodes_run(const BinsCtx *bc, const MargCtx *mc, Py_ssize_t ne, const long long *E,
                                       Py_ssize_t nv, const double *rc, const double *ex, Py_ssize_t nr, double x0,
                                       const double *XF, Py_ssize_t nf, const double *ITP, const double *SPL,
                                       const double *U, const double *HLU, Py_ssize_t nu, const double *L0,
-                                      const double *LM, const double *PR, const double *SH, double *O, double *best)
+                                      const double *LM, const double *PR, const double *SH, double *O, double *best,
+                                      const unsigned char *need)
 {
 #if defined(__clang__)
 #pragma clang fp contract(off)
@@ -3720,7 +3777,7 @@ static NO_CONTRACT NO_CLONE int size_nodes_run(const BinsCtx *bc, const MargCtx 
     if (buf == NULL) return -1;
     double *R = buf, *mgs = buf + n1, *col = mgs + 9 * nv * n1;
     double *LP = col + 0, *RF = LP + nf * e1, *LS = RF + nf * e1;
-    if (node_models_versions(bc, mc, ne, E, nv, rc, ex, nr, R, mgs) != 0) {
+    if (node_models_versions(bc, mc, ne, E, nv, rc, ex, nr, R, mgs, need) != 0) {
         free(buf);
         return -1;
     }
@@ -3773,7 +3830,7 @@ static NO_CONTRACT NO_CLONE int size_nodes_run(const BinsCtx *bc, const MargCtx 
             BD[m] = mg[9 * m + 4];
         }
         size_marginal_run(ne, nr, nf, nu, LD, LB, FD, FB, BD, LP, LS, SPL, ITP, XF, U, RF, L0 + 2 * v, LM,
-                          O + 5 * ne * v);
+                          O + 5 * ne * v, need != NULL ? need + v : NULL, nv);
     }
     free(LD);
     free(buf);
@@ -3789,9 +3846,9 @@ static PyObject *size_nodes_call(PyObject *args, int versions)
     Py_ssize_t nv = 1;
     const char *name = versions ? "size_nodes_versions" : "size_nodes";
     int ok = versions
-        ? PyArg_ParseTuple(args, "O!O!y*ny*y*dy*y*y*y*y*y*y*y*y*w*w*", &PyTuple_Type, &k.bt, &PyTuple_Type, &k.mt,
-                           &a[0], &nv, &a[1], &a[2], &x0, &a[3], &a[4], &a[5], &a[6], &a[7], &a[8], &a[9], &a[10],
-                           &a[11], &a[12], &a[13])
+        ? PyArg_ParseTuple(args, "O!O!y*ny*y*dy*y*y*y*y*y*y*y*y*w*w*|y*", &PyTuple_Type, &k.bt, &PyTuple_Type,
+                           &k.mt, &a[0], &nv, &a[1], &a[2], &x0, &a[3], &a[4], &a[5], &a[6], &a[7], &a[8], &a[9],
+                           &a[10], &a[11], &a[12], &a[13], &a[14])
         : PyArg_ParseTuple(args, "O!O!y*y*y*dy*y*y*y*y*y*y*y*y*w*w*", &PyTuple_Type, &k.bt, &PyTuple_Type, &k.mt,
                            &a[0], &a[1], &a[2], &x0, &a[3], &a[4], &a[5], &a[6], &a[7], &a[8], &a[9], &a[10], &a[11],
                            &a[12], &a[13]);
@@ -3807,7 +3864,8 @@ static PyObject *size_nodes_call(PyObject *args, int versions)
     int bad = ne < 0 || nv < 1 || a[1].len != ne * D || nr < 2 || nf < 2 || nu < 2 || nr > MAXN || nf > MAXN
               || nu > MAXN || a[4].len != nr * nf * D || a[5].len != nr * nf * D || a[7].len != nu * D
               || a[8].len != 2 * nv * D || a[9].len != 2 * D || a[10].len != 3 * D
-              || (a[11].len != 0 && a[11].len != ne * D) || a[12].len != 5 * ne * nv * D || a[13].len != 2 * nv * D;
+              || (a[11].len != 0 && a[11].len != ne * D) || a[12].len != 5 * ne * nv * D || a[13].len != 2 * nv * D
+              || (a[14].len != 0 && a[14].len != ne * nv);
     for (Py_ssize_t i = 0; !bad && i < ne; i++) bad = E[i] < 0 || E[i] > k.bc.n_e - nv;
     if (bad) {
         release_many(k.b, 32);
@@ -3820,7 +3878,8 @@ static PyObject *size_nodes_call(PyObject *args, int versions)
                         (const double *)a[3].buf, nf, (const double *)a[4].buf, (const double *)a[5].buf,
                         (const double *)a[6].buf, (const double *)a[7].buf, nu, (const double *)a[8].buf,
                         (const double *)a[9].buf, (const double *)a[10].buf,
-                        a[11].len ? (const double *)a[11].buf : NULL, (double *)a[12].buf, (double *)a[13].buf);
+                        a[11].len ? (const double *)a[11].buf : NULL, (double *)a[12].buf, (double *)a[13].buf,
+                        a[14].len ? (const unsigned char *)a[14].buf : NULL);
     Py_END_ALLOW_THREADS
     return finish_call(rc, k.b, 32);
 }
@@ -3832,11 +3891,14 @@ static PyObject *size_nodes(PyObject *self, PyObject *args)
 
 /*
  * size_nodes_versions(bins, marg, e_index, nv, rc, expx, x0, xf, interp, spline, u, half_log_u, l0, logmix, prior,
- *                     shift, out, best): size_nodes of nv versions of one object, binned together
+ *                     shift, out, best[, need]): size_nodes of nv versions of one object, binned together
  * (likelihood.mode_bins_versions: version v's bins at ellipticity i are entry e_index[i] + v) on the same modes and
  * size nodes, each with its own point source (l0: nv x 2), output (out: nv x 5 x n_e) and best fit (best: nv x 2):
  * the numbers of size_nodes on each version, with the quadratic sums and fold pairs, which are the modes' and not
- * the data's, summed once for all (sampling.VersionLikelihoods).
+ * the data's, summed once for all (sampling.VersionLikelihoods). need (n_e x nv bytes, row-major; absent or empty:
+ * every one): version v's size integral made at ellipticity i only where need[i, v] != 0 (its out NaN elsewhere),
+ * its models' flux and bulge-fraction marginals only there; its best fit (best) still over every model, and its
+ * numbers where it is needed those without need.
  */
 static PyObject *size_nodes_versions(PyObject *self, PyObject *args)
 {
@@ -4036,7 +4098,8 @@ static NO_CONTRACT int chunk_run(const BinsCtx *bc, const MargCtx *mc, Py_ssize_
             if (!(TOP[i] < state[0] - tail_skip)) EF[nfull++] = i;
     }
     if (rc_ == 0 && nfull == ne) {
-        rc_ = size_nodes_run(bc, mc, ne, E, 1, RC, ex, nr, x0, XF, nf, ITP, SPL, U, HLU, nu, L0, LM, PR, SH, O, state + 1);
+        rc_ = size_nodes_run(bc, mc, ne, E, 1, RC, ex, nr, x0, XF, nf, ITP, SPL, U, HLU, nu, L0, LM, PR, SH, O, state + 1,
+                             NULL);
         state[3] += (double)(ne * nr);
     } else if (rc_ == 0) {
         /* the tail's crude values, the others' nodes */
@@ -4051,7 +4114,7 @@ static NO_CONTRACT int chunk_run(const BinsCtx *bc, const MargCtx *mc, Py_ssize_
             if (of == NULL) rc_ = -1;
             else {
                 rc_ = size_nodes_run(bc, mc, nfull, EF, 1, RF, ex, nr, x0, XF, nf, ITP, SPL, U, HLU, nu, L0, LM, PR,
-                                     SH != NULL ? SF : NULL, of, state + 1);
+                                     SH != NULL ? SF : NULL, of, state + 1, NULL);
                 for (int f = 0; rc_ == 0 && f < 5; f++)
                     for (Py_ssize_t j = 0; j < nfull; j++) O[f * ne + EF[j]] = of[f * nfull + j];
                 free(of);

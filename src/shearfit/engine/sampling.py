@@ -685,8 +685,16 @@ class VersionLikelihoods:
         self.polar = polar_setting(l0.cfg) if self.joint else None
         self.grid = None   # the versions' polar grid, made at the first call
 
-    def __call__(self, e1, e2, versions=None) -> list:
-        """``[like(e1, e2) for like in likes]``, over the likelihoods ``versions`` (indices; None: all)."""
+    def __call__(self, e1, e2, versions=None, need=None) -> list:
+        """``[like(e1, e2) for like in likes]``, over the likelihoods ``versions`` (indices; None: all). ``need``
+        (bool, one row per ellipticity, one column per version called): each version evaluated only at the
+        ellipticities it needs, its EPoint NaN elsewhere (its numbers there its own like's, to rounding: other
+        batches of models; only the models marginalised counted; its best fit still over every model), the bins
+        of all placed once."""
+        if need is not None:
+            need = np.asarray(need, bool).reshape(np.size(e1), -1)
+            if need.all():
+                need = None
         if versions is not None and list(versions) != list(range(len(self.likes))):
             sub = VersionLikelihoods([self.likes[v] for v in versions])
             if self.grid is not None and (sub.joint or len(sub.likes) == 1):
@@ -697,19 +705,22 @@ class VersionLikelihoods:
                     sub.grid = part
                 else:
                     seed_polar_grid(sub.likes[0].jm, self.likes[0].cfg.mode_bins_per_octave, self.polar[0], part)
-            return sub(e1, e2)
+            return sub(e1, e2, need=need)
         e1 = np.atleast_1d(np.asarray(e1, float))
         e2 = np.atleast_1d(np.asarray(e2, float))
         if not self.joint:
-            return [like(e1, e2) for like in self.likes]
+            if need is None:
+                return [like(e1, e2) for like in self.likes]
+            return [_at_needed(like, e1, e2, need[:, v]) for v, like in enumerate(self.likes)]
         step = self.likes[0].chunk
-        out = [self._chunk(e1[i:i + step], e2[i:i + step]) for i in range(0, e1.size, step)]
+        out = [self._chunk(e1[i:i + step], e2[i:i + step], None if need is None else need[i:i + step])
+               for i in range(0, e1.size, step)]
         if len(out) == 1:   # (the chunk's own arrays: nothing to join)
             return out[0]
         return [EPoint(*[np.concatenate([getattr(o[v], f) for o in out]) for f in EPoint.__dataclass_fields__])
                 for v in range(len(self.likes))]
 
-    def _chunk(self, e1, e2):
+    def _chunk(self, e1, e2, need=None):
         likes = self.likes
         l0 = likes[0]
         nv, ne, nr = len(likes), e1.size, l0.x.size
@@ -728,7 +739,7 @@ class VersionLikelihoods:
             # every version's size nodes in one compiled call (KERNEL.size_nodes_versions: each version's numbers
             # those of its own like's KERNEL.size_nodes, the quadratic sums made once): its bins at ellipticity i are
             # entry i * nv + v
-            return self._nodes_versions(e1, e2, rc, bins, np.arange(ne, dtype=np.int64) * nv, marg)
+            return self._nodes_versions(e1, e2, rc, bins, np.arange(ne, dtype=np.int64) * nv, marg, need)
         R = rc[:, None] * np.exp(l0.x)[None, :]
         m = ne * nr
         # the models version after version; version v's bins at ellipticity i are entry i * nv + v
@@ -736,14 +747,17 @@ class VersionLikelihoods:
         sums = l0._sums(np.tile(np.repeat(e1, nr), nv), np.tile(np.repeat(e2, nr), nv), np.tile(R.ravel(), nv),
                         bins, index)
         mg = flux_position_marginal(sums, l0.cfg, l0.jm.pixel_scale)
-        return [lk._size_integral(e1, e2, R, Marginal(*[getattr(mg, f.name)[v * m:(v + 1) * m]
-                                                        for f in fields(Marginal)]))
-                for v, lk in enumerate(likes)]
+        out = [lk._size_integral(e1, e2, R, Marginal(*[getattr(mg, f.name)[v * m:(v + 1) * m]
+                                                       for f in fields(Marginal)]))
+               for v, lk in enumerate(likes)]
+        # (every version evaluated everywhere on this path, which only very many size nodes take: the samples a
+        # version does not need are set aside as the compiled path leaves them)
+        return out if need is None else [_not_needed_nan(p, need[:, v]) for v, p in enumerate(out)]
 
 
-    def _nodes_versions(self, e1, e2, rc, bins, base, marg):
+    def _nodes_versions(self, e1, e2, rc, bins, base, marg, need=None):
         """:meth:`EllipticityLikelihood._nodes_kernel` of every version in one call (version v's bins at ellipticity
-        i: entry base[i] + v); one EPoint per version."""
+        i: entry base[i] + v); one EPoint per version (``need``: as :meth:`__call__`'s)."""
         likes = self.likes
         l0 = likes[0]
         nv, ne = len(likes), e1.size
@@ -757,14 +771,31 @@ class VersionLikelihoods:
                                    np.ascontiguousarray(base, dtype=np.int64), nv, np.ascontiguousarray(rc, dtype=float),
                                    expx, float(l0.x[0]), xf, interp_w, spl, l0._SEG_U, l0._SEG_HALF_LOG_U,
                                    np.ascontiguousarray([c[1] for c in consts], dtype=float), logmix, prior,
-                                   b"" if shift is None else np.ascontiguousarray(shift, dtype=float), out, best)
+                                   b"" if shift is None else np.ascontiguousarray(shift, dtype=float), out, best,
+                                   b"" if need is None else np.ascontiguousarray(need, dtype=np.uint8))
         points = []
         for v, lk in enumerate(likes):
-            lk.n_models += ne * lk.x.size
+            lk.n_models += (ne if need is None else int(np.count_nonzero(need[:, v]))) * lk.x.size
             lk.best_chi2_gal, lk.best_snr = float(best[v, 0]), float(best[v, 1])
             o = out[v]
             points.append(EPoint(logl_disk=o[0], logl_bulge=o[1], mean_r=o[2], mean_b=o[3], mean_flux=o[4]))
         return points
+
+
+def _not_needed_nan(point, need):
+    """``point`` with NaN where ``need`` is False (a version's values at the samples it was not asked for)."""
+    return EPoint(*[np.where(need, getattr(point, f), np.nan) for f in EPoint.__dataclass_fields__])
+
+
+def _at_needed(like, e1, e2, need):
+    """``like`` evaluated where ``need`` (one version's column of :meth:`VersionLikelihoods.__call__`'s), NaN
+    elsewhere."""
+    out = EPoint(*[np.full(e1.size, np.nan) for _ in EPoint.__dataclass_fields__])
+    if np.any(need):
+        pt = like(e1[need], e2[need])
+        for f in EPoint.__dataclass_fields__:
+            getattr(out, f)[need] = getattr(pt, f)
+    return out
 
 
 @dataclass
@@ -1207,13 +1238,19 @@ def replay_versions(likes: VersionLikelihoods, ref: Samples, cfg: FitConfig, mar
     logpost = [np.full(n, -np.inf) for _ in range(nv)]
     cols = [{f: np.full(n, np.nan) for f in fields_} for _ in range(nv)]
 
-    def evaluate(which, versions):
+    def evaluate(which, versions, need=None):
         e1, e2 = ref.e1[which], ref.e2[which]
         priors_ = _known_log_e_priors(e1, e2, cfg)   # (the same for every version)
-        for v, pt in zip(versions, likes(e1, e2, versions=versions)):
-            logl[v][which], logpost[v][which] = _mix(pt, e1, e2, cfg, priors_)
+        rows = np.flatnonzero(which)
+        for j, (v, pt) in enumerate(zip(versions, likes(e1, e2, versions=versions, need=need))):
+            if need is None:
+                at, p, pr = rows, pt, priors_
+            else:   # (the version's own samples: its values elsewhere were not made)
+                k = need[:, j]
+                at, p, pr = rows[k], EPoint(*[getattr(pt, f)[k] for f in fields_]), (priors_[0][k], priors_[1][k])
+            logl[v][at], logpost[v][at] = _mix(p, ref.e1[at], ref.e2[at], cfg, pr)
             for f in fields_:
-                cols[v][f][which] = getattr(pt, f)
+                cols[v][f][at] = getattr(p, f)
 
     sel = _evaluate_near_cut(ref, ok, cfg, margin, first_margin, nv, evaluate, lambda v, which: logpost[v][which])
     return [Samples(e1=ref.e1, e2=ref.e2, area=ref.area, logl=logl[v], logpost=logpost[v],
@@ -1237,10 +1274,11 @@ def _evaluate_near_cut(ref, ok, cfg, margin, first_margin, nv, evaluate, logpost
     change of the log posterior from the reference's (``logpost_of(v, which)``: version v's log posterior there)
     fitted over them by a quadratic in (e1, e2), and of the other samples within ``margin`` only those whose
     predicted log posterior lies within ``first_margin`` nats, plus three times the fit's largest residual, of the
-    version's own cut (the samples any version needs evaluated for all that need some, together: their bins placed
-    once). Where a sample a version needs differs from its prediction by more than half ``first_margin`` plus that
-    allowance, or where fewer than ``PREDICT_MIN_SAMPLES`` samples lie above the cut, the version evaluates every
-    sample within ``margin``.
+    version's own cut (each version evaluated at the samples it needs alone, all in one call: their bins placed
+    once, ``evaluate(which, versions, need)`` with ``need`` one column per version over ``which``'s samples). Where
+    a sample a version needs differs from its prediction by more than half ``first_margin`` plus that allowance, or
+    where fewer than ``PREDICT_MIN_SAMPLES`` samples lie above the cut, the version evaluates every sample within
+    ``margin`` (those it has not yet, for all such versions in one call, each its own).
     The samples left out lie below the version's cut by more than the prediction's error seen: its estimate is
     the one with ``margin`` alone. Returns one mask per version."""
     sel = [np.zeros(ref.e1.size, bool) for _ in range(nv)]
@@ -1280,28 +1318,33 @@ def _evaluate_near_cut(ref, ok, cfg, margin, first_margin, nv, evaluate, logpost
         need = pred > np.max(lp[good]) + lnc - slack
         if np.any(need):
             fits[v] = (pred, slack, need)
-    # the samples any version needs, evaluated for those versions together (their bins placed once)
-    near = np.zeros(ref.e1.size, bool)
-    for _, _, need in fits.values():
-        near[ir[need]] = True
+    # the samples each version needs, evaluated for those versions together (their bins placed once, each
+    # version's models only at its own)
+    own = {}
+    for v, (_, _, need) in fits.items():
+        own[v] = np.zeros(ref.e1.size, bool)
+        own[v][ir[need]] = True
     some = list(fits)
     if some:
-        evaluate(near, some)
+        near = np.logical_or.reduce([own[v] for v in some])
+        evaluate(near, some, np.stack([own[v][near] for v in some], axis=1))
         for v in some:
             # the prediction checked where the version needs it
             pred, slack, need = fits[v]
-            got = logpost_of(v, near)[need[near[ir]]]
+            got = logpost_of(v, own[v])
             fin = np.isfinite(got)
             if np.any(fin) and np.max(np.abs(got[fin] - pred[need][fin])) > slack - 0.5 * first_margin:
                 whole.append(v)
     for v in range(nv):
-        sel[v] = above | near if v in fits else above.copy()
-    # the versions that evaluate every sample within the margin: those not yet evaluated
-    for group, others in (([v for v in whole if v in fits], rest & ~near), ([v for v in whole if v not in fits], rest)):
-        if group and np.any(others):
-            evaluate(others, group)
-            for v in group:
-                sel[v] = sel[v] | others
+        sel[v] = above | own[v] if v in fits else above.copy()
+    # the versions that evaluate every sample within the margin: those they have not evaluated yet
+    if whole:
+        others = {v: rest & ~sel[v] for v in whole}
+        union = np.logical_or.reduce(list(others.values()))
+        if np.any(union):
+            evaluate(union, whole, np.stack([others[v][union] for v in whole], axis=1))
+            for v in whole:
+                sel[v] = sel[v] | others[v]
     return sel
 
 
@@ -1346,10 +1389,12 @@ def adaptive_versions(likes: VersionLikelihoods, ref: Samples, cfg: FitConfig, m
     # every version's values at the reference's samples: the reference's, until evaluated
     cols = [{f: np.array(getattr(ref.point, f), float) for f in fields_} for _ in range(nv)]
 
-    def evaluate(which, versions):
-        for v, pt in zip(versions, likes(ref.e1[which], ref.e2[which], versions=versions)):
+    def evaluate(which, versions, need=None):
+        rows = np.flatnonzero(which)
+        for j, (v, pt) in enumerate(zip(versions, likes(ref.e1[which], ref.e2[which], versions=versions, need=need))):
+            at = slice(None) if need is None else need[:, j]
             for f in fields_:
-                cols[v][f][which] = getattr(pt, f)
+                cols[v][f][rows[at]] = getattr(pt, f)[at]
 
     def logpost_of(v, which):
         return _mix(EPoint(**{f: cols[v][f][which] for f in fields_}), ref.e1[which], ref.e2[which], cfg)[1]
