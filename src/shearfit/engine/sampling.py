@@ -692,9 +692,8 @@ class VersionLikelihoods:
         batches of models; only the models marginalised counted; its best fit still over every model), the bins
         of all placed once."""
         if need is not None:
-            need = np.asarray(need, bool).reshape(np.size(e1), -1)
-            if need.all():
-                need = None
+            need = np.asarray(need, bool)
+            need = None if need.all() else need.reshape(np.size(e1), -1)   # (all, or no ellipticity: every one)
         if versions is not None and list(versions) != list(range(len(self.likes))):
             sub = VersionLikelihoods([self.likes[v] for v in versions])
             if self.grid is not None and (sub.joint or len(sub.likes) == 1):
