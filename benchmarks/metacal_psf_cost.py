@@ -14,6 +14,8 @@ difference, with the CPU and the compiled loops' instruction set.
     python benchmarks/metacal_psf_cost.py --oversampling 1 # native PSF images
     python benchmarks/metacal_psf_cost.py --fits 40        # also whole measurements: metacal against the plain fit
     python benchmarks/metacal_psf_cost.py --fwhm 0.3       # undersampled PSFs (1.6 pixels), as from space
+    python benchmarks/metacal_psf_cost.py --psf-size 25    # PSF images 25 stamp pixels wide (a PSFEx model's 25
+                                                           # samples), 75 samples at 3 times, not the stamp's 48
 
 ``--fits N`` then measures N new galaxies of each case (7 exposures, SNR 20) with ``measure_object`` and with
 ``measure_metacal``, one after the other for each galaxy (so that the machine's drift meets both alike), and prints
@@ -55,9 +57,10 @@ def _exposures(n_exp, rng, fwhm=0.6):
     return out
 
 
-def _objects(exposures, n_obj, k, own, rng):
-    """Observations of n_obj galaxies on every exposure; with ``own`` each object its own PSF image."""
-    shared = [draw_psf_image(moffat_psf(*p), J, size=STAMP * k, oversampling=k) for J, p in exposures]
+def _objects(exposures, n_obj, k, own, rng, psf_size=STAMP):
+    """Observations of n_obj galaxies on every exposure; with ``own`` each object its own PSF image (``psf_size`` stamp
+    pixels wide, ``psf_size`` k samples)."""
+    shared = [draw_psf_image(moffat_psf(*p), J, size=psf_size * k, oversampling=k) for J, p in exposures]
     objs = []
     for m in range(n_obj):
         gal = galaxy_profile(rng.uniform(0.2, 0.6), 0.1, *rng.uniform(-0.3, 0.3, 2), flux=1000.0)
@@ -65,8 +68,8 @@ def _objects(exposures, n_obj, k, own, rng):
         for (J, p), psf in zip(exposures, shared):
             if own:
                 fwhm, beta, e1, e2 = p
-                psf = draw_psf_image(moffat_psf(fwhm + rng.uniform(1e-5, 1e-3), beta, e1, e2), J, size=STAMP * k,
-                                     oversampling=k)
+                psf = draw_psf_image(moffat_psf(fwhm + rng.uniform(1e-5, 1e-3), beta, e1, e2), J,
+                                     size=psf_size * k, oversampling=k)
             im = draw_stamp(gal, moffat_psf(*p), J, (0.0, 0.0), stamp_size=STAMP)
             sig = noise_for_snr([im], 20.0)
             obs.append(shearfit.Observation(image=im + rng.normal(0.0, sig, im.shape),
@@ -91,6 +94,8 @@ def main(argv=None):
     ap.add_argument("--objects", type=int, default=40)
     ap.add_argument("--passes", type=int, default=3)
     ap.add_argument("--oversampling", type=int, default=3, help="the PSF images' oversampling k")
+    ap.add_argument("--psf-size", type=int, default=STAMP,
+                    help="the PSF images' width in stamp pixels (default the stamp's, 48; a PSFEx model: its samples)")
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--fwhm", type=float, default=0.6,
                     help="the first exposure's PSF FWHM in arcsec (0.187\" pixels; 0.3: undersampled, as from space)")
@@ -106,13 +111,14 @@ def main(argv=None):
     times = {name: [] for name in cases}
     for p in range(args.passes):
         for name, own in cases.items():   # (new objects every pass: no image is remembered from the last)
-            objs = _objects(exposures, args.objects, k, own, np.random.default_rng(args.seed + 100 * p + own))
+            objs = _objects(exposures, args.objects, k, own, np.random.default_rng(args.seed + 100 * p + own),
+                            args.psf_size)
             if p == 0 and not own:
                 _cpu_per_exposure(objs[:2], rng)   # (imports and one-off tables)
             times[name].append(_cpu_per_exposure(objs, rng))
-    print(f"metacal_observations, {args.objects} objects x {args.exposures} exposures, 48-pixel stamps, PSF images "
-          f"oversampled {k} times, FWHM {args.fwhm:.2f}\"+, {args.passes} passes (CPU ms an exposure, median; the "
-          "passes):")
+    print(f"metacal_observations, {args.objects} objects x {args.exposures} exposures, {STAMP}-pixel stamps, PSF images "
+          f"{args.psf_size} pixels wide oversampled {k} times ({args.psf_size * k} samples), FWHM {args.fwhm:.2f}\"+, "
+          f"{args.passes} passes (CPU ms an exposure, median; the passes):")
     med = {}
     for name, t in times.items():
         med[name] = float(np.median(t))
@@ -133,7 +139,8 @@ def _fits(exposures, args, cases):
           "galaxy; ratio of the sums, +- bootstrap over the galaxies):")
     boot = np.random.default_rng(0)
     for name, own in cases.items():
-        objs = _objects(exposures, args.fits + 2, args.oversampling, own, np.random.default_rng(args.seed + 7 + own))
+        objs = _objects(exposures, args.fits + 2, args.oversampling, own, np.random.default_rng(args.seed + 7 + own),
+                        args.psf_size)
         times = []
         for i, obs in enumerate(objs):
             t0 = time.process_time()
