@@ -1935,12 +1935,9 @@ static __attribute__((noinline)) int marginal_run(const MargCtx *c, Py_ssize_t n
             position_vec(ne, lp, lp0, g, g + MB_L, g + 2 * MB_L, g + 3 * MB_L, g + 4 * MB_L, &P, val, scratch);
             for (Py_ssize_t j = 0; j < nm; j++) {
                 const double *x = X + 15 * (i0 + j);
-                const double *L = x + 6 * pop;   /* h, grad, hess of this population */
                 double *o = O + 9 * (i0 + j);    /* logl_d, logl_b, flux_d, flux_b, meanb_d, chi2_d, chi2_b, snr_d, snr_b */
-                double h = L[0], hh = x[12 + pop];
                 const int good = good_m[j] != 0;
                 const double lo = lo_m[j], hi = hi_m[j];
-                double hh_s = good ? hh : 1.0, s_ml = good ? h / hh_s : 1.0;
                 double lpk[MAXF];
                 for (Py_ssize_t k = 0; k < nf; k++)
                     lpk[k] = good ? val[j * nf + k] - P.slope * logS[j * nf + k] : -INFINITY;

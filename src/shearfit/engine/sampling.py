@@ -1246,7 +1246,7 @@ def replay_versions(likes: VersionLikelihoods, ref: Samples, cfg: FitConfig, mar
                 at, p, pr = rows, pt, priors_
             else:   # (the version's own samples: its values elsewhere were not made)
                 k = need[:, j]
-                at, p, pr = rows[k], EPoint(*[getattr(pt, f)[k] for f in fields_]), (priors_[0][k], priors_[1][k])
+                at, p, pr = rows[k], EPoint(**{f: getattr(pt, f)[k] for f in fields_}), (priors_[0][k], priors_[1][k])
             logl[v][at], logpost[v][at] = _mix(p, ref.e1[at], ref.e2[at], cfg, pr)
             for f in fields_:
                 cols[v][f][at] = getattr(p, f)
